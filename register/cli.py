@@ -1,0 +1,67 @@
+"""The ``ctxreg`` command line.
+
+Each command's defaults live in one dataclass (:mod:`sim.cli`, and later :mod:`register` and
+:mod:`learn`); the options and their grouped help are generated from it. Errors in the user's
+input print one line and exit with status 2; set ``CTXREG_DEBUG=1`` for the traceback.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+
+from sim.cliargs import HelpFormatter, add_options, from_namespace
+from sim.cli import DemoCommand, RenderCommand
+
+COMMANDS = {
+    "render": (RenderCommand, "render a DRR of a CT at one pose", "sim.cli:run_render"),
+    "demo": (DemoCommand, "render the built-in pelvis phantom at a few poses (PNG + JSON)",
+             "sim.cli:run_demo"),
+}
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="ctxreg", formatter_class=HelpFormatter,
+        description="ctxreg: X-ray simulation from CT and 2D/3D registration. "
+                    "Units: mm, degrees, 1/mm. Conventions: docs/conventions.md.")
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    for name, (cls, summary, _) in COMMANDS.items():
+        p = sub.add_parser(name, help=summary, description=summary, formatter_class=HelpFormatter,
+                           argument_default=argparse.SUPPRESS)
+        add_options(p, cls)
+    return parser
+
+
+def _user_errors() -> tuple[type[BaseException], ...]:
+    """Exception types that mean bad input: shown as one line, no traceback."""
+    from sim.backend import BackendError
+
+    return (ValueError, FileNotFoundError, NotADirectoryError, PermissionError, BackendError)
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    cls, _, target = COMMANDS[args.command]
+    module, func = target.split(":")
+    try:
+        cmd = from_namespace(cls, args)
+        run = getattr(__import__(module, fromlist=[func]), func)
+        result = run(cmd)
+    except KeyboardInterrupt:
+        print(f"ctxreg {args.command}: interrupted", file=sys.stderr)
+        return 130
+    except _user_errors() as e:
+        if os.environ.get("CTXREG_DEBUG"):
+            raise
+        print(f"ctxreg {args.command}: error: {e}", file=sys.stderr)
+        return 2
+    for path in result if isinstance(result, list) else [result]:
+        print(f"wrote {path}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,1 @@
+"""Mitsuba integrator plugins of ctxreg, one per file; each registers itself via ``register()``."""

@@ -1,0 +1,28 @@
+"""Shared fixtures: the real data beside the project, skipped with a reason when absent."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+SHARED_DATA = (REPO / ".." / "shared" / "data").resolve()
+
+
+def shared_file(relative: str) -> Path:
+    """A file under ../shared/data, or skip the test saying what is missing."""
+    path = SHARED_DATA / relative
+    if not path.exists():
+        pytest.skip(f"real data {relative} not found under {SHARED_DATA} (see ../shared/data/README.md)")
+    return path
+
+
+@pytest.fixture(scope="session")
+def pelvis_ct_path() -> Path:
+    return shared_file("ct/pelvis_abdomen_3mm.nii.gz")
+
+
+@pytest.fixture(scope="session")
+def chest_ct_path() -> Path:
+    return shared_file("ct/chest_0p7x2p5mm.nii.gz")
