@@ -62,22 +62,32 @@ class DRRIntegrator(mi.SamplingIntegrator):
         self.n_poses = 1
 
     # ------------------------------------------------------------------ data
-    def set_volume(self, data: np.ndarray, spacing_mm) -> None:
+    def set_volume(self, data: np.ndarray, spacing_mm, memory_order=(0, 1, 2)) -> None:
         """Upload a volume once; later renders reuse it.
 
         Args:
             data: ``(C, I, J, K)`` float32, channel-first, indexed like the CT (``[c, i, j, k]``).
             spacing_mm: ``(3,)`` voxel spacing along i, j, k in mm (sets the trilinear step).
+            memory_order: the index axes from slowest to fastest in memory. Neighbouring rays
+                of a SIMD packet lie along the detector rows; storing the volume axis that runs
+                along the rows contiguously lets one packet's gathers share cache lines (see
+                :meth:`sim.render.DRRRenderer` for the choice). Only the strides change.
         """
         data = np.asarray(data, dtype=np.float32)
         if data.ndim != 4 or min(data.shape[1:]) < 1 or data.shape[0] < 1:
             raise ValueError(f"ctxreg_drr: volume must be (C, I, J, K), got shape {data.shape}")
         if not np.all(np.isfinite(data)):
             raise ValueError("ctxreg_drr: volume contains NaN or infinite values")
+        order = tuple(int(a) for a in memory_order)
+        if sorted(order) != [0, 1, 2]:
+            raise ValueError(f"ctxreg_drr: memory_order must be a permutation of (0, 1, 2), got {memory_order}")
         c = data.shape[0]
         padded = np.zeros((data.shape[1] + 2, data.shape[2] + 2, data.shape[3] + 2, c), np.float32)
         padded[1:-1, 1:-1, 1:-1, :] = np.moveaxis(data, 0, -1)
-        self.volume = mi.Float(padded.ravel())
+        stored = np.ascontiguousarray(np.transpose(padded, order + (3,)))
+        # strides (in floats) of index axes i, j, k in the stored array
+        self.strides = tuple(int(stored.strides[order.index(a)] // 4) for a in range(3))
+        self.volume = mi.Float(stored.ravel())
         self.shape = tuple(int(n) for n in data.shape[1:])
         self.channels = c
         self.min_spacing_mm = float(np.min(spacing_mm))
@@ -173,10 +183,8 @@ class DRRIntegrator(mi.SamplingIntegrator):
         c_count = self.channels
         o, d = self._rays_in_index_space(sensor, width, height, n_rays)
         n = mi.Vector3f(dr.opaque(mi.Float, ni), dr.opaque(mi.Float, nj), dr.opaque(mi.Float, nk))
-        # Strides of the padded (I+2, J+2, K+2, C) array, in floats.
-        sk = dr.opaque(mi.Int32, c_count)
-        sj = dr.opaque(mi.Int32, (nk + 2) * c_count)
-        si = dr.opaque(mi.Int32, (nj + 2) * (nk + 2) * c_count)
+        # Strides of index axes i, j, k in the padded, permuted array, in floats.
+        si, sj, sk = (dr.opaque(mi.Int32, st) for st in self.strides)
         if self.ray_model == "siddon":
             return self._siddon(o, d, n, (si, sj, sk), c_count)
         return self._trilinear(o, d, n, (si, sj, sk), c_count)
