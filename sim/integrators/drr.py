@@ -199,7 +199,9 @@ class DRRIntegrator(mi.SamplingIntegrator):
         start = p + d * (0.5 * (s_in + dr.minimum(s_out, s_in + 1e-3)))
         v = mi.Vector3i(dr.clip(dr.floor(start), 1.0, n))
         step = mi.Vector3i(dr.select(d > 0, 1, -1))
-        t_max = (mi.Vector3f(v) + dr.select(d > 0, 1.0, 0.0) - p) * inv
+        # Clamped at the entry: rounding can put a boundary just before it. Then every
+        # s_next = min(t_max) is >= the current s, and segments are never negative.
+        t_max = dr.maximum((mi.Vector3f(v) + dr.select(d > 0, 1.0, 0.0) - p) * inv, s_in)
         t_delta = dr.abs(inv)
         flat = v.x * si + v.y * sj + v.z * sk
         dflat = mi.Vector3i(step.x * si, step.y * sj, step.z * sk)
@@ -211,7 +213,7 @@ class DRRIntegrator(mi.SamplingIntegrator):
             return active
 
         def body(active, s, flat, t_max, *acc):
-            s_next = dr.maximum(dr.minimum(dr.min(t_max), s_out), s)
+            s_next = dr.minimum(dr.min(t_max), s_out)
             seg = s_next - s
             # The zero padding absorbs the single step past the exit face that rounding can
             # cause; the bounds check only guards memory.

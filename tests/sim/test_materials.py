@@ -1,0 +1,52 @@
+"""HU to attenuation and to material densities."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from sim.materials import MU_WATER_60KEV_PER_MM, MaterialDecomposition, mu_from_hu
+
+
+def test_default_mu_water_is_xraylib_water_at_60_kev():
+    xraylib = pytest.importorskip("xraylib")
+    # NIST liquid water, total attenuation with coherent scattering, cm^2/g x 1 g/cm^3 -> 1/mm
+    expected = xraylib.CS_Total_CP("Water, Liquid", 60.0) * 1.0 / 10.0
+    assert MU_WATER_60KEV_PER_MM == pytest.approx(expected, rel=1e-4)
+
+
+def test_mu_from_hu_is_linear_and_clipped():
+    hu = np.array([-1200.0, -1000.0, 0.0, 1000.0])
+    np.testing.assert_allclose(mu_from_hu(hu, 0.02), [0.0, 0.0, 0.02, 0.04], rtol=1e-6)
+    with pytest.raises(ValueError, match="mu_water"):
+        mu_from_hu(hu, 0.0)
+
+
+def test_fractions_are_a_smooth_partition_of_unity():
+    m = MaterialDecomposition()
+    hu = np.linspace(-1500, 3000, 9001)
+    f = m.fractions(hu)
+    np.testing.assert_allclose(f.sum(0), 1.0, atol=1e-12)
+    assert f.min() >= 0.0
+    # continuous: no jump larger than the slope over one 0.5 HU step allows
+    assert np.abs(np.diff(f, axis=1)).max() < 0.5 / 960 + 1e-12
+    # pure at the anchors
+    for k, (_, h) in enumerate(m.anchors):
+        np.testing.assert_allclose(m.fractions(np.array(h))[:, ...], np.eye(len(m.anchors))[k], atol=1e-12)
+
+
+def test_density_curve_passes_its_knots_and_stays_non_negative():
+    m = MaterialDecomposition()
+    for h, rho in m.density_points:
+        assert m.density(np.array(h)) == pytest.approx(rho)
+    assert m.density(np.array(-3000.0)) == 0.0
+    assert np.all(np.diff(m.density(np.linspace(-1000, 4000, 100))) > 0)
+    np.testing.assert_allclose(m.partial_densities(np.array([0.0, 500.0])).sum(0),
+                               m.density(np.array([0.0, 500.0])), rtol=1e-6)
+
+
+def test_bad_decompositions_are_rejected():
+    with pytest.raises(ValueError, match="increasing"):
+        MaterialDecomposition(anchors=(("a", 0.0), ("b", -10.0)))
+    with pytest.raises(ValueError, match="increasing"):
+        MaterialDecomposition(density_points=((0.0, 1.0),))
