@@ -1,0 +1,147 @@
+"""Renderer benchmark: median ms per line-integral DRR, ctxreg against DiffDRR in the same run.
+
+Usage (from the repository root, after set-up)::
+
+    .venv/bin/python benchmarks/render.py [--repeats 15] [--peer-repeats 3] [--sizes 256 128]
+
+For each CT of ``../shared/data/ct`` (chest 512 x 512 x 133 at 0.7 x 0.7 x 2.5 mm; pelvis
+122 x 101 x 112 at 3 mm) and each detector size, at the AP pose about the anatomy centre of
+the Cios Fusion scene, it prints:
+
+* ctxreg Siddon and trilinear: median ms per image after warm-up, the first call (kernel
+  compile, measured cold: Dr.Jit's on-disk kernel cache is pointed at an empty folder), and a
+  batch of 16 poses per launch (ms per image);
+* DiffDRR 0.6.1 (CPU, 2 torch threads) Siddon and trilinear (its default 500 points, and
+  a step of half the smallest voxel), when it is installed (``pip install -e ".[bench]"``);
+* the relative L2 difference of each image to ctxreg's Siddon image, and the speed ratio.
+
+The last line reads ``speedup_vs_diffdrr: R``: DiffDRR's faster renderer's median over ctxreg
+Siddon's median for the 256 x 256 chest case (``n/a`` without DiffDRR).
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import statistics
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+DATA = REPO.parent / "shared" / "data" / "ct"
+CTS = {"chest": DATA / "chest_0p7x2p5mm.nii.gz", "pelvis": DATA / "pelvis_abdomen_3mm.nii.gz"}
+
+
+def median_ms(fn, repeats: int) -> float:
+    times = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        fn()
+        times.append((time.perf_counter() - t0) * 1e3)
+    return statistics.median(times)
+
+
+def rel_l2(a, b) -> float:
+    import numpy as np
+
+    return float(np.linalg.norm(a - b) / np.linalg.norm(b))
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--repeats", type=int, default=15, help="timed ctxreg renders per case (default: 15)")
+    ap.add_argument("--peer-repeats", type=int, default=3, help="timed DiffDRR renders per case (default: 3)")
+    ap.add_argument("--sizes", type=int, nargs="+", default=[256, 128], help="square detector sizes (px)")
+    ap.add_argument("--cts", nargs="+", default=list(CTS), choices=list(CTS), help="which CTs")
+    ap.add_argument("--warm-cache", action="store_true",
+                    help="keep Dr.Jit's kernel cache (first-call times then exclude compiling)")
+    args = ap.parse_args(argv)
+    if not args.warm_cache:  # before Dr.Jit starts: an empty kernel cache makes compiles real
+        os.environ["HOME"] = tempfile.mkdtemp(prefix="ctxreg-bench-home-")
+    sys.path.insert(0, str(REPO))
+
+    import numpy as np
+
+    from sim.ct_io import load_ct
+    from sim.geometry import extrinsic_lps_to_camera, pose_from_params
+    from sim.render import DRRRenderer, RenderSettings
+
+    try:
+        sys.path.insert(0, str(REPO / "benchmarks"))
+        import diffdrr_peer
+        import torch
+
+        diffdrr_peer._import_diffdrr()
+        torch.set_num_threads(2)
+        peer_ok = True
+    except ImportError as e:
+        print(f"# DiffDRR not available ({e}); peer columns skipped")
+        peer_ok = False
+
+    rows = []
+    speedup = None
+    rng = np.random.default_rng(0)
+    for ct_name in args.cts:
+        if not CTS[ct_name].is_file():
+            print(f"# {CTS[ct_name]} not found; skipping {ct_name}")
+            continue
+        vol = load_ct(CTS[ct_name])
+        for size in args.sizes:
+            ref = None
+            results = {}
+            for model in ("siddon", "trilinear"):
+                t0 = time.perf_counter()
+                r = DRRRenderer(vol, RenderSettings(size=(size, size), ray_model=model))
+                setup_ms = (time.perf_counter() - t0) * 1e3
+                pose = pose_from_params(np.zeros(6), r.geometry.sod_mm)
+                t0 = time.perf_counter()
+                img = r.render(pose)[0]
+                first_ms = (time.perf_counter() - t0) * 1e3
+                ms = median_ms(lambda: r.render(pose), args.repeats)
+                batch = pose_from_params(rng.uniform(-1, 1, (16, 6)) * [40, 20, 20, 75, 75, 75],
+                                         r.geometry.sod_mm)
+                r.render(batch)
+                batch_ms = median_ms(lambda: r.render(batch), max(3, args.repeats // 4)) / len(batch)
+                if model == "siddon":
+                    ref = img
+                results[model] = ms
+                rows.append((ct_name, size, f"ctxreg {model}", ms, first_ms, batch_ms, setup_ms,
+                             rel_l2(img, ref), None))
+            if peer_ok:
+                extr = extrinsic_lps_to_camera(pose, r.center_lps)
+                g = r.geometry
+                peer_cases = [("siddon", {}), ("trilinear", {}),
+                              ("trilinear", {"step_mm": 0.5 * float(vol.spacing_mm.min())})]
+                peer_ms = []
+                for model, extra in peer_cases:
+                    prep = diffdrr_peer.prepare(vol.hu, vol.affine, extr, g.sdd_mm, g.height, g.width,
+                                                g.pixel_spacing_mm, renderer=model, **extra)
+                    t0 = time.perf_counter()
+                    img = diffdrr_peer.render(prep)
+                    first_ms = (time.perf_counter() - t0) * 1e3
+                    ms = median_ms(lambda: diffdrr_peer.render(prep), args.peer_repeats)
+                    label = f"DiffDRR {model}" + (f" n={prep.n_points}" if prep.n_points else "")
+                    peer_ms.append(ms)
+                    rows.append((ct_name, size, label, ms, first_ms, None, prep.prepare_s * 1e3,
+                                 rel_l2(img, ref), ms / results["siddon"]))
+                if ct_name == "chest" and size == 256:
+                    speedup = min(peer_ms) / results["siddon"]
+
+    print(f"# {time.strftime('%Y-%m-%d %H:%M')}, {os.cpu_count()} CPU threads, AP pose, scene cios_fusion")
+    head = ("CT", "size", "renderer", "median ms", "first call ms", "batch16 ms/img", "set-up ms",
+            "rel L2 vs ctxreg siddon", "ctxreg siddon speedup")
+    print("| " + " | ".join(head) + " |")
+    print("|" + "---|" * len(head))
+    for ct, size, name, ms, first, batch, setup, l2, ratio in rows:
+        cells = [ct, f"{size}x{size}", name, f"{ms:.1f}", f"{first:.0f}",
+                 "" if batch is None else f"{batch:.1f}", f"{setup:.0f}", f"{l2:.4f}",
+                 "" if ratio is None else f"{ratio:.0f}x"]
+        print("| " + " | ".join(cells) + " |")
+    print(f"speedup_vs_diffdrr: {'n/a' if speedup is None else f'{speedup:.1f}'}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
