@@ -72,13 +72,16 @@ class DemoCommand:
         "image rows and columns", group="geometry", unit="pixels", nargs=2, metavar=("H", "W")))
 
 
-#: The demo's poses: name -> (phi, theta, psi deg, tx, ty, tz mm).
+#: The demo's poses: name -> (phi, theta, psi deg, tx, ty, tz mm). The pelvis sits 250 mm
+#: beyond the isocentre (magnification 1.07 instead of 1.46) so the whole pelvis fits the
+#: 30 cm detector; "ap_iso" is the AP view at the isocentre, as in the registration protocol.
 DEMO_POSES = {
-    "ap": (0, 0, 0, 0, 0, 0),
-    "lao30": (30, 0, 0, 0, 0, 0),
-    "rao30": (-30, 0, 0, 0, 0, 0),
-    "cranial15": (0, 15, 0, 0, 0, 0),
-    "inlet_shifted": (10, -25, 5, 20, -15, 50),
+    "ap": (0, 0, 0, 0, 0, 250),
+    "phi_p30": (30, 0, 0, 0, 0, 250),
+    "phi_m30": (-30, 0, 0, 0, 0, 250),
+    "theta_p15": (0, 15, 0, 0, 0, 250),
+    "oblique_shifted": (10, -25, 5, 20, -15, 250),
+    "ap_iso": (0, 0, 0, 0, 0, 0),
 }
 
 
@@ -201,7 +204,8 @@ def run_demo(cmd: DemoCommand) -> list[Path]:
     from sim.render import DRRRenderer, RenderSettings
 
     volume = make_pelvis_phantom(cmd.seed)
-    renderer = DRRRenderer(volume, RenderSettings(size=tuple(cmd.size)))
+    # trilinear: the phantom's 2 mm voxels would show as steps on thin cortical shells
+    renderer = DRRRenderer(volume, RenderSettings(size=tuple(cmd.size), ray_model="trilinear"))
     params = np.array(list(DEMO_POSES.values()), dtype=np.float64)
     poses = pose_from_params(params, renderer.geometry.sod_mm)
     images = renderer.render(poses)  # all poses in one kernel launch
@@ -210,4 +214,6 @@ def run_demo(cmd: DemoCommand) -> list[Path]:
         path = Path(cmd.out) / f"phantom{cmd.seed}_{name}.png"
         write_image(path, image, geometry_record(renderer, pose, "line-integral"), "line-integral")
         written.append(path)
+    if not np.all(np.isfinite(images)) or images.max() <= 0:
+        raise RuntimeError("demo: the phantom rendered empty or non-finite images")
     return written
