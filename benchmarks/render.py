@@ -43,6 +43,27 @@ def median_ms(fn, repeats: int) -> float:
     return statistics.median(times)
 
 
+def voxel_steps(renderer, pose) -> int:
+    """Voxels crossed by all rays of one image (the Siddon loop's iteration count), in NumPy."""
+    import numpy as np
+
+    g = renderer.geometry
+    m = renderer.world_to_index(pose[None])[0]  # camera mm -> voxel index
+    d = g.pixel_centers_camera().reshape(-1, 3)
+    d = d / np.linalg.norm(d, axis=1, keepdims=True)
+    o = m[:3, 3] + 0.5  # voxel i spans [i, i + 1]
+    dv = d @ m[:3, :3].T
+    n = np.array(renderer.volume.shape, float)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t0, t1 = (0.0 - o) / dv, (n - o) / dv
+    t_in = np.nanmax(np.minimum(t0, t1), axis=1)
+    t_out = np.nanmin(np.maximum(t0, t1), axis=1)
+    hit = t_out > t_in
+    p_in = np.floor(o + dv[hit] * t_in[hit, None] + 1e-6 * dv[hit])
+    p_out = np.floor(o + dv[hit] * t_out[hit, None] - 1e-6 * dv[hit])
+    return int((np.abs(p_out - p_in).sum(1) + 1).sum())
+
+
 def rel_l2(a, b) -> float:
     import numpy as np
 
@@ -90,7 +111,7 @@ def main(argv=None) -> int:
         vol = load_ct(CTS[ct_name])
         for size in args.sizes:
             ref = None
-            results = {}
+            results, images = {}, {}
             for model in ("siddon", "trilinear"):
                 t0 = time.perf_counter()
                 r = DRRRenderer(vol, RenderSettings(size=(size, size), ray_model=model))
@@ -106,9 +127,13 @@ def main(argv=None) -> int:
                 batch_ms = median_ms(lambda: r.render(batch), max(3, args.repeats // 4)) / len(batch)
                 if model == "siddon":
                     ref = img
-                results[model] = ms
-                rows.append((ct_name, size, f"ctxreg {model}", ms, first_ms, batch_ms, setup_ms,
-                             rel_l2(img, ref), None))
+                results[model], images[model] = ms, img
+                name = f"ctxreg {model}"
+                rows.append((ct_name, size, name, ms, first_ms, batch_ms, setup_ms,
+                             rel_l2(img, ref), None, None))
+                if model == "siddon":  # loop iterations per second: one gather each
+                    steps = voxel_steps(r, pose)
+                    rows[-1] = rows[-1][:2] + (f"{name} ({steps / ms / 1e6:.2f} G voxel steps/s)",) + rows[-1][3:]
             if peer_ok:
                 extr = extrinsic_lps_to_camera(pose, r.center_lps)
                 g = r.geometry
@@ -125,19 +150,19 @@ def main(argv=None) -> int:
                     label = f"DiffDRR {model}" + (f" n={prep.n_points}" if prep.n_points else "")
                     peer_ms.append(ms)
                     rows.append((ct_name, size, label, ms, first_ms, None, prep.prepare_s * 1e3,
-                                 rel_l2(img, ref), ms / results["siddon"]))
+                                 rel_l2(img, ref), rel_l2(img, images[model]), ms / results["siddon"]))
                 if ct_name == "chest" and size == 256:
                     speedup = min(peer_ms) / results["siddon"]
 
     print(f"# {time.strftime('%Y-%m-%d %H:%M')}, {os.cpu_count()} CPU threads, AP pose, scene cios_fusion")
     head = ("CT", "size", "renderer", "median ms", "first call ms", "batch16 ms/img", "set-up ms",
-            "rel L2 vs ctxreg siddon", "ctxreg siddon speedup")
+            "rel L2 vs ctxreg siddon", "rel L2 vs ctxreg same model", "ctxreg siddon speedup")
     print("| " + " | ".join(head) + " |")
     print("|" + "---|" * len(head))
-    for ct, size, name, ms, first, batch, setup, l2, ratio in rows:
+    for ct, size, name, ms, first, batch, setup, l2, l2_same, ratio in rows:
         cells = [ct, f"{size}x{size}", name, f"{ms:.1f}", f"{first:.0f}",
-                 "" if batch is None else f"{batch:.1f}", f"{setup:.0f}", f"{l2:.4f}",
-                 "" if ratio is None else f"{ratio:.0f}x"]
+                 "" if batch is None else f"{batch:.1f}", f"{setup:.0f}", f"{l2:.5f}",
+                 "" if l2_same is None else f"{l2_same:.5f}", "" if ratio is None else f"{ratio:.0f}x"]
         print("| " + " | ".join(cells) + " |")
     print(f"speedup_vs_diffdrr: {'n/a' if speedup is None else f'{speedup:.1f}'}")
     return 0

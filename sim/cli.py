@@ -14,7 +14,9 @@ from pathlib import Path
 import numpy as np
 
 from sim.cliargs import opt
-from sim.render import QUANTITIES, RAY_MODELS
+from sim.render import QUANTITIES, RAY_MODELS, RenderSettings
+
+_DEFAULTS = RenderSettings()  # the renderer's defaults are the command line's
 
 CT_HELP = "CT: a NIfTI file, a DICOM series folder, or 'phantom' / 'phantom:SEED' (built-in pelvis)"
 
@@ -34,9 +36,9 @@ class RenderCommand:
     center: tuple[float, float, float] | None = field(default=None, metadata=opt(
         "anatomy centre c in LPS (default: label-map centroid, else bone centroid)", group="input",
         unit="mm", nargs=3, metavar=("X", "Y", "Z")))
-    scene: str = field(default="cios_fusion", metadata=opt(
+    scene: str = field(default=_DEFAULTS.scene, metadata=opt(
         "C-arm scene: a name from scenes/ or a scene XML path", group="geometry"))
-    size: tuple[int, int] = field(default=(256, 256), metadata=opt(
+    size: tuple[int, int] = field(default=_DEFAULTS.size, metadata=opt(
         "rendered image rows and columns (the detector is resampled, its extent kept)",
         group="geometry", unit="pixels", nargs=2, metavar=("H", "W")))
     pose: tuple[float, float, float, float, float, float] = field(default=(0.0,) * 6, metadata=opt(
@@ -46,15 +48,15 @@ class RenderCommand:
     pose_matrix: str | None = field(default=None, metadata=opt(
         "4x4 pose T from a .npy/.txt file or a render's .json sidecar (replaces --pose)",
         group="pose", metavar="FILE"))
-    quantity: str = field(default="line-integral", metadata=opt(
+    quantity: str = field(default=_DEFAULTS.quantity, metadata=opt(
         "what each pixel holds", group="physics", choices=QUANTITIES[:2]))
-    mu_water: float = field(default=0.020587, metadata=opt(
+    mu_water: float = field(default=_DEFAULTS.mu_water_per_mm, metadata=opt(
         "attenuation of water; mu = mu_water (1 + HU/1000), clipped at 0", group="physics",
         unit="1/mm", metavar="MU"))
-    ray_model: str = field(default="siddon", metadata=opt(
+    ray_model: str = field(default=_DEFAULTS.ray_model, metadata=opt(
         "siddon: exact voxel traversal; trilinear: sampled trilinear interpolant",
         group="physics", choices=RAY_MODELS))
-    step_fraction: float = field(default=0.5, metadata=opt(
+    step_fraction: float = field(default=_DEFAULTS.step_fraction, metadata=opt(
         "trilinear step as a fraction of the smallest voxel spacing", group="physics", metavar="F"))
     out: str = field(default="drr.png", metadata=opt(
         ".npy: float32 (H, W) raw values; .png: display image (bone bright). A .json sidecar "
@@ -190,6 +192,8 @@ def run_render(cmd: RenderCommand) -> Path:
                               mu_water_per_mm=cmd.mu_water)
     renderer = DRRRenderer(volume, settings, center_lps=cmd.center)
     if cmd.pose_matrix is not None:
+        if any(cmd.pose):
+            raise CommandError("give either --pose or --pose-matrix, not both")
         pose = load_pose_matrix(cmd.pose_matrix)
     else:
         pose = pose_from_params(np.array(cmd.pose, dtype=np.float64), renderer.geometry.sod_mm)
