@@ -51,22 +51,22 @@ from typing import Any
 
 import numpy as np
 
+from sim.materials import MU_WATER_60KEV_PER_MM
+
 __all__ = [
     "MU_WATER_PER_MM",
     "DiffDRRPeerInputError",
     "DiffDRRUnavailableError",
-    "DiffDRRTiming",
     "PreparedDiffDRR",
     "hu_to_mu",
     "diffdrr_pose_from_extrinsic",
     "prepare",
     "render",
     "render_diffdrr",
-    "render_diffdrr_timed",
 ]
 
-#: Linear attenuation coefficient of water in 1/mm used by default (about 70 keV).
-MU_WATER_PER_MM = 0.020587
+#: Linear attenuation coefficient of water in 1/mm used by default: ctxreg's (water at 60 keV).
+MU_WATER_PER_MM = MU_WATER_60KEV_PER_MM
 
 #: ``diag(-1, -1, 1, 1)``: DiffDRR's detector frame (``reverse_x_axis=True``) -> ctxreg's camera frame.
 _RZ_PI = np.diag([-1.0, -1.0, 1.0, 1.0])
@@ -80,14 +80,6 @@ class DiffDRRPeerInputError(ValueError):
 
 class DiffDRRUnavailableError(ImportError):
     """DiffDRR (or torchio, which it needs) is not installed in this environment."""
-
-
-@dataclass(frozen=True)
-class DiffDRRTiming:
-    """Wall-clock split of one :func:`render_diffdrr_timed` call, in seconds."""
-
-    prepare_s: float
-    render_s: float
 
 
 @dataclass(frozen=True, eq=False)
@@ -294,49 +286,10 @@ def render(prepared: PreparedDiffDRR, extrinsic_lps_to_cam: np.ndarray | None = 
     return img[0, 0].detach().cpu().numpy().astype(np.float32, copy=False)
 
 
-def render_diffdrr_timed(
-    hu: np.ndarray,
-    affine_lps: np.ndarray,
-    extrinsic_lps_to_cam: np.ndarray,
-    sdd_mm: float,
-    height: int,
-    width: int,
-    pixel_spacing_mm: float,
-    renderer: str = "siddon",
-    mu_water_per_mm: float = MU_WATER_PER_MM,
-    n_points: int | None = None,
-    step_mm: float | None = None,
-) -> tuple[np.ndarray, DiffDRRTiming]:
-    """:func:`render_diffdrr` plus the seconds spent in set-up and in the one render."""
-    prepared = prepare(
-        hu, affine_lps, extrinsic_lps_to_cam, sdd_mm, height, width, pixel_spacing_mm,
-        renderer=renderer, mu_water_per_mm=mu_water_per_mm, n_points=n_points, step_mm=step_mm,
-    )  # fmt: skip
-    t0 = time.perf_counter()
-    img = render(prepared)
-    return img, DiffDRRTiming(prepare_s=prepared.prepare_s, render_s=time.perf_counter() - t0)
-
-
-def render_diffdrr(
-    hu: np.ndarray,
-    affine_lps: np.ndarray,
-    extrinsic_lps_to_cam: np.ndarray,
-    sdd_mm: float,
-    height: int,
-    width: int,
-    pixel_spacing_mm: float,
-    renderer: str = "siddon",
-    mu_water_per_mm: float = MU_WATER_PER_MM,
-    n_points: int | None = None,
-    step_mm: float | None = None,
-) -> np.ndarray:
+def render_diffdrr(*args, **kwargs) -> np.ndarray:
     """``(H, W)`` float32 DiffDRR line integral of ``mu = mu_water (1 + HU/1000)``, clipped at 0.
 
-    Same arguments as :func:`prepare`; the image is in ctxreg's camera and ``[row, col]`` convention
-    and is dimensionless (mu in 1/mm times path length in mm).
+    Takes :func:`prepare`'s arguments and renders once; the image is in ctxreg's camera and
+    ``[row, col]`` convention and is dimensionless (mu in 1/mm times path length in mm).
     """
-    img, _ = render_diffdrr_timed(
-        hu, affine_lps, extrinsic_lps_to_cam, sdd_mm, height, width, pixel_spacing_mm,
-        renderer=renderer, mu_water_per_mm=mu_water_per_mm, n_points=n_points, step_mm=step_mm,
-    )  # fmt: skip
-    return img
+    return render(prepare(*args, **kwargs))
