@@ -44,7 +44,9 @@ if [ ! -x .venv/bin/python ]; then
 fi
 if [ "$(cat "$stamp" 2>/dev/null)" != "$want" ]; then
     echo "ctxreg setup: installing pinned packages into .venv (a few minutes the first time)"
-    .venv/bin/python -m pip install -q --upgrade pip
-    .venv/bin/python -m pip install -q -e ".[dev]"
+    # pip's notes about this machine's unused local package indexes are dropped; errors stay
+    pip_quiet() { .venv/bin/python -m pip "$@" 2>&1 | { grep -v -e "is ignored: it is neither" || true; }; }
+    pip_quiet install -q --upgrade pip
+    pip_quiet install -q -e ".[dev]"
     echo "$want" > "$stamp"
 fi
