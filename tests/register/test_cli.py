@@ -121,3 +121,36 @@ def test_demo_renders_the_phantom(tmp_path):
     assert r.returncode == 0, r.stderr
     pngs = sorted((tmp_path / "demo").glob("*.png"))
     assert len(pngs) == 6 and all(p.with_suffix(".json").is_file() for p in pngs)
+
+
+@pytest.mark.parametrize("kind, words", [
+    ("2d", "2-D"),
+    ("nan", "NaN"),
+    ("normalised", "HU"),
+])
+def test_bad_ct_contents_give_one_line_errors(kind, words, tmp_path):
+    if kind == "2d":
+        data = np.zeros((32, 32), np.float32)
+    elif kind == "nan":
+        data = np.full((16, 16, 16), -1000.0, np.float32)
+        data[8:, :, :] = 40.0
+        data[3, 4, 5] = np.nan
+    else:
+        data = np.random.default_rng(0).random((16, 16, 16)).astype(np.float32)
+    path = tmp_path / f"{kind}.nii.gz"
+    nib.save(nib.Nifti1Image(data, np.eye(4)), path)
+    r = run_cli("render", "--ct", path, "--size", 16, 16, "--out", tmp_path / "x.npy")
+    assert r.returncode == 2 and "Traceback" not in r.stderr, r.stderr
+    assert words in r.stderr and path.name in r.stderr, r.stderr
+    assert not (tmp_path / "x.npy").exists()
+
+
+def test_dicom_series_renders(tmp_path):
+    from tests.conftest import shared_file
+
+    series = shared_file("ct/abdomen_dicom_series")
+    out = tmp_path / "dicom.npy"
+    r = run_cli("render", "--ct", series, "--size", 64, 64, "--out", out)
+    assert r.returncode == 0, r.stderr
+    img = np.load(out)
+    assert img.shape == (64, 64) and np.isfinite(img).all() and img.max() > 1.0
