@@ -12,10 +12,12 @@ import os
 import sys
 
 from sim.cliargs import HelpFormatter, add_options, from_namespace
-from sim.cli import DemoCommand, RenderCommand
+from sim.cli import DemoCommand, RenderCommand, SimulateCommand
 
 COMMANDS = {
     "render": (RenderCommand, "render a DRR of a CT at one pose", "sim.cli:run_render"),
+    "simulate": (SimulateCommand, "render a synthetic data campaign (sharded HDF5 dataset)",
+                 "sim.cli:run_simulate"),
     "demo": (DemoCommand, "render the built-in pelvis phantom at a few poses (PNG + JSON)",
              "sim.cli:run_demo"),
 }
@@ -37,8 +39,10 @@ def build_parser() -> argparse.ArgumentParser:
 def _user_errors() -> tuple[type[BaseException], ...]:
     """Exception types that mean bad input: shown as one line, no traceback."""
     from sim.backend import BackendError
+    from sim.campaign.runner import CampaignError
 
-    return (ValueError, FileNotFoundError, NotADirectoryError, PermissionError, BackendError)
+    return (ValueError, FileNotFoundError, NotADirectoryError, PermissionError, BackendError,
+            CampaignError)
 
 
 def main(argv: list[str] | None = None) -> int:

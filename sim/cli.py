@@ -87,24 +87,6 @@ DEMO_POSES = {
 }
 
 
-def load_ct_arg(spec: str, label_map: str | None = None):
-    """A CT from a command-line value: a path, or ``phantom`` / ``phantom:SEED``."""
-    if spec == "phantom" or spec.startswith("phantom:"):
-        from sim.phantom import make_pelvis_phantom
-
-        seed_text = spec.partition(":")[2] or "0"
-        try:
-            seed = int(seed_text)
-        except ValueError:
-            raise CommandError(f"--ct {spec!r}: the phantom seed must be an integer") from None
-        if label_map is not None:
-            raise CommandError("--label-map cannot be combined with the built-in phantom (it has its own labels)")
-        return make_pelvis_phantom(seed)
-    from sim.ct_io import load_ct
-
-    return load_ct(spec, label_map=label_map)
-
-
 def load_pose_matrix(path: str) -> np.ndarray:
     """A ``(4, 4)`` pose from .npy, text, or a render's JSON sidecar (key ``pose_4x4``)."""
     p = Path(path)
@@ -186,7 +168,9 @@ def run_render(cmd: RenderCommand) -> Path:
         raise CommandError(f"--out {cmd.out}: the file must end in .npy or .png")
     if not all(math.isfinite(v) for v in cmd.pose):
         raise CommandError(f"--pose {cmd.pose}: values must be finite numbers")
-    volume = load_ct_arg(cmd.ct, cmd.label_map)
+    from sim.ct_io import load_ct_spec
+
+    volume = load_ct_spec(cmd.ct, label_map=cmd.label_map)
     settings = RenderSettings(scene=cmd.scene, size=tuple(cmd.size), ray_model=cmd.ray_model,
                               step_fraction=cmd.step_fraction, quantity=cmd.quantity,
                               mu_water_per_mm=cmd.mu_water)
@@ -221,3 +205,33 @@ def run_demo(cmd: DemoCommand) -> list[Path]:
     if not np.all(np.isfinite(images)) or images.max() <= 0:
         raise RuntimeError("demo: the phantom rendered empty or non-finite images")
     return written
+
+
+@dataclass(frozen=True)
+class SimulateCommand:
+    """Defaults of ``ctxreg simulate``."""
+
+    campaign: str = field(metadata=opt("campaign file (TOML; see docs/campaigns.md)", group="input",
+                                       positional=True, metavar="CAMPAIGN.toml"))
+    out: str | None = field(default=None, metadata=opt(
+        "output folder (default: out/<campaign name>)", group="output", metavar="DIR"))
+    workers: int = field(default=1, metadata=opt(
+        "worker processes (each renders whole shards)", group="run", metavar="N"))
+    resume: bool = field(default=False, metadata=opt(
+        "continue an interrupted run in --out: keep finished shards, render the rest", group="run"))
+    shard: str | None = field(default=None, metadata=opt(
+        "run only part K of N of the work (for batch schedulers); merge with a later --resume",
+        group="run", metavar="K/N"))
+
+
+def run_simulate(cmd: SimulateCommand) -> list[Path]:
+    from sim.campaign.config import load_campaign
+    from sim.campaign.runner import parse_shard, run_campaign
+
+    cfg = load_campaign(cmd.campaign)
+    out = Path(cmd.out) if cmd.out is not None else Path("out") / cfg.name
+    manifest = run_campaign(cfg, out, workers=cmd.workers, resume=cmd.resume, shard=parse_shard(cmd.shard))
+    counts = manifest["counts"]
+    state = "complete" if manifest["complete"] else "incomplete"
+    print(f"{cfg.name}: {counts['images']}/{counts['expected']} images in {counts['shards']} shards, {state}")
+    return [out / "manifest.json"] if cmd.shard is None else [out]

@@ -75,6 +75,28 @@ _NIFTI_SUFFIXES = (".nii", ".nii.gz")
 # --------------------------------------------------------------------------------------------
 
 
+def load_ct_spec(spec: str | os.PathLike, *, label_map: str | os.PathLike | None = None) -> CTVolume:
+    """A CT named as on the command line or in campaign files: a path, or ``phantom[:SEED]``.
+
+    ``phantom`` / ``phantom:SEED`` is the built-in pelvis phantom (:mod:`sim.phantom`, seed 0 by
+    default); anything else goes to :func:`load_ct`.
+    """
+    text = str(spec)
+    if text == "phantom" or text.startswith("phantom:"):
+        from sim.phantom import make_pelvis_phantom
+
+        seed_text = text.partition(":")[2] or "0"
+        try:
+            seed = int(seed_text)
+        except ValueError:
+            raise CTInputError(f"{text!r}: the phantom seed must be an integer") from None
+        if label_map is not None:
+            raise CTInputError(f"{text!r}: a label map cannot be combined with the built-in phantom "
+                               "(it has its own labels)")
+        return make_pelvis_phantom(seed)
+    return load_ct(spec, label_map=label_map)
+
+
 def load_ct(path: str | os.PathLike, *, label_map: str | os.PathLike | None = None,
             resample_mm: float | Sequence[float] | None = None,
             series_uid: str | None = None) -> CTVolume:
