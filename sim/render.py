@@ -196,8 +196,8 @@ class DRRRenderer:
         p = np.asarray(poses, dtype=np.float64)
         if p.ndim == 2:
             p = p[None]
-        if p.ndim != 3 or p.shape[1:] != (4, 4):
-            raise RenderError(f"poses must be (4, 4) or (B, 4, 4), got shape {np.shape(poses)}")
+        if p.ndim != 3 or p.shape[1:] != (4, 4) or p.shape[0] == 0:
+            raise RenderError(f"poses must be (4, 4) or (B, 4, 4) with B >= 1, got shape {np.shape(poses)}")
         if not np.all(np.isfinite(p)):
             raise RenderError("poses contain NaN or infinite values")
         r = p[:, :3, :3]

@@ -153,9 +153,10 @@ def render_unit(cfg, unit: Unit, out: Path) -> dict:
     global _worker_ctx
     from sim.geometry import pose_from_params, project_points
 
-    if _worker_ctx is None or _worker_ctx.subject.index != unit.subject:
-        subject = cfg.subjects()[unit.subject]
-        _worker_ctx = _SubjectContext(cfg, subject)
+    key = (cfg.config_hash(), unit.subject)
+    if _worker_ctx is None or _worker_ctx.key != key:
+        _worker_ctx = _SubjectContext(cfg, cfg.subjects()[unit.subject])
+        _worker_ctx.key = key
     ctx = _worker_ctx
     params = ctx.poses[unit.start:unit.stop]
     any_renderer = next(iter(ctx.renderers.values()))

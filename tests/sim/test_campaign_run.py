@@ -287,3 +287,13 @@ def test_refusals_name_the_problem(reference, small_cts, tmp_path):
     run_campaign(other, partial, shard=(1, 3), progress=False)
     with pytest.raises(ds.DatasetError, match="no manifest.json"):
         ds.open_dataset(partial)
+
+
+def test_one_process_running_two_campaigns_does_not_mix_them(reference, small_cts, tmp_path):
+    """A worker's cached subject belongs to one campaign: a second campaign re-prepares it."""
+    from sim.campaign.runner import run_campaign
+
+    _, ref_out, _ = reference
+    run_campaign(load(write_campaign(tmp_path / "a", small_cts, n=2)), tmp_path / "a" / "out", progress=False)
+    run_campaign(load(write_campaign(tmp_path / "b", small_cts)), tmp_path / "b" / "out", progress=False)
+    assert checksums(tmp_path / "b" / "out") == checksums(ref_out)
