@@ -113,14 +113,26 @@ def finished_shards(folder: Path) -> dict[str, str]:
     return out
 
 
-def remove_partial_files(folder: Path) -> int:
-    """Delete temporary files and shards without a matching checksum; returns how many."""
+def _shard_of(file_name: str) -> str:
+    """The shard a file belongs to: ``s0001_00002.h5`` for itself, its ``.sha256`` and temporaries."""
+    name = file_name.lstrip(".")
+    return name[: name.index(".h5") + 3] if ".h5" in name else name
+
+
+def remove_partial_files(folder: Path, only: set[str] | None = None) -> int:
+    """Delete temporary files and shards without a matching checksum; returns how many.
+
+    ``only``: shard names whose files may be touched (a part of the work cleans up its own
+    shards only, while other parts write into the same folder).
+    """
     shard_dir = Path(folder) / SHARD_DIR
     if not shard_dir.is_dir():
         return 0
     good = finished_shards(folder)
     removed = 0
     for p in shard_dir.iterdir():
+        if only is not None and _shard_of(p.name) not in only:
+            continue
         stale_tmp = ".tmp" in p.name
         bad_shard = p.suffix == ".h5" and p.name not in good
         orphan_sum = p.name.endswith(".sha256") and p.name[:-7] not in good

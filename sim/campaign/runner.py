@@ -253,10 +253,10 @@ def run_campaign(cfg, out: str | os.PathLike, *, workers: int = 1, resume: bool 
     if manifest_path.is_file():  # keep what earlier runs learnt about subjects
         old_subjects = {s["index"]: s for s in ds.read_manifest(out)["subjects"]}
         manifest["subjects"] = [old_subjects.get(s["index"], s) for s in manifest["subjects"]]
-    ds.remove_partial_files(out)
-    done = ds.finished_shards(out)
     all_units = plan_units(cfg)
     units = all_units if shard is None else all_units[shard[0] - 1::shard[1]]
+    ds.remove_partial_files(out, only=None if shard is None else {u.name for u in units})
+    done = ds.finished_shards(out)
     by_name = {u.name: u for u in all_units}
     for name, digest in done.items():
         if name in by_name:

@@ -299,3 +299,16 @@ def test_one_process_running_two_campaigns_does_not_mix_them(reference, small_ct
                  shard=(1, 3), progress=False)
     run_campaign(load(write_campaign(tmp_path / "b", small_cts)), tmp_path / "b" / "out", progress=False)
     assert checksums(tmp_path / "b" / "out") == checksums(ref_out)
+
+
+def test_a_part_cleans_up_only_its_own_files(tmp_path):
+    """Parts share a folder: one part's clean-up must not touch another part's files in flight."""
+    shard_dir = tmp_path / ds.SHARD_DIR
+    shard_dir.mkdir()
+    mine, theirs = ds.shard_name(0, 0), ds.shard_name(0, 1)
+    (shard_dir / f".{mine}.abc.tmp.h5").write_bytes(b"partial")
+    (shard_dir / f".{theirs}.def.tmp.h5").write_bytes(b"partial")
+    (shard_dir / theirs).write_bytes(b"renamed, checksum not written yet")
+    assert ds.remove_partial_files(tmp_path, only={mine}) == 1
+    assert sorted(p.name for p in shard_dir.iterdir()) == sorted([f".{theirs}.def.tmp.h5", theirs])
+    assert ds.remove_partial_files(tmp_path) == 2  # a whole-campaign run cleans everything
