@@ -6,7 +6,7 @@ Usage (from the repository root, after set-up)::
 
 For each subject (the real pelvis CT ``../shared/data/ct/pelvis_abdomen_3mm.nii.gz`` and the
 built-in phantom) and detector size (128 x 128, 256 x 256) it runs a one-subject campaign of
-``--images`` images with line physics (Siddon) through :func:`sim.campaign.runner.run_campaign`
+``--images`` images (default 480) with line physics (Siddon) through :func:`sim.campaign.runner.run_campaign`
 (shards of 32 images written to HDF5 with checksums, as in production) and prints the median of
 three runs: the subject's set-up (CT load, anatomy centre, renderer), seconds per image after
 it, images per second, and per core (Dr.Jit's kernels use every core of the machine). The
@@ -70,7 +70,7 @@ def run_once(ct: str, size: int, n: int, workers: int) -> tuple[float, float]:
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--images", type=int, default=96, help="images per timed campaign (default: 96)")
+    ap.add_argument("--images", type=int, default=480, help="images per timed campaign (default: 480)")
     ap.add_argument("--workers", type=int, default=1, help="worker processes (default: 1)")
     ap.add_argument("--repeats", type=int, default=3, help="runs per case, median reported (default: 3)")
     args = ap.parse_args(argv)

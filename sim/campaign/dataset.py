@@ -27,7 +27,9 @@ dataset                    shape, dtype         meaning
 ``bone_mask``              (n, H, W) uint8      1 where the ray crosses >= 1 mm of bone, optional
 =========================  ===================  ==============================================
 
-Attributes: ``subject``, ``shard``, ``start``, ``stop``, ``config_hash``, ``split``, ``name``.
+Attributes: ``subject``, ``shard``, ``start``, ``stop``, ``config_hash``, ``split``, ``name``, ``seed``
+and ``pose_spawn_key`` (the poses are row ``image_index`` of ``PoseDistribution.sample`` drawn from
+``SeedSequence(seed, spawn_key=(0, subject))``).
 :func:`open_dataset` reads a folder without PyTorch; :class:`CampaignDataset` indexes images
 across shards lazily.
 """

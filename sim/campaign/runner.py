@@ -173,7 +173,8 @@ def render_unit(cfg, unit: Unit, out: Path) -> dict:
         path_mm = ctx.bone.render(poses) / cfg.physics[0].mu_water_per_mm
         arrays["bone_mask"] = (path_mm >= BONE_MASK_MIN_PATH_MM).astype(np.uint8)
     attrs = dict(subject=unit.subject, shard=unit.shard, start=unit.start, stop=unit.stop,
-                 config_hash=cfg.config_hash(), split=ctx.subject.split, name=ctx.subject.name)
+                 config_hash=cfg.config_hash(), split=ctx.subject.split, name=ctx.subject.name,
+                 seed=cfg.seed, pose_spawn_key=f"{KIND_POSES},{unit.subject}")
     name, digest, size = ds.write_shard(out, unit.subject, unit.shard, arrays, attrs)
     return {"shard": name, "entry": {"subject": unit.subject, "start": unit.start, "stop": unit.stop,
                                      "sha256": digest, "bytes": size},
