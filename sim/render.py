@@ -106,17 +106,26 @@ class DRRRenderer:
         center_lps: ``(3,)`` anatomy centre c in LPS mm; None = :func:`sim.anatomy.anatomy_center`.
         materials: the decomposition for ``quantity="density"`` (default
             :class:`MaterialDecomposition()`).
+        geometry: a :class:`CArmGeometry` to use instead of the scene's (e.g. an X-ray's own
+            SDD and pixel spacing); its size replaces ``settings.size``. The scene file still
+            provides the Mitsuba sensor and integrator.
     """
 
     def __init__(self, volume: CTVolume, settings: RenderSettings | None = None, *,
-                 center_lps=None, materials: MaterialDecomposition | None = None):
+                 center_lps=None, materials: MaterialDecomposition | None = None,
+                 geometry: CArmGeometry | None = None):
         import mitsuba as mi
 
         self.settings = settings or RenderSettings()
         self.volume = volume
         self.scene_info: CArmScene = load_scene(self.settings.scene)
-        rows, cols = self.settings.size if self.settings.size is not None else (None, None)
-        self.geometry: CArmGeometry = self.scene_info.geometry_at(rows, cols)
+        if geometry is not None:
+            if not isinstance(geometry, CArmGeometry):
+                raise RenderError(f"geometry must be a CArmGeometry, got {type(geometry).__name__}")
+            self.geometry: CArmGeometry = geometry
+        else:
+            rows, cols = self.settings.size if self.settings.size is not None else (None, None)
+            self.geometry = self.scene_info.geometry_at(rows, cols)
         if center_lps is None:
             from sim.anatomy import anatomy_center
 

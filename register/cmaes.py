@@ -1,0 +1,237 @@
+"""Intensity-based 2D/3D registration with CMA-ES over the six pose parameters.
+
+The pose is searched in ctxreg's anatomy-centred parameters (phi, theta, psi in degrees about
+the patient's S, L, P axes through the anatomy centre; tx, ty, tz in mm in the camera frame;
+``docs/conventions.md``), coarse to fine:
+
+1. for each resolution level (the detector downsampled by a factor), CMA-ES (the ``cma``
+   package) maximises an image similarity (:mod:`register.metrics`) between the X-ray and DRRs;
+   each generation's whole population is rendered in one kernel launch;
+2. at the finest level an optional local polish (scipy's Powell) refines the best pose.
+
+Per-parameter step sizes are given in degrees and mm (``CMA_stds``); bounds keep the search
+inside a box around the start. Everything is seeded.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+PARAM_NAMES = ("phi", "theta", "psi", "tx", "ty", "tz")
+
+
+class RegistrationError(ValueError):
+    """Bad registration settings or inputs; the message names the setting."""
+
+
+@dataclass(frozen=True)
+class CMAESSettings:
+    """CMA-ES registration settings. Units: degrees and mm.
+
+    Attributes:
+        levels: detector downsampling factor of each level, coarse to fine (the finest level
+            renders at ``size / levels[-1]``).
+        size: ``(rows, cols)`` of the finest rendering before ``levels`` divide it.
+        sigma_deg / sigma_mm: initial CMA-ES step sizes of the rotation / translation parameters
+            at the first level; later levels start at ``sigma_shrink`` times them.
+        sigma_shrink: step-size factor from one level to the next.
+        range_deg / range_mm: the search box: start +- range (rotations, translations).
+        popsize: CMA-ES population per generation (rendered as one batch).
+        generations: the most generations per level (one number for all levels, or one per level).
+        metrics: similarity per level (names of :data:`register.metrics.METRICS`); one name for
+            all levels, or one per level.
+        polish: run a Powell polish at the finest level after CMA-ES.
+        polish_evals: the most similarity evaluations of the polish.
+        seed: CMA-ES seed.
+    """
+
+    levels: tuple[int, ...] = (4, 2)
+    size: tuple[int, int] = (128, 128)
+    sigma_deg: float = 8.0
+    sigma_mm: float = 25.0
+    sigma_shrink: float = 0.3
+    range_deg: float = 60.0
+    range_mm: float = 150.0
+    popsize: int = 24
+    generations: tuple[int, ...] = (60, 40)
+    metrics: tuple[str, ...] = ("gncc", "gncc")
+    polish: bool = True
+    polish_evals: int = 300
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        if not self.levels or any(int(f) < 1 for f in self.levels):
+            raise RegistrationError(f"levels must be downsampling factors >= 1, got {self.levels}")
+        if any(s % max(self.levels) for s in self.size):
+            raise RegistrationError(f"size {self.size} must be divisible by every level factor {self.levels}")
+        for name in ("sigma_deg", "sigma_mm", "range_deg", "range_mm", "sigma_shrink"):
+            v = getattr(self, name)
+            if not (np.isfinite(v) and v > 0):
+                raise RegistrationError(f"{name} must be positive, got {v}")
+        if self.popsize < 4:
+            raise RegistrationError(f"popsize must be >= 4, got {self.popsize}")
+        for name in ("generations", "metrics"):
+            v = getattr(self, name)
+            if len(v) not in (1, len(self.levels)):
+                raise RegistrationError(f"{name} needs 1 or {len(self.levels)} entries (one per level), got {v}")
+
+    def per_level(self, name: str, level: int):
+        v = getattr(self, name)
+        return v[0] if len(v) == 1 else v[level]
+
+
+@dataclass
+class RegistrationResult:
+    """A registration's outcome.
+
+    Attributes:
+        params: ``(6,)`` pose parameters (deg, mm); pose: ``(4, 4)``; projection: ``(3, 4)``
+            LPS mm -> pixels of the finest geometry.
+        similarity: the final similarity at the finest level.
+        renders: DRRs rendered in all.
+        stage_seconds: wall time per stage (``"level0"``, ``"level1"``, ..., ``"polish"``).
+        history: one row per generation / polish step: (stage, best similarity so far, params).
+    """
+
+    params: np.ndarray
+    pose: np.ndarray
+    projection: np.ndarray
+    similarity: float
+    renders: int
+    stage_seconds: dict[str, float]
+    history: list[tuple[str, float, list[float]]] = field(default_factory=list)
+
+    def to_dict(self) -> dict:
+        return {
+            "params": dict(zip(PARAM_NAMES, map(float, self.params))),
+            "params_units": "phi theta psi in degrees, tx ty tz in mm (docs/conventions.md)",
+            "pose_4x4": self.pose.tolist(),
+            "projection_3x4_lps_to_pixels": self.projection.tolist(),
+            "similarity": self.similarity,
+            "renders": self.renders,
+            "stage_seconds": self.stage_seconds,
+        }
+
+
+class CMAESRegistration:
+    """Registers X-rays to one CT; renderers for every level are built once and reused.
+
+    Args:
+        volume: the CT (:class:`sim.volume.CTVolume`).
+        settings: :class:`CMAESSettings`.
+        scene: C-arm scene name or path (the finest geometry is the scene's detector at
+            ``settings.size``) — or pass ``geometry`` to use an X-ray's own geometry.
+        geometry: :class:`sim.geometry.CArmGeometry` at ``settings.size`` (overrides ``scene``).
+        center_lps: anatomy centre (LPS mm); None = :func:`sim.anatomy.anatomy_center`.
+    """
+
+    def __init__(self, volume, settings: CMAESSettings | None = None, *, scene: str = "cios_fusion",
+                 geometry=None, center_lps=None, ray_model: str = "siddon"):
+        from sim.anatomy import anatomy_center
+        from sim.render import DRRRenderer, RenderSettings
+
+        self.settings = s = settings or CMAESSettings()
+        if center_lps is None:
+            center_lps = anatomy_center(volume)
+        self.center_lps = np.asarray(center_lps, float)
+        self.renderers = []
+        for factor in sorted(set(s.levels), reverse=True) + ([1] if 1 not in s.levels else []):
+            size = (s.size[0] // factor, s.size[1] // factor)
+            r = DRRRenderer(volume, RenderSettings(scene=scene, size=size, ray_model=ray_model),
+                            center_lps=self.center_lps,
+                            geometry=None if geometry is None else geometry.resized(*size))
+            self.renderers.append((factor, r))
+        self.by_factor = dict(self.renderers)
+        self.geometry = self.by_factor[1].geometry
+
+    def render(self, params: np.ndarray, factor: int = 1) -> np.ndarray:
+        """``(B, H/f, W/f)`` DRRs for ``(B, 6)`` parameters at a level's factor."""
+        from sim.geometry import pose_from_params
+
+        r = self.by_factor[factor]
+        return r.render(pose_from_params(np.atleast_2d(params), r.geometry.sod_mm))
+
+    def register(self, fixed: np.ndarray, init_params=np.zeros(6), *, mask: np.ndarray | None = None,
+                 progress=None) -> RegistrationResult:
+        """Register the image ``fixed`` ``(H, W)`` (at ``settings.size``), starting at ``init_params``.
+
+        ``fixed`` must already be preprocessed like the DRRs (line-integral-like: bone bright);
+        ``mask`` ``(H, W)`` bool excludes pixels (collimator, tools) from the similarity.
+        """
+        import cma
+        from scipy.optimize import minimize
+
+        from register.metrics import downsample, get_metric
+        from sim.geometry import pose_from_params
+
+        s = self.settings
+        fixed = np.asarray(fixed, dtype=np.float64)
+        if fixed.shape != tuple(s.size):
+            raise RegistrationError(f"the X-ray must be {s.size} (rows, cols) after preprocessing, got {fixed.shape}")
+        if not np.all(np.isfinite(fixed)):
+            raise RegistrationError("the X-ray contains NaN or infinite pixels")
+        x0 = np.asarray(init_params, dtype=np.float64).reshape(6)
+        scale = np.array([1.0] * 3 + [s.sigma_mm / s.sigma_deg] * 3)  # search in deg-like units
+        lo = x0 - np.array([s.range_deg] * 3 + [s.range_mm] * 3)
+        hi = x0 + np.array([s.range_deg] * 3 + [s.range_mm] * 3)
+        best = x0.copy()
+        renders = 0
+        stages: dict[str, float] = {}
+        history: list[tuple[str, float, list[float]]] = []
+        sigma = s.sigma_deg
+        for level, factor in enumerate(s.levels):
+            t0 = time.perf_counter()
+            metric = get_metric(s.per_level("metrics", level))
+            target = downsample(fixed, factor) if factor > 1 else fixed
+            lvl_mask = None
+            if mask is not None:
+                lvl_mask = downsample(mask.astype(np.float64), factor) > 0.999 if factor > 1 else mask
+
+            def cost(z_batch):
+                nonlocal renders
+                x = np.asarray(z_batch) * scale
+                x = np.clip(x, lo, hi)
+                imgs = self.render(x, factor)
+                renders += len(x)
+                return -metric(target, imgs, mask=lvl_mask)
+
+            es = cma.CMAEvolutionStrategy(best / scale, sigma, {
+                "popsize": s.popsize, "seed": s.seed + 1 + level, "verbose": -9,
+                "bounds": [list(lo / scale), list(hi / scale)],
+                "maxiter": s.per_level("generations", level), "tolfun": 1e-6, "tolx": 1e-3,
+            })
+            while not es.stop():
+                z = es.ask()
+                values = cost(np.array(z))
+                es.tell(z, values.tolist())
+                history.append((f"level{level}", float(-es.result.fbest), (es.result.xbest * scale).tolist()))
+                if progress:
+                    progress(f"level{level}", history[-1][1])
+            best = np.clip(np.asarray(es.result.xbest) * scale, lo, hi)
+            sigma *= s.sigma_shrink
+            stages[f"level{level}"] = time.perf_counter() - t0
+        finest_metric = get_metric(s.per_level("metrics", len(s.levels) - 1))
+        if s.polish:
+            t0 = time.perf_counter()
+
+            def polish_cost(x):
+                nonlocal renders
+                renders += 1
+                return -float(finest_metric(fixed, self.render(np.clip(x, lo, hi), 1), mask=mask)[0])
+
+            res = minimize(polish_cost, best, method="Powell",
+                           options={"maxfev": s.polish_evals, "xtol": 1e-3, "ftol": 1e-7,
+                                    "direc": np.diag([0.5, 0.5, 0.5, 1.0, 1.0, 2.0])})
+            if res.fun <= polish_cost(best):
+                best = np.clip(res.x, lo, hi)
+            stages["polish"] = time.perf_counter() - t0
+            history.append(("polish", float(-res.fun), best.tolist()))
+        final = float(finest_metric(fixed, self.render(best, 1), mask=mask)[0])
+        renders += 1
+        pose = pose_from_params(best, self.geometry.sod_mm)
+        return RegistrationResult(params=best, pose=pose,
+                                  projection=self.by_factor[1].projection_matrix(pose),
+                                  similarity=final, renders=renders, stage_seconds=stages, history=history)

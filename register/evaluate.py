@@ -1,0 +1,235 @@
+"""The evaluation protocol: sampled target poses, registration from a start, errors against truth.
+
+For a CT, ``cases`` target poses are drawn (seeded) from a pose distribution (default: the
+original protocol, rotations +-40/+-20/+-20 deg and translations +-75 mm), their DRRs rendered
+as the "X-rays", and every method started at AP (``start="ap"``) or near the truth
+(``start="local"``: a random offset of at most ``local_rot_deg`` / ``local_trans_mm``).
+Errors per case:
+
+* rotation error: geodesic angle of ``R_est^T R_true`` (degrees);
+* translation error: ``|t_est - t_true|``, the anatomy centre's displacement (mm);
+* mTRE: mean 3-D distance between bone points (voxel centres of the bone mask, at most
+  ``max_points``) placed by the two poses (mm);
+* mPD: mean distance between their projections on the detector (mm at the detector plane);
+* success: mTRE < ``success_mtre_mm`` and rotation error < ``success_rot_deg``.
+
+Methods are plug-ins (:class:`RegistrationMethod`): anything with ``name`` and
+``register(fixed (H, W), init_params (6,)) -> RegistrationResult``.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Protocol
+
+import numpy as np
+
+from register.cmaes import CMAESRegistration, CMAESSettings, RegistrationResult
+
+START_MODES = ("ap", "local")
+ERROR_COLUMNS = ("rot_err_deg", "trans_err_mm", "mtre_mm", "mpd_mm")
+
+
+class EvaluationError(ValueError):
+    """Bad evaluation settings; the message names the setting."""
+
+
+class RegistrationMethod(Protocol):
+    name: str
+
+    def register(self, fixed: np.ndarray, init_params: np.ndarray) -> RegistrationResult: ...
+
+
+class CMAESMethod:
+    """CMA-ES intensity-based registration as an evaluation plug-in."""
+
+    name = "cmaes"
+
+    def __init__(self, volume, center_lps, size, settings: CMAESSettings | None = None):
+        settings = settings or CMAESSettings(size=tuple(size))
+        self.engine = CMAESRegistration(volume, settings, center_lps=center_lps)
+
+    def register(self, fixed, init_params):
+        return self.engine.register(fixed, init_params)
+
+
+METHODS = {"cmaes": CMAESMethod}
+
+
+@dataclass(frozen=True)
+class EvaluationSettings:
+    """Units: degrees, mm."""
+
+    cases: int = 20
+    seed: int = 0
+    size: tuple[int, int] = (128, 128)
+    start: str = "ap"
+    local_rot_deg: float = 5.0
+    local_trans_mm: float = 10.0
+    success_mtre_mm: float = 10.0
+    success_rot_deg: float = 1.0
+    max_points: int = 5000
+
+    def __post_init__(self) -> None:
+        if self.cases < 1:
+            raise EvaluationError(f"cases must be >= 1, got {self.cases}")
+        if self.start not in START_MODES:
+            raise EvaluationError(f"start must be one of {START_MODES}, got {self.start!r}")
+        for name in ("local_rot_deg", "local_trans_mm", "success_mtre_mm", "success_rot_deg"):
+            if not getattr(self, name) > 0:
+                raise EvaluationError(f"{name} must be positive, got {getattr(self, name)}")
+
+
+def sample_cases(settings: EvaluationSettings, distribution=None) -> tuple[np.ndarray, np.ndarray]:
+    """``(targets (N, 6), starts (N, 6))`` pose parameters (deg, mm), seeded."""
+    from sim.campaign.poses import ORIGINAL_PROTOCOL
+
+    dist = distribution or ORIGINAL_PROTOCOL
+    rng = np.random.Generator(np.random.PCG64(np.random.SeedSequence(settings.seed, spawn_key=(10,))))
+    targets = dist.sample(rng, settings.cases)
+    if settings.start == "ap":
+        starts = np.zeros_like(targets)
+    else:
+        # uniform direction and uniform magnitude up to the limits, rotation and translation apart
+        def ball(n, radius):
+            v = rng.normal(size=(n, 3))
+            v /= np.linalg.norm(v, axis=1, keepdims=True)
+            return v * rng.uniform(0, radius, size=(n, 1))
+
+        starts = targets + np.concatenate([ball(settings.cases, settings.local_rot_deg / np.sqrt(3)),
+                                           ball(settings.cases, settings.local_trans_mm)], axis=1)
+    return targets, starts
+
+
+def pose_errors(T_est: np.ndarray, T_true: np.ndarray, points_lps: np.ndarray, center_lps: np.ndarray,
+                projection_est: np.ndarray, projection_true: np.ndarray, pixel_spacing_mm: float) -> dict:
+    """Rotation (deg), translation (mm), mTRE (mm) and mPD (mm at the detector) of one estimate."""
+    from sim.geometry import project_points
+    from sim.se3 import rotation_error_deg, translation_error_mm
+
+    x = points_lps - center_lps
+    cam_est = x @ T_est[:3, :3].T + T_est[:3, 3]
+    cam_true = x @ T_true[:3, :3].T + T_true[:3, 3]
+    uv_est = project_points(projection_est, points_lps)
+    uv_true = project_points(projection_true, points_lps)
+    return {
+        "rot_err_deg": float(rotation_error_deg(T_est, T_true)),
+        "trans_err_mm": float(translation_error_mm(T_est, T_true)),
+        "mtre_mm": float(np.linalg.norm(cam_est - cam_true, axis=1).mean()),
+        "mpd_mm": float(np.nanmean(np.linalg.norm(uv_est - uv_true, axis=1)) * pixel_spacing_mm),
+    }
+
+
+def bone_points(volume, max_points: int, seed: int = 0) -> np.ndarray:
+    """``(N, 3)`` LPS mm voxel centres of the bone mask (a seeded subset of at most ``max_points``)."""
+    from sim.anatomy import bone_mask
+
+    ijk = np.argwhere(bone_mask(volume))
+    if len(ijk) > max_points:
+        ijk = ijk[np.random.default_rng(seed).choice(len(ijk), max_points, replace=False)]
+    return volume.voxel_to_lps(ijk.astype(np.float64))
+
+
+def summarize(rows: list[dict], settings: EvaluationSettings) -> dict:
+    """Per method: mean, std, median, min, max of each error, success rates, time."""
+    out = {}
+    for method in sorted({r["method"] for r in rows}):
+        sel = [r for r in rows if r["method"] == method]
+        stats = {}
+        for col in ERROR_COLUMNS + ("time_s",):
+            v = np.array([r[col] for r in sel], float)
+            stats[col] = {"mean": float(v.mean()), "std": float(v.std(ddof=1)) if len(v) > 1 else 0.0,
+                          "median": float(np.median(v)), "min": float(v.min()), "max": float(v.max())}
+        stats["success_mtre"] = float(np.mean([r["mtre_mm"] < settings.success_mtre_mm for r in sel]))
+        stats["success_rot"] = float(np.mean([r["rot_err_deg"] < settings.success_rot_deg for r in sel]))
+        stats["success"] = float(np.mean([r["success"] for r in sel]))
+        stats["cases"] = len(sel)
+        out[method] = stats
+    return out
+
+
+def format_table(summary: dict, settings: EvaluationSettings) -> str:
+    """The summary in the form of the original Table 3.1 (Markdown)."""
+    lines = [f"| method | error | mean | std | median | min | max |", "|---|---|---|---|---|---|---|"]
+    names = {"rot_err_deg": "rotation (deg)", "trans_err_mm": "translation (mm)", "mtre_mm": "mTRE (mm)",
+             "mpd_mm": "mPD (mm)", "time_s": "time (s)"}
+    for method, stats in summary.items():
+        for col, label in names.items():
+            s = stats[col]
+            lines.append(f"| {method} | {label} | {s['mean']:.2f} | {s['std']:.2f} | {s['median']:.2f} | "
+                         f"{s['min']:.2f} | {s['max']:.2f} |")
+        lines.append(f"| {method} | success: mTRE < {settings.success_mtre_mm:g} mm | "
+                     f"{100 * stats['success_mtre']:.0f} % | | | | |")
+        lines.append(f"| {method} | success: rotation < {settings.success_rot_deg:g} deg | "
+                     f"{100 * stats['success_rot']:.0f} % | | | | |")
+    return "\n".join(lines)
+
+
+def violin_plot(rows: list[dict], path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from sim.atomic import atomic_path
+
+    methods = sorted({r["method"] for r in rows})
+    fig, axes = plt.subplots(1, 3, figsize=(12, 3.8))
+    for ax, col, label in zip(axes, ("rot_err_deg", "trans_err_mm", "mtre_mm"),
+                              ("rotation error (deg)", "translation error (mm)", "mTRE (mm)")):
+        data = [np.array([r[col] for r in rows if r["method"] == m]) for m in methods]
+        ax.violinplot(data, showmedians=True)
+        ax.set_xticks(range(1, len(methods) + 1), methods)
+        ax.set_yscale("symlog", linthresh=1.0)
+        ax.set_title(label)
+    fig.tight_layout()
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=110, format="png")
+    plt.close(fig)
+
+
+def evaluate(volume, methods: dict[str, RegistrationMethod], settings: EvaluationSettings, out: Path,
+             *, center_lps, geometry, target_renderer, log=print) -> dict:
+    """Run the protocol; writes ``cases.csv``, ``summary.json``, ``table.md``, ``violins.png``."""
+    from sim.atomic import atomic_path, write_json
+    from sim.geometry import pose_from_params, projection_matrix
+
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    targets, starts = sample_cases(settings)
+    points = bone_points(volume, settings.max_points, settings.seed)
+    target_images = target_renderer.render(pose_from_params(targets, geometry.sod_mm))
+    rows = []
+    for i, (target, start, image) in enumerate(zip(targets, starts, target_images)):
+        T_true = pose_from_params(target, geometry.sod_mm)
+        P_true = projection_matrix(geometry, T_true, center_lps)
+        for name, method in methods.items():
+            t0 = time.perf_counter()
+            result = method.register(image, start)
+            elapsed = time.perf_counter() - t0
+            err = pose_errors(result.pose, T_true, points, center_lps, result.projection, P_true,
+                              geometry.pixel_spacing_mm)
+            row = {"case": i, "method": name, "start": settings.start, **err,
+                   "success": err["mtre_mm"] < settings.success_mtre_mm and err["rot_err_deg"] < settings.success_rot_deg,
+                   "time_s": elapsed, "renders": result.renders, "similarity": result.similarity,
+                   **{f"true_{k}": float(v) for k, v in zip("phi theta psi tx ty tz".split(), target)},
+                   **{f"est_{k}": float(v) for k, v in zip("phi theta psi tx ty tz".split(), result.params)}}
+            rows.append(row)
+            log(f"case {i + 1}/{settings.cases} {name}: rotation {err['rot_err_deg']:.2f} deg, "
+                f"translation {err['trans_err_mm']:.1f} mm, mTRE {err['mtre_mm']:.1f} mm, {elapsed:.1f} s")
+    summary = summarize(rows, settings)
+    with atomic_path(out / "cases.csv") as tmp:
+        with open(tmp, "w", newline="") as f:
+            w = csv.DictWriter(f, fieldnames=list(rows[0]))
+            w.writeheader()
+            w.writerows(rows)
+    write_json(out / "summary.json", {"settings": asdict(settings), "summary": summary})
+    table = format_table(summary, settings)
+    with atomic_path(out / "table.md") as tmp:
+        tmp.write_text(table + "\n")
+    violin_plot(rows, out / "violins.png")
+    return {"rows": rows, "summary": summary, "table": table}
