@@ -12,13 +12,15 @@ import os
 import sys
 
 from sim.cliargs import HelpFormatter, add_options, from_namespace
-from register.commands import EvaluateCommand
+from register.commands import EvaluateCommand, RegisterCommand
 from sim.cli import DemoCommand, RenderCommand, SimulateCommand
 
 COMMANDS = {
     "render": (RenderCommand, "render a DRR of a CT at one pose", "sim.cli:run_render"),
     "simulate": (SimulateCommand, "render a synthetic data campaign (sharded HDF5 dataset)",
                  "sim.cli:run_simulate"),
+    "register": (RegisterCommand, "register an X-ray to a CT (pose, overlay, convergence plot)",
+                 "register.commands:run_register"),
     "evaluate": (EvaluateCommand, "evaluate registration methods on sampled target poses of a CT",
                  "register.commands:run_evaluate"),
     "demo": (DemoCommand, "render the built-in pelvis phantom at a few poses (PNG + JSON)",

@@ -35,6 +35,9 @@ class EvaluateCommand:
         "image rows and columns of targets and DRRs", group="protocol", unit="pixels", nargs=2,
         metavar=("H", "W")))
     scene: str = field(default="cios_fusion", metadata=opt("C-arm scene", group="protocol"))
+    target_ray_model: str = field(default="siddon", metadata=opt(
+        "ray model of the target images (the methods render with siddon): trilinear makes the "
+        "targets differ from the DRRs", group="protocol", choices=("siddon", "trilinear")))
     out: str = field(default="out/evaluate", metadata=opt(
         "folder for cases.csv, summary.json, table.md, violins.png", group="output", metavar="DIR"))
 
@@ -49,9 +52,131 @@ def run_evaluate(cmd: EvaluateCommand) -> list[Path]:
                                   local_rot_deg=cmd.local_rot, local_trans_mm=cmd.local_trans)
     volume = load_ct_spec(cmd.ct, label_map=cmd.label_map)
     center = np.asarray(cmd.center, float) if cmd.center is not None else anatomy_center(volume)
-    target_renderer = DRRRenderer(volume, RenderSettings(scene=cmd.scene, size=tuple(cmd.size)), center_lps=center)
+    target_renderer = DRRRenderer(volume, RenderSettings(scene=cmd.scene, size=tuple(cmd.size),
+                                                         ray_model=cmd.target_ray_model), center_lps=center)
     methods = {name: METHODS[name](volume, center, tuple(cmd.size)) for name in cmd.method}
     result = evaluate(volume, methods, settings, Path(cmd.out), center_lps=center,
                       geometry=target_renderer.geometry, target_renderer=target_renderer)
     print(result["table"])
     return [Path(cmd.out) / name for name in ("cases.csv", "summary.json", "table.md", "violins.png")]
+
+
+@dataclass(frozen=True)
+class RegisterCommand:
+    """Defaults of ``ctxreg register``."""
+
+    ct: str = field(metadata=opt(CT_HELP, group="input", metavar="PATH|phantom"))
+    xray: str = field(metadata=opt(
+        "X-ray: DICOM (geometry from its tags when present) or PNG/TIFF/JPEG", group="input", metavar="IMAGE"))
+    label_map: str | None = field(default=None, metadata=opt(
+        "label map on the CT's grid: its centroid is the anatomy centre", group="input", metavar="PATH"))
+    center: tuple[float, float, float] | None = field(default=None, metadata=opt(
+        "anatomy centre c in LPS", group="input", unit="mm", nargs=3, metavar=("X", "Y", "Z")))
+    init: tuple[str, ...] = field(default=("ap",), metadata=opt(
+        "start pose: 'ap' or six numbers PHI THETA PSI TX TY TZ", group="pose", nargs="+",
+        unit="deg deg deg mm mm mm", metavar="ap|P"))
+    method: str = field(default="cmaes", metadata=opt("registration method", group="pose", choices=("cmaes",)))
+    scene: str = field(default="cios_fusion", metadata=opt(
+        "C-arm scene: the geometry where the image does not give it", group="geometry"))
+    sdd: float | None = field(default=None, metadata=opt(
+        "source-to-detector distance (overrides DICOM and scene)", group="geometry", unit="mm"))
+    sod: float | None = field(default=None, metadata=opt(
+        "source-to-isocentre distance (overrides DICOM and scene)", group="geometry", unit="mm"))
+    pixel_spacing: float | None = field(default=None, metadata=opt(
+        "detector pixel spacing (overrides DICOM and scene)", group="geometry", unit="mm"))
+    size: int = field(default=128, metadata=opt(
+        "longer side of the image the optimiser works on", group="geometry", unit="pixels"))
+    preprocess: tuple[str, ...] = field(default=("crop", "median", "normalize"), metadata=opt(
+        "preprocessing steps in order (crop, median, log, normalize, invert); add 'log' for raw "
+        "detector intensities", group="image", nargs="*"))
+    out: str = field(default="out/register", metadata=opt(
+        "folder for result.json, overlay.png, convergence.png", group="output", metavar="DIR"))
+
+
+def _parse_init(values: tuple[str, ...]) -> np.ndarray:
+    from register.cmaes import RegistrationError
+
+    if len(values) == 1 and values[0] == "ap":
+        return np.zeros(6)
+    try:
+        x = np.array([float(v) for v in values])
+    except ValueError:
+        x = np.zeros(0)
+    if x.shape != (6,) or not np.all(np.isfinite(x)):
+        raise RegistrationError(f"--init {' '.join(values)}: give 'ap' or six finite numbers")
+    return x
+
+
+def fit_to_size(image: np.ndarray, mask: np.ndarray | None, geometry, longer: int):
+    """Centre-crop and resample ``image`` so its longer side is ``longer`` px (a multiple of 4).
+
+    Pixels stay square: the crop removes the fraction of a pixel that keeps both sides an exact
+    multiple of the new spacing. Returns (image, mask, geometry) with the geometry's spacing
+    and principal point moved accordingly.
+    """
+    from dataclasses import replace
+
+    from scipy import ndimage
+
+    h, w = image.shape
+    f = max(h, w) / float(longer)  # old pixels per new pixel
+    H = max(4, int(round(h / f / 4)) * 4)
+    W = max(4, int(round(w / f / 4)) * 4)
+    f = min(h / H, w / W)
+    ch, cw = H * f, W * f
+    y0, x0 = (h - ch) / 2.0, (w - cw) / 2.0
+    rows = y0 + (np.arange(H) + 0.5) * f - 0.5
+    cols = x0 + (np.arange(W) + 0.5) * f - 0.5
+    smooth = ndimage.gaussian_filter(image.astype(np.float64), sigma=max(f / 2.0 - 0.5, 0.0))
+    rr, cc = np.meshgrid(rows, cols, indexing="ij")
+    out = ndimage.map_coordinates(smooth, [rr, cc], order=1, mode="nearest")
+    new_mask = None
+    if mask is not None:
+        new_mask = ndimage.map_coordinates(mask.astype(np.float64), [rr, cc], order=1, mode="nearest") > 0.999
+    cx, cy = geometry.principal_point
+    geom = replace(geometry, height=H, width=W, pixel_spacing_mm=geometry.pixel_spacing_mm * f,
+                   cx=(cx - x0 + 0.5) / f - 0.5, cy=(cy - y0 + 0.5) / f - 0.5)
+    return out, new_mask, geom
+
+
+def run_register(cmd: RegisterCommand) -> list[Path]:
+    from dataclasses import replace
+
+    from register.cmaes import CMAESRegistration, CMAESSettings
+    from register.plots import convergence_plot, overlay_png
+    from register.preprocess import Pipeline
+    from register.xray_io import geometry_for, load_xray
+    from sim.anatomy import anatomy_center
+    from sim.atomic import write_json
+    from sim.ct_io import load_ct_spec
+
+    init = _parse_init(cmd.init)
+    volume = load_ct_spec(cmd.ct, label_map=cmd.label_map)
+    center = np.asarray(cmd.center, float) if cmd.center is not None else anatomy_center(volume)
+    xray = load_xray(cmd.xray)
+    geometry = geometry_for(xray, cmd.scene, sdd_mm=cmd.sdd, sod_mm=cmd.sod, pixel_spacing_mm=cmd.pixel_spacing)
+    image, mask, record = Pipeline.from_names(list(cmd.preprocess)).apply(xray.pixels)
+    for step in record:  # a crop moves the principal point and shrinks the detector
+        box = step.get("crop_box") if isinstance(step, dict) else None
+        if box is not None:
+            r0, r1, c0, c1 = box
+            cx, cy = geometry.principal_point
+            geometry = replace(geometry, height=r1 - r0, width=c1 - c0, cx=cx - c0, cy=cy - r0)
+    image, mask, geometry = fit_to_size(image, mask, geometry, cmd.size)
+    settings = CMAESSettings(size=(geometry.height, geometry.width))
+    engine = CMAESRegistration(volume, settings, scene=cmd.scene, geometry=geometry, center_lps=center)
+    result = engine.register(image, init, mask=mask)
+    out = Path(cmd.out)
+    drr = engine.render(result.params)[0]
+    overlay_png(image, drr, out / "overlay.png")
+    convergence_plot(result.history, out / "convergence.png")
+    write_json(out / "result.json", {
+        **result.to_dict(), "ct": volume.source, "xray": xray.source, "init_params": init.tolist(),
+        "anatomy_center_lps_mm": center.tolist(), "preprocessing": record,
+        "geometry": {"sdd_mm": geometry.sdd_mm, "sod_mm": geometry.sod_mm, "height": geometry.height,
+                     "width": geometry.width, "pixel_spacing_mm": geometry.pixel_spacing_mm,
+                     "principal_point_uv": list(geometry.principal_point), "K": geometry.intrinsics().tolist()},
+    })
+    print(f"similarity {result.similarity:.4f} after {result.renders} renders; pose: "
+          + " ".join(f"{v:.2f}" for v in result.params))
+    return [out / "result.json", out / "overlay.png", out / "convergence.png"]

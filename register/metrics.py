@@ -1,0 +1,541 @@
+"""Image similarity metrics for intensity-based 2D/3D registration (NumPy, batched).
+
+The optimiser (CMA-ES) scores a whole population of ``B`` candidate DRRs against one fixed
+X-ray, so every metric takes ``fixed`` ``(H, W)`` and ``moving`` ``(B, H, W)`` (or ``(H, W)``,
+treated as a batch of one) and returns ``(B,)`` float64 scores; higher is more similar, 1 is
+a perfect match. Images are unitless intensities (any affine scaling of them is irrelevant);
+all arithmetic is done in float64 whatever the input dtype (float32 or float64).
+
+Masks are ``(H, W)`` bool arrays; True marks pixels that count. Every metric is built so that
+pixels outside the mask have no influence at all on the score (for the gradient metrics the
+mask is eroded by one pixel first, for the pyramid the smoothing is mask-normalised).
+
+Metrics (``x`` = pixel column / second-to-last axis ``W``, ``y`` = row / axis ``H``):
+
+* :func:`ncc` -- global normalised cross-correlation over the mask.
+* :func:`gradient_ncc` -- mean NCC of the Sobel x and y gradient images.
+* :func:`patch_ncc` -- local NCC in every ``patch x patch`` window (box filters on the
+  batch), averaged over the textured, sufficiently masked windows.
+* :func:`patch_gradient_ncc` -- patch NCC of the Sobel gradient images, averaged over x and y
+  (Grupp et al. 2020, xReg's "patch gradient NCC").
+* :func:`multiscale` -- mean of any of the above over a Gaussian pyramid.
+* :func:`downsample` -- integer block-mean downsampling for multi-resolution registration.
+
+Degenerate cases return 0 rather than NaN: an image that is constant over the mask has no
+defined correlation with anything.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+from scipy import ndimage
+
+__all__ = [
+    "METRICS",
+    "MetricError",
+    "downsample",
+    "get_metric",
+    "gradient_ncc",
+    "multiscale",
+    "ncc",
+    "patch_gradient_ncc",
+    "patch_ncc",
+]
+
+#: An image whose standard deviation over the mask is at most this fraction of its largest
+#: absolute value (over the mask) is treated as constant (float64 rounding of a constant
+#: image after mean subtraction is ~1e-16 relative).
+_CONSTANT_REL = 1e-10
+
+#: A window is "textured" when its local variance exceeds this fraction of the image's global
+#: variance over the mask (local std > 1e-4 x global std). Rounding in the box-filtered
+#: variances is ~1e-12 of the global variance, far below it.
+_LOCAL_VAR_REL = 1e-8
+
+
+class MetricError(ValueError):
+    """A metric cannot be computed from its inputs; the message names the input and the problem."""
+
+
+# ----------------------------------------------------------------------------- input checks
+
+
+def _as_image(name: str, a: Any, ndims: tuple[int, ...]) -> np.ndarray:
+    arr = np.asarray(a)
+    if arr.ndim not in ndims:
+        want = " or ".join(f"{n}-D" for n in ndims)
+        raise MetricError(f"{name}: expected a {want} array, got shape {arr.shape}")
+    if arr.dtype == bool or not (np.issubdtype(arr.dtype, np.integer) or np.issubdtype(arr.dtype, np.floating)):
+        raise MetricError(f"{name}: expected real numeric intensities, got dtype {arr.dtype}")
+    arr = arr.astype(np.float64, copy=False)
+    finite = np.isfinite(arr)
+    if not finite.all():
+        n_nan = int(np.isnan(arr).sum())
+        n_inf = int(arr.size - finite.sum()) - n_nan
+        raise MetricError(f"{name}: contains {n_nan} NaN and {n_inf} infinite values")
+    return arr
+
+
+def _check_inputs(
+    fixed: Any, moving: Any, mask: Any, min_size: int = 1
+) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    """Validate and convert: fixed ``(H, W)``, moving ``(B, H, W)``, mask ``(H, W)`` bool or None."""
+    f = _as_image("fixed", fixed, (2,))
+    m = _as_image("moving", moving, (2, 3))
+    if m.ndim == 2:
+        m = m[None]
+    if m.shape[1:] != f.shape:
+        raise MetricError(f"moving: image shape {m.shape[1:]} does not match fixed {f.shape} "
+                          f"(moving must be (B, H, W) or (H, W) with the fixed image's (H, W))")
+    if m.shape[0] == 0:
+        raise MetricError("moving: empty batch (B = 0)")
+    if min(f.shape) < min_size:
+        raise MetricError(f"fixed: image shape {f.shape} is smaller than {min_size} x {min_size} pixels")
+    if mask is None:
+        return f, m, None
+    k = np.asarray(mask)
+    if k.dtype != bool:
+        raise MetricError(f"mask: expected a bool array, got dtype {k.dtype}")
+    if k.shape != f.shape:
+        raise MetricError(f"mask: shape {k.shape} does not match the images' (H, W) = {f.shape}")
+    if not k.any():
+        raise MetricError("mask: empty (no pixel is True)")
+    return f, m, k
+
+
+def _check_patch(patch: Any, shape: tuple[int, int]) -> int:
+    if isinstance(patch, bool) or not isinstance(patch, (int, np.integer)):
+        raise MetricError(f"patch: expected an odd integer >= 3, got {patch!r}")
+    p = int(patch)
+    if p < 3 or p % 2 == 0:
+        raise MetricError(f"patch: expected an odd integer >= 3, got {p}")
+    if p > min(shape):
+        raise MetricError(f"patch: {p} px windows do not fit in images of shape {shape}")
+    return p
+
+
+# ----------------------------------------------------------------------------- global NCC
+
+
+def _ncc_core(f: np.ndarray, m: np.ndarray, mask: np.ndarray | None) -> np.ndarray:
+    """NCC of f ``(H, W)`` against m ``(B, H, W)`` over mask (checked inputs), ``(B,)``."""
+    if mask is None:
+        fv = f.reshape(-1)
+        mv = m.reshape(m.shape[0], -1)
+    else:
+        fv = f[mask]
+        mv = m[:, mask]
+    fc = fv - fv.mean()
+    mc = mv - mv.mean(axis=1, keepdims=True)
+    # einsum, not BLAS matmul: threaded gemv is slower here and contends on busy machines
+    sff = float(np.einsum("i,i->", fc, fc))
+    smm = np.einsum("bi,bi->b", mc, mc)
+    sfm = np.einsum("bi,i->b", mc, fc)
+    n = fv.size
+    f_const = sff <= n * (_CONSTANT_REL * np.abs(fv).max()) ** 2
+    m_const = smm <= n * (_CONSTANT_REL * np.abs(mv).max(axis=1)) ** 2
+    ok = ~m_const & (not f_const)
+    out = np.zeros(m.shape[0])
+    out[ok] = sfm[ok] / np.sqrt(sff * smm[ok])
+    return np.clip(out, -1.0, 1.0)
+
+
+def ncc(fixed: np.ndarray, moving: np.ndarray, mask: np.ndarray | None = None) -> np.ndarray:
+    """Normalised cross-correlation of one fixed image with a batch of moving images.
+
+    With ``f``, ``m`` the intensities over the ``n`` pixels where ``mask`` is True (all pixels
+    without a mask) and bars their means::
+
+        NCC = sum((f - f_bar) (m - m_bar)) / sqrt(sum((f - f_bar)^2) sum((m - m_bar)^2))
+
+    i.e. Pearson's correlation coefficient, in [-1, 1]; 1 for identical images, invariant to
+    ``a I + b`` (a > 0) of either image, -1 under a < 0. A constant image (std over the mask
+    at most 1e-10 of its largest absolute value) gives 0.
+
+    Args:
+        fixed: ``(H, W)`` fixed image (the X-ray).
+        moving: ``(B, H, W)`` batch of moving images (DRRs), or one ``(H, W)`` image.
+        mask: optional ``(H, W)`` bool; only True pixels count.
+
+    Returns:
+        ``(B,)`` float64 scores (``(1,)`` for a 2-D ``moving``).
+    """
+    f, m, k = _check_inputs(fixed, moving, mask)
+    return _ncc_core(f, m, k)
+
+
+# ----------------------------------------------------------------------------- gradients
+
+
+def _sobel_xy(img: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Sobel gradients of ``(..., H, W)`` on the interior, each ``(..., H-2, W-2)``.
+
+    ``gx[i, j] = sum_k w_k (I[i+k, j+1] - I[i+k, j-1])``, ``w = (1, 2, 1)`` for ``k = -1, 0, 1``
+    (and ``gy`` likewise with rows and columns swapped): exactly ``scipy.ndimage.sobel`` along
+    axis -1 / -2 at the pixels whose 3 x 3 neighbourhood lies inside the image. The outer
+    one-pixel border (where Sobel would need padding) is dropped.
+    """
+    dx = img[..., :, 2:] - img[..., :, :-2]  # (..., H, W-2)
+    gx = dx[..., :-2, :] + 2.0 * dx[..., 1:-1, :] + dx[..., 2:, :]
+    dy = img[..., 2:, :] - img[..., :-2, :]  # (..., H-2, W)
+    gy = dy[..., :, :-2] + 2.0 * dy[..., :, 1:-1] + dy[..., :, 2:]
+    return gx, gy
+
+
+def _gradient_mask(mask: np.ndarray | None) -> np.ndarray | None:
+    """Mask for the interior gradient images ``(H-2, W-2)``: eroded by one pixel (3 x 3 square).
+
+    A Sobel value at an eroded-mask pixel only reads pixels inside the original mask, so
+    pixels outside the mask never influence the gradient metrics.
+    """
+    if mask is None:
+        return None
+    eroded = ndimage.binary_erosion(mask, structure=np.ones((3, 3), bool), border_value=0)[1:-1, 1:-1]
+    if not eroded.any():
+        raise MetricError("mask: empty after erosion by one pixel for the gradient metrics "
+                          "(it has no pixel whose 3 x 3 neighbourhood is all True)")
+    return eroded
+
+
+def _mean_defined(scores: list[np.ndarray], defined: list[bool], batch: int) -> np.ndarray:
+    use = [s for s, d in zip(scores, defined) if d]
+    if not use:
+        return np.zeros(batch)
+    return np.mean(use, axis=0)
+
+
+def gradient_ncc(fixed: np.ndarray, moving: np.ndarray, mask: np.ndarray | None = None) -> np.ndarray:
+    """Gradient NCC: mean of the NCCs of the Sobel x and y gradient images.
+
+    ``GNCC = (NCC(Gx f, Gx m) + NCC(Gy f, Gy m)) / 2`` with ``Gx``, ``Gy`` the 3 x 3 Sobel
+    derivatives along x (columns, axis -1) and y (rows, axis -2), same kernels as
+    ``scipy.ndimage.sobel``. The NCCs run over the mask eroded by one pixel (3 x 3 square) and
+    never over the image's outer one-pixel border, so border gradients do not count. A
+    direction in which the fixed gradient image is constant (e.g. a fixed image that varies
+    only along x has Gy = 0) is left out of the mean; 0 if both are.
+
+    Args:
+        fixed: ``(H, W)``, H, W >= 3. moving: ``(B, H, W)`` or ``(H, W)``. mask: ``(H, W)`` bool.
+
+    Returns:
+        ``(B,)`` float64 scores in [-1, 1].
+    """
+    f, m, k = _check_inputs(fixed, moving, mask, min_size=3)
+    ke = _gradient_mask(k)
+    fgx, fgy = _sobel_xy(f)
+    mgx, mgy = _sobel_xy(m)
+    scores, defined = [], []
+    for fg, mg in ((fgx, mgx), (fgy, mgy)):
+        fv = fg if ke is None else fg[ke]
+        defined.append(bool(fv.std() > _CONSTANT_REL * np.abs(fv).max()))
+        scores.append(_ncc_core(fg, mg, ke))
+    return _mean_defined(scores, defined, m.shape[0])
+
+
+# ----------------------------------------------------------------------------- patch NCC
+
+
+def _box_mean(x: np.ndarray, p: int) -> np.ndarray:
+    """Means over every p x p window fully inside ``(..., H, W)``: ``(..., H-p+1, W-p+1)``.
+
+    Separable box filter (``scipy.ndimage.uniform_filter1d`` along x, then y: running sums in
+    float64), cropped to the windows centred at least ``p // 2`` px from the border, so the
+    boundary mode never matters. Output ``[..., i, j]`` is the window centred on pixel
+    ``(i + p // 2, j + p // 2)``.
+    """
+    r = p // 2
+    a = ndimage.uniform_filter1d(x, p, axis=-1)[..., r : x.shape[-1] - r]
+    return ndimage.uniform_filter1d(a, p, axis=-2)[..., r : x.shape[-2] - r, :]
+
+
+def _normalise(v: np.ndarray, axis: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Mean and std over ``axis`` (keepdims; 0 and 1 for a constant image) and a flag per image
+    that it is not constant."""
+    mean = v.mean(axis=axis, keepdims=True)
+    std = v.std(axis=axis, keepdims=True)
+    scale = np.abs(v).max(axis=axis, keepdims=True)
+    ok = std > _CONSTANT_REL * scale
+    return np.where(ok, mean, 0.0), np.where(ok, std, 1.0), ok
+
+
+def _patch_core(
+    f: np.ndarray, m: np.ndarray, mask: np.ndarray | None, p: int, min_valid: float
+) -> tuple[np.ndarray, bool]:
+    """Mean windowed NCC of f ``(H, W)`` vs m ``(B, H, W)`` (checked inputs): ``(B,)`` scores
+    and whether the fixed image has any textured window (else the scores are 0)."""
+    batch = m.shape[0]
+    # Global normalisation over the mask (zero mean, unit std) keeps the box sums well
+    # conditioned for any a I + b and makes the texture threshold relative.
+    if mask is None:
+        fmu, fsd, fok = _normalise(f, None)
+        mmu, msd, mok = _normalise(m, (1, 2))
+    else:
+        fmu, fsd, fok = _normalise(f[mask], None)
+        mmu, msd, mok = _normalise(m[:, mask], 1)
+        mmu, msd = mmu[:, :, None], msd[:, :, None]
+    mok = mok.reshape(-1)
+    fn = (f - fmu) / fsd
+    mn = m - mmu
+    mn /= msd
+    # Box means of w x divided by the box mean of w (the window's mask fraction) are the
+    # means over the window's masked pixels.
+    if mask is None:
+        inv_frac: np.ndarray | float = 1.0
+        covered = np.ones((f.shape[0] - p + 1, f.shape[1] - p + 1), bool)
+    else:
+        w = mask.astype(np.float64)
+        fn *= w  # zero outside the mask: outside values never enter a sum
+        mn *= w
+        frac = _box_mean(w, p)
+        covered = frac >= max(min_valid, 2.0 / (p * p)) - 1e-9
+        if not covered.any():
+            raise MetricError(f"mask: no {p} x {p} window has at least min_valid = {min_valid} of its "
+                              f"pixels inside the mask")
+        inv_frac = 1.0 / np.maximum(frac, 1.0 / (p * p))
+    sf = _box_mean(fn, p) * inv_frac
+    var_f = _box_mean(fn * fn, p) * inv_frac - sf * sf
+    sel = covered & (var_f > _LOCAL_VAR_REL)
+    n_sel = int(sel.sum())
+    if not (bool(fok.all()) and n_sel):
+        return np.zeros(batch), False  # fixed image (locally) flat everywhere: no defined correlation
+    # Moving statistics on the full window grid (B, H', W'); unselected windows get weight 0.
+    sm = _box_mean(mn, p)
+    sm *= inv_frac
+    var_m = _box_mean(mn * mn, p)
+    var_m *= inv_frac
+    var_m -= sm * sm
+    cov = _box_mean(mn * fn, p)  # fn, mn each carry the 0/1 mask weight: w^2 = w
+    cov *= inv_frac
+    sm *= sf
+    cov -= sm
+    flat = var_m <= _LOCAL_VAR_REL  # moving flat in the window: NCC_w = 0
+    var_m[flat] = 1.0
+    var_m *= np.where(sel, var_f, 1.0)
+    np.sqrt(var_m, out=var_m)
+    cov /= var_m
+    cov[flat] = 0.0
+    np.clip(cov, -1.0, 1.0, out=cov)
+    out = np.einsum("bij,ij->b", cov, sel.astype(np.float64)) / n_sel
+    return np.where(mok, out, 0.0), True
+
+
+def patch_ncc(
+    fixed: np.ndarray,
+    moving: np.ndarray,
+    patch: int = 11,
+    mask: np.ndarray | None = None,
+    min_valid: float = 0.5,
+) -> np.ndarray:
+    """Local (patch-wise) NCC averaged over windows.
+
+    For every ``patch x patch`` window centred on a pixel and lying fully inside the image
+    (centres at least ``patch // 2`` px from the border), the NCC of the two images over the
+    window's masked pixels is computed from separable box filters on the whole batch::
+
+        NCC_w = cov_w(f, m) / sqrt(var_w(f) var_w(m)),
+        cov_w = <f m>_w - <f>_w <m>_w,  var_w(f) = <f^2>_w - <f>_w^2
+
+    with ``<.>_w`` the mean over the window's pixels inside the mask. The score is the mean of
+    ``NCC_w`` over the windows that (a) have at least ``min_valid`` of their ``patch^2``
+    pixels (and at least 2) inside the mask and (b) are textured in the fixed image: local
+    std above 1e-4 x the fixed image's global std over the mask. A window where the moving
+    image is flat (same relative threshold) contributes 0. Both images are first normalised
+    to zero mean and unit std over the mask (which does not change any ``NCC_w``), so the
+    score is invariant to a global ``a I + b`` (a > 0) of either image.
+
+    Args:
+        fixed: ``(H, W)``. moving: ``(B, H, W)`` or ``(H, W)``.
+        patch: odd window side in pixels, 3 <= patch <= min(H, W).
+        mask: optional ``(H, W)`` bool. min_valid: fraction in (0, 1] (used with a mask).
+
+    Returns:
+        ``(B,)`` float64 scores in [-1, 1]; 0 if no window of the fixed image is textured.
+
+    Raises:
+        MetricError: bad inputs, or no window meets ``min_valid``.
+    """
+    f, m, k = _check_inputs(fixed, moving, mask)
+    p = _check_patch(patch, f.shape)
+    mv = _check_min_valid(min_valid)
+    return _patch_core(f, m, k, p, mv)[0]
+
+
+def _check_min_valid(min_valid: Any) -> float:
+    try:
+        v = float(min_valid)
+    except (TypeError, ValueError):
+        raise MetricError(f"min_valid: expected a fraction in (0, 1], got {min_valid!r}") from None
+    if not 0.0 < v <= 1.0:
+        raise MetricError(f"min_valid: expected a fraction in (0, 1], got {v}")
+    return v
+
+
+def patch_gradient_ncc(
+    fixed: np.ndarray,
+    moving: np.ndarray,
+    patch: int = 11,
+    mask: np.ndarray | None = None,
+    min_valid: float = 0.5,
+) -> np.ndarray:
+    """Patch gradient NCC (Grupp et al. 2020; xReg's "patch gradient NCC").
+
+    ``(patch_ncc(Gx f, Gx m) + patch_ncc(Gy f, Gy m)) / 2`` with the Sobel gradients of
+    :func:`gradient_ncc` on the ``(H-2, W-2)`` interior and the mask eroded by one pixel;
+    the windows and their selection are those of :func:`patch_ncc` on the gradient images.
+    A direction with no textured window in the fixed gradient is left out of the mean.
+
+    Args:
+        fixed: ``(H, W)``. moving: ``(B, H, W)`` or ``(H, W)``.
+        patch: odd window side in pixels, 3 <= patch <= min(H, W) - 2.
+        mask: optional ``(H, W)`` bool. min_valid: fraction in (0, 1].
+
+    Returns:
+        ``(B,)`` float64 scores in [-1, 1].
+    """
+    f, m, k = _check_inputs(fixed, moving, mask, min_size=3)
+    p = _check_patch(patch, (f.shape[0] - 2, f.shape[1] - 2))
+    mv = _check_min_valid(min_valid)
+    ke = _gradient_mask(k)
+    fgx, fgy = _sobel_xy(f)
+    mgx, mgy = _sobel_xy(m)
+    scores, defined = [], []
+    for fg, mg in ((fgx, mgx), (fgy, mgy)):
+        s, d = _patch_core(fg, mg, ke, p, mv)
+        scores.append(s)
+        defined.append(d)
+    return _mean_defined(scores, defined, m.shape[0])
+
+
+# ----------------------------------------------------------------------------- registry
+
+
+def _ncc_entry(fixed, moving, mask=None, **kw):
+    if kw:
+        raise MetricError(f"ncc: unexpected options {sorted(kw)}")
+    return ncc(fixed, moving, mask)
+
+
+def _gncc_entry(fixed, moving, mask=None, **kw):
+    if kw:
+        raise MetricError(f"gncc: unexpected options {sorted(kw)}")
+    return gradient_ncc(fixed, moving, mask)
+
+
+def _patch_ncc_entry(fixed, moving, mask=None, **kw):
+    return patch_ncc(fixed, moving, mask=mask, **kw)
+
+
+def _patch_gncc_entry(fixed, moving, mask=None, **kw):
+    return patch_gradient_ncc(fixed, moving, mask=mask, **kw)
+
+
+#: Metrics by name; each is ``metric(fixed (H, W), moving (B, H, W), mask=None, **kw) -> (B,)``
+#: (``patch`` and ``min_valid`` keywords for the patch metrics).
+METRICS: dict[str, Callable[..., np.ndarray]] = {
+    "ncc": _ncc_entry,
+    "gncc": _gncc_entry,
+    "patch_ncc": _patch_ncc_entry,
+    "patch_gncc": _patch_gncc_entry,
+}
+
+
+def get_metric(name: str) -> Callable[..., np.ndarray]:
+    """The metric registered as ``name`` in :data:`METRICS`; MetricError listing the names otherwise."""
+    try:
+        return METRICS[name]
+    except (KeyError, TypeError):
+        raise MetricError(f"metric: unknown name {name!r}; valid names: {', '.join(sorted(METRICS))}") from None
+
+
+# ----------------------------------------------------------------------------- pyramids
+
+
+def _pyramid_down(
+    f: np.ndarray, m: np.ndarray, mask: np.ndarray | None
+) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    """One pyramid level: Gaussian sigma = 1 px (truncated at 4 sigma, edge replicated), every
+    second pixel from (0, 0) (size ceil(n / 2)). With a mask, the smoothing is mask-normalised,
+    ``G(w I) / G(w)``, so outside pixels carry no weight, and the mask is min-pooled over 2 x 2
+    blocks (a coarse pixel is valid only if all the fine pixels of its block are)."""
+    if mask is None:
+        fs = ndimage.gaussian_filter(f, 1.0, mode="nearest")
+        ms = ndimage.gaussian_filter(m, 1.0, mode="nearest", axes=(-2, -1))
+        return fs[::2, ::2], ms[:, ::2, ::2], None
+    w = mask.astype(np.float64)
+    h, wd = mask.shape
+    padded = np.pad(mask, ((0, h % 2), (0, wd % 2)), mode="edge")
+    pooled = padded.reshape(padded.shape[0] // 2, 2, padded.shape[1] // 2, 2).all(axis=(1, 3))
+    if not pooled.any():
+        raise MetricError("mask: empty after 2 x 2 min-pooling for a coarser pyramid level")
+    gw = ndimage.gaussian_filter(w, 1.0, mode="nearest")[::2, ::2]
+    safe = np.where(pooled, gw, 1.0)
+    fs = ndimage.gaussian_filter(f * w, 1.0, mode="nearest")[::2, ::2] / safe
+    ms = ndimage.gaussian_filter(m * w, 1.0, mode="nearest", axes=(-2, -1))[:, ::2, ::2] / safe
+    return np.where(pooled, fs, 0.0), np.where(pooled, ms, 0.0), pooled
+
+
+def multiscale(
+    metric: str | Callable[..., np.ndarray],
+    fixed: np.ndarray,
+    moving: np.ndarray,
+    levels: int = 3,
+    mask: np.ndarray | None = None,
+    **kw: Any,
+) -> np.ndarray:
+    """Mean of ``metric`` over a ``levels``-level Gaussian pyramid of both images.
+
+    Level 0 is the full resolution; level ``l + 1`` is level ``l`` smoothed with a Gaussian of
+    sigma 1 px and subsampled by taking every second pixel (see :func:`_pyramid_down` for the
+    masked case: mask-normalised smoothing and 2 x 2 min-pooled masks, so pixels outside the
+    mask still never matter). ``metric`` is a name of :data:`METRICS` or a callable
+    ``metric(fixed, moving, mask=..., **kw) -> (B,)``; ``kw`` (e.g. ``patch``) is passed to
+    every level, so the coarsest level must still fit the patch.
+
+    Returns:
+        ``(B,)`` float64: the mean of the ``levels`` per-level scores.
+    """
+    fn = get_metric(metric) if isinstance(metric, str) else metric
+    if not callable(fn):
+        raise MetricError(f"metric: expected a name or a callable, got {metric!r}")
+    if isinstance(levels, bool) or not isinstance(levels, (int, np.integer)) or levels < 1:
+        raise MetricError(f"levels: expected an integer >= 1, got {levels!r}")
+    f, m, k = _check_inputs(fixed, moving, mask)
+    if min(f.shape) >> (int(levels) - 1) < 1:
+        raise MetricError(f"levels: {levels} levels halve images of shape {f.shape} below one pixel")
+    total = np.zeros(m.shape[0])
+    for lev in range(int(levels)):
+        if lev:
+            f, m, k = _pyramid_down(f, m, k)
+        total += fn(f, m, mask=k, **kw)
+    return total / int(levels)
+
+
+def downsample(images: np.ndarray, factor: int) -> np.ndarray:
+    """Block-mean downsampling of ``(..., H, W)`` images by an integer ``factor``.
+
+    Output pixel ``[..., i, j]`` is the mean of ``images[..., f i : f (i + 1), f j : f (j + 1)]``;
+    output shape ``(..., H // f, W // f)``. When H or W is not divisible by the factor, the
+    last ``H % f`` rows / ``W % f`` columns are cropped (dropped) first. Floating inputs keep
+    their dtype (the mean is accumulated in float64); integer inputs give float64.
+
+    Raises:
+        MetricError: ``factor`` not a positive integer, fewer than 2 dimensions, non-numeric
+            images, or an image smaller than ``factor`` along H or W.
+    """
+    if isinstance(factor, bool) or not isinstance(factor, (int, np.integer)) or factor < 1:
+        raise MetricError(f"factor: expected a positive integer, got {factor!r}")
+    arr = np.asarray(images)
+    if arr.ndim < 2:
+        raise MetricError(f"images: expected (..., H, W), got shape {arr.shape}")
+    if arr.dtype == bool or not (np.issubdtype(arr.dtype, np.integer) or np.issubdtype(arr.dtype, np.floating)):
+        raise MetricError(f"images: expected real numeric values, got dtype {arr.dtype}")
+    f = int(factor)
+    h, w = arr.shape[-2] // f, arr.shape[-1] // f
+    if h == 0 or w == 0:
+        raise MetricError(f"images: shape {arr.shape[-2:]} is smaller than factor {f}")
+    out_dtype = arr.dtype if np.issubdtype(arr.dtype, np.floating) else np.float64
+    blocks = arr[..., : h * f, : w * f].reshape(*arr.shape[:-2], h, f, w, f)
+    return blocks.mean(axis=(-3, -1), dtype=np.float64).astype(out_dtype, copy=False)

@@ -1,0 +1,56 @@
+"""Figures of a registration: edge overlay of the final DRR on the X-ray, and convergence."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+
+def _window(img: np.ndarray) -> np.ndarray:
+    lo, hi = np.percentile(img, (0.5, 99.5))
+    return np.clip((img - lo) / max(hi - lo, 1e-12), 0, 1)
+
+
+def overlay_png(xray: np.ndarray, drr: np.ndarray, path: str | Path) -> None:
+    """The X-ray in grey with the DRR's strongest edges (top 8 % of Sobel magnitude) in red."""
+    from PIL import Image
+    from scipy import ndimage
+
+    from sim.atomic import atomic_path
+
+    grey = _window(np.asarray(xray, float))
+    mag = np.hypot(ndimage.sobel(drr, 0), ndimage.sobel(drr, 1))
+    edges = mag > np.percentile(mag, 92)
+    rgb = np.stack([grey] * 3, -1)
+    rgb[edges] = (1.0, 0.15, 0.1)
+    with atomic_path(path) as tmp:
+        Image.fromarray((rgb * 255 + 0.5).astype(np.uint8)).save(tmp, format="PNG")
+
+
+def convergence_plot(history, path: str | Path) -> None:
+    """Best similarity per generation / polish step, one colour per stage."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from sim.atomic import atomic_path
+
+    fig, ax = plt.subplots(figsize=(6, 3.5))
+    stages = []
+    for stage, *_ in history:
+        if stage not in stages:
+            stages.append(stage)
+    x = 0
+    for stage in stages:
+        ys = [h[1] for h in history if h[0] == stage]
+        ax.plot(range(x, x + len(ys)), ys, marker="." if len(ys) < 3 else None, label=stage)
+        x += len(ys)
+    ax.set_xlabel("generation (CMA-ES) / polish")
+    ax.set_ylabel("best similarity")
+    ax.legend()
+    fig.tight_layout()
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=110, format="png")
+    plt.close(fig)

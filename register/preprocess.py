@@ -1,0 +1,365 @@
+"""Recorded, composable preprocessing that makes real X-rays comparable with DRRs.
+
+A :class:`Pipeline` applies :class:`Step` objects in order to an ``(H, W)`` image (and an optional
+``(H, W)`` bool mask of valid pixels) and returns ``(image, mask, record)``: ``record`` is a
+JSON-serialisable list with one entry per step, ``{"step": name, "params": {...}, "measured":
+{...}}`` (the crop box, the chosen ``I0``, the normalisation percentiles, ...), so a run can say
+exactly what was done to its input.
+
+Steps (names for :meth:`Pipeline.from_names` in brackets):
+
+* :class:`CropBorder` (``crop``): removes near-constant border rows/columns (a frame, padding or a
+  collimator shadow) from the image edges; the crop box goes into the record, and
+  :func:`crop_box` / :func:`cropped_geometry` turn it into the detector geometry of the cropped
+  image (principal point ``cx - col0``, ``cy - row0``).
+* :class:`Median` (``median``): ``size x size`` median filter (salt-and-pepper / dead pixels).
+* :class:`LogCorrect` (``log``): ``-ln(I / I0)``; turns *transmitted intensity* (bone dark) into
+  line-integral-like values (bone bright, air ~ 0), like a DRR. ``I0`` (the unattenuated intensity)
+  is a high percentile of the image when not given. Only meaningful for transmission images
+  (``XRayImage.attenuation_bright`` False); display images (bone bright) skip it.
+* :class:`Normalize` (``normalize``): maps the ``low_pct`` / ``high_pct`` percentiles to 0 and 1
+  and clips to ``[0, 1]``.
+* :class:`Invert` (``invert``): ``max + min - value`` (same range, reversed).
+
+Percentiles and statistics use the valid (mask) pixels only. Images leave the pipeline as float32.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass
+from typing import Any, ClassVar, Iterable, Sequence
+
+import numpy as np
+from scipy import ndimage
+
+from sim.geometry import CArmGeometry
+
+__all__ = [
+    "PreprocessError",
+    "Step",
+    "CropBorder",
+    "Median",
+    "LogCorrect",
+    "Normalize",
+    "Invert",
+    "Pipeline",
+    "STEPS",
+    "crop_box",
+    "cropped_geometry",
+]
+
+
+class PreprocessError(ValueError):
+    """A preprocessing step, its parameters or its input cannot be used; the message says which."""
+
+
+def _num(value: object, name: str, *, lo: float | None = None, hi: float | None = None,
+         lo_open: bool = False) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating)):
+        raise PreprocessError(f"{name}: expected a number, got {value!r}")
+    v = float(value)
+    if not math.isfinite(v):
+        raise PreprocessError(f"{name}: must be finite, got {v}")
+    if lo is not None and (v < lo or (lo_open and v == lo)):
+        raise PreprocessError(f"{name}: must be {'>' if lo_open else '>='} {lo:g}, got {v:g}")
+    if hi is not None and v > hi:
+        raise PreprocessError(f"{name}: must be <= {hi:g}, got {v:g}")
+    return v
+
+
+def _valid_values(image: np.ndarray, mask: np.ndarray | None) -> np.ndarray:
+    return image.ravel() if mask is None else image[mask]
+
+
+class Step:
+    """Base of the preprocessing steps: frozen dataclasses with a class-level ``name``.
+
+    ``apply(image (H, W) float64, mask (H, W) bool | None) -> (image, mask, measured: dict)``.
+    """
+
+    name: ClassVar[str] = ""
+
+    def params(self) -> dict[str, Any]:
+        """The step's parameters as a JSON-serialisable dict."""
+        return _jsonable(dataclasses.asdict(self))  # type: ignore[call-overload]
+
+    def apply(self, image: np.ndarray, mask: np.ndarray | None) -> tuple[np.ndarray, np.ndarray | None, dict]:
+        raise NotImplementedError
+
+
+@dataclass(frozen=True)
+class CropBorder(Step):
+    """Crop near-constant rows/columns at the image edges (frame, padding, collimator shadow).
+
+    Statistics are taken on a 3 x 3 median-filtered copy (robust to isolated noisy pixels). A row
+    is *border* when the standard deviation of its valid pixels (across the columns kept so far) is
+    at most ``std_frac`` times the median row standard deviation of the central half of the rows;
+    rows with fewer than 2 valid pixels are border too. Columns likewise. Border rows/columns are
+    removed from each edge inward up to the first non-border one, at most ``max_frac`` of the size
+    per edge. The first pass measures rows over the central half of the columns (and columns over
+    the central half of the rows), so bands on the other axis do not hide a border; passes repeat
+    with the found box until it no longer changes. An image without structure (zero reference
+    standard deviation) is left uncropped.
+
+    Measured: ``crop_box = [row0, row1, col0, col1]`` (half-open: ``image[row0:row1, col0:col1]``,
+    in this step's input pixels), ``reference_std``.
+    """
+
+    name: ClassVar[str] = "crop"
+    std_frac: float = 0.1
+    max_frac: float = 0.4
+
+    def __post_init__(self) -> None:
+        _num(self.std_frac, "crop.std_frac", lo=0.0)
+        _num(self.max_frac, "crop.max_frac", lo=0.0, hi=0.5)
+
+    def _edges(self, stats: np.ndarray, valid: np.ndarray, across: slice, central: slice) -> tuple[int, int, float]:
+        """Border extent along axis 0 of ``stats``, measured over columns ``across``."""
+        s = stats[:, across]
+        v = valid[:, across]
+        n = v.sum(axis=1)
+        mean = np.where(n > 0, (s * v).sum(axis=1) / np.maximum(n, 1), 0.0)
+        var = np.where(n > 1, (((s - mean[:, None]) ** 2) * v).sum(axis=1) / np.maximum(n, 1), 0.0)
+        std = np.sqrt(var)
+        central_std = std[central][n[central] > 1]
+        ref = float(np.median(central_std)) if central_std.size else 0.0
+        if ref <= 0.0:
+            return 0, stats.shape[0], ref
+        border = (n < 2) | (std <= self.std_frac * ref)
+        limit = int(math.floor(self.max_frac * stats.shape[0]))
+        lead = 0
+        while lead < limit and border[lead]:
+            lead += 1
+        trail = 0
+        while trail < limit and border[stats.shape[0] - 1 - trail]:
+            trail += 1
+        return lead, stats.shape[0] - trail, ref
+
+    def apply(self, image, mask):
+        H, W = image.shape
+        stats = ndimage.median_filter(image, size=3, mode="nearest")
+        valid = np.ones_like(image, dtype=bool) if mask is None else mask
+        rows = slice(H // 4, H - H // 4)
+        cols = slice(W // 4, W - W // 4)
+        box = None
+        ref_r = ref_c = 0.0
+        for _ in range(5):
+            r0, r1, ref_r = self._edges(stats, valid, cols, slice(H // 4, H - H // 4))
+            c0, c1, ref_c = self._edges(stats.T, valid.T, rows, slice(W // 4, W - W // 4))
+            new = (r0, r1, c0, c1)
+            if new == box:
+                break
+            box = new
+            rows, cols = slice(r0, r1), slice(c0, c1)
+        r0, r1, c0, c1 = box  # type: ignore[misc]
+        out_mask = None if mask is None else mask[r0:r1, c0:c1]
+        measured = {"crop_box": [r0, r1, c0, c1], "reference_std": [ref_r, ref_c],
+                    "input_shape": [H, W]}
+        return image[r0:r1, c0:c1], out_mask, measured
+
+
+@dataclass(frozen=True)
+class Median(Step):
+    """``size x size`` median filter (odd ``size`` >= 1; edges replicate). Measured: ``changed_fraction``."""
+
+    name: ClassVar[str] = "median"
+    size: int = 3
+
+    def __post_init__(self) -> None:
+        if isinstance(self.size, bool) or not isinstance(self.size, (int, np.integer)) or self.size < 1 or self.size % 2 == 0:
+            raise PreprocessError(f"median.size: must be an odd positive integer (pixels), got {self.size!r}")
+
+    def apply(self, image, mask):
+        out = ndimage.median_filter(image, size=int(self.size), mode="nearest")
+        return out, mask, {"changed_fraction": float(np.mean(out != image))}
+
+
+@dataclass(frozen=True)
+class LogCorrect(Step):
+    """``L = -ln(max(I, floor) / I0)``: transmitted intensity -> line-integral-like values.
+
+    ``i0``: the unattenuated intensity (same units as the image); ``None`` -> the ``percentile``-th
+    percentile of the valid pixels (the brightest, least attenuated part of the image stands for the
+    direct beam; pixels above it get small negative values, which are kept). ``floor = floor_frac *
+    I0`` guards ``ln(0)``: pixels below it are clipped to it. Measured: ``i0``, ``i0_source``
+    ("given" / "percentile"), ``clipped_pixels``. ``I0 <= 0`` is an error (not a transmission image).
+    """
+
+    name: ClassVar[str] = "log"
+    i0: float | None = None
+    percentile: float = 99.5
+    floor_frac: float = 1e-6
+
+    def __post_init__(self) -> None:
+        if self.i0 is not None:
+            _num(self.i0, "log.i0", lo=0.0, lo_open=True)
+        _num(self.percentile, "log.percentile", lo=0.0, hi=100.0)
+        _num(self.floor_frac, "log.floor_frac", lo=0.0, hi=1.0, lo_open=True)
+
+    def apply(self, image, mask):
+        if self.i0 is None:
+            i0 = float(np.percentile(_valid_values(image, mask), self.percentile))
+            source = "percentile"
+        else:
+            i0, source = float(self.i0), "given"
+        if not i0 > 0:
+            raise PreprocessError(
+                f"log: I0 = {i0:g} (the {self.percentile:g}th percentile) is not positive; LogCorrect needs "
+                f"a transmitted-intensity image with positive values"
+            )
+        floor = self.floor_frac * i0
+        clipped = int(np.count_nonzero(image < floor))
+        out = -np.log(np.maximum(image, floor) / i0)
+        return out, mask, {"i0": i0, "i0_source": source, "clipped_pixels": clipped}
+
+
+@dataclass(frozen=True)
+class Normalize(Step):
+    """Map the ``low_pct`` / ``high_pct`` percentiles of the valid pixels to 0 / 1, then clip to ``[0, 1]``.
+
+    Measured: ``low``, ``high`` (the percentile values). Equal percentiles (a flat image) are an error.
+    """
+
+    name: ClassVar[str] = "normalize"
+    low_pct: float = 1.0
+    high_pct: float = 99.0
+
+    def __post_init__(self) -> None:
+        lo = _num(self.low_pct, "normalize.low_pct", lo=0.0, hi=100.0)
+        hi = _num(self.high_pct, "normalize.high_pct", lo=0.0, hi=100.0)
+        if not lo < hi:
+            raise PreprocessError(f"normalize: low_pct ({lo:g}) must be < high_pct ({hi:g})")
+
+    def apply(self, image, mask):
+        lo, hi = (float(v) for v in np.percentile(_valid_values(image, mask), [self.low_pct, self.high_pct]))
+        if not hi > lo:
+            raise PreprocessError(
+                f"normalize: the {self.low_pct:g}th and {self.high_pct:g}th percentiles are equal ({lo:g}); "
+                f"the image is flat and cannot be normalised"
+            )
+        out = np.clip((image - lo) / (hi - lo), 0.0, 1.0)
+        return out, mask, {"low": lo, "high": hi}
+
+
+@dataclass(frozen=True)
+class Invert(Step):
+    """``max + min - value`` over the valid pixels' extremes (range kept). Measured: ``min``, ``max``."""
+
+    name: ClassVar[str] = "invert"
+
+    def apply(self, image, mask):
+        v = _valid_values(image, mask)
+        mn, mx = float(v.min()), float(v.max())
+        return (mx + mn) - image, mask, {"min": mn, "max": mx}
+
+
+#: Step names for :meth:`Pipeline.from_names` -> step classes (built with their defaults).
+STEPS: dict[str, type[Step]] = {cls.name: cls for cls in (CropBorder, Median, LogCorrect, Normalize, Invert)}
+
+
+def _jsonable(obj: Any) -> Any:
+    if isinstance(obj, dict):
+        return {str(k): _jsonable(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_jsonable(v) for v in obj]
+    if isinstance(obj, (bool, np.bool_)):
+        return bool(obj)
+    if isinstance(obj, (int, np.integer)):
+        return int(obj)
+    if isinstance(obj, (float, np.floating)):
+        return float(obj)
+    if obj is None or isinstance(obj, str):
+        return obj
+    raise PreprocessError(f"record: cannot serialise {type(obj).__name__}")
+
+
+@dataclass(frozen=True)
+class Pipeline:
+    """An ordered tuple of :class:`Step` objects."""
+
+    steps: tuple[Step, ...] = ()
+
+    def __post_init__(self) -> None:
+        steps = tuple(self.steps)
+        for k, s in enumerate(steps):
+            if not isinstance(s, Step):
+                raise PreprocessError(f"steps[{k}]: expected a Step, got {type(s).__name__}")
+        object.__setattr__(self, "steps", steps)
+
+    @classmethod
+    def from_names(cls, names: Iterable[str]) -> Pipeline:
+        """Steps by name with default parameters, e.g. ``["crop", "median", "log", "normalize"]``."""
+        if isinstance(names, str):
+            names = [names]
+        steps = []
+        for n in names:
+            key = str(n).strip().lower()
+            if key not in STEPS:
+                raise PreprocessError(f"unknown preprocessing step {n!r}; valid steps: {', '.join(STEPS)}")
+            steps.append(STEPS[key]())
+        return cls(tuple(steps))
+
+    @property
+    def names(self) -> list[str]:
+        return [s.name for s in self.steps]
+
+    def apply(self, image: np.ndarray, mask: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray | None, list[dict]]:
+        """Run the steps: ``image (H, W)`` numeric finite, ``mask (H, W)`` bool valid pixels or None.
+
+        Returns ``(image (H', W') float32, mask (H', W') bool or None, record)``; ``record`` is a
+        JSON-serialisable list of ``{"step", "params", "measured"}`` in step order.
+        """
+        a = np.asarray(image)
+        if a.dtype.kind not in "uif" or a.dtype == np.bool_:
+            raise PreprocessError(f"image: must be numeric, got dtype {a.dtype}")
+        if a.ndim != 2:
+            raise PreprocessError(f"image: expected shape (H, W), got {a.shape}")
+        a = a.astype(np.float64)
+        if not np.all(np.isfinite(a)):
+            raise PreprocessError("image: contains NaN or infinite values")
+        m = None
+        if mask is not None:
+            m = np.asarray(mask)
+            if m.dtype != np.bool_ or m.shape != a.shape:
+                raise PreprocessError(f"mask: expected a bool array of shape {a.shape}, got {m.dtype} {m.shape}")
+            if not m.any():
+                raise PreprocessError("mask: no valid pixels")
+            m = m.copy()
+        record: list[dict] = []
+        for s in self.steps:
+            a, m, measured = s.apply(a, m)
+            if a.size == 0:
+                raise PreprocessError(f"{s.name}: produced an empty image")
+            record.append({"step": s.name, "params": s.params(), "measured": _jsonable(measured)})
+        return a.astype(np.float32), m, record
+
+
+def crop_box(record: Sequence[dict], shape: tuple[int, int]) -> tuple[int, int, int, int]:
+    """The total crop ``(row0, row1, col0, col1)`` (half-open, input pixels) of a pipeline record.
+
+    ``shape``: the ``(H, W)`` of the pipeline's input. Successive crops compose; no crop gives the
+    whole image.
+    """
+    r0, r1, c0, c1 = 0, int(shape[0]), 0, int(shape[1])
+    for entry in record:
+        box = entry.get("measured", {}).get("crop_box")
+        if box is not None:
+            br0, br1, bc0, bc1 = (int(v) for v in box)
+            r0, r1, c0, c1 = r0 + br0, r0 + br1, c0 + bc0, c0 + bc1
+    return r0, r1, c0, c1
+
+
+def cropped_geometry(geometry: CArmGeometry, record: Sequence[dict]) -> CArmGeometry:
+    """The detector geometry of the pipeline's output: size of the crop, principal point shifted.
+
+    ``geometry`` describes the pipeline's input image (``height x width`` must match it); the
+    result has ``row1 - row0`` x ``col1 - col0`` pixels and principal point ``(cx - col0, cy -
+    row0)`` (same spacing, SDD and SOD), so a pixel keeps its ray.
+    """
+    if not isinstance(geometry, CArmGeometry):
+        raise PreprocessError(f"geometry: expected a CArmGeometry, got {type(geometry).__name__}")
+    r0, r1, c0, c1 = crop_box(record, (geometry.height, geometry.width))
+    cx, cy = geometry.principal_point
+    return dataclasses.replace(geometry, height=r1 - r0, width=c1 - c0, cx=cx - c0, cy=cy - r0)
