@@ -140,11 +140,9 @@ def fit_to_size(image: np.ndarray, mask: np.ndarray | None, geometry, longer: in
 
 
 def run_register(cmd: RegisterCommand) -> list[Path]:
-    from dataclasses import replace
-
-    from register.cmaes import CMAESRegistration, CMAESSettings
+    from register.cmaes import CMAESRegistration, CMAESSettings, RegistrationError
     from register.plots import convergence_plot, overlay_png
-    from register.preprocess import Pipeline
+    from register.preprocess import Pipeline, cropped_geometry
     from register.xray_io import geometry_for, load_xray
     from sim.anatomy import anatomy_center
     from sim.atomic import write_json
@@ -156,12 +154,9 @@ def run_register(cmd: RegisterCommand) -> list[Path]:
     xray = load_xray(cmd.xray)
     geometry = geometry_for(xray, cmd.scene, sdd_mm=cmd.sdd, sod_mm=cmd.sod, pixel_spacing_mm=cmd.pixel_spacing)
     image, mask, record = Pipeline.from_names(list(cmd.preprocess)).apply(xray.pixels)
-    for step in record:  # a crop moves the principal point and shrinks the detector
-        box = step.get("crop_box") if isinstance(step, dict) else None
-        if box is not None:
-            r0, r1, c0, c1 = box
-            cx, cy = geometry.principal_point
-            geometry = replace(geometry, height=r1 - r0, width=c1 - c0, cx=cx - c0, cy=cy - r0)
+    geometry = cropped_geometry(geometry, record)  # a crop moves the principal point
+    if not xray.attenuation_bright and "invert" not in cmd.preprocess and "log" not in cmd.preprocess:
+        raise RegistrationError(f"{xray.source}: raw detector data (bone dark): add 'log' to --preprocess")
     image, mask, geometry = fit_to_size(image, mask, geometry, cmd.size)
     settings = CMAESSettings(size=(geometry.height, geometry.width))
     engine = CMAESRegistration(volume, settings, scene=cmd.scene, geometry=geometry, center_lps=center)
