@@ -174,6 +174,12 @@ class CMAESRegistration:
         if not np.all(np.isfinite(fixed)):
             raise RegistrationError("the X-ray contains NaN or infinite pixels")
         x0 = np.asarray(init_params, dtype=np.float64).reshape(6)
+        if not np.all(np.isfinite(x0)):
+            raise RegistrationError(f"the start pose must be finite, got {x0}")
+        start_drr = self.render(x0, max(s.levels))[0]
+        if np.count_nonzero(start_drr > 1e-3) < 0.01 * start_drr.size:
+            raise RegistrationError("the CT does not overlap the view at the start pose (its DRR is "
+                                    "empty): check the scene geometry, the anatomy centre and --init")
         scale = np.array([1.0] * 3 + [s.sigma_mm / s.sigma_deg] * 3)  # search in deg-like units
         lo = x0 - np.array([s.range_deg] * 3 + [s.range_mm] * 3)
         hi = x0 + np.array([s.range_deg] * 3 + [s.range_mm] * 3)

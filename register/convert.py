@@ -80,7 +80,7 @@ for _m in DIFFDRR_REORIENT.values():
 _DIFFDRR_DET_FROM_CAM = {True: np.diag([-1.0, -1.0, 1.0, 1.0]), False: np.diag([1.0, -1.0, 1.0, 1.0])}
 
 #: DeepDRR pixel index = ctxreg pixel coordinate + 0.5 (homogeneous 2-D shift).
-_SHIFT_HALF = np.array([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]])
+_SHIFT_HALF = np.array([[1.0, 0.0, 0.5], [0.0, 1.0, 0.5], [0.0, 0.0, 1.0]])
 _UNSHIFT_HALF = np.array([[1.0, 0.0, -0.5], [0.0, 1.0, -0.5], [0.0, 0.0, 1.0]])
 
 

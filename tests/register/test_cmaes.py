@@ -122,3 +122,10 @@ def test_summary_statistics():
     assert s["rot_err_deg"]["std"] == pytest.approx(np.std([0.1, 0.2, 0.9, 2.0], ddof=1))
     assert s["success_mtre"] == pytest.approx(0.5)  # mTRE 1.2, 2.4 < 10 mm; 10.8, 24 not
     assert s["success_rot"] == pytest.approx(0.75)
+
+
+def test_a_ct_outside_the_view_is_refused(phantom):
+    vol, c = phantom
+    engine = CMAESRegistration(vol, SMALL, center_lps=c)
+    with pytest.raises(RegistrationError, match="does not overlap the view"):
+        engine.register(np.ones((64, 64)), np.array([0, 0, 0, 600.0, 0, 0]))
