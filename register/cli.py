@@ -12,6 +12,7 @@ import os
 import sys
 
 from sim.cliargs import HelpFormatter, add_options, from_namespace
+from learn.commands import TrainCommand
 from register.commands import EvaluateCommand, RegisterCommand
 from sim.cli import DemoCommand, RenderCommand, SimulateCommand
 
@@ -23,6 +24,8 @@ COMMANDS = {
                  "register.commands:run_register"),
     "evaluate": (EvaluateCommand, "evaluate registration methods on sampled target poses of a CT",
                  "register.commands:run_evaluate"),
+    "train": (TrainCommand, "train the contextual pose-update network on a campaign",
+              "learn.commands:run_train"),
     "demo": (DemoCommand, "render the built-in pelvis phantom at a few poses (PNG + JSON)",
              "sim.cli:run_demo"),
 }
@@ -47,7 +50,7 @@ def _user_errors() -> tuple[type[BaseException], ...]:
     from sim.campaign.runner import CampaignError
 
     return (ValueError, FileNotFoundError, NotADirectoryError, PermissionError, BackendError,
-            CampaignError)
+            CampaignError)  # learn's config and weights errors are ValueError / FileNotFoundError
 
 
 def main(argv: list[str] | None = None) -> int:

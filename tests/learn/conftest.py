@@ -1,0 +1,43 @@
+"""A small campaign shared by the learning tests (two 5 mm phantoms, 6 images each, 32 x 32)."""
+
+from __future__ import annotations
+
+import pytest
+
+CAMPAIGN = """
+[campaign]
+name = "pairs"
+seed = 3
+images_per_ct = 6
+shard_size = 3
+[scene]
+size = [32, 32]
+[split]
+train = 0.5
+val = 0.0
+test = 0.5
+[[cts]]
+path = "{ct0}"
+split = "train"
+[[cts]]
+path = "{ct1}"
+split = "test"
+"""
+
+
+@pytest.fixture(scope="module")
+def campaign(tmp_path_factory):
+    from sim.campaign import load_campaign, open_dataset, run_campaign
+    from sim.phantom import write_phantom_nifti
+
+    d = tmp_path_factory.mktemp("pairs")
+    cts = []
+    for seed in (4, 5):
+        p = d / f"p{seed}.nii.gz"
+        write_phantom_nifti(p, seed, spacing_mm=5.0)
+        cts.append(p)
+    (d / "c.toml").write_text(CAMPAIGN.format(ct0=cts[0], ct1=cts[1]))
+    run_campaign(load_campaign(d / "c.toml"), d / "out", progress=False)
+    data = open_dataset(d / "out")
+    yield data
+    data.close()

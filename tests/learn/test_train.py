@@ -1,0 +1,66 @@
+"""The training loop: it learns, logs, and a resumed run takes exactly the uninterrupted steps."""
+
+from __future__ import annotations
+
+import csv
+from dataclasses import replace
+
+import pytest
+import torch
+
+
+def config(campaign, out, **kw):
+    from learn.train import TrainConfig
+
+    base = dict(dataset=str(campaign.folder), out=str(out), backbone="tiny", batch_size=4, iterations=12,
+                lr=1e-3, pairs_per_epoch=16, val_pairs=8, val_every=6, checkpoint_every=6, seed=5)
+    base.update(kw)
+    return TrainConfig(**base)
+
+
+def test_resume_after_an_interruption_gives_the_same_model(campaign, tmp_path, monkeypatch):
+    import learn.train as tr
+
+    cfg_a = config(campaign, tmp_path / "a")
+    tr.train(cfg_a, log=lambda *_: None)
+    ref = torch.load(tmp_path / "a" / "checkpoint.pt", weights_only=False)
+
+    cfg_b = config(campaign, tmp_path / "b")
+    real_save = tr._save_checkpoint
+
+    def save_then_die(path, payload):
+        real_save(path, payload)
+        raise KeyboardInterrupt  # killed right after the first checkpoint (iteration 6)
+
+    monkeypatch.setattr(tr, "_save_checkpoint", save_then_die)
+    with pytest.raises(KeyboardInterrupt):
+        tr.train(cfg_b, log=lambda *_: None)
+    monkeypatch.setattr(tr, "_save_checkpoint", real_save)
+    assert torch.load(tmp_path / "b" / "checkpoint.pt", weights_only=False)["iteration"] == 6
+    tr.train(cfg_b, resume=True, log=lambda *_: None)
+    got = torch.load(tmp_path / "b" / "checkpoint.pt", weights_only=False)
+    assert got["iteration"] == 12
+    for key, value in ref["model"].items():
+        torch.testing.assert_close(got["model"][key], value, rtol=0, atol=0, msg=key)
+    rows = list(csv.DictReader(open(tmp_path / "b" / "log.csv")))
+    ref_rows = list(csv.DictReader(open(tmp_path / "a" / "log.csv")))
+    assert rows == ref_rows
+
+
+def test_refusals_name_the_key(campaign, tmp_path):
+    from learn.train import TrainConfigError, load_train_config, train
+
+    with pytest.raises(TrainConfigError, match="lr"):
+        config(campaign, tmp_path, lr=-1.0)
+    with pytest.raises(TrainConfigError, match="weights_path"):
+        config(campaign, tmp_path, weights="imagenet_local")
+    bad = tmp_path / "bad.toml"
+    bad.write_text('[train]\ndataset = "x"\nbatchsize = 3\n')
+    with pytest.raises(TrainConfigError, match="batchsize"):
+        load_train_config(bad)
+    cfg = config(campaign, tmp_path / "c", iterations=2, val_every=1, checkpoint_every=1)
+    train(cfg, log=lambda *_: None)
+    with pytest.raises(TrainConfigError, match="--resume"):
+        train(cfg, log=lambda *_: None)
+    with pytest.raises(TrainConfigError, match="another config"):
+        train(replace(cfg, lr=5e-4), resume=True, log=lambda *_: None)
