@@ -22,7 +22,11 @@ class EvaluateCommand:
         "anatomy centre c in LPS", group="input", unit="mm", nargs=3, metavar=("X", "Y", "Z")))
     cases: int = field(default=20, metadata=opt("number of target poses", group="protocol", metavar="N"))
     method: tuple[str, ...] = field(default=("cmaes",), metadata=opt(
-        "registration methods to compare", group="protocol", nargs="+", choices=("cmaes",)))
+        "registration methods to compare", group="protocol", nargs="+",
+        choices=("cmaes", "contextual", "contextual+cmaes")))
+    model: str | None = field(default=None, metadata=opt(
+        "trained network checkpoint (ctxreg train) for the contextual methods", group="protocol",
+        metavar="CKPT"))
     start: str = field(default="ap", metadata=opt(
         "start every case at AP, or near the truth (--local-rot / --local-trans)", group="protocol",
         choices=("ap", "local")))
@@ -54,7 +58,7 @@ def run_evaluate(cmd: EvaluateCommand) -> list[Path]:
     center = np.asarray(cmd.center, float) if cmd.center is not None else anatomy_center(volume)
     target_renderer = DRRRenderer(volume, RenderSettings(scene=cmd.scene, size=tuple(cmd.size),
                                                          ray_model=cmd.target_ray_model), center_lps=center)
-    methods = {name: METHODS[name](volume, center, tuple(cmd.size)) for name in cmd.method}
+    methods = {name: METHODS[name](volume, center, tuple(cmd.size), model=cmd.model) for name in cmd.method}
     result = evaluate(volume, methods, settings, Path(cmd.out), center_lps=center,
                       geometry=target_renderer.geometry, target_renderer=target_renderer)
     print(result["table"])
@@ -75,7 +79,10 @@ class RegisterCommand:
     init: tuple[str, ...] = field(default=("ap",), metadata=opt(
         "start pose: 'ap' or six numbers PHI THETA PSI TX TY TZ", group="pose", nargs="+",
         unit="deg deg deg mm mm mm", metavar="ap|P"))
-    method: str = field(default="cmaes", metadata=opt("registration method", group="pose", choices=("cmaes",)))
+    method: str = field(default="cmaes", metadata=opt(
+        "registration method", group="pose", choices=("cmaes", "contextual", "contextual+cmaes")))
+    model: str | None = field(default=None, metadata=opt(
+        "trained network checkpoint (ctxreg train) for the contextual methods", group="pose", metavar="CKPT"))
     scene: str = field(default="cios_fusion", metadata=opt(
         "C-arm scene: the geometry where the image does not give it", group="geometry"))
     sdd: float | None = field(default=None, metadata=opt(
@@ -158,15 +165,29 @@ def run_register(cmd: RegisterCommand) -> list[Path]:
     if not xray.attenuation_bright and "invert" not in cmd.preprocess and "log" not in cmd.preprocess:
         raise RegistrationError(f"{xray.source}: raw detector data (bone dark): add 'log' to --preprocess")
     image, mask, geometry = fit_to_size(image, mask, geometry, cmd.size)
-    settings = CMAESSettings(size=(geometry.height, geometry.width))
-    engine = CMAESRegistration(volume, settings, scene=cmd.scene, geometry=geometry, center_lps=center)
-    result = engine.register(image, init, mask=mask)
+    size = (geometry.height, geometry.width)
+    if cmd.method == "cmaes":
+        engine = CMAESRegistration(volume, CMAESSettings(size=size), scene=cmd.scene, geometry=geometry,
+                                   center_lps=center)
+        result = engine.register(image, init, mask=mask)
+        drr = engine.render(result.params)[0]
+    else:
+        from dataclasses import replace
+
+        from register.contextual import REFINE_SETTINGS, ContextualRegistration, NetworkPredictor
+
+        if cmd.model is None:
+            raise RegistrationError(f"--method {cmd.method} needs a trained model: --model CHECKPOINT")
+        refine = replace(REFINE_SETTINGS, size=size) if cmd.method == "contextual+cmaes" else None
+        engine = ContextualRegistration(volume, NetworkPredictor(cmd.model), size=size, scene=cmd.scene,
+                                        geometry=geometry, center_lps=center, refine=refine)
+        result = engine.register(image, init)
+        drr = engine.renderer.render(result.pose)[0]
     out = Path(cmd.out)
-    drr = engine.render(result.params)[0]
     overlay_png(image, drr, out / "overlay.png")
     convergence_plot(result.history, out / "convergence.png")
     write_json(out / "result.json", {
-        **result.to_dict(), "ct": volume.source, "xray": xray.source, "init_params": init.tolist(),
+        **result.to_dict(), "method": cmd.method, "ct": volume.source, "xray": xray.source, "init_params": init.tolist(),
         "anatomy_center_lps_mm": center.tolist(), "preprocessing": record,
         "geometry": {"sdd_mm": geometry.sdd_mm, "sod_mm": geometry.sod_mm, "height": geometry.height,
                      "width": geometry.width, "pixel_spacing_mm": geometry.pixel_spacing_mm,

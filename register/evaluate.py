@@ -49,7 +49,7 @@ class CMAESMethod:
 
     name = "cmaes"
 
-    def __init__(self, volume, center_lps, size, settings: CMAESSettings | None = None):
+    def __init__(self, volume, center_lps, size, settings: CMAESSettings | None = None, model=None):
         settings = settings or CMAESSettings(size=tuple(size))
         self.engine = CMAESRegistration(volume, settings, center_lps=center_lps)
 
@@ -57,7 +57,31 @@ class CMAESMethod:
         return self.engine.register(fixed, init_params)
 
 
-METHODS = {"cmaes": CMAESMethod}
+class ContextualMethod:
+    """The contextual iteration (a trained network), optionally refined by CMA-ES."""
+
+    name = "contextual"
+
+    def __init__(self, volume, center_lps, size, settings=None, model=None, refine: bool = False):
+        from dataclasses import replace
+
+        from register.contextual import REFINE_SETTINGS, ContextualRegistration, NetworkPredictor
+
+        if model is None:
+            raise EvaluationError("the contextual method needs a trained model: --model CHECKPOINT")
+        refine_settings = replace(REFINE_SETTINGS, size=tuple(size)) if refine else None
+        self.engine = ContextualRegistration(volume, NetworkPredictor(model), size=size, center_lps=center_lps,
+                                             refine=refine_settings)
+
+    def register(self, fixed, init_params):
+        return self.engine.register(fixed, init_params)
+
+
+def _contextual_cmaes(volume, center_lps, size, settings=None, model=None):
+    return ContextualMethod(volume, center_lps, size, model=model, refine=True)
+
+
+METHODS = {"cmaes": CMAESMethod, "contextual": ContextualMethod, "contextual+cmaes": _contextual_cmaes}
 
 
 @dataclass(frozen=True)

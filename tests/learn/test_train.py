@@ -64,3 +64,18 @@ def test_refusals_name_the_key(campaign, tmp_path):
         train(cfg, log=lambda *_: None)
     with pytest.raises(TrainConfigError, match="another config"):
         train(replace(cfg, lr=5e-4), resume=True, log=lambda *_: None)
+
+
+def test_a_trained_checkpoint_drives_the_contextual_predictor(campaign, tmp_path):
+    import numpy as np
+
+    from learn.train import train
+    from register.contextual import NetworkPredictor
+
+    cfg = config(campaign, tmp_path / "p", iterations=3, val_every=3, checkpoint_every=3)
+    train(cfg, log=lambda *_: None)
+    predictor = NetworkPredictor(str(tmp_path / "p" / "checkpoint.pt"))
+    a, b = campaign[0]["images"]["line"], campaign[1]["images"]["line"]
+    g = predictor(a, b)
+    assert g.shape == (6,) and np.all(np.isfinite(g))
+    assert not np.allclose(g, predictor(b, a))  # it knows which image is the target

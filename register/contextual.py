@@ -1,0 +1,138 @@
+"""The contextual pose iteration: a network predicts the geodesic gradient, the pose steps along it.
+
+Fixed source, anatomy-centred poses (docs/conventions.md). At each iteration the DRR at the
+current pose T and the X-ray go to a predictor that returns ``g`` = -2 log_T(T_target)
+(:func:`learn.labels.geodesic_label`; rotation in rad, translation in mm); the pose moves by
+``T <- T o Exp(-step g)`` (:func:`learn.labels.apply_update`, rotation about the anatomy centre,
+so the anatomy stays in view). The iteration stops when the predicted step is below
+``stop_rot_deg`` and ``stop_trans_mm``, or after ``max_iterations``. ``contextual+cmaes`` then
+hands the pose to CMA-ES in a narrowed box.
+
+Predictors: :class:`NetworkPredictor` (a trained :class:`learn.model.PoseUpdateNet` checkpoint)
+or any callable ``(fixed (H, W), drr (H, W)) -> g (6,)``; the tests use an oracle that returns
+the true label, which checks the iteration itself.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from register.cmaes import CMAESRegistration, CMAESSettings, RegistrationError, RegistrationResult
+
+
+@dataclass(frozen=True)
+class ContextualSettings:
+    """Units: degrees, mm. ``step`` is the fraction of the predicted gradient taken (0.15 originally)."""
+
+    step: float = 0.15
+    max_iterations: int = 60
+    stop_rot_deg: float = 0.05
+    stop_trans_mm: float = 0.2
+    keep_drrs: bool = False
+
+    def __post_init__(self) -> None:
+        if not 0 < self.step <= 1:
+            raise RegistrationError(f"step must be in (0, 1], got {self.step}")
+        if self.max_iterations < 1:
+            raise RegistrationError(f"max_iterations must be >= 1, got {self.max_iterations}")
+
+
+class NetworkPredictor:
+    """A trained pose-update network (``ctxreg train`` checkpoint) as a predictor of g (rad, mm)."""
+
+    def __init__(self, checkpoint: str):
+        import torch
+
+        from learn.labels import LabelNormalizer
+        from learn.model import pose_update_net
+        from learn.preprocess import build
+
+        try:
+            state = torch.load(checkpoint, weights_only=False, map_location="cpu")
+        except FileNotFoundError:
+            raise RegistrationError(f"model checkpoint {checkpoint} not found") from None
+        except Exception as e:  # noqa: BLE001 - torch raises many types for a bad file
+            raise RegistrationError(f"{checkpoint}: not a ctxreg training checkpoint ({e})") from None
+        if not isinstance(state, dict) or "model" not in state or "config" not in state:
+            raise RegistrationError(f"{checkpoint}: not a ctxreg training checkpoint")
+        cfg = state["config"]
+        self.model = pose_update_net(backbone=cfg["backbone"])
+        self.model.load_state_dict(state["model"])
+        self.model.eval()
+        self.transform = build(list(cfg["preprocess"]))
+        self.normalizer = LabelNormalizer()
+
+    def __call__(self, fixed: np.ndarray, drr: np.ndarray) -> np.ndarray:
+        import torch
+
+        with torch.no_grad():
+            x = torch.from_numpy(np.stack([fixed, drr]).astype(np.float32))[:, None]
+            x = self.transform(x)
+            out = self.model(x[:1], x[1:2])
+            return self.normalizer.denormalize(out.g[0].double()).numpy()
+
+
+class ContextualRegistration:
+    """The contextual iteration (and its hand-over to CMA-ES) on one CT; see the module doc."""
+
+    def __init__(self, volume, predictor, settings: ContextualSettings | None = None, *, size=(128, 128),
+                 scene: str = "cios_fusion", geometry=None, center_lps=None, refine: CMAESSettings | None = None):
+        from sim.anatomy import anatomy_center
+        from sim.render import DRRRenderer, RenderSettings
+
+        self.settings = settings or ContextualSettings()
+        self.predictor = predictor
+        self.center_lps = np.asarray(anatomy_center(volume) if center_lps is None else center_lps, float)
+        self.renderer = DRRRenderer(volume, RenderSettings(scene=scene, size=tuple(size)),
+                                    center_lps=self.center_lps, geometry=geometry)
+        self.geometry = self.renderer.geometry
+        self.refine = None
+        if refine is not None:
+            self.refine = CMAESRegistration(volume, refine, scene=scene, geometry=geometry,
+                                            center_lps=self.center_lps)
+
+    def register(self, fixed: np.ndarray, init_params=np.zeros(6)) -> RegistrationResult:
+        from learn.labels import apply_update
+        from sim.geometry import params_from_pose, pose_from_params
+
+        s = self.settings
+        fixed = np.asarray(fixed, np.float64)
+        T = pose_from_params(np.asarray(init_params, float).reshape(6), self.geometry.sod_mm)
+        history, drrs = [], []
+        t0 = time.perf_counter()
+        renders = 0
+        for _ in range(s.max_iterations):
+            drr = self.renderer.render(T)[0]
+            renders += 1
+            if s.keep_drrs:
+                drrs.append(drr)
+            g = np.asarray(self.predictor(fixed, drr), float).reshape(6)
+            rot_deg = np.degrees(s.step * np.linalg.norm(g[:3]))
+            trans_mm = s.step * np.linalg.norm(g[3:])
+            history.append(("contextual", -float(rot_deg + trans_mm), params_from_pose(T, self.geometry.sod_mm).tolist()))
+            if rot_deg < s.stop_rot_deg and trans_mm < s.stop_trans_mm:
+                break
+            T = apply_update(T, g, s.step)
+        stages = {"contextual": time.perf_counter() - t0}
+        params = params_from_pose(T, self.geometry.sod_mm)
+        if self.refine is not None:
+            res = self.refine.register(fixed, params)
+            res.stage_seconds = {**stages, **{f"cmaes_{k}": v for k, v in res.stage_seconds.items()}}
+            res.history = history + res.history
+            res.renders += renders
+            return res
+        from register.metrics import gradient_ncc
+
+        sim_value = float(gradient_ncc(fixed, self.renderer.render(T))[0])
+        result = RegistrationResult(params=params, pose=T, projection=self.renderer.projection_matrix(T),
+                                    similarity=sim_value, renders=renders + 1, stage_seconds=stages,
+                                    history=history)
+        result.trajectory_drrs = drrs
+        return result
+
+
+#: The narrowed CMA-ES box after the contextual iteration (degrees, mm).
+REFINE_SETTINGS = CMAESSettings(sigma_deg=2.0, sigma_mm=5.0, range_deg=10.0, range_mm=30.0, generations=(30, 20))
