@@ -79,3 +79,27 @@ def test_a_trained_checkpoint_drives_the_contextual_predictor(campaign, tmp_path
     g = predictor(a, b)
     assert g.shape == (6,) and np.all(np.isfinite(g))
     assert not np.allclose(g, predictor(b, a))  # it knows which image is the target
+
+
+def test_single_prediction_errors_have_the_zero_baseline_right(campaign, tmp_path):
+    import numpy as np
+
+    from learn.evaluate import single_prediction_errors
+    from learn.labels import geodesic_label
+    from learn.train import train
+    from sim.campaign.poses import ORIGINAL_PROTOCOL
+    from sim.ct_io import load_ct_spec
+    from sim.geometry import pose_from_params
+
+    cfg = config(campaign, tmp_path / "e", iterations=2, val_every=2, checkpoint_every=2)
+    train(cfg, log=lambda *_: None)
+    vol = load_ct_spec(campaign.subjects[0]["source"])
+    res = single_prediction_errors(str(tmp_path / "e" / "checkpoint.pt"), vol, pairs=6, size=(32, 32), seed=2)
+    assert set(res) == {"weighted_sum", "zero_baseline", "depth1", "depth2", "depth3"}
+    # the baseline is the labels' own size, computed here independently from the same draws
+    rng = np.random.Generator(np.random.PCG64(np.random.SeedSequence(2, spawn_key=(30,))))
+    pa, pb = ORIGINAL_PROTOCOL.sample(rng, 6), ORIGINAL_PROTOCOL.sample(rng, 6)
+    g = geodesic_label(torch.from_numpy(pose_from_params(pa, 700.0)), torch.from_numpy(pose_from_params(pb, 700.0)))
+    expected = np.degrees(np.linalg.norm(g.numpy()[:, :3], axis=1)).mean()
+    assert res["zero_baseline"]["rot_deg_mean"] == pytest.approx(expected, rel=1e-9)
+    assert all(np.isfinite(v) for r in res.values() for v in r.values())
