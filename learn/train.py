@@ -262,7 +262,7 @@ def _plot(rows: list[dict], path: Path) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from sim.atomic import atomic_path
+    from sim.atomic import save_figure
 
     it = [int(r["iteration"]) for r in rows]
     fig, ax = plt.subplots(figsize=(6, 3.5))
@@ -272,7 +272,4 @@ def _plot(rows: list[dict], path: Path) -> None:
     ax.set_ylabel("loss")
     ax.set_yscale("log")
     ax.legend()
-    fig.tight_layout()
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, dpi=110, format="png")
-    plt.close(fig)
+    save_figure(fig, path)

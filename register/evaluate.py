@@ -199,7 +199,7 @@ def violin_plot(rows: list[dict], path: Path) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from sim.atomic import atomic_path
+    from sim.atomic import save_figure
 
     methods = sorted({r["method"] for r in rows})
     fig, axes = plt.subplots(1, 3, figsize=(12, 3.8))
@@ -210,10 +210,7 @@ def violin_plot(rows: list[dict], path: Path) -> None:
         ax.set_xticks(range(1, len(methods) + 1), methods)
         ax.set_yscale("symlog", linthresh=1.0)
         ax.set_title(label)
-    fig.tight_layout()
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, dpi=110, format="png")
-    plt.close(fig)
+    save_figure(fig, path)
 
 
 def evaluate(volume, methods: dict[str, RegistrationMethod], settings: EvaluationSettings, out: Path,

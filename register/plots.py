@@ -35,7 +35,7 @@ def convergence_plot(history, path: str | Path) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from sim.atomic import atomic_path
+    from sim.atomic import save_figure
 
     fig, ax = plt.subplots(figsize=(6, 3.5))
     stages = []
@@ -50,7 +50,4 @@ def convergence_plot(history, path: str | Path) -> None:
     ax.set_xlabel("generation (CMA-ES) / polish")
     ax.set_ylabel("best similarity")
     ax.legend()
-    fig.tight_layout()
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, dpi=110, format="png")
-    plt.close(fig)
+    save_figure(fig, path)
