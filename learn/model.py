@@ -437,14 +437,18 @@ class PoseUpdateNet(nn.Module):
         return self.heads_forward(self.extract_features(target, current))
 
     @staticmethod
-    def loss(output: PoseUpdateOutput, target_g: Tensor, component_weights: Tensor | None = None) -> Tensor:
+    def loss(output: PoseUpdateOutput, target_g: Tensor, component_weights: Tensor | None = None,
+             relative_eps: float | None = None) -> Tensor:
         """Training loss (scalar tensor): ``mean_i MSE(g_levels[:, i], target_g) + MSE(g, target_g)``.
 
         MSE is the mean over batch and the 6 components of the squared error; with
         ``component_weights`` ``(6,)`` (non-negative) each component's squared error is
         multiplied by its weight first (e.g. to balance rotation against translation). Each
         level is trained on its own and the weighted sum trains the weight logits too.
-        ``target_g`` ``(B, 6)``: the label in the output's normalised units."""
+        ``target_g`` ``(B, 6)``: the label in the output's normalised units. With
+        ``relative_eps`` (> 0, normalised units) each pair's squared errors are divided by
+        ``|target_g|^2 + relative_eps^2`` (its label's squared length): a relative error, so a
+        pair 2 deg from its target counts as much as one 60 deg away."""
         if not isinstance(target_g, Tensor) or target_g.shape != output.g.shape:
             shape = tuple(target_g.shape) if isinstance(target_g, Tensor) else type(target_g).__name__
             raise PoseInputError(f"target_g must have shape {tuple(output.g.shape)} like output.g, got {shape}")
@@ -455,8 +459,14 @@ class PoseUpdateNet(nn.Module):
             cw = torch.as_tensor(component_weights, dtype=output.g.dtype, device=output.g.device)
             if cw.shape != (POSE_DIM,) or not bool(torch.isfinite(cw).all()) or bool((cw < 0).any()):
                 raise PoseInputError(f"component_weights must be (6,) finite and non-negative, got {cw.tolist()}")
-        level_err = ((output.g_levels - target_g[:, None, :]) ** 2 * cw).mean()  # mean over B, 3, 6 = mean of MSEs
-        sum_err = ((output.g - target_g) ** 2 * cw).mean()
+        pair_w = torch.ones_like(target_g[:, :1])
+        if relative_eps is not None:
+            if not (isinstance(relative_eps, (int, float)) and math.isfinite(relative_eps) and relative_eps > 0):
+                raise PoseInputError(f"relative_eps must be a finite number > 0, got {relative_eps!r}")
+            pair_w = 1.0 / ((target_g**2).sum(dim=1, keepdim=True) + relative_eps**2)  # (B, 1)
+        # mean over B, 3, 6 = mean of the levels' MSEs
+        level_err = ((output.g_levels - target_g[:, None, :]) ** 2 * cw * pair_w[:, None, :]).mean()
+        sum_err = ((output.g - target_g) ** 2 * cw * pair_w).mean()
         return level_err + sum_err
 
 

@@ -2,8 +2,12 @@
 
 ``ctxreg train CONFIG.toml [--resume]`` reads a ``[train]`` table (:class:`TrainConfig`; every
 key documented there with its default), trains on pairs of the campaign's ``train`` split, and
-validates on its ``val`` split (``test`` if it has no ``val``). The output folder holds
-``checkpoint.pt`` (model, optimiser, scheduler, iteration, random states; written atomically
+validates on its ``val`` split (``test`` if it has no ``val``). ``dataset`` is either a campaign
+folder written by ``ctxreg simulate`` (pairs of its stored images, :mod:`learn.data`) or a
+campaign ``.toml`` file, whose subjects are then rendered on the fly, near pairs included
+(:mod:`learn.online`). The output folder holds
+``checkpoint.pt`` (model, optimiser, scheduler, iteration, random states, config, the image size
+(H, W) in pixels; written atomically
 every ``checkpoint_every`` iterations and at the end), ``log.csv`` (iteration, training loss,
 validation loss, rotation and translation error of the predicted gradient) and ``loss.png``.
 A run killed at any point and restarted with ``--resume`` continues from its last checkpoint
@@ -15,6 +19,7 @@ from __future__ import annotations
 import csv
 import math
 import os
+import time
 import tomllib
 from dataclasses import asdict, dataclass, fields
 from pathlib import Path
@@ -32,7 +37,8 @@ class TrainConfig:
     """The ``[train]`` table. Paths relative to the config file's folder.
 
     Attributes:
-        dataset: campaign folder (written by ``ctxreg simulate``).
+        dataset: campaign folder (written by ``ctxreg simulate``), or a campaign ``.toml`` file to
+            render pairs on the fly (:class:`learn.online.OnlinePairs`).
         out: output folder for checkpoints and logs.
         backbone: "tiny", "densenet121" or "densenet161" (:class:`learn.model.Backbone`).
         weights: "none" or "imagenet_local" (needs ``weights_path``).
@@ -45,6 +51,14 @@ class TrainConfig:
             ``lr_step`` iterations (the original: 0.3 every 30000).
         pairs_per_epoch: pairs drawn per epoch (re-drawn each epoch from the seed).
         val_pairs: validation pairs (fixed); val_every / checkpoint_every: in iterations.
+        near_fraction: share of near pairs (online only; default 0.5 there).
+        near_rot_deg / near_trans_mm: ``[low, high]`` log-uniform ranges (deg, mm) of the near
+            offsets (online only; :class:`learn.online.NearPairs`).
+        loss: "mse" (:meth:`learn.model.PoseUpdateNet.loss`) or "relative" (each pair's squared
+            error divided by ``|y|^2 + relative_eps^2``, ``y`` the normalised label, so that near
+            pairs weigh as much as far ones).
+        relative_eps: the floor of the relative loss, in normalised label units (0.05 = 4 deg or 7.5 mm).
+        head_channels: channels of each depth's head.
         seed: every random draw (weights init, pairs, batches).
     """
 
@@ -65,7 +79,28 @@ class TrainConfig:
     val_pairs: int = 128
     val_every: int = 100
     checkpoint_every: int = 100
+    near_fraction: float | None = None
+    near_rot_deg: tuple[float, float] = (0.5, 20.0)
+    near_trans_mm: tuple[float, float] = (1.0, 40.0)
+    loss: str = "mse"
+    relative_eps: float = 0.05
+    head_channels: int = 64
     seed: int = 0
+
+    @property
+    def online(self) -> bool:
+        """True when ``dataset`` is a campaign file (pairs rendered on the fly)."""
+        return str(self.dataset).endswith(".toml")
+
+    def near(self):
+        """The :class:`learn.online.NearPairs` of an online run."""
+        from learn.online import NearPairs, OnlinePairsError
+
+        try:
+            return NearPairs(0.5 if self.near_fraction is None else self.near_fraction,
+                             tuple(self.near_rot_deg), tuple(self.near_trans_mm))
+        except OnlinePairsError as e:
+            raise TrainConfigError(f"train.near_*: {e}") from None
 
     def __post_init__(self) -> None:
         for name in ("batch_size", "iterations", "lr_step", "pairs_per_epoch", "val_pairs", "val_every",
@@ -80,6 +115,17 @@ class TrainConfig:
             raise TrainConfigError(f"train.weights must be 'none' or 'imagenet_local', got {self.weights!r}")
         if self.weights == "imagenet_local" and not self.weights_path:
             raise TrainConfigError("train.weights = 'imagenet_local' needs train.weights_path")
+        if self.loss not in ("mse", "relative"):
+            raise TrainConfigError(f"train.loss must be 'mse' or 'relative', got {self.loss!r}")
+        if not (self.relative_eps > 0 and math.isfinite(self.relative_eps)):
+            raise TrainConfigError(f"train.relative_eps must be positive, got {self.relative_eps}")
+        if int(self.head_channels) < 1:
+            raise TrainConfigError(f"train.head_channels must be >= 1, got {self.head_channels}")
+        if self.online:
+            self.near()
+        elif self.near_fraction is not None:
+            raise TrainConfigError("train.near_fraction needs pairs rendered on the fly: set train.dataset to a "
+                                   "campaign .toml file (a campaign folder has fixed images)")
 
 
 def load_train_config(path: str | os.PathLike) -> TrainConfig:
@@ -103,8 +149,9 @@ def load_train_config(path: str | os.PathLike) -> TrainConfig:
     for key in ("dataset", "out", "weights_path"):
         if table.get(key):
             table[key] = str((path.parent / table[key]).resolve())
-    if "preprocess" in table:
-        table["preprocess"] = tuple(table["preprocess"])
+    for key in ("preprocess", "near_rot_deg", "near_trans_mm"):
+        if key in table:
+            table[key] = tuple(table[key])
     try:
         return TrainConfig(**table)
     except TypeError as e:
@@ -137,10 +184,7 @@ def _errors(pred_norm: torch.Tensor, true_norm: torch.Tensor, normalizer) -> tup
 
 def train(cfg: TrainConfig, *, resume: bool = False, log=print) -> dict:
     """Train; returns the last log row. See the module doc for the outputs."""
-    from learn.data import PairDataset
     from learn.model import Weights, pose_update_net
-    from learn.preprocess import build
-    from sim.campaign import open_dataset
 
     out = Path(cfg.out)
     ckpt_path = out / "checkpoint.pt"
@@ -149,16 +193,11 @@ def train(cfg: TrainConfig, *, resume: bool = False, log=print) -> dict:
     out.mkdir(parents=True, exist_ok=True)
     torch.manual_seed(cfg.seed)
     np.random.seed(cfg.seed)
-    data = open_dataset(cfg.dataset)
-    transform = build(list(cfg.preprocess))
-    train_set = PairDataset(data, "train", pairs=cfg.pairs_per_epoch, physics=cfg.physics,
-                            transform=transform, seed=cfg.seed)
-    val_split = "val" if len(data.indices("val")) >= 2 else "test"
-    val_set = PairDataset(data, val_split, pairs=cfg.val_pairs, physics=cfg.physics, transform=transform,
-                          seed=cfg.seed + 1)
+    source = _OnlineSource(cfg) if cfg.online else _CampaignSource(cfg)
     model = pose_update_net(backbone=cfg.backbone,
                             weights=Weights.IMAGENET_LOCAL if cfg.weights == "imagenet_local" else Weights.NONE,
-                            weights_path=cfg.weights_path, freeze_backbone=cfg.freeze_backbone)
+                            weights_path=cfg.weights_path, freeze_backbone=cfg.freeze_backbone,
+                            head_channels=cfg.head_channels)
     params = [p for p in model.parameters() if p.requires_grad]
     optimizer = torch.optim.Adam(params, lr=cfg.lr)
     scheduler = torch.optim.lr_scheduler.StepLR(optimizer, step_size=cfg.lr_step, gamma=cfg.lr_decay)
@@ -178,25 +217,15 @@ def train(cfg: TrainConfig, *, resume: bool = False, log=print) -> dict:
     if resume and log_path.exists():
         with open(log_path) as f:
             rows = [r for r in csv.DictReader(f) if int(r["iteration"]) <= iteration]
-    per_epoch = math.ceil(cfg.pairs_per_epoch / cfg.batch_size)
     last = {}
-    current_epoch, order = None, None
     model.train()
+    started = time.perf_counter()
+    start_iteration = iteration
     while iteration < cfg.iterations:
         # batches are a function of (seed, iteration) alone, so a resumed run takes the same steps
-        epoch, step_in_epoch = divmod(iteration, per_epoch)
-        if epoch != current_epoch:
-            train_set.set_epoch(epoch)
-            order = torch.randperm(len(train_set), generator=torch.Generator().manual_seed(
-                cfg.seed * 1_000_003 + epoch))
-            current_epoch = epoch
-        idx = order[step_in_epoch * cfg.batch_size:(step_in_epoch + 1) * cfg.batch_size]
-        batch = [train_set[int(i)] for i in idx]
-        target = torch.stack([b[0] for b in batch])
-        current = torch.stack([b[1] for b in batch])
-        label = torch.stack([b[2] for b in batch])
+        target, current, label = source.train_batch(iteration)
         output = model(target, current)
-        loss = _loss(output, label)
+        loss = _loss(output, label, cfg)
         optimizer.zero_grad()
         loss.backward()
         optimizer.step()
@@ -204,44 +233,129 @@ def train(cfg: TrainConfig, *, resume: bool = False, log=print) -> dict:
         iteration += 1
         last = {"iteration": iteration, "train_loss": float(loss.item()), "lr": scheduler.get_last_lr()[0]}
         if iteration % cfg.val_every == 0 or iteration == cfg.iterations:
-            last.update(_validate(model, val_set, cfg.batch_size))
+            last.update(_validate(model, source.val_batches(), cfg))
             model.train()
+            rate = (iteration - start_iteration) * cfg.batch_size / (time.perf_counter() - started)
             rows.append({k: last.get(k, "") for k in ("iteration", "train_loss", "val_loss", "val_rot_err_deg",
                                                     "val_trans_err_mm", "lr")})
             _write_log(log_path, rows)
             log(f"iteration {iteration}/{cfg.iterations}: train {last['train_loss']:.4f}, "
                 f"val {last['val_loss']:.4f}, rotation {last['val_rot_err_deg']:.2f} deg, "
-                f"translation {last['val_trans_err_mm']:.1f} mm")
+                f"translation {last['val_trans_err_mm']:.1f} mm ({rate:.0f} pairs/s)")
         if iteration % cfg.checkpoint_every == 0 or iteration == cfg.iterations:
             _save_checkpoint(ckpt_path, {"model": model.state_dict(), "optimizer": optimizer.state_dict(),
                                          "scheduler": scheduler.state_dict(), "iteration": iteration,
-                                         "rng": _rng_state(), "config": asdict(cfg)})
+                                         "rng": _rng_state(), "config": asdict(cfg),
+                                         "image_size": list(source.size)})
     _plot(rows, out / "loss.png")
-    data.close()
+    source.close()
     return last
 
 
-def _loss(output, label):
+class _CampaignSource:
+    """Pairs of a campaign folder's stored images (:class:`learn.data.PairDataset`), epoch by epoch."""
+
+    def __init__(self, cfg: TrainConfig):
+        from learn.data import PairDataset
+        from learn.preprocess import build
+        from sim.campaign import open_dataset
+
+        self.cfg = cfg
+        self.data = open_dataset(cfg.dataset)
+        transform = build(list(cfg.preprocess))
+        self.train_set = PairDataset(self.data, "train", pairs=cfg.pairs_per_epoch, physics=cfg.physics,
+                                     transform=transform, seed=cfg.seed)
+        val_split = "val" if len(self.data.indices("val")) >= 2 else "test"
+        self.val_set = PairDataset(self.data, val_split, pairs=cfg.val_pairs, physics=cfg.physics,
+                                   transform=transform, seed=cfg.seed + 1)
+        self.per_epoch = math.ceil(cfg.pairs_per_epoch / cfg.batch_size)
+        self.epoch, self.order = None, None
+        self.size = tuple(self.train_set[0][0].shape[-2:])  # (H, W) pixels
+
+    @staticmethod
+    def _stack(batch):
+        return tuple(torch.stack([b[i] for b in batch]) for i in range(3))
+
+    def train_batch(self, iteration: int):
+        cfg = self.cfg
+        epoch, step = divmod(iteration, self.per_epoch)
+        if epoch != self.epoch:
+            self.train_set.set_epoch(epoch)
+            self.order = torch.randperm(len(self.train_set), generator=torch.Generator().manual_seed(
+                cfg.seed * 1_000_003 + epoch))
+            self.epoch = epoch
+        idx = self.order[step * cfg.batch_size:(step + 1) * cfg.batch_size]
+        return self._stack([self.train_set[int(i)] for i in idx])
+
+    def val_batches(self):
+        n, size = len(self.val_set), self.cfg.batch_size
+        for start in range(0, n, size):
+            yield self._stack([self.val_set[i] for i in range(start, min(start + size, n))])
+
+    def close(self):
+        self.data.close()
+
+
+class _OnlineSource:
+    """Pairs rendered on the fly from a campaign file (:class:`learn.online.OnlinePairs`)."""
+
+    def __init__(self, cfg: TrainConfig):
+        from learn.online import OnlinePairs, OnlinePairsError
+        from learn.preprocess import build
+        from sim.campaign.config import CampaignConfigError, load_campaign
+
+        self.cfg = cfg
+        try:
+            campaign = load_campaign(cfg.dataset)
+        except CampaignConfigError as e:
+            raise TrainConfigError(f"train.dataset: {e}") from None
+        if cfg.physics is not None and cfg.physics != campaign.physics[0].name:
+            raise TrainConfigError(f"train.physics = {cfg.physics!r}: online pairs use the campaign's first "
+                                   f"physics entry, {campaign.physics[0].name!r}")
+        transform = build(list(cfg.preprocess))
+        splits = {s.split for s in campaign.subjects()}
+        val_split = "val" if "val" in splits else "test"
+        try:
+            self.train = OnlinePairs(campaign, "train", near=cfg.near(), transform=transform, seed=cfg.seed)
+            self.val = OnlinePairs(campaign, val_split, near=cfg.near(), transform=transform, seed=cfg.seed + 1)
+        except OnlinePairsError as e:
+            raise TrainConfigError(f"train.dataset {cfg.dataset}: {e}") from None
+        self._val = None
+        self.size = tuple(campaign.scene.size)  # (H, W) pixels
+
+    def train_batch(self, iteration: int):
+        return self.train.batch(iteration, self.cfg.batch_size)
+
+    def val_batches(self):
+        if self._val is None:  # fixed validation pairs, rendered once
+            n, size = self.cfg.val_pairs, self.cfg.batch_size
+            self._val = [self.val.batch(k, min(size, n - start)) for k, start in enumerate(range(0, n, size))]
+        return iter(self._val)
+
+    def close(self):
+        pass
+
+
+def _loss(output, label, cfg: TrainConfig):
     from learn.model import PoseUpdateNet
 
-    return PoseUpdateNet.loss(output, label)
+    return PoseUpdateNet.loss(output, label, relative_eps=cfg.relative_eps if cfg.loss == "relative" else None)
 
 
 @torch.no_grad()
-def _validate(model, val_set, batch_size: int) -> dict:
+def _validate(model, batches, cfg: TrainConfig) -> dict:
+    from learn.labels import LabelNormalizer
+
     model.eval()
     losses, preds, trues = [], [], []
-    for start in range(0, len(val_set), batch_size):
-        batch = [val_set[i] for i in range(start, min(start + batch_size, len(val_set)))]
-        target = torch.stack([b[0] for b in batch])
-        current = torch.stack([b[1] for b in batch])
-        label = torch.stack([b[2] for b in batch])
+    for target, current, label in batches:
         out = model(target, current)
-        losses.append(float(_loss(out, label)) * len(batch))
+        losses.append(float(_loss(out, label, cfg)) * len(label))
         preds.append(out.g)
         trues.append(label)
-    rot, trans = _errors(torch.cat(preds), torch.cat(trues), val_set.normalizer)
-    return {"val_loss": sum(losses) / len(val_set), "val_rot_err_deg": rot, "val_trans_err_mm": trans}
+    n = sum(len(t) for t in trues)
+    rot, trans = _errors(torch.cat(preds), torch.cat(trues), LabelNormalizer())
+    return {"val_loss": sum(losses) / n, "val_rot_err_deg": rot, "val_trans_err_mm": trans}
 
 
 def _write_log(path: Path, rows: list[dict]) -> None:

@@ -12,7 +12,7 @@ import os
 import sys
 
 from sim.cliargs import HelpFormatter, add_options, from_namespace
-from learn.commands import TrainCommand
+from learn.commands import AccuracyCommand, TrainCommand
 from register.commands import EvaluateCommand, RegisterCommand
 from sim.cli import DemoCommand, RenderCommand, SimulateCommand
 
@@ -26,6 +26,8 @@ COMMANDS = {
                  "register.commands:run_evaluate"),
     "train": (TrainCommand, "train the contextual pose-update network on a campaign",
               "learn.commands:run_train"),
+    "accuracy": (AccuracyCommand, "single-prediction accuracy of a trained network (per depth, vs zero)",
+                 "learn.commands:run_accuracy"),
     "demo": (DemoCommand, "render the built-in pelvis phantom at a few poses (PNG + JSON)",
              "sim.cli:run_demo"),
 }

@@ -59,17 +59,27 @@ class NetworkPredictor:
         if not isinstance(state, dict) or "model" not in state or "config" not in state:
             raise RegistrationError(f"{checkpoint}: not a ctxreg training checkpoint")
         cfg = state["config"]
-        self.model = pose_update_net(backbone=cfg["backbone"])
-        self.model.load_state_dict(state["model"])
+        self.model = pose_update_net(backbone=cfg["backbone"], head_channels=int(cfg.get("head_channels", 64)))
+        try:
+            self.model.load_state_dict(state["model"])
+        except RuntimeError as e:
+            raise RegistrationError(f"{checkpoint}: weights do not fit the {cfg['backbone']} model ({e})") from None
         self.model.eval()
         self.transform = build(list(cfg["preprocess"]))
         self.normalizer = LabelNormalizer()
+        #: (H, W) pixels of the training images (None for checkpoints that do not record it)
+        self.size = tuple(state["image_size"]) if state.get("image_size") else None
 
     def __call__(self, fixed: np.ndarray, drr: np.ndarray) -> np.ndarray:
+        """``fixed``, ``drr`` ``(H, W)`` -> g ``(6,)`` (rad, mm). Images of another size than the
+        training images are resampled to it first (area averaging, as a coarser detector would)."""
         import torch
+        import torch.nn.functional as F
 
         with torch.no_grad():
             x = torch.from_numpy(np.stack([fixed, drr]).astype(np.float32))[:, None]
+            if self.size is not None and tuple(x.shape[-2:]) != self.size:
+                x = F.interpolate(x, size=self.size, mode="area")
             x = self.transform(x)
             out = self.model(x[:1], x[1:2])
             return self.normalizer.denormalize(out.g[0].double()).numpy()

@@ -53,7 +53,7 @@ _TOP_KEYS = ("campaign", "scene", "physics", "poses", "split", "cts", "virtual_p
 _CAMPAIGN_KEYS = ("name", "seed", "images_per_ct", "shard_size")
 _SCENE_KEYS = ("name", "size")
 _PHYSICS_KEYS = ("name", "level", "ray_model", "step_fraction", "mu_water_per_mm")
-_CT_KEYS = ("path", "label_map", "center", "split", "virtual_patients")
+_CT_KEYS = ("path", "label_map", "center", "split", "virtual_patients", "held_out_virtual_patients")
 _OUTPUT_KEYS = ("bone_mask", "projected_center")
 _PHYSICS_NAME = re.compile(r"[a-z0-9_]+")
 _NIFTI_SUFFIXES = (".nii", ".nii.gz")
@@ -132,7 +132,12 @@ class CTEntry:
         label_map: absolute path of a label volume on the CT's grid, or None.
         center: anatomy centre ``(x, y, z)`` in LPS mm, or None (the runner derives one).
         split: explicit split (``train`` / ``val`` / ``test``) or None (assigned by fractions).
-        virtual_patients: number of virtual patients derived from this CT (they share its split).
+        virtual_patients: number of virtual patients derived from this CT (they share its split,
+            except the held-out ones).
+        held_out: ``((split, count), ...)``: the last virtual patients of this CT go to these
+            splits instead (in this order), e.g. ``(("val", 4),)``. They are deformed,
+            re-textured copies of a CT whose other copies may be in training, so they measure
+            generalisation to such changes, not to new patients.
     """
 
     path: str
@@ -140,6 +145,18 @@ class CTEntry:
     center: tuple[float, float, float] | None = None
     split: str | None = None
     virtual_patients: int = 0
+    held_out: tuple[tuple[str, int], ...] = ()
+
+    def vp_split(self, vp_index: int, ct_split: str) -> str:
+        """The split of virtual patient ``vp_index`` (0-based) of this CT, whose split is ``ct_split``."""
+        first = self.virtual_patients - sum(n for _, n in self.held_out)
+        if vp_index < first:
+            return ct_split
+        for split, n in self.held_out:
+            if vp_index < first + n:
+                return split
+            first += n
+        raise IndexError(f"virtual patient {vp_index} of {self.virtual_patients}")
 
     @property
     def is_phantom(self) -> bool:
@@ -166,6 +183,8 @@ class CTEntry:
         if self.split is not None:
             out["split"] = self.split
         out["virtual_patients"] = int(self.virtual_patients)
+        if self.held_out:
+            out["held_out_virtual_patients"] = {k: int(n) for k, n in self.held_out}
         return out
 
 
@@ -276,7 +295,8 @@ class CampaignConfig:
     def subjects(self) -> tuple[Subject, ...]:
         """All subjects in a fixed order: CT 0, its virtual patients 0..n-1, CT 1, ...
 
-        A virtual patient always has its CT's split: no anatomy appears in two splits.
+        A virtual patient has its CT's split (no anatomy appears in two splits) unless the CT's
+        ``held_out_virtual_patients`` sends it elsewhere on purpose (:class:`CTEntry`).
         """
         return self._subjects
 
@@ -287,7 +307,7 @@ class CampaignConfig:
             base = f"ct{ci:03d}_{ct.stem}"
             out.append(Subject(len(out), ci, None, split, base))
             for vi in range(ct.virtual_patients):
-                out.append(Subject(len(out), ci, vi, split, f"{base}_vp{vi:02d}"))
+                out.append(Subject(len(out), ci, vi, ct.vp_split(vi, split), f"{base}_vp{vi:02d}"))
         return tuple(out)
 
     def total_images(self) -> int:
@@ -689,7 +709,18 @@ class _Parser:
                 hint = f" (did you mean {close[0]!r}?)" if close else ""
                 raise self.err(f"{key}.split", f"unknown split {split!r}; allowed: {', '.join(SPLIT_NAMES)}{hint}")
             vp = self.int_(t.get("virtual_patients", 0), f"{key}.virtual_patients", 0)
-            out.append(CTEntry(path, label_map, center, split, vp))
+            held: list[tuple[str, int]] = []
+            if t.get("held_out_virtual_patients") is not None:
+                hk = f"{key}.held_out_virtual_patients"
+                h = self.table(t["held_out_virtual_patients"], hk, "{ val = 4 }")
+                for name in h:
+                    if name not in SPLIT_NAMES:
+                        raise self.err(f"{hk}.{name}", f"unknown split; allowed: {', '.join(SPLIT_NAMES)}")
+                    held.append((name, self.int_(h[name], f"{hk}.{name}", 1)))
+                if sum(n for _, n in held) > vp:
+                    raise self.err(hk, f"holds out {sum(n for _, n in held)} virtual patients but the CT has "
+                                       f"virtual_patients = {vp}")
+            out.append(CTEntry(path, label_map, center, split, vp, tuple(held)))
         return tuple(out)
 
     def virtual_patients(self, value: Any) -> dict:

@@ -90,7 +90,7 @@ def subject_poses(cfg, subject_index: int) -> np.ndarray:
 
 
 # ----------------------------------------------------------------------------- worker side
-class _SubjectContext:
+class SubjectContext:
     """A subject's volume, anatomy centre and renderers, built once per worker and subject."""
 
     def __init__(self, cfg, subject):
@@ -140,7 +140,7 @@ class _SubjectContext:
 
 
 _worker_cfg = None
-_worker_ctx: _SubjectContext | None = None
+_worker_ctx: SubjectContext | None = None
 
 
 def _init_worker(cfg) -> None:
@@ -155,7 +155,7 @@ def render_unit(cfg, unit: Unit, out: Path) -> dict:
 
     key = (cfg.config_hash(), unit.subject)
     if _worker_ctx is None or _worker_ctx.key != key:
-        _worker_ctx = _SubjectContext(cfg, cfg.subjects()[unit.subject])
+        _worker_ctx = SubjectContext(cfg, cfg.subjects()[unit.subject])
         _worker_ctx.key = key
     ctx = _worker_ctx
     params = ctx.poses[unit.start:unit.stop]

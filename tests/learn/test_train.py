@@ -103,3 +103,44 @@ def test_single_prediction_errors_have_the_zero_baseline_right(campaign, tmp_pat
     expected = np.degrees(np.linalg.norm(g.numpy()[:, :3], axis=1)).mean()
     assert res["zero_baseline"]["rot_deg_mean"] == pytest.approx(expected, rel=1e-9)
     assert all(np.isfinite(v) for r in res.values() for v in r.values())
+
+
+def test_accuracy_command_writes_its_table_and_the_baseline_is_the_label_size(campaign, tmp_path):
+    import json
+
+    import numpy as np
+
+    from learn.commands import AccuracyCommand, run_accuracy
+    from learn.evaluate import AccuracyError
+    from learn.train import train
+
+    cfg = config(campaign, tmp_path / "m", iterations=2, val_every=2, checkpoint_every=2)
+    train(cfg, log=lambda *_: None)
+    ckpt = str(tmp_path / "m" / "checkpoint.pt")
+    files = run_accuracy(AccuracyCommand(model=ckpt, campaign=str(campaign.folder.parent / "c.toml"), split="test",
+                                         pairs=8, out=str(tmp_path / "acc")))
+    assert all(f.is_file() for f in files)
+    res = json.loads((tmp_path / "acc" / "accuracy.json").read_text())["results"]
+    assert set(res) == {"far", "ap", "near"}
+    # near pairs are close by construction (default NearPairs: at most 20 deg), far ones are not
+    assert res["near"]["zero_baseline"]["rot_deg_mean"] <= 2 * 20.0 + 1e-9
+    assert res["far"]["zero_baseline"]["rot_deg_mean"] > res["near"]["zero_baseline"]["rot_deg_mean"]
+    assert all(np.isfinite(v) for k in res.values() for r in k.values() for v in r.values())
+    assert "| near | weighted sum |" in (tmp_path / "acc" / "accuracy.md").read_text()
+    with pytest.raises(AccuracyError, match="exactly one of --ct and --campaign"):
+        run_accuracy(AccuracyCommand(model=ckpt, out=str(tmp_path / "x")))
+
+
+def test_predictor_resamples_other_image_sizes_to_the_training_size(campaign, tmp_path):
+    import numpy as np
+
+    from learn.train import train
+    from register.contextual import NetworkPredictor
+
+    cfg = config(campaign, tmp_path / "r", iterations=1, val_every=1, checkpoint_every=1)
+    train(cfg, log=lambda *_: None)
+    predictor = NetworkPredictor(str(tmp_path / "r" / "checkpoint.pt"))
+    assert predictor.size == (32, 32)
+    a, b = campaign[0]["images"]["line"], campaign[1]["images"]["line"]
+    big_a, big_b = (np.kron(x, np.ones((2, 2))) for x in (a, b))  # 64 x 64, each pixel repeated 2 x 2
+    np.testing.assert_allclose(predictor(big_a, big_b), predictor(a, b), rtol=1e-5, atol=1e-6)

@@ -304,6 +304,12 @@ BAD = {
     "duplicate CT": (dict(cts='[[cts]]\npath = "phantom:0"\n'), [r"cts\[1\]\.path", r"cts\[0\]"]),
     "unknown CT key": (dict(cts="virtual_patient = 2"), [r"cts\[0\]\.virtual_patient", r"did you mean 'virtual_patients'"]),
     "negative virtual patients": (dict(cts="virtual_patients = -1"), [r"cts\[0\]\.virtual_patients", r">= 0"]),
+    "held out more than there are": (dict(cts="virtual_patients = 2\nheld_out_virtual_patients = { val = 3 }"),
+                                     [r"cts\[0\]\.held_out_virtual_patients", r"holds out 3", r"virtual_patients = 2"]),
+    "held out to an unknown split": (dict(cts="virtual_patients = 2\nheld_out_virtual_patients = { dev = 1 }"),
+                                     [r"held_out_virtual_patients\.dev", r"train, val, test"]),
+    "held out as a number": (dict(cts="virtual_patients = 2\nheld_out_virtual_patients = 1"),
+                             [r"held_out_virtual_patients", r"expected a table"]),
     "center with 2 numbers": (dict(cts="center = [1.0, 2.0]"), [r"cts\[0\]\.center", r"\[x, y, z\]", r"LPS mm"]),
     "phantom with label map": (dict(cts='label_map = "x.nii.gz"'), [r"cts\[0\]\.label_map", r"phantom"]),
     "output not bool": (dict(rest="[outputs]\nbone_mask = 1\n"), [r"outputs\.bone_mask", r"true or false"]),
@@ -467,3 +473,19 @@ def test_campaign_config_is_frozen():
     with pytest.raises(AttributeError):
         cfg.seed = 3  # type: ignore[misc]
     assert isinstance(cfg, CampaignConfig)
+
+
+def test_held_out_virtual_patients_go_to_their_split_and_round_trip(tmp_path):
+    import json
+
+    from sim.campaign.config import parse_campaign
+
+    path = write(tmp_path / "h.toml", BASE.format(
+        campaign="", rest="", ct_path="phantom:0", n="2",
+        cts='split = "train"\nvirtual_patients = 6\nheld_out_virtual_patients = { val = 2, test = 1 }'))
+    cfg = load_campaign(path)
+    assert [s.split for s in cfg.subjects()] == ["train", "train", "train", "train", "val", "val", "test"]
+    assert [s.vp_index for s in cfg.subjects()] == [None, 0, 1, 2, 3, 4, 5]
+    again = parse_campaign(json.loads(json.dumps({k: v for k, v in cfg.to_dict().items() if k != "source"})),
+                           base_dir=tmp_path)
+    assert again.subjects() == cfg.subjects() and again.config_hash() == cfg.config_hash()
