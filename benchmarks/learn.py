@@ -10,6 +10,11 @@ whose features are cached (the heads alone are trained: ``heads_forward`` on sto
 so a training step costs only the heads; the one-off feature extraction is timed separately).
 Random images stand in for DRRs (timing does not depend on content). Median of ``--steps``
 timed steps after one warm-up step; torch uses all cores.
+
+The last row is the CPU recipe as it trains (docs/training.md): the tiny DenseNet on pairs
+rendered on the fly (:mod:`learn.online`, ``campaigns/pelvis_vp.toml``, 64 x 64, batch 32): each
+step renders its 64 DRRs, normalises them and trains; it needs the shared pelvis CT
+(``../shared/data``) and is skipped without it.
 """
 
 from __future__ import annotations
@@ -88,7 +93,45 @@ def main(argv=None) -> int:
             t_inf = timed(lambda: model(a[:1], c[:1]), args.steps)
         print(f"| {backbone}{' frozen+cached' if frozen else ''} | {n_params / 1e6:.2f} M | {b / t_step:.1f} | "
               f"{t_inf * 1e3:.1f} | {note} |")
+    recipe_row(args.steps)
     return 0
+
+
+def recipe_row(steps: int) -> None:
+    """The CPU recipe's full step: render a batch of online pairs, then train on it."""
+    import torch
+
+    from learn.model import pose_update_net
+    from learn.online import NearPairs, OnlinePairs
+    from learn.preprocess import build
+    from sim.campaign.config import CampaignConfigError, load_campaign
+
+    try:
+        cfg = load_campaign(REPO / "campaigns" / "pelvis_vp.toml")
+    except CampaignConfigError as e:
+        print(f"| tiny, online pairs (the recipe) | | n/a | | skipped: {e} |")
+        return
+    batch = 32
+    pairs = OnlinePairs(cfg, "train", near=NearPairs(0.5), transform=build(["normalize"]), seed=0)
+    model = pose_update_net(backbone="tiny")
+    opt = torch.optim.Adam(model.parameters(), lr=1e-3)
+    k = iter(range(10**9))
+    for u in range(len(pairs.subjects)):  # build every subject once (virtual patients: ~0.5 s each)
+        pairs.context(u)
+    render = timed(lambda: pairs.batch(next(k), batch), steps)
+
+    def step():
+        target, current, label = pairs.batch(next(k), batch)
+        loss = model.loss(model(target, current), label)
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+
+    t_step = timed(step, steps)
+    h, w = cfg.scene.size
+    print(f"| tiny, online pairs (the recipe, {h}x{w}, batch {batch}) | "
+          f"{sum(p.numel() for p in model.parameters()) / 1e6:.2f} M | {batch / t_step:.1f} | | "
+          f"rendering {render / batch * 1e3:.2f} ms/pair of it |")
 
 
 if __name__ == "__main__":

@@ -5,7 +5,9 @@ key documented there with its default), trains on pairs of the campaign's ``trai
 validates on its ``val`` split (``test`` if it has no ``val``). ``dataset`` is either a campaign
 folder written by ``ctxreg simulate`` (pairs of its stored images, :mod:`learn.data`) or a
 campaign ``.toml`` file, whose subjects are then rendered on the fly, near pairs included
-(:mod:`learn.online`). The output folder holds
+(:mod:`learn.online`). With ``freeze_backbone`` and ``cache_features`` the backbone's maps of
+every image are computed once (``<out>/features/features.h5``, :class:`learn.features.FeatureCache`)
+and only the heads run per step, on the same pairs in the same order. The output folder holds
 ``checkpoint.pt`` (model, optimiser, scheduler, iteration, random states, config, the image size
 (H, W) in pixels; written atomically
 every ``checkpoint_every`` iterations and at the end), ``log.csv`` (iteration, training loss,
@@ -59,6 +61,13 @@ class TrainConfig:
             pairs weigh as much as far ones).
         relative_eps: the floor of the relative loss, in normalised label units (0.05 = 4 deg or 7.5 mm).
         head_channels: channels of each depth's head.
+        cache_features: compute the frozen backbone's maps of every train and validation image
+            once, store them in ``<out>/features/features.h5`` (float16,
+            :class:`learn.features.FeatureCache`; reused by later and resumed runs while the
+            backbone weights, campaign, preprocessing and physics are the same) and train the
+            heads on them: same pairs and batches as without, only the heads' cost per step.
+            Needs ``freeze_backbone = true``, a campaign folder as ``dataset`` (not a ``.toml``
+            file: online pairs are new images every batch) and no ``random_convolution`` step.
         seed: every random draw (weights init, pairs, batches).
     """
 
@@ -85,6 +94,7 @@ class TrainConfig:
     loss: str = "mse"
     relative_eps: float = 0.05
     head_channels: int = 64
+    cache_features: bool = False
     seed: int = 0
 
     @property
@@ -121,6 +131,17 @@ class TrainConfig:
             raise TrainConfigError(f"train.relative_eps must be positive, got {self.relative_eps}")
         if int(self.head_channels) < 1:
             raise TrainConfigError(f"train.head_channels must be >= 1, got {self.head_channels}")
+        if self.cache_features:
+            if not self.freeze_backbone:
+                raise TrainConfigError("train.cache_features needs train.freeze_backbone = true (the features of a "
+                                       "trained backbone change every step)")
+            if self.online:
+                raise TrainConfigError("train.cache_features needs a campaign folder as train.dataset, not a "
+                                       "campaign .toml file (online pairs are new images every batch)")
+            steps = [p if isinstance(p, str) else dict(p).get("name") for p in self.preprocess]
+            if "random_convolution" in steps:
+                raise TrainConfigError("train.cache_features cannot be used with the random step "
+                                       "'random_convolution' in train.preprocess (a new draw per pair)")
         if self.online:
             self.near()
         elif self.near_fraction is not None:
@@ -158,6 +179,15 @@ def load_train_config(path: str | os.PathLike) -> TrainConfig:
         raise TrainConfigError(f"{path}: {e}") from None
 
 
+def _same_config(stored: dict, cfg: TrainConfig) -> bool:
+    """Whether a checkpoint's config is ``cfg``; keys added since it was written (absent from
+    ``stored``) count as equal when ``cfg`` has their default."""
+    now = asdict(cfg)
+    defaults = {f.name: f.default for f in fields(TrainConfig)}
+    return (set(stored) <= set(now) and all(stored[k] == now[k] for k in stored)
+            and all(now[k] == defaults[k] for k in set(now) - set(stored)))
+
+
 def _rng_state() -> dict:
     return {"torch": torch.get_rng_state(), "numpy": np.random.get_state()}
 
@@ -193,18 +223,20 @@ def train(cfg: TrainConfig, *, resume: bool = False, log=print) -> dict:
     out.mkdir(parents=True, exist_ok=True)
     torch.manual_seed(cfg.seed)
     np.random.seed(cfg.seed)
-    source = _OnlineSource(cfg) if cfg.online else _CampaignSource(cfg)
+    source = _OnlineSource(cfg) if cfg.online else None if cfg.cache_features else _CampaignSource(cfg)
     model = pose_update_net(backbone=cfg.backbone,
                             weights=Weights.IMAGENET_LOCAL if cfg.weights == "imagenet_local" else Weights.NONE,
                             weights_path=cfg.weights_path, freeze_backbone=cfg.freeze_backbone,
                             head_channels=cfg.head_channels)
+    if source is None:  # the cache needs the (frozen) backbone; neither draws random numbers
+        source = _CachedSource(cfg, model, rebuild=not (resume and ckpt_path.exists()), log=log)
     params = [p for p in model.parameters() if p.requires_grad]
     optimizer = torch.optim.Adam(params, lr=cfg.lr)
     scheduler = torch.optim.lr_scheduler.StepLR(optimizer, step_size=cfg.lr_step, gamma=cfg.lr_decay)
     iteration = 0
     if resume and ckpt_path.exists():
         state = torch.load(ckpt_path, weights_only=False)
-        if state["config"] != asdict(cfg):
+        if not _same_config(state["config"], cfg):
             raise TrainConfigError(f"{ckpt_path} was written with another config; use another train.out")
         model.load_state_dict(state["model"])
         optimizer.load_state_dict(state["optimizer"])
@@ -223,8 +255,8 @@ def train(cfg: TrainConfig, *, resume: bool = False, log=print) -> dict:
     start_iteration = iteration
     while iteration < cfg.iterations:
         # batches are a function of (seed, iteration) alone, so a resumed run takes the same steps
-        target, current, label = source.train_batch(iteration)
-        output = model(target, current)
+        *inputs, label = source.train_batch(iteration)
+        output = source.forward(model, inputs)
         loss = _loss(output, label, cfg)
         optimizer.zero_grad()
         loss.backward()
@@ -233,7 +265,7 @@ def train(cfg: TrainConfig, *, resume: bool = False, log=print) -> dict:
         iteration += 1
         last = {"iteration": iteration, "train_loss": float(loss.item()), "lr": scheduler.get_last_lr()[0]}
         if iteration % cfg.val_every == 0 or iteration == cfg.iterations:
-            last.update(_validate(model, source.val_batches(), cfg))
+            last.update(_validate(model, source, cfg))
             model.train()
             rate = (iteration - start_iteration) * cfg.batch_size / (time.perf_counter() - started)
             rows.append({k: last.get(k, "") for k in ("iteration", "train_loss", "val_loss", "val_rot_err_deg",
@@ -276,7 +308,13 @@ class _CampaignSource:
     def _stack(batch):
         return tuple(torch.stack([b[i] for b in batch]) for i in range(3))
 
-    def train_batch(self, iteration: int):
+    @staticmethod
+    def forward(model, inputs):
+        """``(target, current)`` ``(B, 1, H, W)`` each -> the model's output."""
+        return model(*inputs)
+
+    def _train_pairs(self, iteration: int) -> torch.Tensor:
+        """This iteration's pair numbers ``(B,)`` into ``train_set`` (set to the iteration's epoch)."""
         cfg = self.cfg
         epoch, step = divmod(iteration, self.per_epoch)
         if epoch != self.epoch:
@@ -284,8 +322,10 @@ class _CampaignSource:
             self.order = torch.randperm(len(self.train_set), generator=torch.Generator().manual_seed(
                 cfg.seed * 1_000_003 + epoch))
             self.epoch = epoch
-        idx = self.order[step * cfg.batch_size:(step + 1) * cfg.batch_size]
-        return self._stack([self.train_set[int(i)] for i in idx])
+        return self.order[step * cfg.batch_size:(step + 1) * cfg.batch_size]
+
+    def train_batch(self, iteration: int):
+        return self._stack([self.train_set[int(i)] for i in self._train_pairs(iteration)])
 
     def val_batches(self):
         n, size = len(self.val_set), self.cfg.batch_size
@@ -294,6 +334,65 @@ class _CampaignSource:
 
     def close(self):
         self.data.close()
+
+
+class _CachedSource(_CampaignSource):
+    """The pairs and batches of :class:`_CampaignSource`, as cached backbone maps
+    (:class:`learn.features.FeatureCache` in ``<out>/features``): batches are
+    ``(level0, level1, level2, label)``, level ``i`` ``(B, 2 C_i, h_i, w_i)`` float32 (target's
+    channels first, as ``extract_features``), label ``(B, 6)``."""
+
+    #: Cache files up to this size (bytes) are read into memory once; larger ones row by row.
+    IN_MEMORY_MAX_BYTES = 2 * 2**30
+    #: Storage dtype of the cache ("float32" trains bit-identically to the uncached run; tests).
+    DTYPE = "float16"
+
+    def __init__(self, cfg: TrainConfig, model, *, rebuild: bool, log=print):
+        from learn.features import CACHE_FILE, FeatureCache, FeatureCacheError, feature_bytes_per_image
+
+        super().__init__(cfg)
+        splits = sorted({self.train_set.split, self.val_set.split})
+        n = sum(len(self.data.indices(s)) for s in splits)
+        in_memory = n * feature_bytes_per_image(cfg.backbone, self.size, self.DTYPE) <= self.IN_MEMORY_MAX_BYTES
+        folder = Path(cfg.out) / "features"
+        try:
+            self.cache = FeatureCache(folder, self.data, model, self.train_set.transform, self.train_set.physics,
+                                      splits=splits, dtype=self.DTYPE, rebuild=rebuild, in_memory=in_memory,
+                                      log=log)
+        except FeatureCacheError as e:
+            raise TrainConfigError(f"train.cache_features: {e}") from None
+        if not self.cache.built:
+            log(f"feature cache {folder / CACHE_FILE}: reused ({len(self.cache)} images)")
+        self.poses = torch.from_numpy(np.asarray(self.data.arrays("pose"), dtype=np.float64))  # (N, 4, 4)
+
+    @staticmethod
+    def forward(model, inputs):
+        """The three levels' maps -> the heads' output."""
+        return model.heads_forward(inputs)
+
+    def _batch(self, dataset, pairs: np.ndarray):
+        """``pairs`` (B, 2) dataset indices (target, current) -> ``(*maps, label)``, labels as
+        :class:`learn.data.PairDataset` computes them."""
+        from learn.labels import geodesic_label
+
+        b = len(pairs)
+        maps = self.cache.rows(np.concatenate([pairs[:, 0], pairs[:, 1]]))
+        labels = torch.stack([dataset.normalizer.normalize(geodesic_label(self.poses[a], self.poses[c]))
+                              .to(torch.float32) for a, c in pairs.tolist()])
+        return (*(torch.cat((m[:b], m[b:]), dim=1) for m in maps), labels)
+
+    def train_batch(self, iteration: int):
+        k = self._train_pairs(iteration).numpy()
+        return self._batch(self.train_set, self.train_set.pairs[k])
+
+    def val_batches(self):
+        n, size = len(self.val_set), self.cfg.batch_size
+        for start in range(0, n, size):
+            yield self._batch(self.val_set, self.val_set.pairs[start:min(start + size, n)])
+
+    def close(self):
+        self.cache.close()
+        super().close()
 
 
 class _OnlineSource:
@@ -323,6 +422,8 @@ class _OnlineSource:
         self._val = None
         self.size = tuple(campaign.scene.size)  # (H, W) pixels
 
+    forward = staticmethod(_CampaignSource.forward)
+
     def train_batch(self, iteration: int):
         return self.train.batch(iteration, self.cfg.batch_size)
 
@@ -343,13 +444,13 @@ def _loss(output, label, cfg: TrainConfig):
 
 
 @torch.no_grad()
-def _validate(model, batches, cfg: TrainConfig) -> dict:
+def _validate(model, source, cfg: TrainConfig) -> dict:
     from learn.labels import LabelNormalizer
 
     model.eval()
     losses, preds, trues = [], [], []
-    for target, current, label in batches:
-        out = model(target, current)
+    for *inputs, label in source.val_batches():
+        out = source.forward(model, inputs)
         losses.append(float(_loss(out, label, cfg)) * len(label))
         preds.append(out.g)
         trues.append(label)

@@ -94,6 +94,10 @@ class RegistrationResult:
         renders: DRRs rendered in all.
         stage_seconds: wall time per stage (``"level0"``, ``"level1"``, ..., ``"polish"``).
         history: one row per generation / polish step: (stage, best similarity so far, params).
+        trajectory: for the contextual iteration's K predictions, ``{"params": (K + 1, 6) deg/mm,
+            the pose before each prediction and then the pose it ended at; "g": (K, 6) rad/mm, the
+            predicted gradients; "drrs": (K, H, W), each prediction's DRR, when kept}``; None for
+            CMA-ES alone.
     """
 
     params: np.ndarray
@@ -103,6 +107,7 @@ class RegistrationResult:
     renders: int
     stage_seconds: dict[str, float]
     history: list[tuple[str, float, list[float]]] = field(default_factory=list)
+    trajectory: dict | None = None
 
     def to_dict(self) -> dict:
         return {

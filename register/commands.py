@@ -97,7 +97,7 @@ class RegisterCommand:
         "preprocessing steps in order (crop, median, log, normalize, invert); add 'log' for raw "
         "detector intensities", group="image", nargs="*"))
     out: str = field(default="out/register", metadata=opt(
-        "folder for result.json, overlay.png, convergence.png", group="output", metavar="DIR"))
+        "folder for result.json, overlay.png, convergence.png (and trajectory.npz, trajectory.png for the contextual methods)", group="output", metavar="DIR"))
 
 
 def _parse_init(values: tuple[str, ...]) -> np.ndarray:
@@ -174,16 +174,28 @@ def run_register(cmd: RegisterCommand) -> list[Path]:
     else:
         from dataclasses import replace
 
-        from register.contextual import REFINE_SETTINGS, ContextualRegistration, NetworkPredictor
+        from register.contextual import REFINE_SETTINGS, ContextualRegistration, ContextualSettings, NetworkPredictor
 
         if cmd.model is None:
             raise RegistrationError(f"--method {cmd.method} needs a trained model: --model CHECKPOINT")
         refine = replace(REFINE_SETTINGS, size=size) if cmd.method == "contextual+cmaes" else None
-        engine = ContextualRegistration(volume, NetworkPredictor(cmd.model), size=size, scene=cmd.scene,
-                                        geometry=geometry, center_lps=center, refine=refine)
+        engine = ContextualRegistration(volume, NetworkPredictor(cmd.model), ContextualSettings(keep_drrs=True),
+                                        size=size, scene=cmd.scene, geometry=geometry, center_lps=center,
+                                        refine=refine)
         result = engine.register(image, init)
         drr = engine.renderer.render(result.pose)[0]
     out = Path(cmd.out)
+    written = []
+    if result.trajectory is not None:
+        from register.plots import trajectory_figure
+        from sim.atomic import atomic_path
+
+        with atomic_path(out / "trajectory.npz") as tmp:
+            with open(tmp, "wb") as f:
+                np.savez_compressed(f, params_deg_mm=result.trajectory["params"], g_rad_mm=result.trajectory["g"],
+                                    drrs=result.trajectory["drrs"].astype(np.float32), xray=image.astype(np.float32))
+        trajectory_figure(image, result.trajectory["drrs"], result.trajectory["params"], out / "trajectory.png")
+        written = [out / "trajectory.npz", out / "trajectory.png"]
     overlay_png(image, drr, out / "overlay.png")
     convergence_plot(result.history, out / "convergence.png")
     write_json(out / "result.json", {
@@ -195,4 +207,4 @@ def run_register(cmd: RegisterCommand) -> list[Path]:
     })
     print(f"similarity {result.similarity:.4f} after {result.renders} renders; pose: "
           + " ".join(f"{v:.2f}" for v in result.params))
-    return [out / "result.json", out / "overlay.png", out / "convergence.png"]
+    return [out / "result.json", out / "overlay.png", out / "convergence.png", *written]

@@ -25,7 +25,10 @@ from register.cmaes import CMAESRegistration, CMAESSettings, RegistrationError, 
 
 @dataclass(frozen=True)
 class ContextualSettings:
-    """Units: degrees, mm. ``step`` is the fraction of the predicted gradient taken (0.15 originally)."""
+    """Units: degrees, mm. ``step`` is the fraction of the predicted gradient taken (0.15 originally);
+    the iteration stops when ``step * |g_rot|`` < ``stop_rot_deg`` and ``step * |g_trans|`` <
+    ``stop_trans_mm``, or after ``max_iterations``; ``keep_drrs`` keeps every iteration's DRR in
+    the result's trajectory (for figures)."""
 
     step: float = 0.15
     max_iterations: int = 60
@@ -111,7 +114,7 @@ class ContextualRegistration:
         s = self.settings
         fixed = np.asarray(fixed, np.float64)
         T = pose_from_params(np.asarray(init_params, float).reshape(6), self.geometry.sod_mm)
-        history, drrs = [], []
+        history, drrs, visited, grads = [], [], [], []
         t0 = time.perf_counter()
         renders = 0
         for _ in range(s.max_iterations):
@@ -120,28 +123,35 @@ class ContextualRegistration:
             if s.keep_drrs:
                 drrs.append(drr)
             g = np.asarray(self.predictor(fixed, drr), float).reshape(6)
+            if not np.all(np.isfinite(g)):
+                raise RegistrationError(f"the predictor returned a non-finite gradient {g.tolist()}")
+            params_now = params_from_pose(T, self.geometry.sod_mm)
+            visited.append(params_now)
+            grads.append(g)
             rot_deg = np.degrees(s.step * np.linalg.norm(g[:3]))
             trans_mm = s.step * np.linalg.norm(g[3:])
-            history.append(("contextual", -float(rot_deg + trans_mm), params_from_pose(T, self.geometry.sod_mm).tolist()))
+            history.append(("contextual", -float(rot_deg + trans_mm), params_now.tolist()))
             if rot_deg < s.stop_rot_deg and trans_mm < s.stop_trans_mm:
                 break
             T = apply_update(T, g, s.step)
         stages = {"contextual": time.perf_counter() - t0}
         params = params_from_pose(T, self.geometry.sod_mm)
+        trajectory = {"params": np.array(visited + [params]), "g": np.array(grads)}
+        if s.keep_drrs:
+            trajectory["drrs"] = np.array(drrs)
         if self.refine is not None:
             res = self.refine.register(fixed, params)
             res.stage_seconds = {**stages, **{f"cmaes_{k}": v for k, v in res.stage_seconds.items()}}
             res.history = history + res.history
             res.renders += renders
+            res.trajectory = trajectory
             return res
         from register.metrics import gradient_ncc
 
         sim_value = float(gradient_ncc(fixed, self.renderer.render(T))[0])
-        result = RegistrationResult(params=params, pose=T, projection=self.renderer.projection_matrix(T),
-                                    similarity=sim_value, renders=renders + 1, stage_seconds=stages,
-                                    history=history)
-        result.trajectory_drrs = drrs
-        return result
+        return RegistrationResult(params=params, pose=T, projection=self.renderer.projection_matrix(T),
+                                  similarity=sim_value, renders=renders + 1, stage_seconds=stages,
+                                  history=history, trajectory=trajectory)
 
 
 #: The narrowed CMA-ES box after the contextual iteration (degrees, mm).

@@ -215,7 +215,8 @@ def violin_plot(rows: list[dict], path: Path) -> None:
 
 def evaluate(volume, methods: dict[str, RegistrationMethod], settings: EvaluationSettings, out: Path,
              *, center_lps, geometry, target_renderer, log=print) -> dict:
-    """Run the protocol; writes ``cases.csv``, ``summary.json``, ``table.md``, ``violins.png``."""
+    """Run the protocol; writes ``cases.csv``, ``summary.json``, ``table.md``, ``violins.png`` and,
+    for the contextual methods, ``trajectories.json`` (every case's poses per iteration)."""
     from sim.atomic import atomic_path, write_json
     from sim.geometry import pose_from_params, projection_matrix
 
@@ -224,7 +225,7 @@ def evaluate(volume, methods: dict[str, RegistrationMethod], settings: Evaluatio
     targets, starts = sample_cases(settings)
     points = bone_points(volume, settings.max_points, settings.seed)
     target_images = target_renderer.render(pose_from_params(targets, geometry.sod_mm))
-    rows = []
+    rows, trajectories = [], []
     for i, (target, start, image) in enumerate(zip(targets, starts, target_images)):
         T_true = pose_from_params(target, geometry.sod_mm)
         P_true = projection_matrix(geometry, T_true, center_lps)
@@ -240,6 +241,10 @@ def evaluate(volume, methods: dict[str, RegistrationMethod], settings: Evaluatio
                    **{f"true_{k}": float(v) for k, v in zip("phi theta psi tx ty tz".split(), target)},
                    **{f"est_{k}": float(v) for k, v in zip("phi theta psi tx ty tz".split(), result.params)}}
             rows.append(row)
+            if result.trajectory is not None:
+                trajectories.append({"case": i, "method": name, "true_params": target.tolist(),
+                                     "params_deg_mm": np.asarray(result.trajectory["params"]).tolist(),
+                                     "g_rad_mm": np.asarray(result.trajectory["g"]).tolist()})
             log(f"case {i + 1}/{settings.cases} {name}: rotation {err['rot_err_deg']:.2f} deg, "
                 f"translation {err['trans_err_mm']:.1f} mm, mTRE {err['mtre_mm']:.1f} mm, {elapsed:.1f} s")
     summary = summarize(rows, settings)
@@ -253,4 +258,7 @@ def evaluate(volume, methods: dict[str, RegistrationMethod], settings: Evaluatio
     with atomic_path(out / "table.md") as tmp:
         tmp.write_text(table + "\n")
     violin_plot(rows, out / "violins.png")
+    if trajectories:
+        write_json(out / "trajectories.json", {"units": "params in deg and mm (phi theta psi tx ty tz), g in rad "
+                                                         "and mm", "trajectories": trajectories})
     return {"rows": rows, "summary": summary, "table": table}

@@ -51,3 +51,35 @@ def convergence_plot(history, path: str | Path) -> None:
     ax.set_ylabel("best similarity")
     ax.legend()
     save_figure(fig, path)
+
+
+def trajectory_figure(xray: np.ndarray, drrs: np.ndarray, params: np.ndarray, path: str | Path,
+                      panels: int = 6) -> None:
+    """The contextual iteration at ``panels`` evenly spaced steps: the X-ray with the DRR's
+    strongest edges in red (as :func:`overlay_png`), titled with the iteration and pose.
+
+    ``xray`` ``(H, W)``; ``drrs`` ``(K, H, W)``; ``params`` ``(>= K, 6)`` (deg, mm)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from scipy import ndimage
+
+    from sim.atomic import save_figure
+
+    k = len(drrs)
+    steps = sorted(set(np.linspace(0, k - 1, min(panels, k)).round().astype(int).tolist()))
+    fig, axes = plt.subplots(1, len(steps), figsize=(2.6 * len(steps), 2.9), squeeze=False)
+    grey = _window(np.asarray(xray, float))
+    for ax, i in zip(axes[0], steps):
+        drr = drrs[i]
+        mag = np.hypot(ndimage.sobel(drr, 0), ndimage.sobel(drr, 1))
+        rgb = np.stack([grey] * 3, -1)
+        rgb[mag > np.percentile(mag, 92)] = (1.0, 0.1, 0.1)
+        ax.imshow(rgb)
+        ax.set_axis_off()
+        p = params[i]
+        ax.set_title(f"iteration {i}\n{p[0]:.0f} {p[1]:.0f} {p[2]:.0f} deg\n{p[3]:.0f} {p[4]:.0f} {p[5]:.0f} mm",
+                     fontsize=7)
+    fig.tight_layout()
+    save_figure(fig, path)

@@ -81,3 +81,34 @@ def test_register_rejects_a_missing_or_colour_xray(synthetic_case, tmp_path):
     Image.fromarray(rgb).save(tmp_path / "colour.png")
     r = run_cli("register", "--ct", ct, "--xray", tmp_path / "colour.png")
     assert r.returncode == 2 and "grey" in r.stderr and "Traceback" not in r.stderr
+
+
+def test_contextual_register_saves_a_consistent_trajectory(synthetic_case, tmp_path):
+    """With any network (here an untrained tiny one) the saved trajectory is the iteration it ran:
+    it starts at --init, and each pose is the previous one moved by 0.15 of its predicted gradient."""
+    import torch
+
+    from learn.labels import apply_update
+    from learn.model import pose_update_net
+    from sim.geometry import pose_from_params
+
+    torch.manual_seed(0)
+    ckpt = tmp_path / "tiny.pt"
+    torch.save({"model": pose_update_net(backbone="tiny").state_dict(), "image_size": [32, 32],
+                "config": {"backbone": "tiny", "preprocess": ["normalize"], "head_channels": 64}}, ckpt)
+    ct, xray, truth, center = synthetic_case
+    start = np.array([1.0, 2.0, -1.0, 5.0, -5.0, 10.0])
+    out = tmp_path / "ctx"
+    r = run_cli("register", "--ct", ct, "--xray", xray, "--init", *start, "--size", 64, "--center", *center,
+                "--method", "contextual", "--model", ckpt, "--out", out)
+    assert r.returncode == 0, r.stderr
+    t = np.load(out / "trajectory.npz")
+    params, g, drrs = t["params_deg_mm"], t["g_rad_mm"], t["drrs"]
+    k = len(g)
+    assert params.shape == (k + 1, 6) and drrs.shape == (k, 64, 64) and t["xray"].shape == (64, 64)
+    np.testing.assert_allclose(params[0], start, atol=1e-9)
+    sod = json.loads((out / "result.json").read_text())["geometry"]["sod_mm"]
+    for i in range(k - 1):
+        expect = apply_update(pose_from_params(params[i], sod), g[i], 0.15)
+        np.testing.assert_allclose(pose_from_params(params[i + 1], sod), expect, atol=1e-6)
+    assert (out / "trajectory.png").read_bytes()[:4] == b"\x89PNG"
