@@ -41,3 +41,19 @@ def campaign(tmp_path_factory):
     data = open_dataset(d / "out")
     yield data
     data.close()
+
+
+def train_killed_after_first_checkpoint(cfg, monkeypatch) -> None:
+    """Run ``learn.train.train(cfg)`` and kill it (KeyboardInterrupt) right after its first checkpoint."""
+    import learn.train as tr
+
+    real_save = tr._save_checkpoint
+
+    def save_then_die(path, payload):
+        real_save(path, payload)
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(tr, "_save_checkpoint", save_then_die)
+    with pytest.raises(KeyboardInterrupt):
+        tr.train(cfg, log=lambda *_: None)
+    monkeypatch.setattr(tr, "_save_checkpoint", real_save)

@@ -9,6 +9,7 @@ from dataclasses import asdict
 
 import pytest
 import torch
+from tests.learn.conftest import train_killed_after_first_checkpoint
 
 
 def config(campaign, out, **kw):
@@ -132,16 +133,7 @@ def test_cached_training_takes_the_uncached_steps_and_resumes_exactly(campaign, 
 
     # killed after the first checkpoint and resumed: the same again, the cache reused
     cfg = config(campaign, tmp_path / "resumed", cache_features=True)
-    real_save = tr._save_checkpoint
-
-    def save_then_die(path, payload):
-        real_save(path, payload)
-        raise KeyboardInterrupt
-
-    monkeypatch.setattr(tr, "_save_checkpoint", save_then_die)
-    with pytest.raises(KeyboardInterrupt):
-        tr.train(cfg, log=quiet)
-    monkeypatch.setattr(tr, "_save_checkpoint", real_save)
+    train_killed_after_first_checkpoint(cfg, monkeypatch)
     messages = []
     tr.train(cfg, resume=True, log=messages.append)
     assert any("reused" in m for m in messages)

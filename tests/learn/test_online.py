@@ -8,6 +8,7 @@ import math
 import numpy as np
 import pytest
 import torch
+from tests.learn.conftest import train_killed_after_first_checkpoint
 
 
 @pytest.fixture(scope="module")
@@ -93,16 +94,7 @@ def test_online_training_resumes_exactly_and_records_the_image_size(campaign_fil
     tr.train(cfg_for(tmp_path / "a"), log=lambda *_: None)
     ref = torch.load(tmp_path / "a" / "checkpoint.pt", weights_only=False)
     assert ref["image_size"] == [32, 32]
-    real_save = tr._save_checkpoint
-
-    def save_then_die(path, payload):
-        real_save(path, payload)
-        raise KeyboardInterrupt
-
-    monkeypatch.setattr(tr, "_save_checkpoint", save_then_die)
-    with pytest.raises(KeyboardInterrupt):
-        tr.train(cfg_for(tmp_path / "b"), log=lambda *_: None)
-    monkeypatch.setattr(tr, "_save_checkpoint", real_save)
+    train_killed_after_first_checkpoint(cfg_for(tmp_path / "b"), monkeypatch)
     tr.train(cfg_for(tmp_path / "b"), resume=True, log=lambda *_: None)
     got = torch.load(tmp_path / "b" / "checkpoint.pt", weights_only=False)
     for key, value in ref["model"].items():

@@ -7,6 +7,7 @@ from dataclasses import replace
 
 import pytest
 import torch
+from tests.learn.conftest import train_killed_after_first_checkpoint
 
 
 def config(campaign, out, **kw):
@@ -26,16 +27,7 @@ def test_resume_after_an_interruption_gives_the_same_model(campaign, tmp_path, m
     ref = torch.load(tmp_path / "a" / "checkpoint.pt", weights_only=False)
 
     cfg_b = config(campaign, tmp_path / "b")
-    real_save = tr._save_checkpoint
-
-    def save_then_die(path, payload):
-        real_save(path, payload)
-        raise KeyboardInterrupt  # killed right after the first checkpoint (iteration 6)
-
-    monkeypatch.setattr(tr, "_save_checkpoint", save_then_die)
-    with pytest.raises(KeyboardInterrupt):
-        tr.train(cfg_b, log=lambda *_: None)
-    monkeypatch.setattr(tr, "_save_checkpoint", real_save)
+    train_killed_after_first_checkpoint(cfg_b, monkeypatch)
     assert torch.load(tmp_path / "b" / "checkpoint.pt", weights_only=False)["iteration"] == 6
     tr.train(cfg_b, resume=True, log=lambda *_: None)
     got = torch.load(tmp_path / "b" / "checkpoint.pt", weights_only=False)
