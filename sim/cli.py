@@ -14,9 +14,11 @@ from pathlib import Path
 import numpy as np
 
 from sim.cliargs import opt
+from sim.physics.imaging import PhysicsSettings
 from sim.render import QUANTITIES, RAY_MODELS, RenderSettings
 
 _DEFAULTS = RenderSettings()  # the renderer's defaults are the command line's
+_PHYSICS = PhysicsSettings()
 
 CT_HELP = "CT: a NIfTI file, a DICOM series folder, or 'phantom' / 'phantom:SEED' (built-in pelvis)"
 
@@ -58,9 +60,29 @@ class RenderCommand:
         group="physics", choices=RAY_MODELS))
     step_fraction: float = field(default=_DEFAULTS.step_fraction, metadata=opt(
         "trilinear step as a fraction of the smallest voxel spacing", group="physics", metavar="F"))
+    physics: str = field(default="line", metadata=opt(
+        "line: line integrals of mu (DRR); poly: tube spectrum, 7 materials with NIST cross "
+        "sections, CsI detector, noise; full: poly + Monte Carlo scatter (not available yet)",
+        group="physics", choices=("line", "poly", "full")))
+    kvp: float = field(default=_PHYSICS.kvp, metadata=opt("tube voltage (poly)", group="physics", unit="kV"))
+    filter: tuple[str, ...] = field(default=tuple(f"{s}:{t:g}" for s, t in _PHYSICS.filters), metadata=opt(
+        "added filtration as SYMBOL:MM items (poly)", group="physics", nargs="+", metavar="SYMBOL:MM"))
+    anode_angle: float = field(default=_PHYSICS.anode_angle_deg, metadata=opt(
+        "tungsten anode angle (poly)", group="physics", unit="deg"))
+    mas: float = field(default=_PHYSICS.mas, metadata=opt("exposure (poly)", group="physics", unit="mAs"))
+    bins: int = field(default=_PHYSICS.n_bins, metadata=opt("energy bins of the spectrum (poly)",
+                                                            group="physics", metavar="N"))
+    detector_mm: float = field(default=_PHYSICS.detector_mm, metadata=opt(
+        "CsI:Tl thickness (poly)", group="physics", unit="mm"))
+    noise: bool = field(default=_PHYSICS.noise, metadata=opt(
+        "quantum noise, detector blur and electronic noise (poly)", group="physics", negatable=True))
+    seed: int = field(default=_PHYSICS.seed, metadata=opt("noise seed (poly)", group="physics"))
+    primary: bool = field(default=False, metadata=opt(
+        "also write the noise-free primary signal as <out stem>_primary.npy (poly)", group="output"))
     out: str = field(default="drr.png", metadata=opt(
         ".npy: float32 (H, W) raw values; .png: display image (bone bright). A .json sidecar "
-        "with the geometry is written beside it", group="output", metavar="FILE"))
+        "with the geometry is written beside it. With --physics poly the image is -log(I/I0) and the "
+        "raw detector signal goes to <out stem>_raw.npy", group="output", metavar="FILE"))
 
 
 @dataclass(frozen=True)
@@ -159,8 +181,7 @@ def write_image(path: str | Path, values: np.ndarray, record: dict, quantity: st
     write_json(path.with_suffix(".json"), record)
 
 
-def run_render(cmd: RenderCommand) -> Path:
-    from sim.geometry import pose_from_params
+def run_render(cmd: RenderCommand) -> Path | list[Path]:
     from sim.render import DRRRenderer, RenderSettings
 
     out = Path(cmd.out)
@@ -171,19 +192,50 @@ def run_render(cmd: RenderCommand) -> Path:
     from sim.ct_io import load_ct_spec
 
     volume = load_ct_spec(cmd.ct, label_map=cmd.label_map)
+    if cmd.pose_matrix is not None and any(cmd.pose):
+        raise CommandError("give either --pose or --pose-matrix, not both")
+    if cmd.physics != "line":
+        return _render_physics(cmd, volume, out)
     settings = RenderSettings(scene=cmd.scene, size=tuple(cmd.size), ray_model=cmd.ray_model,
                               step_fraction=cmd.step_fraction, quantity=cmd.quantity,
                               mu_water_per_mm=cmd.mu_water)
     renderer = DRRRenderer(volume, settings, center_lps=cmd.center)
-    if cmd.pose_matrix is not None:
-        if any(cmd.pose):
-            raise CommandError("give either --pose or --pose-matrix, not both")
-        pose = load_pose_matrix(cmd.pose_matrix)
-    else:
-        pose = pose_from_params(np.array(cmd.pose, dtype=np.float64), renderer.geometry.sod_mm)
+    pose = _pose(cmd, renderer.geometry.sod_mm)
     image = renderer.render(pose)[0]
     write_image(out, image, geometry_record(renderer, pose, cmd.quantity), cmd.quantity)
     return out
+
+
+def _pose(cmd: RenderCommand, sod_mm: float) -> np.ndarray:
+    from sim.geometry import pose_from_params
+
+    if cmd.pose_matrix is not None:
+        return load_pose_matrix(cmd.pose_matrix)
+    return pose_from_params(np.array(cmd.pose, dtype=np.float64), sod_mm)
+
+
+def _render_physics(cmd: RenderCommand, volume, out: Path) -> list[Path]:
+    from sim.atomic import atomic_path
+    from sim.physics.imaging import XRayImager
+    from sim.physics.spectrum import parse_filters
+
+    physics = PhysicsSettings(level=cmd.physics, kvp=cmd.kvp, anode_angle_deg=cmd.anode_angle,
+                              filters=parse_filters(cmd.filter), n_bins=cmd.bins, mas=cmd.mas,
+                              detector_mm=cmd.detector_mm, noise=cmd.noise, seed=cmd.seed)
+    imager = XRayImager(volume, physics, scene=cmd.scene, size=tuple(cmd.size), ray_model=cmd.ray_model,
+                        center_lps=cmd.center)
+    pose = _pose(cmd, imager.geometry.sod_mm)
+    images = imager.render(pose)
+    record = {**geometry_record(imager.renderer, pose, "line-integral"), "quantity": "-log(I/I0)",
+              "units": "-log(I / I0), dimensionless", "physics": imager.record()}
+    write_image(out, images["log"][0], record, "line-integral")
+    written = [out]
+    for name in ("raw", "primary") if cmd.primary else ("raw",):
+        path = out.with_name(f"{out.stem}_{name}.npy")
+        with atomic_path(path) as tmp:
+            np.save(tmp, images[name][0], allow_pickle=False)
+        written.append(path)
+    return written
 
 
 def run_demo(cmd: DemoCommand) -> list[Path]:

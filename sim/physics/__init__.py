@@ -1,0 +1,11 @@
+"""Realistic X-ray physics: materials with NIST cross sections, tube spectra, detector, noise.
+
+The ray marching is done once per pose: the renderer (:mod:`sim.render`, ``quantity="density"``)
+gives per-material density line integrals ``L_m`` (g/cm^2), and :mod:`sim.physics.poly` turns
+them into the polychromatic detector signal for any spectrum and detector. Status and
+validation: ``docs/physics.md``.
+"""
+
+
+class PhysicsError(ValueError):
+    """A physics setting or input cannot be used; the message names it and the allowed values."""

@@ -1,0 +1,119 @@
+"""Realistic X-ray images of a CT: density line integrals once per pose, then spectrum, detector, noise.
+
+:class:`XRayImager` wraps a :class:`sim.render.DRRRenderer` with ``quantity="density"`` over
+:data:`sim.physics.materials.TISSUE_DECOMPOSITION`, and a :class:`sim.physics.poly.Polychromatic`
+model. Physics levels (:data:`LEVELS`):
+
+* ``line``: line integrals of mu at one effective energy (the plain DRR of :mod:`sim.render`);
+* ``poly``: spectral polychromatic attenuation, energy-integrating CsI detector, and optionally
+  quantum and electronic noise with detector blur;
+* ``full``: ``poly`` plus Monte Carlo scatter. It is not available yet and is refused with a
+  clear message (docs/physics.md).
+
+Outputs per pose (:meth:`XRayImager.render`): ``raw`` detector signal (keV per pixel, or counts),
+``log`` = ``-log(I / I0)`` (the usual log-corrected image: comparable to a line integral of mu),
+``primary`` (the expected signal without noise).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from sim.physics import PhysicsError
+
+LEVELS = ("line", "poly", "full")
+
+
+@dataclass(frozen=True)
+class PhysicsSettings:
+    """Units: kV, deg, mm, mAs.
+
+    Attributes:
+        level: ``line``, ``poly`` (``full`` is refused until Monte Carlo scatter lands).
+        kvp: tube voltage (kV); anode_angle_deg: tungsten anode angle (deg).
+        filters: ``((symbol, mm), ...)`` added filtration, e.g. ``(("Al", 2.5), ("Cu", 0.1))``.
+        n_bins: energy bins of the spectrum.
+        mas: tube current-time product (mAs) of the exposure.
+        detector_mm: CsI:Tl thickness (mm); detector_mode: ``integrating`` or ``counting``.
+        noise: add quantum noise, blur and electronic noise; seed: their random seed.
+        blur_mm: Gaussian sigma of the detector blur at the detector (mm).
+        electronic_noise: Gaussian sigma in signal units (keV per pixel when integrating).
+    """
+
+    level: str = "poly"
+    kvp: float = 120.0
+    anode_angle_deg: float = 12.0
+    filters: tuple[tuple[str, float], ...] = (("Al", 2.5),)
+    n_bins: int = 30
+    mas: float = 2.5
+    detector_mm: float = 0.6
+    detector_mode: str = "integrating"
+    noise: bool = True
+    seed: int = 0
+    blur_mm: float = 0.3
+    electronic_noise: float = 0.0
+
+    def __post_init__(self) -> None:
+        if self.level not in LEVELS:
+            raise PhysicsError(f"physics level must be one of {LEVELS}, got {self.level!r}")
+        if self.level == "full":
+            raise PhysicsError("physics level 'full' (Monte Carlo scatter) is not available yet; use 'poly' "
+                               "(spectrum, detector, noise) or 'line' (docs/physics.md)")
+        if not (math.isfinite(self.mas) and self.mas > 0):
+            raise PhysicsError(f"mas must be a positive number of mAs, got {self.mas}")
+
+
+class XRayImager:
+    """Realistic images of one CT at many poses (see the module doc).
+
+    Args:
+        volume: :class:`sim.volume.CTVolume`.
+        physics: :class:`PhysicsSettings`.
+        scene, size, ray_model: as :class:`sim.render.RenderSettings`.
+        center_lps, geometry: as :class:`sim.render.DRRRenderer`.
+    """
+
+    def __init__(self, volume, physics: PhysicsSettings | None = None, *, scene: str = "cios_fusion",
+                 size=None, ray_model: str = "siddon", center_lps=None, geometry=None):
+        from sim.physics.materials import TISSUE_DECOMPOSITION
+        from sim.physics.poly import Detector, Polychromatic
+        from sim.physics.spectrum import tube_spectrum
+        from sim.render import DRRRenderer, RenderSettings
+
+        self.physics = physics or PhysicsSettings()
+        p = self.physics
+        self.renderer = DRRRenderer(volume, RenderSettings(scene=scene, size=size, ray_model=ray_model,
+                                                           quantity="density"),
+                                    center_lps=center_lps, geometry=geometry, materials=TISSUE_DECOMPOSITION)
+        self.geometry = self.renderer.geometry
+        self.spectrum = tube_spectrum(p.kvp, anode_angle_deg=p.anode_angle_deg, filters=p.filters, n_bins=p.n_bins)
+        self.detector = Detector(p.detector_mm, p.detector_mode, p.electronic_noise, p.blur_mm)
+        self.model = Polychromatic(self.spectrum, self.detector, TISSUE_DECOMPOSITION.names)
+        g = self.geometry
+        self.exposure = dict(mas=p.mas, sdd_mm=g.sdd_mm, pixel_area_mm2=g.pixel_spacing_mm**2)
+        self.flat = self.model.flat_field(**self.exposure)
+
+    def render(self, poses: np.ndarray, *, seed: int | None = None) -> dict[str, np.ndarray]:
+        """``poses`` ``(B, 4, 4)`` or ``(4, 4)`` -> ``{"raw", "log", "primary"}`` each ``(B, H, W)``
+        float32. Noise is drawn from ``seed`` (default the settings' seed)."""
+        L = self.renderer.render(poses)  # (B, M, H, W) g/cm^2
+        if L.ndim == 3:
+            L = L[None]
+        primary = self.model.expected(L, **self.exposure)
+        raw = primary
+        if self.physics.noise:
+            rng = np.random.default_rng(self.physics.seed if seed is None else seed)
+            raw = self.model.noisy(L, rng, pixel_spacing_mm=self.geometry.pixel_spacing_mm, **self.exposure)
+        log = self.model.log_image(raw, self.flat)
+        return {"raw": raw.astype(np.float32), "log": log.astype(np.float32), "primary": primary.astype(np.float32)}
+
+    def record(self) -> dict:
+        """The physics settings and derived values for a sidecar."""
+        from dataclasses import asdict
+
+        return {**asdict(self.physics), "spectrum_mean_energy_keV": self.spectrum.mean_energy_keV,
+                "flat_field_signal": self.flat, "materials": list(self.model.materials),
+                "signal_units": "keV per pixel" if self.detector.mode == "integrating" else "counts per pixel"}
