@@ -10,8 +10,8 @@ built-in phantom) and detector size (128 x 128, 256 x 256) it runs a one-subject
 (shards of 32 images written to HDF5 with checksums, as in production) and prints the median of
 three runs: the subject's set-up (CT load, anatomy centre, renderer), seconds per image after
 it, images per second, and per core (Dr.Jit's kernels use every core of the machine). The
-``full`` physics level (spectrum, scatter, noise) arrives with the physics issue: its rows read
-``n/a`` until then. The last lines estimate the original campaign (3 CTs x 4311 images at
+``full`` physics level (Monte Carlo scatter) is not implemented yet: its rows read ``n/a``
+until then (poly physics costs are in benchmarks/physics.py). The last lines estimate the original campaign (3 CTs x 4311 images at
 128 x 128) on this machine from the measured rates.
 """
 

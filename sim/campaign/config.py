@@ -41,9 +41,9 @@ SPLIT_NAMES: tuple[str, ...] = ("train", "val", "test")
 #: Default CT-level split fractions (used when the file has no ``[split]`` table).
 DEFAULT_SPLIT: dict[str, float] = {"train": 0.8, "val": 0.1, "test": 0.1}
 #: Physics levels that can be rendered now.
-PHYSICS_LEVELS: tuple[str, ...] = ("line",)
+PHYSICS_LEVELS: tuple[str, ...] = ("line", "poly")
 #: Physics levels announced for the physics issue (rejected with a message saying so).
-PLANNED_PHYSICS_LEVELS: tuple[str, ...] = ("poly", "full")
+PLANNED_PHYSICS_LEVELS: tuple[str, ...] = ("full",)
 #: Tolerance on the sum of the split fractions.
 SPLIT_SUM_TOL = 1e-9
 #: ``spawn_key`` kind of the split draw (design rule: 0 poses, 1 virtual patient, 2 noise, 3 split).
@@ -52,7 +52,7 @@ KIND_SPLIT = 3
 _TOP_KEYS = ("campaign", "scene", "physics", "poses", "split", "cts", "virtual_patients", "outputs")
 _CAMPAIGN_KEYS = ("name", "seed", "images_per_ct", "shard_size")
 _SCENE_KEYS = ("name", "size")
-_PHYSICS_KEYS = ("name", "level", "ray_model", "step_fraction", "mu_water_per_mm")
+_PHYSICS_KEYS = ("name", "level", "ray_model", "step_fraction", "mu_water_per_mm", "kvp", "filters", "mas", "noise")
 _CT_KEYS = ("path", "label_map", "center", "split", "virtual_patients", "held_out_virtual_patients")
 _OUTPUT_KEYS = ("bone_mask", "projected_center")
 _PHYSICS_NAME = re.compile(r"[a-z0-9_]+")
@@ -90,10 +90,15 @@ class PhysicsConfig:
 
     Attributes:
         name: unique key ``[a-z0-9_]+`` (the dataset name ``images/<name>``).
-        level: ``"line"`` (line-integral DRR); ``"poly"`` / ``"full"`` come with the physics issue.
+        level: ``"line"`` (line-integral DRR) or ``"poly"`` (``-log(I/I0)`` of the spectral
+            polychromatic model with CsI detector and noise, :mod:`sim.physics.imaging`); ``"full"``
+            (Monte Carlo scatter) is not available yet.
         ray_model: ``"siddon"`` (exact voxel traversal) or ``"trilinear"``.
         step_fraction: trilinear step as a fraction of the smallest voxel spacing, in (0, 1].
-        mu_water_per_mm: attenuation of water in 1/mm (HU -> mu).
+        mu_water_per_mm: attenuation of water in 1/mm (HU -> mu; line level).
+        kvp, filters, mas, noise: poly level only: tube voltage (kV), filtration
+            ``(("Al", 2.5), ...)`` (mm), exposure (mAs), quantum/electronic noise and blur
+            (seeded per shard from the campaign seed).
     """
 
     name: str = "line"
@@ -101,10 +106,18 @@ class PhysicsConfig:
     ray_model: str = "siddon"
     step_fraction: float = 0.5
     mu_water_per_mm: float = MU_WATER_60KEV_PER_MM
+    kvp: float = 120.0
+    filters: tuple[tuple[str, float], ...] = (("Al", 2.5),)
+    mas: float = 2.5
+    noise: bool = True
 
     def to_dict(self) -> dict[str, Any]:
-        return {"name": self.name, "level": self.level, "ray_model": self.ray_model,
-                "step_fraction": float(self.step_fraction), "mu_water_per_mm": float(self.mu_water_per_mm)}
+        out = {"name": self.name, "level": self.level, "ray_model": self.ray_model,
+               "step_fraction": float(self.step_fraction), "mu_water_per_mm": float(self.mu_water_per_mm)}
+        if self.level == "poly":  # line entries keep their old form (and config hash)
+            out.update(kvp=float(self.kvp), filters=[f"{s}:{t:g}" for s, t in self.filters], mas=float(self.mas),
+                       noise=bool(self.noise))
+        return out
 
 
 @dataclass(frozen=True)
@@ -619,12 +632,12 @@ class _Parser:
             self.keys(t, _PHYSICS_KEYS, key)
             level = t.get("level", "line")
             if level in PLANNED_PHYSICS_LEVELS:
-                raise self.err(f"{key}.level", f"{level!r} arrives with the physics issue (polychromatic and "
-                                               f"full physics are not implemented yet); allowed levels now: "
+                raise self.err(f"{key}.level", f"{level!r} (poly + Monte Carlo scatter) is not implemented yet "
+                                               f"(docs/physics.md); allowed levels now: "
                                                f"{', '.join(PHYSICS_LEVELS)}")
             if level not in PHYSICS_LEVELS:
                 raise self.err(f"{key}.level", f"unknown level {level!r}; allowed now: {', '.join(PHYSICS_LEVELS)} "
-                                               f"({', '.join(PLANNED_PHYSICS_LEVELS)} come with the physics issue)")
+                                               f"({', '.join(PLANNED_PHYSICS_LEVELS)} not implemented yet)")
             name = t.get("name", level)
             if not isinstance(name, str) or not _PHYSICS_NAME.fullmatch(name):
                 raise self.err(f"{key}.name", f"expected lower-case letters, digits and '_' ([a-z0-9_]+), got {name!r}")
@@ -639,7 +652,27 @@ class _Parser:
                                lo_open=True, hi_open=False)
             mu = self.float_(t.get("mu_water_per_mm", MU_WATER_60KEV_PER_MM), f"{key}.mu_water_per_mm", 0.0,
                              math.inf, lo_open=True, hi_open=True, unit=" 1/mm")
-            out.append(PhysicsConfig(name, level, ray, step, mu))
+            poly_keys = sorted(set(t) & {"kvp", "filters", "mas", "noise"})
+            if level != "poly" and poly_keys:
+                raise self.err(f"{key}.{poly_keys[0]}", f"only for level = \"poly\" (this entry is {level!r})")
+            extra = {}
+            if level == "poly":
+                from sim.physics import PhysicsError
+                from sim.physics.spectrum import parse_filters
+
+                extra["kvp"] = self.float_(t.get("kvp", 120.0), f"{key}.kvp", 20.0, 150.0, lo_open=False,
+                                           hi_open=False, unit=" kV")
+                extra["mas"] = self.float_(t.get("mas", 2.5), f"{key}.mas", 0.0, math.inf, lo_open=True,
+                                           hi_open=True, unit=" mAs")
+                extra["noise"] = self.bool_(t.get("noise", True), f"{key}.noise")
+                filters = t.get("filters", ["Al:2.5"])
+                if isinstance(filters, str) or not isinstance(filters, (list, tuple)):
+                    raise self.err(f"{key}.filters", f'expected a list like ["Al:2.5", "Cu:0.1"], got {filters!r}')
+                try:
+                    extra["filters"] = parse_filters(filters)
+                except PhysicsError as e:
+                    raise self.err(f"{key}.filters", str(e)) from None
+            out.append(PhysicsConfig(name, level, ray, step, mu, **extra))
         return tuple(out)
 
     def split(self, value: Any) -> SplitConfig:

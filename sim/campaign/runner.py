@@ -33,6 +33,8 @@ from sim.campaign import dataset as ds
 
 #: Spawn keys of the random streams (with the subject / CT / image indices after them).
 KIND_POSES, KIND_VIRTUAL_PATIENT = 0, 1
+#: Spawn key of a shard's noise stream (poly physics): ``(KIND_NOISE, subject, shard)``.
+KIND_NOISE = 4
 
 #: A pixel is bone in ``bone_mask`` where the ray crosses at least this much bone (mm).
 BONE_MASK_MIN_PATH_MM = 1.0
@@ -115,6 +117,9 @@ class SubjectContext:
         self.source = volume.source
         self.renderers = {}
         for p in cfg.physics:
+            if p.level == "poly":
+                self.renderers[p.name] = _PolyRenderer(volume, p, cfg, center)
+                continue
             settings = RenderSettings(scene=cfg.scene.name, size=tuple(cfg.scene.size),
                                       ray_model=p.ray_model, step_fraction=p.step_fraction,
                                       mu_water_per_mm=p.mu_water_per_mm)
@@ -137,6 +142,24 @@ class SubjectContext:
             "source": self.source, "anatomy_center_lps_mm": self.center.tolist(),
             "virtual_patient": None if self.vp_params is None else self.vp_params.to_dict(),
         }
+
+
+class _PolyRenderer:
+    """A poly-physics entry as a renderer: ``render(poses, seed) -> -log(I/I0)`` ``(B, H, W)``."""
+
+    def __init__(self, volume, p, cfg, center):
+        from sim.physics.imaging import PhysicsSettings, XRayImager
+
+        physics = PhysicsSettings(level="poly", kvp=p.kvp, filters=p.filters, mas=p.mas, noise=p.noise)
+        self.imager = XRayImager(volume, physics, scene=cfg.scene.name, size=tuple(cfg.scene.size),
+                                 ray_model=p.ray_model, center_lps=center)
+        self.geometry = self.imager.geometry
+
+    def projection_matrix(self, poses):
+        return self.imager.renderer.projection_matrix(poses)
+
+    def render(self, poses, seed: int = 0):
+        return self.imager.render(poses, seed=seed)["log"]
 
 
 _worker_cfg = None
@@ -162,8 +185,12 @@ def render_unit(cfg, unit: Unit, out: Path) -> dict:
     any_renderer = next(iter(ctx.renderers.values()))
     poses = pose_from_params(params, any_renderer.geometry.sod_mm)
     arrays: dict[str, np.ndarray] = {}
-    for name, renderer in ctx.renderers.items():
-        arrays[f"images/{name}"] = renderer.render(poses)
+    for k, (name, renderer) in enumerate(ctx.renderers.items()):
+        if isinstance(renderer, _PolyRenderer):
+            rng = rng_for(cfg.seed, KIND_NOISE, unit.subject, unit.shard, k)
+            arrays[f"images/{name}"] = renderer.render(poses, seed=int(rng.integers(2**63)))
+        else:
+            arrays[f"images/{name}"] = renderer.render(poses)
     proj = any_renderer.projection_matrix(poses)
     arrays.update(pose=poses, params=params, projection=proj,
                   image_index=np.arange(unit.start, unit.stop, dtype=np.int64))

@@ -130,10 +130,11 @@ def test_smoke_is_small_and_has_one_virtual_patient():
 def test_domain_gap_renders_the_same_poses_with_several_physics():
     cfg = load_campaign(CAMPAIGNS / "domain_gap.toml")
     assert [(p.name, p.level, p.ray_model) for p in cfg.physics] == [
-        ("line_siddon", "line", "siddon"), ("line_trilinear", "line", "trilinear")]
+        ("line_siddon", "line", "siddon"), ("line_trilinear", "line", "trilinear"), ("poly", "poly", "siddon")]
+    assert cfg.physics[2].filters == (("Al", 2.5), ("Cu", 0.1)) and cfg.physics[2].noise
     assert cfg.poses == ORIGINAL_PROTOCOL
     text = (CAMPAIGNS / "domain_gap.toml").read_text()
-    assert '# level = "poly"' in text and '# level = "full"' in text
+    assert '# level = "full"' in text
 
 
 def test_defaults_are_the_documented_ones(tmp_path):
@@ -283,10 +284,16 @@ BAD = {
                           [r"split\.valid", r"train, val, test", r"did you mean 'val'"]),
     "unknown split name": (dict(cts='split = "validation"'),
                            [r"cts\[0\]\.split", r"'validation'", r"train, val, test"]),
-    "poly": (dict(rest='[[physics]]\nname = "p"\nlevel = "poly"\n'),
-             [r"physics\[0\]\.level", r"physics issue", r"allowed levels now: line"]),
+    "full": (dict(rest='[[physics]]\nname = "p"\nlevel = "full"\n'),
+             [r"physics\[0\]\.level", r"not implemented yet", r"allowed levels now: line, poly"]),
     "unknown level": (dict(rest='[[physics]]\nname = "p"\nlevel = "mono"\n'),
-                      [r"physics\[0\]\.level", r"'mono'", r"line", r"poly, full"]),
+                      [r"physics\[0\]\.level", r"'mono'", r"line, poly", r"full"]),
+    "poly key on a line entry": (dict(rest='[[physics]]\nname = "p"\nkvp = 100.0\n'),
+                                 [r"physics\[0\]\.kvp", r"only for level"]),
+    "bad filter": (dict(rest='[[physics]]\nname = "p"\nlevel = "poly"\nfilters = ["Al-2"]\n'),
+                   [r"physics\[0\]\.filters", r"SYMBOL:MM"]),
+    "kvp out of range": (dict(rest='[[physics]]\nname = "p"\nlevel = "poly"\nkvp = 300.0\n'),
+                         [r"physics\[0\]\.kvp"]),
     "size with 3 numbers": (dict(rest="[scene]\nsize = [64, 64, 3]\n"),
                             [r"scene\.size", r"\[rows, cols\]", r"\[64, 64, 3\]"]),
     "size off aspect": (dict(rest="[scene]\nsize = [64, 32]\n"), [r"scene\.size", r"aspect", r"1536 x 1536"]),
