@@ -42,6 +42,12 @@ class EvaluateCommand:
     target_ray_model: str = field(default="siddon", metadata=opt(
         "ray model of the target images (the methods render with siddon): trilinear makes the "
         "targets differ from the DRRs", group="protocol", choices=("siddon", "trilinear")))
+    target_physics: str = field(default="line", metadata=opt(
+        "physics of the target images: line (DRRs like the methods') or poly (120 kVp spectrum, 7 "
+        "materials, CsI detector, quantum noise: -log(I/I0)): a simulated domain gap",
+        group="protocol", choices=("line", "poly")))
+    target_mas: float = field(default=2.5, metadata=opt(
+        "exposure of poly targets (less mAs, more noise)", group="protocol", unit="mAs"))
     out: str = field(default="out/evaluate", metadata=opt(
         "folder for cases.csv, summary.json, table.md, violins.png", group="output", metavar="DIR"))
 
@@ -56,8 +62,15 @@ def run_evaluate(cmd: EvaluateCommand) -> list[Path]:
                                   local_rot_deg=cmd.local_rot, local_trans_mm=cmd.local_trans)
     volume = load_ct_spec(cmd.ct, label_map=cmd.label_map)
     center = np.asarray(cmd.center, float) if cmd.center is not None else anatomy_center(volume)
-    target_renderer = DRRRenderer(volume, RenderSettings(scene=cmd.scene, size=tuple(cmd.size),
-                                                         ray_model=cmd.target_ray_model), center_lps=center)
+    if cmd.target_physics == "poly":
+        from sim.physics.imaging import LogImageRenderer, PhysicsSettings
+
+        target_renderer = LogImageRenderer(volume, PhysicsSettings(mas=cmd.target_mas, seed=cmd.seed),
+                                           scene=cmd.scene, size=tuple(cmd.size), ray_model=cmd.target_ray_model,
+                                           center_lps=center)
+    else:
+        target_renderer = DRRRenderer(volume, RenderSettings(scene=cmd.scene, size=tuple(cmd.size),
+                                                             ray_model=cmd.target_ray_model), center_lps=center)
     methods = {name: METHODS[name](volume, center, tuple(cmd.size), model=cmd.model) for name in cmd.method}
     result = evaluate(volume, methods, settings, Path(cmd.out), center_lps=center,
                       geometry=target_renderer.geometry, target_renderer=target_renderer)

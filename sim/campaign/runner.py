@@ -118,7 +118,12 @@ class SubjectContext:
         self.renderers = {}
         for p in cfg.physics:
             if p.level == "poly":
-                self.renderers[p.name] = _PolyRenderer(volume, p, cfg, center)
+                from sim.physics.imaging import LogImageRenderer, PhysicsSettings
+
+                physics = PhysicsSettings(level="poly", kvp=p.kvp, filters=p.filters, mas=p.mas, noise=p.noise)
+                self.renderers[p.name] = LogImageRenderer(volume, physics, scene=cfg.scene.name,
+                                                          size=tuple(cfg.scene.size), ray_model=p.ray_model,
+                                                          center_lps=center)
                 continue
             settings = RenderSettings(scene=cfg.scene.name, size=tuple(cfg.scene.size),
                                       ray_model=p.ray_model, step_fraction=p.step_fraction,
@@ -142,24 +147,6 @@ class SubjectContext:
             "source": self.source, "anatomy_center_lps_mm": self.center.tolist(),
             "virtual_patient": None if self.vp_params is None else self.vp_params.to_dict(),
         }
-
-
-class _PolyRenderer:
-    """A poly-physics entry as a renderer: ``render(poses, seed) -> -log(I/I0)`` ``(B, H, W)``."""
-
-    def __init__(self, volume, p, cfg, center):
-        from sim.physics.imaging import PhysicsSettings, XRayImager
-
-        physics = PhysicsSettings(level="poly", kvp=p.kvp, filters=p.filters, mas=p.mas, noise=p.noise)
-        self.imager = XRayImager(volume, physics, scene=cfg.scene.name, size=tuple(cfg.scene.size),
-                                 ray_model=p.ray_model, center_lps=center)
-        self.geometry = self.imager.geometry
-
-    def projection_matrix(self, poses):
-        return self.imager.renderer.projection_matrix(poses)
-
-    def render(self, poses, seed: int = 0):
-        return self.imager.render(poses, seed=seed)["log"]
 
 
 _worker_cfg = None
@@ -186,7 +173,7 @@ def render_unit(cfg, unit: Unit, out: Path) -> dict:
     poses = pose_from_params(params, any_renderer.geometry.sod_mm)
     arrays: dict[str, np.ndarray] = {}
     for k, (name, renderer) in enumerate(ctx.renderers.items()):
-        if isinstance(renderer, _PolyRenderer):
+        if cfg.physics[k].level == "poly":
             rng = rng_for(cfg.seed, KIND_NOISE, unit.subject, unit.shard, k)
             arrays[f"images/{name}"] = renderer.render(poses, seed=int(rng.integers(2**63)))
         else:

@@ -117,3 +117,20 @@ class XRayImager:
         return {**asdict(self.physics), "spectrum_mean_energy_keV": self.spectrum.mean_energy_keV,
                 "flat_field_signal": self.flat, "materials": list(self.model.materials),
                 "signal_units": "keV per pixel" if self.detector.mode == "integrating" else "counts per pixel"}
+
+
+class LogImageRenderer:
+    """An :class:`XRayImager` seen as a DRR renderer: ``render(poses, seed=None)`` returns the
+    ``-log(I/I0)`` images ``(B, H, W)``; ``geometry``, ``center_lps`` and ``projection_matrix``
+    as :class:`sim.render.DRRRenderer`. Used for realistic targets and campaign images."""
+
+    def __init__(self, volume, physics: PhysicsSettings | None = None, **kwargs):
+        self.imager = XRayImager(volume, physics, **kwargs)
+        self.geometry = self.imager.geometry
+        self.center_lps = self.imager.renderer.center_lps
+
+    def projection_matrix(self, poses):
+        return self.imager.renderer.projection_matrix(poses)
+
+    def render(self, poses, seed: int | None = None) -> np.ndarray:
+        return self.imager.render(poses, seed=seed)["log"]
