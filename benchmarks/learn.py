@@ -20,22 +20,14 @@ step renders its 64 DRRs, normalises them and trains; it needs the shared pelvis
 from __future__ import annotations
 
 import argparse
-import statistics
 import sys
 import time
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
 
+from timing import timed  # noqa: E402  (benchmarks/timing.py)
 
-def timed(fn, steps: int) -> float:
-    fn()
-    out = []
-    for _ in range(steps):
-        t0 = time.perf_counter()
-        fn()
-        out.append(time.perf_counter() - t0)
-    return statistics.median(out)
 
 
 def main(argv=None) -> int:
