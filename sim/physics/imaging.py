@@ -74,20 +74,29 @@ class XRayImager:
         physics: :class:`PhysicsSettings`.
         scene, size, ray_model: as :class:`sim.render.RenderSettings`.
         center_lps, geometry: as :class:`sim.render.DRRRenderer`.
+        label_materials: ``{label: material}``: the CT's label map overrides the HU-based
+            materials there (:class:`sim.physics.materials.LabelOverride`), e.g. an implant
+            segmented as titanium.
     """
 
     def __init__(self, volume, physics: PhysicsSettings | None = None, *, scene: str = "cios_fusion",
-                 size=None, ray_model: str = "siddon", center_lps=None, geometry=None):
-        from sim.physics.materials import TISSUE_DECOMPOSITION
+                 size=None, ray_model: str = "siddon", center_lps=None, geometry=None,
+                 label_materials: dict[int, str] | None = None):
+        from sim.physics.materials import TISSUE_DECOMPOSITION, LabelOverride
         from sim.physics.poly import Detector, Polychromatic
         from sim.physics.spectrum import tube_spectrum
         from sim.render import DRRRenderer, RenderSettings
 
         self.physics = physics or PhysicsSettings()
         p = self.physics
+        materials = TISSUE_DECOMPOSITION
+        if label_materials:
+            if volume.labels is None:
+                raise PhysicsError("label_materials needs a CT with a label map (load it with label_map=...)")
+            materials = LabelOverride(volume.labels, label_materials)
         self.renderer = DRRRenderer(volume, RenderSettings(scene=scene, size=size, ray_model=ray_model,
                                                            quantity="density"),
-                                    center_lps=center_lps, geometry=geometry, materials=TISSUE_DECOMPOSITION)
+                                    center_lps=center_lps, geometry=geometry, materials=materials)
         self.geometry = self.renderer.geometry
         self.spectrum = tube_spectrum(p.kvp, anode_angle_deg=p.anode_angle_deg, filters=p.filters, n_bins=p.n_bins)
         self.detector = Detector(p.detector_mm, p.detector_mode, p.electronic_noise, p.blur_mm)

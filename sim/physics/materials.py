@@ -105,3 +105,60 @@ def mu_linear(name: str, energies_keV, density_g_cm3: float | None = None) -> np
     """Linear attenuation (1/mm) at ``density_g_cm3`` (default the nominal density)."""
     rho = nominal_density(name) if density_g_cm3 is None else float(density_g_cm3)
     return mass_attenuation(name, energies_keV) * rho / 10.0
+
+
+#: Materials whose density a label override takes from xraylib's nominal value, not from the
+#: HU curve: metal saturates CT numbers, so its HU says nothing about its density.
+NOMINAL_DENSITY_MATERIALS = ("titanium",)
+
+
+class LabelOverride:
+    """A decomposition in which a label map overrides the HU-based materials.
+
+    In voxels whose label is a key of ``label_materials`` the whole partial density goes to that
+    material: density from the HU curve of ``base``, or the nominal density for
+    :data:`NOMINAL_DENSITY_MATERIALS` (an implant segmented by the user). Other voxels keep the
+    HU-based fractions. Used like :class:`sim.materials.MaterialDecomposition` by the renderer
+    (``names``, ``partial_densities(hu)``) for the CT whose ``labels`` ``(I, J, K)`` it holds.
+
+    Args:
+        labels: integer label map ``(I, J, K)`` on the CT's grid.
+        label_materials: ``{label: material name}``; names must be in ``base.names``.
+        base: the HU decomposition (default :data:`TISSUE_DECOMPOSITION`).
+    """
+
+    def __init__(self, labels: np.ndarray, label_materials: dict[int, str], base: MaterialDecomposition | None = None):
+        self.base = base or TISSUE_DECOMPOSITION
+        self.labels = np.asarray(labels)
+        if not np.issubdtype(self.labels.dtype, np.integer):
+            raise PhysicsError(f"label map must hold integers, got {self.labels.dtype}")
+        if not label_materials:
+            raise PhysicsError("label_materials is empty: give {label: material}")
+        for lab, name in label_materials.items():
+            if name not in self.base.names:
+                raise PhysicsError(f"label {lab}: material {name!r} is not one of {', '.join(self.base.names)}")
+        self.label_materials = {int(k): str(v) for k, v in label_materials.items()}
+
+    @property
+    def names(self) -> tuple[str, ...]:
+        return self.base.names
+
+    def density(self, hu: np.ndarray) -> np.ndarray:
+        return self.base.density(hu)
+
+    def partial_densities(self, hu: np.ndarray) -> np.ndarray:
+        """``(M, I, J, K)`` float32 g/cm^3 with the overrides applied."""
+        hu = np.asarray(hu)
+        if hu.shape != self.labels.shape:
+            raise PhysicsError(f"label map shape {self.labels.shape} differs from the CT's {hu.shape}")
+        out = self.base.partial_densities(hu)
+        for lab, name in self.label_materials.items():
+            mask = self.labels == lab
+            if not mask.any():
+                continue
+            m = self.base.names.index(name)
+            rho = (np.full(int(mask.sum()), nominal_density(name)) if name in NOMINAL_DENSITY_MATERIALS
+                   else self.base.density(hu[mask]))
+            out[:, mask] = 0.0
+            out[m, mask] = rho
+        return out

@@ -150,8 +150,9 @@ def test_imager_log_image_tracks_the_line_integral_and_noise_is_reproducible():
     vol = make_pelvis_phantom(0, spacing_mm=4.0)
     imager = XRayImager(vol, PhysicsSettings(noise=False), size=(32, 32))
     line = DRRRenderer(vol, RenderSettings(size=(32, 32)), center_lps=imager.renderer.center_lps)
-    pose = np.eye(4)
-    pose[2, 3] = 0.0
+    from sim.geometry import pose_from_params
+
+    pose = pose_from_params(np.array([10.0, 5.0, 0.0, 0.0, 0.0, 0.0]), imager.geometry.sod_mm)
     out = imager.render(pose)
     ref = line.render(pose)[0]
     log = out["log"][0]
@@ -234,3 +235,50 @@ def test_evaluate_with_poly_targets_registers_through_the_domain_gap(tmp_path):
                                  target_mas=5.0, out=str(tmp_path)))
     rows = list(csv.DictReader(open(tmp_path / "cases.csv")))
     assert len(rows) == 1 and float(rows[0]["rot_err_deg"]) < 2.0 and float(rows[0]["mtre_mm"]) < 10.0
+
+
+def test_a_label_map_overrides_the_materials():
+    """A labelled 'implant' in soft tissue: as titanium it gets titanium's nominal density and
+    attenuates like Beer-Lambert with xraylib's titanium mu; unlabelled voxels are unchanged."""
+    from sim.physics.materials import LabelOverride, nominal_density
+
+    hu = np.full((4, 4, 4), 40.0, np.float32)
+    labels = np.zeros((4, 4, 4), np.int16)
+    labels[1:3, 1:3, 1:3] = 7
+    over = LabelOverride(labels, {7: "titanium"})
+    p = over.partial_densities(hu)
+    ti = TISSUE_DECOMPOSITION.names.index("titanium")
+    st = TISSUE_DECOMPOSITION.names.index("soft_tissue")
+    assert p[ti][labels == 7] == pytest.approx(nominal_density("titanium"))
+    assert np.all(np.delete(p, ti, axis=0)[:, labels == 7] == 0)
+    np.testing.assert_allclose(p[:, labels == 0], TISSUE_DECOMPOSITION.partial_densities(hu)[:, labels == 0])
+    assert p[st][0, 0, 0] == pytest.approx(TISSUE_DECOMPOSITION.density(np.array(40.0)))
+    bone = LabelOverride(labels, {7: "cortical_bone"}).partial_densities(hu)  # HU-curve density
+    idx = TISSUE_DECOMPOSITION.names.index("cortical_bone")
+    assert bone[idx][labels == 7] == pytest.approx(TISSUE_DECOMPOSITION.density(np.array(40.0)))
+    with pytest.raises(PhysicsError, match="steel"):
+        LabelOverride(labels, {7: "steel"})
+    with pytest.raises(PhysicsError, match="shape"):
+        over.partial_densities(np.zeros((2, 2, 2)))
+
+
+def test_imager_uses_the_label_override_of_a_ct():
+    from sim.phantom import make_pelvis_phantom
+    from sim.physics.imaging import PhysicsSettings, XRayImager
+    from sim.volume import CTVolume
+
+    vol = make_pelvis_phantom(0, spacing_mm=5.0)
+    labels = np.zeros(vol.hu.shape, np.int16)
+    c = np.array(vol.hu.shape) // 2
+    labels[c[0] - 2:c[0] + 2, c[1] - 2:c[1] + 2, c[2] - 2:c[2] + 2] = 9
+    lab = CTVolume(vol.hu, vol.affine, source="phantom+implant", labels=labels)
+    base = XRayImager(lab, PhysicsSettings(noise=False), size=(32, 32))
+    implant = XRayImager(lab, PhysicsSettings(noise=False), size=(32, 32), label_materials={9: "titanium"})
+    from sim.geometry import pose_from_params
+
+    pose = pose_from_params(np.zeros(6), base.geometry.sod_mm)
+    a, b = base.render(pose)["log"][0], implant.render(pose)["log"][0]
+    assert b.max() > a.max() + 1.0  # 20 mm of titanium adds > 1 to -log(I/I0) where it projects
+    assert np.median(np.abs(a - b)) < 1e-6  # and nothing elsewhere
+    with pytest.raises(PhysicsError, match="label map"):
+        XRayImager(CTVolume(vol.hu, vol.affine, source="no labels"), size=(32, 32), label_materials={9: "titanium"})
