@@ -53,7 +53,7 @@ class EvaluateCommand:
 
 
 def run_evaluate(cmd: EvaluateCommand) -> list[Path]:
-    from register.evaluate import METHODS, EvaluationSettings, evaluate
+    from register.evaluate import METHODS, EvaluationError, EvaluationSettings, evaluate
     from sim.anatomy import anatomy_center
     from sim.ct_io import load_ct_spec
     from sim.render import DRRRenderer, RenderSettings
@@ -62,6 +62,8 @@ def run_evaluate(cmd: EvaluateCommand) -> list[Path]:
                                   local_rot_deg=cmd.local_rot, local_trans_mm=cmd.local_trans)
     volume = load_ct_spec(cmd.ct, label_map=cmd.label_map)
     center = np.asarray(cmd.center, float) if cmd.center is not None else anatomy_center(volume)
+    if cmd.target_physics == "line" and cmd.target_mas != 2.5:
+        raise EvaluationError("--target-mas only applies with --target-physics poly")
     if cmd.target_physics == "poly":
         from sim.physics.imaging import LogImageRenderer, PhysicsSettings
 

@@ -20,7 +20,6 @@ Methods are plug-ins (:class:`RegistrationMethod`): anything with ``name`` and
 from __future__ import annotations
 
 import csv
-import json
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -178,7 +177,7 @@ def summarize(rows: list[dict], settings: EvaluationSettings) -> dict:
 
 def format_table(summary: dict, settings: EvaluationSettings) -> str:
     """The summary in the form of the original Table 3.1 (Markdown)."""
-    lines = [f"| method | error | mean | std | median | min | max |", "|---|---|---|---|---|---|---|"]
+    lines = ["| method | error | mean | std | median | min | max |", "|---|---|---|---|---|---|---|"]
     names = {"rot_err_deg": "rotation (deg)", "trans_err_mm": "translation (mm)", "mtre_mm": "mTRE (mm)",
              "mpd_mm": "mPD (mm)", "time_s": "time (s)"}
     for method, stats in summary.items():

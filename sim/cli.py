@@ -191,6 +191,7 @@ def run_render(cmd: RenderCommand) -> Path | list[Path]:
         raise CommandError(f"--pose {cmd.pose}: values must be finite numbers")
     from sim.ct_io import load_ct_spec
 
+    _check_physics_options(cmd)
     volume = load_ct_spec(cmd.ct, label_map=cmd.label_map)
     if cmd.pose_matrix is not None and any(cmd.pose):
         raise CommandError("give either --pose or --pose-matrix, not both")
@@ -204,6 +205,24 @@ def run_render(cmd: RenderCommand) -> Path | list[Path]:
     image = renderer.render(pose)[0]
     write_image(out, image, geometry_record(renderer, pose, cmd.quantity), cmd.quantity)
     return out
+
+
+#: Options that only mean something at one physics level: given at the other, they are refused.
+_LINE_ONLY = ("quantity", "mu_water")
+_POLY_ONLY = ("kvp", "filter", "anode_angle", "mas", "bins", "detector_mm", "noise", "seed", "primary")
+
+
+def _check_physics_options(cmd: RenderCommand) -> None:
+    """Refuse options of the other physics level instead of ignoring them silently."""
+    from dataclasses import fields
+
+    defaults = {f.name: f.default for f in fields(RenderCommand)}
+    other = _POLY_ONLY if cmd.physics == "line" else _LINE_ONLY
+    given = [name for name in other if getattr(cmd, name) != defaults[name]]
+    if given:
+        flags = ", ".join("--" + name.replace("_", "-") for name in given)
+        need = "--physics poly" if cmd.physics == "line" else "--physics line"
+        raise CommandError(f"{flags}: meaningful with {need} only; this render is --physics {cmd.physics}")
 
 
 def _pose(cmd: RenderCommand, sod_mm: float) -> np.ndarray:

@@ -106,9 +106,10 @@ def test_detector_response():
     np.testing.assert_allclose(count, expect)
     integ = Detector().response(e)
     assert np.all(integ <= e * count + 1e-12) and np.all(integ > 0.5 * e * count)
-    # free-electron Klein-Nishina mean energy transfer: 0.0215 at 10 keV... rises with energy
+    # free-electron Klein-Nishina mean energy-transfer fraction rises with energy; at 1 MeV the
+    # tabulated sigma_tr / sigma is 0.440 (Attix, Introduction to Radiological Physics)
     f = compton_mean_energy_fraction([10.0, 100.0, 1000.0])
-    assert np.all(np.diff(f) > 0) and f[-1] == pytest.approx(0.440, abs=0.01)  # tabulated sigma_tr/sigma at 1 MeV
+    assert np.all(np.diff(f) > 0) and f[-1] == pytest.approx(0.440, abs=0.01)
     with pytest.raises(PhysicsError, match="mode"):
         Detector(mode="film")
 
@@ -141,8 +142,9 @@ def test_bad_inputs_are_named():
 
 
 def test_imager_log_image_tracks_the_line_integral_and_noise_is_reproducible():
-    """On the phantom, the noise-free poly log image is a monotone, beam-hardened version of the
-    60 keV line-integral DRR: correlation > 0.99, and lower where the path is long (hardening)."""
+    """On the phantom, the noise-free poly log image follows the independently rendered 60 keV
+    line-integral DRR (correlation > 0.99, values within 10 %: the 120 kVp beam's effective
+    energy is near 60 keV), and noise is reproducible for a seed and differs between seeds."""
     from sim.phantom import make_pelvis_phantom
     from sim.physics.imaging import PhysicsSettings, XRayImager
     from sim.render import DRRRenderer, RenderSettings
@@ -157,7 +159,9 @@ def test_imager_log_image_tracks_the_line_integral_and_noise_is_reproducible():
     ref = line.render(pose)[0]
     log = out["log"][0]
     assert np.corrcoef(log.ravel(), ref.ravel())[0, 1] > 0.99
-    np.testing.assert_allclose(out["raw"], out["primary"])
+    # an effective energy near 60 keV: the poly image is within 10 % of the 60 keV line integral
+    # (beam hardening itself is checked on the water wedge above)
+    np.testing.assert_allclose(log, ref, rtol=0.1)
     noisy = XRayImager(vol, PhysicsSettings(noise=True, seed=4), size=(32, 32))
     a, b = noisy.render(pose)["raw"], noisy.render(pose)["raw"]
     np.testing.assert_array_equal(a, b)
@@ -184,6 +188,12 @@ def test_render_command_writes_log_raw_and_primary(tmp_path):
     bad = subprocess.run([sys.executable, "-m", "register.cli", "render", "--ct", "phantom", "--physics", "full",
                           "--out", str(tmp_path / "x.png")], capture_output=True, text=True, cwd=REPO, timeout=300)
     assert bad.returncode == 2 and "not available yet" in bad.stderr and "Traceback" not in bad.stderr
+    # options of the other physics level are refused, not ignored
+    for args, words in ((["--kvp", "100"], "--kvp: meaningful with --physics poly only"),
+                        (["--physics", "poly", "--quantity", "intensity"], "--quantity: meaningful with --physics line")):
+        r = subprocess.run([sys.executable, "-m", "register.cli", "render", "--ct", "phantom", *args, "--out",
+                            str(tmp_path / "y.png")], capture_output=True, text=True, cwd=REPO, timeout=300)
+        assert r.returncode == 2 and words in r.stderr and r.stderr.count("\n") == 1, r.stderr
 
 
 def test_campaign_renders_poly_images_reproducibly(tmp_path):
