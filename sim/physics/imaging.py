@@ -7,12 +7,15 @@ model. Physics levels (:data:`LEVELS`):
 * ``line``: line integrals of mu at one effective energy (the plain DRR of :mod:`sim.render`);
 * ``poly``: spectral polychromatic attenuation, energy-integrating CsI detector, and optionally
   quantum and electronic noise with detector blur;
-* ``full``: ``poly`` plus Monte Carlo scatter. It is not available yet and is refused with a
-  clear message (docs/physics.md).
+* ``full``: ``poly`` plus Monte Carlo scatter (:mod:`sim.physics.scatter`), added to the
+  primary signal before noise, and an optional anti-scatter grid.
 
 Outputs per pose (:meth:`XRayImager.render`): ``raw`` detector signal (keV per pixel, or counts),
 ``log`` = ``-log(I / I0)`` (the usual log-corrected image: comparable to a line integral of mu),
-``primary`` (the expected signal without noise).
+``primary`` (the expected primary signal without noise) and, for ``full``, ``scatter`` (the
+expected scattered signal, smoothed Monte Carlo estimate). With a grid, the flat field ``I0`` is
+taken with the grid in place (as a flat-field calibration would), so the log image of the
+primary does not change.
 """
 
 from __future__ import annotations
@@ -32,7 +35,7 @@ class PhysicsSettings:
     """Units: kV, deg, mm, mAs.
 
     Attributes:
-        level: ``line``, ``poly`` (``full`` is refused until Monte Carlo scatter lands).
+        level: ``line``, ``poly`` or ``full`` (``poly`` + Monte Carlo scatter).
         kvp: tube voltage (kV); anode_angle_deg: tungsten anode angle (deg).
         filters: ``((symbol, mm), ...)`` added filtration, e.g. ``(("Al", 2.5), ("Cu", 0.1))``.
         n_bins: energy bins of the spectrum.
@@ -41,6 +44,9 @@ class PhysicsSettings:
         noise: add quantum noise, blur and electronic noise; seed: their random seed.
         blur_mm: Gaussian sigma of the detector blur at the detector (mm).
         electronic_noise: Gaussian sigma in signal units (keV per pixel when integrating).
+        scatter_photons: Monte Carlo histories per image (``full``).
+        scatter_voxel_mm: voxel size (mm) of the transport grid (``full``).
+        grid_ratio: anti-scatter grid ratio, 0 = no grid (``full``).
     """
 
     level: str = "poly"
@@ -55,15 +61,24 @@ class PhysicsSettings:
     seed: int = 0
     blur_mm: float = 0.3
     electronic_noise: float = 0.0
+    scatter_photons: int = 1_000_000
+    scatter_voxel_mm: float = 6.0
+    grid_ratio: float = 0.0
 
     def __post_init__(self) -> None:
         if self.level not in LEVELS:
             raise PhysicsError(f"physics level must be one of {LEVELS}, got {self.level!r}")
-        if self.level == "full":
-            raise PhysicsError("physics level 'full' (Monte Carlo scatter) is not available yet; use 'poly' "
-                               "(spectrum, detector, noise) or 'line' (docs/physics.md)")
         if not (math.isfinite(self.mas) and self.mas > 0):
             raise PhysicsError(f"mas must be a positive number of mAs, got {self.mas}")
+        if self.level == "full":
+            self.scatter_settings()  # validates the Monte Carlo options
+
+    def scatter_settings(self):
+        """The :class:`sim.physics.scatter.ScatterSettings` of these settings."""
+        from sim.physics.scatter import ScatterSettings
+
+        return ScatterSettings(photons=self.scatter_photons, voxel_mm=self.scatter_voxel_mm,
+                               grid_ratio=self.grid_ratio)
 
 
 class XRayImager:
@@ -103,21 +118,55 @@ class XRayImager:
         self.model = Polychromatic(self.spectrum, self.detector, TISSUE_DECOMPOSITION.names)
         g = self.geometry
         self.exposure = dict(mas=p.mas, sdd_mm=g.sdd_mm, pixel_area_mm2=g.pixel_spacing_mm**2)
-        self.flat = self.model.flat_field(**self.exposure)
+        self.scatter = None
+        self.gain = 1.0
+        if p.level == "full":
+            from sim.physics.scatter import MonteCarloScatter
+
+            self.scatter = MonteCarloScatter(materials.partial_densities(volume.hu), volume.affine,
+                                             TISSUE_DECOMPOSITION.names, self.spectrum, self.detector,
+                                             p.scatter_settings())
+            self.gain = self.scatter.settings.grid_transmission if p.grid_ratio > 0 else 1.0
+        self.flat = self.model.flat_field(**self.exposure) * self.gain
+
+    def _scatter_images(self, poses: np.ndarray, seed: int) -> tuple[np.ndarray, np.ndarray]:
+        """Expected scattered signal and interacting scattered photons, each ``(B, H, W)``."""
+        from sim.geometry import extrinsic_lps_to_camera
+        from sim.physics.scatter import upsample_cells
+
+        g = self.geometry
+        mc = self.scatter
+        ppp = float(self.model.photons_per_pixel(**self.exposure).sum())
+        cam_to_lps = np.linalg.inv(extrinsic_lps_to_camera(poses, self.renderer.center_lps))
+        sig = np.empty((len(poses), g.height, g.width))
+        cnt = np.empty_like(sig)
+        sigma = mc.settings.smooth_mm / (g.pixel_spacing_mm * mc.settings.cell_px)
+        for b, m in enumerate(cam_to_lps):
+            pose_seed = int(np.random.SeedSequence([seed, b]).generate_state(1)[0])
+            out = mc.run(m, g, photons_per_pixel=ppp, seed=pose_seed)
+            sig[b] = upsample_cells(out["scatter"], g.height, g.width, out["cell_px"], sigma)
+            cnt[b] = upsample_cells(out["scatter_counts"], g.height, g.width, out["cell_px"], sigma)
+        return sig, cnt
 
     def render(self, poses: np.ndarray, *, seed: int | None = None) -> dict[str, np.ndarray]:
-        """``poses`` ``(B, 4, 4)`` or ``(4, 4)`` -> ``{"raw", "log", "primary"}`` each ``(B, H, W)``
-        float32. Noise is drawn from ``seed`` (default the settings' seed)."""
+        """``poses`` ``(B, 4, 4)`` or ``(4, 4)`` -> ``{"raw", "log", "primary"}`` (and ``"scatter"``
+        for ``full``) each ``(B, H, W)`` float32. Noise and Monte Carlo are drawn from ``seed``
+        (default the settings' seed)."""
+        seed = self.physics.seed if seed is None else int(seed)
+        poses = self.renderer._check_poses(poses)
         L = self.renderer.render(poses)  # (B, M, H, W) g/cm^2
-        if L.ndim == 3:
-            L = L[None]
-        primary = self.model.expected(L, **self.exposure)
-        raw = primary
+        primary = self.model.expected(L, **self.exposure) * self.gain
+        scatter = self._scatter_images(poses, seed) if self.scatter is not None else None
+        raw = primary if scatter is None else primary + scatter[0]
         if self.physics.noise:
-            rng = np.random.default_rng(self.physics.seed if seed is None else seed)
-            raw = self.model.noisy(L, rng, pixel_spacing_mm=self.geometry.pixel_spacing_mm, **self.exposure)
+            rng = np.random.default_rng(seed)
+            raw = self.model.noisy(L, rng, pixel_spacing_mm=self.geometry.pixel_spacing_mm, scatter=scatter,
+                                   gain=self.gain, **self.exposure)
         log = self.model.log_image(raw, self.flat)
-        return {"raw": raw.astype(np.float32), "log": log.astype(np.float32), "primary": primary.astype(np.float32)}
+        out = {"raw": raw.astype(np.float32), "log": log.astype(np.float32), "primary": primary.astype(np.float32)}
+        if scatter is not None:
+            out["scatter"] = scatter[0].astype(np.float32)
+        return out
 
     def record(self) -> dict:
         """The physics settings and derived values for a sidecar."""

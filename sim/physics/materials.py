@@ -23,7 +23,8 @@ import numpy as np
 from sim.materials import MaterialDecomposition
 from sim.physics import PhysicsError
 
-#: name -> xraylib NIST compound name, or ("element", Z). Cancellous bone (spongiosa) is not in
+#: name -> xraylib NIST compound name, or ("element", Z). ``water`` is not in the HU
+#: decomposition; it serves phantoms and validation. Cancellous bone (spongiosa) is not in
 #: the NIST list: it is a mass mixture of ICRP cortical bone and soft tissue (see
 #: :data:`CANCELLOUS_CORTICAL_MASS_FRACTION`).
 MATERIALS: dict[str, str | tuple[str, int]] = {
@@ -34,6 +35,7 @@ MATERIALS: dict[str, str | tuple[str, int]] = {
     "cancellous_bone": "mixture",
     "cortical_bone": "Bone, Cortical (ICRP)",
     "titanium": ("element", 22),
+    "water": "Water, Liquid",
 }
 
 #: Cancellous bone = this mass fraction of ICRP cortical bone + the rest ICRP soft tissue

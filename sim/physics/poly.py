@@ -148,16 +148,25 @@ class Polychromatic:
         """The signal without an object."""
         return float((self.photons_per_pixel(**exposure) * self.response).sum())
 
-    def noisy(self, L, rng: np.random.Generator, *, pixel_spacing_mm: float, **exposure) -> np.ndarray:
-        """One noisy realisation ``(B, H, W)`` (see the module doc for the order)."""
+    def noisy(self, L, rng: np.random.Generator, *, pixel_spacing_mm: float, scatter=None, gain: float = 1.0,
+              **exposure) -> np.ndarray:
+        """One noisy realisation ``(B, H, W)`` (see the module doc for the order).
+
+        ``scatter``: optional ``(signal, interacting photons)``, each ``(B, H, W)``, the expected
+        scattered signal: its photons are Poisson too, each adding the mean signal of a scattered
+        photon in that pixel. ``gain``: primary transmission of an anti-scatter grid (0-1]."""
         from scipy.ndimage import gaussian_filter
 
         # photons that interact in the detector are Poisson (a thinned Poisson process); each
         # then adds its mean signal (1 count, or its mean deposited keV: Swank noise neglected)
         p_int = self.interaction
-        counts = rng.poisson(self.expected_counts(L, **exposure) * p_int[None, :, None, None])
+        counts = rng.poisson(self.expected_counts(L, **exposure) * (gain * p_int)[None, :, None, None])
         per_photon = np.where(p_int > 0, self.response / np.where(p_int > 0, p_int, 1.0), 0.0)
         signal = np.einsum("behw,e->bhw", counts.astype(np.float64), per_photon)
+        if scatter is not None:
+            s_signal, s_counts = (np.asarray(a, dtype=np.float64) for a in scatter)
+            mean_per = np.where(s_counts > 0, s_signal / np.where(s_counts > 0, s_counts, 1.0), 0.0)
+            signal = signal + rng.poisson(np.maximum(s_counts, 0.0)) * mean_per
         if self.detector.blur_mm > 0:
             sigma = self.detector.blur_mm / pixel_spacing_mm
             signal = gaussian_filter(signal, sigma=(0, sigma, sigma), mode="nearest")
