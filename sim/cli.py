@@ -62,7 +62,7 @@ class RenderCommand:
         "trilinear step as a fraction of the smallest voxel spacing", group="physics", metavar="F"))
     physics: str = field(default="line", metadata=opt(
         "line: line integrals of mu (DRR); poly: tube spectrum, 7 materials with NIST cross "
-        "sections, CsI detector, noise; full: poly + Monte Carlo scatter (not available yet)",
+        "sections, CsI detector, noise; full: poly + Monte Carlo scatter",
         group="physics", choices=("line", "poly", "full")))
     kvp: float = field(default=_PHYSICS.kvp, metadata=opt("tube voltage (poly)", group="physics", unit="kV"))
     filter: tuple[str, ...] = field(default=tuple(f"{s}:{t:g}" for s, t in _PHYSICS.filters), metadata=opt(
@@ -76,12 +76,20 @@ class RenderCommand:
         "CsI:Tl thickness (poly)", group="physics", unit="mm"))
     noise: bool = field(default=_PHYSICS.noise, metadata=opt(
         "quantum noise, detector blur and electronic noise (poly)", group="physics", negatable=True))
-    seed: int = field(default=_PHYSICS.seed, metadata=opt("noise seed (poly)", group="physics"))
+    seed: int = field(default=_PHYSICS.seed, metadata=opt("noise and Monte Carlo seed (poly, full)",
+                                                          group="physics"))
+    scatter_photons: int = field(default=_PHYSICS.scatter_photons, metadata=opt(
+        "Monte Carlo histories per image (full)", group="physics", metavar="N"))
+    scatter_voxel: float = field(default=_PHYSICS.scatter_voxel_mm, metadata=opt(
+        "voxel size of the Monte Carlo transport grid (full)", group="physics", unit="mm"))
+    grid_ratio: float = field(default=_PHYSICS.grid_ratio, metadata=opt(
+        "anti-scatter grid ratio, 0 = no grid (full)", group="physics", metavar="R"))
     primary: bool = field(default=False, metadata=opt(
-        "also write the noise-free primary signal as <out stem>_primary.npy (poly)", group="output"))
+        "also write the noise-free primary signal as <out stem>_primary.npy, and with --physics "
+        "full the expected scatter signal as <out stem>_scatter.npy (poly, full)", group="output"))
     out: str = field(default="drr.png", metadata=opt(
         ".npy: float32 (H, W) raw values; .png: display image (bone bright). A .json sidecar "
-        "with the geometry is written beside it. With --physics poly the image is -log(I/I0) and the "
+        "with the geometry is written beside it. With --physics poly or full the image is -log(I/I0) and the "
         "raw detector signal goes to <out stem>_raw.npy", group="output", metavar="FILE"))
 
 
@@ -210,6 +218,7 @@ def run_render(cmd: RenderCommand) -> Path | list[Path]:
 #: Options that only mean something at one physics level: given at the other, they are refused.
 _LINE_ONLY = ("quantity", "mu_water")
 _POLY_ONLY = ("kvp", "filter", "anode_angle", "mas", "bins", "detector_mm", "noise", "seed", "primary")
+_FULL_ONLY = ("scatter_photons", "scatter_voxel", "grid_ratio")
 
 
 def _check_physics_options(cmd: RenderCommand) -> None:
@@ -217,12 +226,13 @@ def _check_physics_options(cmd: RenderCommand) -> None:
     from dataclasses import fields
 
     defaults = {f.name: f.default for f in fields(RenderCommand)}
-    other = _POLY_ONLY if cmd.physics == "line" else _LINE_ONLY
-    given = [name for name in other if getattr(cmd, name) != defaults[name]]
+    levels = {name: lv for names, lv in ((_LINE_ONLY, ("line",)), (_POLY_ONLY, ("poly", "full")),
+                                         (_FULL_ONLY, ("full",))) for name in names}
+    given = [name for name, lv in levels.items() if cmd.physics not in lv and getattr(cmd, name) != defaults[name]]
     if given:
         flags = ", ".join("--" + name.replace("_", "-") for name in given)
-        need = "--physics poly" if cmd.physics == "line" else "--physics line"
-        raise CommandError(f"{flags}: meaningful with {need} only; this render is --physics {cmd.physics}")
+        need = " or ".join(sorted({lv for name in given for lv in levels[name]}, key=("line", "poly", "full").index))
+        raise CommandError(f"{flags}: meaningful with --physics {need} only; this render is --physics {cmd.physics}")
 
 
 def _pose(cmd: RenderCommand, sod_mm: float) -> np.ndarray:
@@ -240,7 +250,9 @@ def _render_physics(cmd: RenderCommand, volume, out: Path) -> list[Path]:
 
     physics = PhysicsSettings(level=cmd.physics, kvp=cmd.kvp, anode_angle_deg=cmd.anode_angle,
                               filters=parse_filters(cmd.filter), n_bins=cmd.bins, mas=cmd.mas,
-                              detector_mm=cmd.detector_mm, noise=cmd.noise, seed=cmd.seed)
+                              detector_mm=cmd.detector_mm, noise=cmd.noise, seed=cmd.seed,
+                              scatter_photons=cmd.scatter_photons, scatter_voxel_mm=cmd.scatter_voxel,
+                              grid_ratio=cmd.grid_ratio)
     imager = XRayImager(volume, physics, scene=cmd.scene, size=tuple(cmd.size), ray_model=cmd.ray_model,
                         center_lps=cmd.center)
     pose = _pose(cmd, imager.geometry.sod_mm)
@@ -249,7 +261,8 @@ def _render_physics(cmd: RenderCommand, volume, out: Path) -> list[Path]:
               "units": "-log(I / I0), dimensionless", "physics": imager.record()}
     write_image(out, images["log"][0], record, "line-integral")
     written = [out]
-    for name in ("raw", "primary") if cmd.primary else ("raw",):
+    names = ("raw", "primary", "scatter") if cmd.primary else ("raw",)
+    for name in (n for n in names if n in images):
         path = out.with_name(f"{out.stem}_{name}.npy")
         with atomic_path(path) as tmp:
             np.save(tmp, images[name][0], allow_pickle=False)

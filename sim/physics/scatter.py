@@ -379,9 +379,15 @@ class MonteCarloScatter:
         src_v, corner_v = V3(*src), V3(*corner)
         eu_v, ev_v, nrm_v = V3(*eu), V3(*ev), V3(*nrm)
         cells = hc * wc
-        scatter = dr.zeros(mi.Float, cells)
-        counts = dr.zeros(mi.Float, cells)
-        primary = dr.zeros(mi.Float, cells)
+        # tallies are reduced in NumPy (float64, fixed order): atomic scatter-adds from parallel
+        # threads would make the images differ in the last bits from run to run
+        tallies = {name: np.zeros(cells) for name in ("scatter", "scatter_counts", "primary")}
+
+        def tally(name, cell, value, mask):
+            keep = np.array(mask, dtype=bool)
+            if keep.any():
+                tallies[name] += np.bincount(np.array(cell, dtype=np.int64)[keep],
+                                             weights=np.array(value, dtype=np.float64)[keep], minlength=cells)
         energy = {"emitted": 0.0, "deposited": 0.0, "escaped": 0.0, "truncated": 0.0}
         m_count = len(self.materials)
         grid_r, grid_tp = float(s.grid_ratio), float(s.grid_transmission if s.grid_ratio > 0 else 1.0)
@@ -428,7 +434,7 @@ class MonteCarloScatter:
             # photons that miss the volume are primary at once
             miss = ~hits
             resp = self._lerp_table(self._resp, 0, e)
-            dr.scatter_add(primary, weight * grid_tp * resp, cell0, miss)
+            tally("primary", cell0, weight * grid_tp * resp, miss)
             energy["escaped"] += tally_sum(dr.select(miss, e, 0.0))
             idx = dr.compress(hits)
             p, d, e, cell0 = (dr.gather(type(v), v, idx) for v in (p, d, e, cell0))
@@ -443,7 +449,7 @@ class MonteCarloScatter:
                 escaped = ~collided
                 first = escaped & (n_scat == 0)
                 resp = self._lerp_table(self._resp, 0, e)
-                dr.scatter_add(primary, weight * grid_tp * resp, cell0, first)
+                tally("primary", cell0, weight * grid_tp * resp, first)
                 energy["escaped"] += tally_sum(dr.select(escaped, e, 0.0))
                 idx = dr.compress(collided)
                 p, d, e, cell0, n_scat = (dr.gather(type(v), v, idx) for v in (p, d, e, cell0, n_scat))
@@ -488,8 +494,8 @@ class MonteCarloScatter:
                 trans, rng = self._track(p, dn, mu_n, node_n, rng, scat, ratio=True, t_max=r)
                 dr.eval(trans, rng)
                 value = dr.select(scat, value * trans, 0.0)
-                dr.scatter_add(scatter, value * self._lerp_table(self._resp, 0, e_n), cell, scat)
-                dr.scatter_add(counts, value * self._lerp_table(self._pint, 0, e_n), cell, scat)
+                tally("scatter", cell, value * self._lerp_table(self._resp, 0, e_n), scat)
+                tally("scatter_counts", cell, value * self._lerp_table(self._pint, 0, e_n), scat)
                 # --- the real interaction
                 theta = self._sample_theta(sk, mat, e, rng.next_float32(), rng.next_float32())
                 phi = 2.0 * math.pi * rng.next_float32()
@@ -510,8 +516,7 @@ class MonteCarloScatter:
                 rng = _gather_rng(rng, idx, mi, dr)
             energy["truncated"] += tally_sum(e)
         px_per_cell = _pixels_per_cell(h, w, cp)
-        out = {name: np.array(arr, dtype=np.float64).reshape(hc, wc) / px_per_cell
-               for name, arr in (("scatter", scatter), ("scatter_counts", counts), ("primary", primary))}
+        out = {name: arr.reshape(hc, wc) / px_per_cell for name, arr in tallies.items()}
         out["energy_keV"] = energy
         out["histories"] = n_total
         out["cell_px"] = cp

@@ -185,11 +185,19 @@ def test_render_command_writes_log_raw_and_primary(tmp_path):
     assert side["physics"]["kvp"] == 100.0 and side["physics"]["filters"] == [["Al", 2.5], ["Cu", 0.1]]
     np.testing.assert_allclose(log, -np.log(raw / side["physics"]["flat_field_signal"]), rtol=1e-4, atol=1e-5)
     np.testing.assert_allclose(raw, primary)
-    bad = subprocess.run([sys.executable, "-m", "register.cli", "render", "--ct", "phantom", "--physics", "full",
-                          "--out", str(tmp_path / "x.png")], capture_output=True, text=True, cwd=REPO, timeout=300)
-    assert bad.returncode == 2 and "not available yet" in bad.stderr and "Traceback" not in bad.stderr
+    # full physics: the scatter image is written with --primary; raw = primary + scatter (no noise)
+    r = subprocess.run([sys.executable, "-m", "register.cli", "render", "--ct", "phantom", "--size", "32", "32",
+                        "--physics", "full", "--scatter-photons", "20000", "--no-noise", "--primary",
+                        "--out", str(tmp_path / "full.npy")], capture_output=True, text=True, cwd=REPO, timeout=300)
+    assert r.returncode == 0, r.stderr
+    raw, primary, scatter = (np.load(tmp_path / f) for f in ("full_raw.npy", "full_primary.npy", "full_scatter.npy"))
+    assert scatter.min() > 0 and 0.05 < scatter.mean() / primary.mean() < 10
+    np.testing.assert_allclose(raw, primary + scatter, rtol=1e-5)
+    assert json.loads((tmp_path / "full.json").read_text())["physics"]["scatter_photons"] == 20000
     # options of the other physics level are refused, not ignored
-    for args, words in ((["--kvp", "100"], "--kvp: meaningful with --physics poly only"),
+    for args, words in ((["--kvp", "100"], "--kvp: meaningful with --physics poly or full only"),
+                        (["--physics", "poly", "--grid-ratio", "10"], "--grid-ratio: meaningful with --physics full only"),
+                        (["--physics", "full", "--scatter-photons", "10"], "scatter photons must be an integer >= 1000"),
                         (["--physics", "poly", "--quantity", "intensity"], "--quantity: meaningful with --physics line")):
         r = subprocess.run([sys.executable, "-m", "register.cli", "render", "--ct", "phantom", *args, "--out",
                             str(tmp_path / "y.png")], capture_output=True, text=True, cwd=REPO, timeout=300)
