@@ -44,10 +44,10 @@ class EvaluateCommand:
         "targets differ from the DRRs", group="protocol", choices=("siddon", "trilinear")))
     target_physics: str = field(default="line", metadata=opt(
         "physics of the target images: line (DRRs like the methods') or poly (120 kVp spectrum, 7 "
-        "materials, CsI detector, quantum noise: -log(I/I0)): a simulated domain gap",
-        group="protocol", choices=("line", "poly")))
+        "materials, CsI detector, quantum noise: -log(I/I0)) or full (poly + Monte Carlo scatter, "
+        "10^6 histories per target): a simulated domain gap", group="protocol", choices=("line", "poly", "full")))
     target_mas: float = field(default=2.5, metadata=opt(
-        "exposure of poly targets (less mAs, more noise)", group="protocol", unit="mAs"))
+        "exposure of poly and full targets (less mAs, more noise)", group="protocol", unit="mAs"))
     out: str = field(default="out/evaluate", metadata=opt(
         "folder for cases.csv, summary.json, table.md, violins.png", group="output", metavar="DIR"))
 
@@ -63,11 +63,12 @@ def run_evaluate(cmd: EvaluateCommand) -> list[Path]:
     volume = load_ct_spec(cmd.ct, label_map=cmd.label_map)
     center = np.asarray(cmd.center, float) if cmd.center is not None else anatomy_center(volume)
     if cmd.target_physics == "line" and cmd.target_mas != 2.5:
-        raise EvaluationError("--target-mas only applies with --target-physics poly")
-    if cmd.target_physics == "poly":
+        raise EvaluationError("--target-mas only applies with --target-physics poly or full")
+    if cmd.target_physics in ("poly", "full"):
         from sim.physics.imaging import LogImageRenderer, PhysicsSettings
 
-        target_renderer = LogImageRenderer(volume, PhysicsSettings(mas=cmd.target_mas, seed=cmd.seed),
+        physics = PhysicsSettings(level=cmd.target_physics, mas=cmd.target_mas, seed=cmd.seed)
+        target_renderer = LogImageRenderer(volume, physics,
                                            scene=cmd.scene, size=tuple(cmd.size), ray_model=cmd.target_ray_model,
                                            center_lps=center)
     else:

@@ -41,9 +41,7 @@ SPLIT_NAMES: tuple[str, ...] = ("train", "val", "test")
 #: Default CT-level split fractions (used when the file has no ``[split]`` table).
 DEFAULT_SPLIT: dict[str, float] = {"train": 0.8, "val": 0.1, "test": 0.1}
 #: Physics levels that can be rendered now.
-PHYSICS_LEVELS: tuple[str, ...] = ("line", "poly")
-#: Physics levels announced for the physics issue (rejected with a message saying so).
-PLANNED_PHYSICS_LEVELS: tuple[str, ...] = ("full",)
+PHYSICS_LEVELS: tuple[str, ...] = ("line", "poly", "full")
 #: Tolerance on the sum of the split fractions.
 SPLIT_SUM_TOL = 1e-9
 #: ``spawn_key`` kind of the split draw (design rule: 0 poses, 1 virtual patient, 2 noise, 3 split).
@@ -52,7 +50,8 @@ KIND_SPLIT = 3
 _TOP_KEYS = ("campaign", "scene", "physics", "poses", "split", "cts", "virtual_patients", "outputs")
 _CAMPAIGN_KEYS = ("name", "seed", "images_per_ct", "shard_size")
 _SCENE_KEYS = ("name", "size")
-_PHYSICS_KEYS = ("name", "level", "ray_model", "step_fraction", "mu_water_per_mm", "kvp", "filters", "mas", "noise")
+_PHYSICS_KEYS = ("name", "level", "ray_model", "step_fraction", "mu_water_per_mm", "kvp", "filters", "mas", "noise",
+                 "scatter_photons", "grid_ratio")
 _CT_KEYS = ("path", "label_map", "center", "split", "virtual_patients", "held_out_virtual_patients")
 _OUTPUT_KEYS = ("bone_mask", "projected_center")
 _PHYSICS_NAME = re.compile(r"[a-z0-9_]+")
@@ -91,14 +90,16 @@ class PhysicsConfig:
     Attributes:
         name: unique key ``[a-z0-9_]+`` (the dataset name ``images/<name>``).
         level: ``"line"`` (line-integral DRR) or ``"poly"`` (``-log(I/I0)`` of the spectral
-            polychromatic model with CsI detector and noise, :mod:`sim.physics.imaging`); ``"full"``
-            (Monte Carlo scatter) is not available yet.
+            polychromatic model with CsI detector and noise, :mod:`sim.physics.imaging`) or ``"full"``
+            (``poly`` + Monte Carlo scatter, :mod:`sim.physics.scatter`).
         ray_model: ``"siddon"`` (exact voxel traversal) or ``"trilinear"``.
         step_fraction: trilinear step as a fraction of the smallest voxel spacing, in (0, 1].
         mu_water_per_mm: attenuation of water in 1/mm (HU -> mu; line level).
         kvp, filters, mas, noise: poly level only: tube voltage (kV), filtration
             ``(("Al", 2.5), ...)`` (mm), exposure (mAs), quantum/electronic noise and blur
-            (seeded per shard from the campaign seed).
+            (seeded per shard from the campaign seed); also for full.
+        scatter_photons, grid_ratio: full level only: Monte Carlo histories per image, and the
+            anti-scatter grid ratio (0 = none).
     """
 
     name: str = "line"
@@ -110,13 +111,17 @@ class PhysicsConfig:
     filters: tuple[tuple[str, float], ...] = (("Al", 2.5),)
     mas: float = 2.5
     noise: bool = True
+    scatter_photons: int = 1_000_000
+    grid_ratio: float = 0.0
 
     def to_dict(self) -> dict[str, Any]:
         out = {"name": self.name, "level": self.level, "ray_model": self.ray_model,
                "step_fraction": float(self.step_fraction), "mu_water_per_mm": float(self.mu_water_per_mm)}
-        if self.level == "poly":  # line entries keep their old form (and config hash)
+        if self.level in ("poly", "full"):  # line entries keep their old form (and config hash)
             out.update(kvp=float(self.kvp), filters=[f"{s}:{t:g}" for s, t in self.filters], mas=float(self.mas),
                        noise=bool(self.noise))
+        if self.level == "full":
+            out.update(scatter_photons=int(self.scatter_photons), grid_ratio=float(self.grid_ratio))
         return out
 
 
@@ -631,13 +636,8 @@ class _Parser:
             key = f"physics[{i}]"
             self.keys(t, _PHYSICS_KEYS, key)
             level = t.get("level", "line")
-            if level in PLANNED_PHYSICS_LEVELS:
-                raise self.err(f"{key}.level", f"{level!r} (poly + Monte Carlo scatter) is not implemented yet "
-                                               f"(docs/physics.md); allowed levels now: "
-                                               f"{', '.join(PHYSICS_LEVELS)}")
             if level not in PHYSICS_LEVELS:
-                raise self.err(f"{key}.level", f"unknown level {level!r}; allowed now: {', '.join(PHYSICS_LEVELS)} "
-                                               f"({', '.join(PLANNED_PHYSICS_LEVELS)} not implemented yet)")
+                raise self.err(f"{key}.level", f"unknown level {level!r}; allowed: {', '.join(PHYSICS_LEVELS)}")
             name = t.get("name", level)
             if not isinstance(name, str) or not _PHYSICS_NAME.fullmatch(name):
                 raise self.err(f"{key}.name", f"expected lower-case letters, digits and '_' ([a-z0-9_]+), got {name!r}")
@@ -653,10 +653,20 @@ class _Parser:
             mu = self.float_(t.get("mu_water_per_mm", MU_WATER_60KEV_PER_MM), f"{key}.mu_water_per_mm", 0.0,
                              math.inf, lo_open=True, hi_open=True, unit=" 1/mm")
             poly_keys = sorted(set(t) & {"kvp", "filters", "mas", "noise"})
-            if level != "poly" and poly_keys:
-                raise self.err(f"{key}.{poly_keys[0]}", f"only for level = \"poly\" (this entry is {level!r})")
+            if level == "line" and poly_keys:
+                raise self.err(f"{key}.{poly_keys[0]}", f"only for level = \"poly\" or \"full\" (this entry is {level!r})")
+            full_keys = sorted(set(t) & {"scatter_photons", "grid_ratio"})
+            if level != "full" and full_keys:
+                raise self.err(f"{key}.{full_keys[0]}", f"only for level = \"full\" (this entry is {level!r})")
             extra = {}
-            if level == "poly":
+            if level == "full":
+                photons = t.get("scatter_photons", 1_000_000)
+                if isinstance(photons, bool) or not isinstance(photons, int) or photons < 1000:
+                    raise self.err(f"{key}.scatter_photons", f"expected an integer >= 1000, got {photons!r}")
+                extra["scatter_photons"] = photons
+                extra["grid_ratio"] = self.float_(t.get("grid_ratio", 0.0), f"{key}.grid_ratio", 0.0, 50.0,
+                                                  lo_open=False, hi_open=False)
+            if level in ("poly", "full"):
                 from sim.physics import PhysicsError
                 from sim.physics.spectrum import parse_filters
 

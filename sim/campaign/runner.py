@@ -117,10 +117,11 @@ class SubjectContext:
         self.source = volume.source
         self.renderers = {}
         for p in cfg.physics:
-            if p.level == "poly":
+            if p.level in ("poly", "full"):
                 from sim.physics.imaging import LogImageRenderer, PhysicsSettings
 
-                physics = PhysicsSettings(level="poly", kvp=p.kvp, filters=p.filters, mas=p.mas, noise=p.noise)
+                physics = PhysicsSettings(level=p.level, kvp=p.kvp, filters=p.filters, mas=p.mas, noise=p.noise,
+                                          scatter_photons=p.scatter_photons, grid_ratio=p.grid_ratio)
                 self.renderers[p.name] = LogImageRenderer(volume, physics, scene=cfg.scene.name,
                                                           size=tuple(cfg.scene.size), ray_model=p.ray_model,
                                                           center_lps=center)
@@ -173,7 +174,7 @@ def render_unit(cfg, unit: Unit, out: Path) -> dict:
     poses = pose_from_params(params, any_renderer.geometry.sod_mm)
     arrays: dict[str, np.ndarray] = {}
     for k, (name, renderer) in enumerate(ctx.renderers.items()):
-        if cfg.physics[k].level == "poly":
+        if cfg.physics[k].level in ("poly", "full"):
             rng = rng_for(cfg.seed, KIND_NOISE, unit.subject, unit.shard, k)
             arrays[f"images/{name}"] = renderer.render(poses, seed=int(rng.integers(2**63)))
         else:

@@ -130,11 +130,11 @@ def test_smoke_is_small_and_has_one_virtual_patient():
 def test_domain_gap_renders_the_same_poses_with_several_physics():
     cfg = load_campaign(CAMPAIGNS / "domain_gap.toml")
     assert [(p.name, p.level, p.ray_model) for p in cfg.physics] == [
-        ("line_siddon", "line", "siddon"), ("line_trilinear", "line", "trilinear"), ("poly", "poly", "siddon")]
+        ("line_siddon", "line", "siddon"), ("line_trilinear", "line", "trilinear"), ("poly", "poly", "siddon"),
+        ("full", "full", "siddon")]
     assert cfg.physics[2].filters == (("Al", 2.5), ("Cu", 0.1)) and cfg.physics[2].noise
+    assert cfg.physics[3].scatter_photons == 300_000 and cfg.physics[3].grid_ratio == 0.0
     assert cfg.poses == ORIGINAL_PROTOCOL
-    text = (CAMPAIGNS / "domain_gap.toml").read_text()
-    assert '# level = "full"' in text
 
 
 def test_defaults_are_the_documented_ones(tmp_path):
@@ -284,10 +284,12 @@ BAD = {
                           [r"split\.valid", r"train, val, test", r"did you mean 'val'"]),
     "unknown split name": (dict(cts='split = "validation"'),
                            [r"cts\[0\]\.split", r"'validation'", r"train, val, test"]),
-    "full": (dict(rest='[[physics]]\nname = "p"\nlevel = "full"\n'),
-             [r"physics\[0\]\.level", r"not implemented yet", r"allowed levels now: line, poly"]),
+    "full key on a poly entry": (dict(rest='[[physics]]\nname = "p"\nlevel = "poly"\nscatter_photons = 5000\n'),
+                                 [r"physics\[0\]\.scatter_photons", r'only for level = "full"']),
+    "too few scatter photons": (dict(rest='[[physics]]\nname = "p"\nlevel = "full"\nscatter_photons = 10\n'),
+                                [r"physics\[0\]\.scatter_photons", r"integer >= 1000"]),
     "unknown level": (dict(rest='[[physics]]\nname = "p"\nlevel = "mono"\n'),
-                      [r"physics\[0\]\.level", r"'mono'", r"line, poly", r"full"]),
+                      [r"physics\[0\]\.level", r"'mono'", r"line, poly, full"]),
     "poly key on a line entry": (dict(rest='[[physics]]\nname = "p"\nkvp = 100.0\n'),
                                  [r"physics\[0\]\.kvp", r"only for level"]),
     "bad filter": (dict(rest='[[physics]]\nname = "p"\nlevel = "poly"\nfilters = ["Al-2"]\n'),

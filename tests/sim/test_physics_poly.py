@@ -205,8 +205,9 @@ def test_render_command_writes_log_raw_and_primary(tmp_path):
 
 
 def test_campaign_renders_poly_images_reproducibly(tmp_path):
-    """A campaign with a line and a poly entry: poly images are -log(I/I0) of the same poses
-    (correlated with the line DRR), and a second run writes bit-identical shards (seeded noise)."""
+    """A campaign with line, poly and full entries: poly and full images are -log(I/I0) of the
+    same poses (correlated with the line DRR; scatter lowers full's contrast), and a second run
+    writes bit-identical shards (seeded noise and Monte Carlo)."""
     from sim.campaign import load_campaign, open_dataset, run_campaign
 
     (tmp_path / "c.toml").write_text('''
@@ -225,6 +226,12 @@ level = "poly"
 kvp = 100.0
 filters = ["Al:2.5", "Cu:0.1"]
 mas = 1.0
+[[physics]]
+name = "full"
+level = "full"
+mas = 1.0
+noise = false
+scatter_photons = 20000
 [[cts]]
 path = "phantom:1"
 split = "train"
@@ -238,6 +245,8 @@ split = "train"
     data = open_dataset(tmp_path / "a")
     line, poly = data[0]["images"]["line"], data[0]["images"]["poly"]
     assert np.all(np.isfinite(poly)) and np.corrcoef(line.ravel(), poly.ravel())[0, 1] > 0.95
+    full = data[0]["images"]["full"]
+    assert np.all(np.isfinite(full)) and np.corrcoef(line.ravel(), full.ravel())[0, 1] > 0.95
     data.close()
 
 
