@@ -25,9 +25,11 @@ Photons are vectorised over Dr.Jit lanes. One *history* is a tube photon:
    * Rayleigh: the angle from Thomson x form factor squared, no energy change.
 
    Before the photon moves on, **forced detection** (next-event estimation) scores its
-   expected direct contribution: a detector point ``y`` is drawn uniformly over the detector
-   area ``A``, and ``w * p_k(Omega_y) * A cos(alpha) / r^2 * T(x -> y, E_y) * eta(E_y) * g``
-   is added to ``y``'s cell of a coarse detector grid, with ``p_k`` the process's angular pdf per
+   expected direct contribution: a detector point ``y`` is drawn, with probability 1/2 each,
+   uniformly over the detector area ``A`` or along the process's angular pdf (one-sample
+   multiple importance sampling, balance heuristic), and
+   ``w * p_k(Omega_y) G(y) / (1/(2A) + p_k(Omega_y) G(y) / 2) * T(x -> y, E_y) * eta(E_y) * g``
+   with ``G = cos(alpha) / r^2`` is added to ``y``'s cell of a coarse detector grid, with ``p_k`` the process's angular pdf per
    steradian (:class:`sim.physics.interactions.InteractionTables`), ``E_y`` the energy after
    scattering toward ``y``, ``alpha`` the incidence angle, ``T`` the transmission estimated by
    **ratio tracking** (a second symbolic loop), ``eta`` the detector response and ``g`` the
@@ -479,8 +481,24 @@ class MonteCarloScatter:
                 scat = ~photo
                 compton = kind == 1
                 sk = dr.select(compton, mi.UInt32(0), mi.UInt32(1))  # index into the angular tables
-                # --- forced detection toward a random detector point
-                y, cell = detector_point(rng, scat)
+                # --- forced detection: one-sample multiple importance sampling of the detector
+                # point, uniform over the detector or along the process's angular pdf (balance
+                # heuristic). The uniform strategy alone gives "fireflies" where the Rayleigh
+                # forward peak meets the detector; the mixture keeps every score bounded.
+                y1, cell1 = detector_point(rng, scat)
+                th2 = self._sample_theta(sk, mat, e, rng.next_float32(scat), rng.next_float32(scat))
+                d2 = _rotate(d, dr.cos(th2), dr.sin(th2), 2.0 * math.pi * rng.next_float32(scat), mi, dr)
+                den = dr.dot(d2, nrm_v)
+                t2 = dr.dot(corner_v - p, nrm_v) / dr.select(dr.abs(den) > 1e-9, den, 1e-9)
+                y2 = p + d2 * t2
+                px2 = dr.dot(y2 - corner_v, eu_v) / sp
+                py2 = dr.dot(y2 - corner_v, ev_v) / sp
+                on2 = (den > 1e-9) & (t2 > 0) & (px2 >= 0) & (py2 >= 0) & (px2 < float(w)) & (py2 < float(h))
+                cell2 = mi.UInt32(dr.minimum(mi.UInt32(dr.maximum(py2, 0.0)) // cp, hc - 1) * wc
+                                  + dr.minimum(mi.UInt32(dr.maximum(px2, 0.0)) // cp, wc - 1))
+                by_pdf = rng.next_float32(scat) < 0.5
+                y = dr.select(by_pdf, y2, y1)
+                cell = dr.select(by_pdf, cell2, cell1)
                 v = y - p
                 r = dr.norm(v)
                 dn = v / r
@@ -488,12 +506,15 @@ class MonteCarloScatter:
                 e_n = dr.select(compton, e / (1.0 + e / _ME_C2_KEV * (1.0 - cos_n)), e)
                 pdf = self._angular_pdf(sk, mat, e, dr.acos(cos_n))
                 cos_a = dr.abs(dr.dot(dn, nrm_v))
-                value = weight * pdf * area * cos_a / (r * r) * grid(dn, y)
+                geo = cos_a / (r * r)
+                mix = 0.5 / area + 0.5 * pdf * geo  # the two strategies' densities per mm^2
+                value = weight * pdf * geo / mix * grid(dn, y)
+                nee = scat & (~by_pdf | on2)
                 mu_n, node_n = self._invariants(e_n)
-                dr.eval(dn, e_n, value, cell, kind, mat, scat)
-                trans, rng = self._track(p, dn, mu_n, node_n, rng, scat, ratio=True, t_max=r)
+                dr.eval(dn, e_n, value, cell, kind, mat, scat, nee)
+                trans, rng = self._track(p, dn, mu_n, node_n, rng, nee, ratio=True, t_max=r)
                 dr.eval(trans, rng)
-                value = dr.select(scat, value * trans, 0.0)
+                value = dr.select(nee, value * trans, 0.0)
                 tally("scatter", cell, value * self._lerp_table(self._resp, 0, e_n), scat)
                 tally("scatter_counts", cell, value * self._lerp_table(self._pint, 0, e_n), scat)
                 # --- the real interaction
