@@ -278,7 +278,7 @@ def train(cfg: TrainConfig, *, resume: bool = False, log=print) -> dict:
             _save_checkpoint(ckpt_path, {"model": model.state_dict(), "optimizer": optimizer.state_dict(),
                                          "scheduler": scheduler.state_dict(), "iteration": iteration,
                                          "rng": _rng_state(), "config": asdict(cfg),
-                                         "image_size": list(source.size)})
+                                         "image_size": list(source.size), "physics": source.physics})
     _plot(rows, out / "loss.png")
     source.close()
     return last
@@ -303,6 +303,8 @@ class _CampaignSource:
         self.per_epoch = math.ceil(cfg.pairs_per_epoch / cfg.batch_size)
         self.epoch, self.order = None, None
         self.size = tuple(self.train_set[0][0].shape[-2:])  # (H, W) pixels
+        #: the campaign's physics entry of the images (dict, as in the manifest)
+        self.physics = next(p for p in self.data.manifest["config"]["physics"] if p["name"] == self.train_set.physics)
 
     @staticmethod
     def _stack(batch):
@@ -421,6 +423,7 @@ class _OnlineSource:
             raise TrainConfigError(f"train.dataset {cfg.dataset}: {e}") from None
         self._val = None
         self.size = tuple(campaign.scene.size)  # (H, W) pixels
+        self.physics = campaign.physics[0].to_dict()  # the physics entry of the images
 
     forward = staticmethod(_CampaignSource.forward)
 

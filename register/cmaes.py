@@ -131,12 +131,17 @@ class CMAESRegistration:
             ``settings.size``) — or pass ``geometry`` to use an X-ray's own geometry.
         geometry: :class:`sim.geometry.CArmGeometry` at ``settings.size`` (overrides ``scene``).
         center_lps: anatomy centre (LPS mm); None = :func:`sim.anatomy.anatomy_center`.
+        physics: :class:`sim.physics.imaging.PhysicsSettings` of the moving images; None or level
+            ``line`` = line-integral DRRs, ``poly`` / ``full`` = noise-free ``-log(I/I0)`` images
+            (:func:`sim.physics.imaging.moving_renderer`).
+        label_materials: ``{label: material}`` overrides of the CT's label map (poly, full).
     """
 
     def __init__(self, volume, settings: CMAESSettings | None = None, *, scene: str = "cios_fusion",
-                 geometry=None, center_lps=None, ray_model: str = "siddon"):
+                 geometry=None, center_lps=None, ray_model: str = "siddon", physics=None,
+                 label_materials: dict[int, str] | None = None):
         from sim.anatomy import anatomy_center
-        from sim.render import DRRRenderer, RenderSettings
+        from sim.physics.imaging import moving_renderer
 
         self.settings = s = settings or CMAESSettings()
         if center_lps is None:
@@ -145,9 +150,9 @@ class CMAESRegistration:
         self.renderers = []
         for factor in sorted(set(s.levels), reverse=True) + ([1] if 1 not in s.levels else []):
             size = (s.size[0] // factor, s.size[1] // factor)
-            r = DRRRenderer(volume, RenderSettings(scene=scene, size=size, ray_model=ray_model),
-                            center_lps=self.center_lps,
-                            geometry=None if geometry is None else geometry.resized(*size))
+            r = moving_renderer(volume, physics, scene=scene, size=size, ray_model=ray_model,
+                                center_lps=self.center_lps, label_materials=label_materials,
+                                geometry=None if geometry is None else geometry.resized(*size))
             self.renderers.append((factor, r))
         self.by_factor = dict(self.renderers)
         self.geometry = self.by_factor[1].geometry

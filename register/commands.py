@@ -9,6 +9,11 @@ import numpy as np
 
 from sim.cli import CT_HELP
 from sim.cliargs import opt
+from sim.physics.options import level_field, physics_option
+
+#: Monte Carlo histories per moving image with --physics full: a registration renders thousands
+#: of images, and the smoothed scatter of 10^5 histories differs from that of 10^6 by a few %.
+REGISTER_SCATTER_PHOTONS = 100_000
 
 
 @dataclass(frozen=True)
@@ -48,14 +53,20 @@ class EvaluateCommand:
         "10^6 histories per target): a simulated domain gap", group="protocol", choices=("line", "poly", "full")))
     target_mas: float = field(default=2.5, metadata=opt(
         "exposure of poly and full targets (less mAs, more noise)", group="protocol", unit="mAs"))
+    physics: str = level_field(group="protocol", help=(
+        "physics of the methods' moving images: line (line-integral DRRs) or poly / full "
+        "(noise-free -log(I/I0) at 120 kVp, full with 10^5 scatter histories per image)"))
     out: str = field(default="out/evaluate", metadata=opt(
         "folder for cases.csv, summary.json, table.md, violins.png", group="output", metavar="DIR"))
 
 
 def run_evaluate(cmd: EvaluateCommand) -> list[Path]:
+    from dataclasses import asdict
+
     from register.evaluate import METHODS, EvaluationError, EvaluationSettings, evaluate
     from sim.anatomy import anatomy_center
     from sim.ct_io import load_ct_spec
+    from sim.physics.imaging import LogImageRenderer, PhysicsSettings
     from sim.render import DRRRenderer, RenderSettings
 
     settings = EvaluationSettings(cases=cmd.cases, seed=cmd.seed, size=tuple(cmd.size), start=cmd.start,
@@ -65,8 +76,6 @@ def run_evaluate(cmd: EvaluateCommand) -> list[Path]:
     if cmd.target_physics == "line" and cmd.target_mas != 2.5:
         raise EvaluationError("--target-mas only applies with --target-physics poly or full")
     if cmd.target_physics in ("poly", "full"):
-        from sim.physics.imaging import LogImageRenderer, PhysicsSettings
-
         physics = PhysicsSettings(level=cmd.target_physics, mas=cmd.target_mas, seed=cmd.seed)
         target_renderer = LogImageRenderer(volume, physics,
                                            scene=cmd.scene, size=tuple(cmd.size), ray_model=cmd.target_ray_model,
@@ -74,9 +83,14 @@ def run_evaluate(cmd: EvaluateCommand) -> list[Path]:
     else:
         target_renderer = DRRRenderer(volume, RenderSettings(scene=cmd.scene, size=tuple(cmd.size),
                                                              ray_model=cmd.target_ray_model), center_lps=center)
-    methods = {name: METHODS[name](volume, center, tuple(cmd.size), model=cmd.model) for name in cmd.method}
+    moving = None if cmd.physics == "line" else PhysicsSettings(
+        level=cmd.physics, noise=False, scatter_photons=REGISTER_SCATTER_PHOTONS)
+    methods = {name: METHODS[name](volume, center, tuple(cmd.size), model=cmd.model, physics=moving)
+               for name in cmd.method}
+    physics_record = {"target_physics": cmd.target_physics if cmd.target_physics == "line" else asdict(physics),
+                      "moving_physics": "line" if moving is None else asdict(moving)}
     result = evaluate(volume, methods, settings, Path(cmd.out), center_lps=center,
-                      geometry=target_renderer.geometry, target_renderer=target_renderer)
+                      geometry=target_renderer.geometry, target_renderer=target_renderer, record=physics_record)
     print(result["table"])
     return [Path(cmd.out) / name for name in ("cases.csv", "summary.json", "table.md", "violins.png")]
 
@@ -109,6 +123,19 @@ class RegisterCommand:
         "detector pixel spacing (overrides DICOM and scene)", group="geometry", unit="mm"))
     size: int = field(default=128, metadata=opt(
         "longer side of the image the optimiser works on", group="geometry", unit="pixels"))
+    physics: str = level_field(help=(
+        "physics of the moving images: line (line-integral DRRs), poly (noise-free -log(I/I0) with "
+        "the tube spectrum, 7 materials, CsI detector: beam hardening like the X-ray's) or full "
+        "(poly + Monte Carlo scatter, same seed at every pose)"))
+    kvp: float = physics_option("kvp")
+    filter: tuple[str, ...] = physics_option("filter")
+    anode_angle: float = physics_option("anode_angle")
+    bins: int = physics_option("bins")
+    detector_mm: float = physics_option("detector_mm")
+    scatter_photons: int = physics_option("scatter_photons", default=REGISTER_SCATTER_PHOTONS)
+    scatter_voxel: float = physics_option("scatter_voxel")
+    grid_ratio: float = physics_option("grid_ratio")
+    label_material: tuple[str, ...] = physics_option("label_material")
     preprocess: tuple[str, ...] = field(default=("crop", "median", "normalize"), metadata=opt(
         "preprocessing steps in order (crop, median, log, normalize, invert); add 'log' for raw "
         "detector intensities", group="image", nargs="*"))
@@ -163,6 +190,9 @@ def fit_to_size(image: np.ndarray, mask: np.ndarray | None, geometry, longer: in
 
 
 def run_register(cmd: RegisterCommand) -> list[Path]:
+    import sys
+    from dataclasses import asdict
+
     from register.cmaes import CMAESRegistration, CMAESSettings, RegistrationError
     from register.plots import convergence_plot, overlay_png
     from register.preprocess import Pipeline, cropped_geometry
@@ -171,7 +201,12 @@ def run_register(cmd: RegisterCommand) -> list[Path]:
     from sim.atomic import write_json
     from sim.ct_io import load_ct_spec
 
+    from sim.physics.options import check_level_options, label_materials, physics_settings
+
     init = _parse_init(cmd.init)
+    check_level_options(cmd)
+    physics = physics_settings(cmd, noise=False)
+    materials = label_materials(cmd)
     volume = load_ct_spec(cmd.ct, label_map=cmd.label_map)
     center = np.asarray(cmd.center, float) if cmd.center is not None else anatomy_center(volume)
     xray = load_xray(cmd.xray)
@@ -184,7 +219,7 @@ def run_register(cmd: RegisterCommand) -> list[Path]:
     size = (geometry.height, geometry.width)
     if cmd.method == "cmaes":
         engine = CMAESRegistration(volume, CMAESSettings(size=size), scene=cmd.scene, geometry=geometry,
-                                   center_lps=center)
+                                   center_lps=center, physics=physics, label_materials=materials)
         result = engine.register(image, init, mask=mask)
         drr = engine.render(result.params)[0]
     else:
@@ -195,9 +230,13 @@ def run_register(cmd: RegisterCommand) -> list[Path]:
         if cmd.model is None:
             raise RegistrationError(f"--method {cmd.method} needs a trained model: --model CHECKPOINT")
         refine = replace(REFINE_SETTINGS, size=size) if cmd.method == "contextual+cmaes" else None
-        engine = ContextualRegistration(volume, NetworkPredictor(cmd.model), ContextualSettings(keep_drrs=True),
+        predictor = NetworkPredictor(cmd.model)
+        mismatch = predictor.physics_mismatch(physics)
+        if mismatch:
+            print(f"ctxreg register: note: {mismatch}", file=sys.stderr)
+        engine = ContextualRegistration(volume, predictor, ContextualSettings(keep_drrs=True),
                                         size=size, scene=cmd.scene, geometry=geometry, center_lps=center,
-                                        refine=refine)
+                                        refine=refine, physics=physics, label_materials=materials)
         result = engine.register(image, init)
         drr = engine.renderer.render(result.pose)[0]
     out = Path(cmd.out)
@@ -217,6 +256,7 @@ def run_register(cmd: RegisterCommand) -> list[Path]:
     write_json(out / "result.json", {
         **result.to_dict(), "method": cmd.method, "ct": volume.source, "xray": xray.source, "init_params": init.tolist(),
         "anatomy_center_lps_mm": center.tolist(), "preprocessing": record,
+        "moving_physics": {**asdict(physics), "label_materials": {str(k): v for k, v in (materials or {}).items()}},
         "geometry": {"sdd_mm": geometry.sdd_mm, "sod_mm": geometry.sod_mm, "height": geometry.height,
                      "width": geometry.width, "pixel_spacing_mm": geometry.pixel_spacing_mm,
                      "principal_point_uv": list(geometry.principal_point), "K": geometry.intrinsics().tolist()},

@@ -72,6 +72,32 @@ class NetworkPredictor:
         self.normalizer = LabelNormalizer()
         #: (H, W) pixels of the training images (None for checkpoints that do not record it)
         self.size = tuple(state["image_size"]) if state.get("image_size") else None
+        #: the campaign physics entry of the training images (``{"name", "level", "kvp", ...}``),
+        #: or None for checkpoints that do not record it
+        self.physics = state.get("physics")
+
+    def physics_mismatch(self, physics) -> str | None:
+        """A sentence when the moving images' :class:`~sim.physics.imaging.PhysicsSettings` (None =
+        line) differ from the training images' physics (level, and kVp and filtration for poly and
+        full); None when they agree or the checkpoint does not record its physics."""
+        if self.physics is None:
+            return None
+        level = "line" if physics is None else physics.level
+        trained = self.physics.get("level", "line")
+        differ = level != trained
+        if not differ and level in ("poly", "full"):
+            from sim.physics.spectrum import parse_filters
+
+            filters = parse_filters(self.physics.get("filters", ()))  # stored as "SYMBOL:MM" strings
+            differ = (abs(float(self.physics.get("kvp", physics.kvp)) - physics.kvp) > 1e-9
+                      or filters != tuple((s, float(t)) for s, t in physics.filters))
+        if not differ:
+            return None
+        spec = f"{trained}" + (f" at {self.physics.get('kvp'):g} kVp" if trained in ("poly", "full") else "")
+        return (f"the network was trained on {spec} images (campaign physics {self.physics.get('name')!r}) but "
+                f"the current images are rendered with {level} physics"
+                + (f" at {physics.kvp:g} kVp" if level in ("poly", "full") else "")
+                + ": its predictions may be off (the domain gap); set --physics to match")
 
     def __call__(self, fixed: np.ndarray, drr: np.ndarray) -> np.ndarray:
         """``fixed``, ``drr`` ``(H, W)`` -> g ``(6,)`` (rad, mm). Images of another size than the
@@ -92,20 +118,23 @@ class ContextualRegistration:
     """The contextual iteration (and its hand-over to CMA-ES) on one CT; see the module doc."""
 
     def __init__(self, volume, predictor, settings: ContextualSettings | None = None, *, size=(128, 128),
-                 scene: str = "cios_fusion", geometry=None, center_lps=None, refine: CMAESSettings | None = None):
+                 scene: str = "cios_fusion", geometry=None, center_lps=None, refine: CMAESSettings | None = None,
+                 physics=None, label_materials: dict[int, str] | None = None):
         from sim.anatomy import anatomy_center
-        from sim.render import DRRRenderer, RenderSettings
+        from sim.physics.imaging import moving_renderer
 
         self.settings = settings or ContextualSettings()
         self.predictor = predictor
         self.center_lps = np.asarray(anatomy_center(volume) if center_lps is None else center_lps, float)
-        self.renderer = DRRRenderer(volume, RenderSettings(scene=scene, size=tuple(size)),
-                                    center_lps=self.center_lps, geometry=geometry)
+        # the current image at each iteration: physics as CMAESRegistration's ``physics``
+        self.renderer = moving_renderer(volume, physics, scene=scene, size=tuple(size), center_lps=self.center_lps,
+                                        geometry=geometry, label_materials=label_materials)
         self.geometry = self.renderer.geometry
         self.refine = None
         if refine is not None:
             self.refine = CMAESRegistration(volume, refine, scene=scene, geometry=geometry,
-                                            center_lps=self.center_lps)
+                                            center_lps=self.center_lps, physics=physics,
+                                            label_materials=label_materials)
 
     def register(self, fixed: np.ndarray, init_params=np.zeros(6)) -> RegistrationResult:
         from learn.labels import apply_update

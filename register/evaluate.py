@@ -48,9 +48,9 @@ class CMAESMethod:
 
     name = "cmaes"
 
-    def __init__(self, volume, center_lps, size, settings: CMAESSettings | None = None, model=None):
+    def __init__(self, volume, center_lps, size, settings: CMAESSettings | None = None, model=None, physics=None):
         settings = settings or CMAESSettings(size=tuple(size))
-        self.engine = CMAESRegistration(volume, settings, center_lps=center_lps)
+        self.engine = CMAESRegistration(volume, settings, center_lps=center_lps, physics=physics)
 
     def register(self, fixed, init_params):
         return self.engine.register(fixed, init_params)
@@ -61,7 +61,7 @@ class ContextualMethod:
 
     name = "contextual"
 
-    def __init__(self, volume, center_lps, size, settings=None, model=None, refine: bool = False):
+    def __init__(self, volume, center_lps, size, settings=None, model=None, refine: bool = False, physics=None):
         from dataclasses import replace
 
         from register.contextual import REFINE_SETTINGS, ContextualRegistration, NetworkPredictor
@@ -69,15 +69,21 @@ class ContextualMethod:
         if model is None:
             raise EvaluationError("the contextual method needs a trained model: --model CHECKPOINT")
         refine_settings = replace(REFINE_SETTINGS, size=tuple(size)) if refine else None
-        self.engine = ContextualRegistration(volume, NetworkPredictor(model), size=size, center_lps=center_lps,
-                                             refine=refine_settings)
+        predictor = NetworkPredictor(model)
+        mismatch = predictor.physics_mismatch(physics)
+        if mismatch:
+            import sys
+
+            print(f"ctxreg evaluate: note: {mismatch}", file=sys.stderr)
+        self.engine = ContextualRegistration(volume, predictor, size=size, center_lps=center_lps,
+                                             refine=refine_settings, physics=physics)
 
     def register(self, fixed, init_params):
         return self.engine.register(fixed, init_params)
 
 
-def _contextual_cmaes(volume, center_lps, size, settings=None, model=None):
-    return ContextualMethod(volume, center_lps, size, model=model, refine=True)
+def _contextual_cmaes(volume, center_lps, size, settings=None, model=None, physics=None):
+    return ContextualMethod(volume, center_lps, size, model=model, refine=True, physics=physics)
 
 
 METHODS = {"cmaes": CMAESMethod, "contextual": ContextualMethod, "contextual+cmaes": _contextual_cmaes}
@@ -213,9 +219,10 @@ def violin_plot(rows: list[dict], path: Path) -> None:
 
 
 def evaluate(volume, methods: dict[str, RegistrationMethod], settings: EvaluationSettings, out: Path,
-             *, center_lps, geometry, target_renderer, log=print) -> dict:
+             *, center_lps, geometry, target_renderer, log=print, record: dict | None = None) -> dict:
     """Run the protocol; writes ``cases.csv``, ``summary.json``, ``table.md``, ``violins.png`` and,
-    for the contextual methods, ``trajectories.json`` (every case's poses per iteration)."""
+    for the contextual methods, ``trajectories.json`` (every case's poses per iteration).
+    ``record`` (e.g. the targets' and the methods' physics) is stored in ``summary.json``."""
     from sim.atomic import atomic_path, write_json
     from sim.geometry import pose_from_params, projection_matrix
 
@@ -252,7 +259,7 @@ def evaluate(volume, methods: dict[str, RegistrationMethod], settings: Evaluatio
             w = csv.DictWriter(f, fieldnames=list(rows[0]))
             w.writeheader()
             w.writerows(rows)
-    write_json(out / "summary.json", {"settings": asdict(settings), "summary": summary})
+    write_json(out / "summary.json", {"settings": asdict(settings), **(record or {}), "summary": summary})
     table = format_table(summary, settings)
     with atomic_path(out / "table.md") as tmp:
         tmp.write_text(table + "\n")

@@ -14,11 +14,10 @@ from pathlib import Path
 import numpy as np
 
 from sim.cliargs import opt
-from sim.physics.imaging import PhysicsSettings
+from sim.physics.options import level_field, physics_option
 from sim.render import QUANTITIES, RAY_MODELS, RenderSettings
 
 _DEFAULTS = RenderSettings()  # the renderer's defaults are the command line's
-_PHYSICS = PhysicsSettings()
 
 CT_HELP = "CT: a NIfTI file, a DICOM series folder, or 'phantom' / 'phantom:SEED' (built-in pelvis)"
 
@@ -60,30 +59,21 @@ class RenderCommand:
         group="physics", choices=RAY_MODELS))
     step_fraction: float = field(default=_DEFAULTS.step_fraction, metadata=opt(
         "trilinear step as a fraction of the smallest voxel spacing", group="physics", metavar="F"))
-    physics: str = field(default="line", metadata=opt(
+    physics: str = level_field(help=(
         "line: line integrals of mu (DRR); poly: tube spectrum, 7 materials with NIST cross "
-        "sections, CsI detector, noise; full: poly + Monte Carlo scatter",
-        group="physics", choices=("line", "poly", "full")))
-    kvp: float = field(default=_PHYSICS.kvp, metadata=opt("tube voltage (poly)", group="physics", unit="kV"))
-    filter: tuple[str, ...] = field(default=tuple(f"{s}:{t:g}" for s, t in _PHYSICS.filters), metadata=opt(
-        "added filtration as SYMBOL:MM items (poly)", group="physics", nargs="+", metavar="SYMBOL:MM"))
-    anode_angle: float = field(default=_PHYSICS.anode_angle_deg, metadata=opt(
-        "tungsten anode angle (poly)", group="physics", unit="deg"))
-    mas: float = field(default=_PHYSICS.mas, metadata=opt("exposure (poly)", group="physics", unit="mAs"))
-    bins: int = field(default=_PHYSICS.n_bins, metadata=opt("energy bins of the spectrum (poly)",
-                                                            group="physics", metavar="N"))
-    detector_mm: float = field(default=_PHYSICS.detector_mm, metadata=opt(
-        "CsI:Tl thickness (poly)", group="physics", unit="mm"))
-    noise: bool = field(default=_PHYSICS.noise, metadata=opt(
-        "quantum noise, detector blur and electronic noise (poly)", group="physics", negatable=True))
-    seed: int = field(default=_PHYSICS.seed, metadata=opt("noise and Monte Carlo seed (poly, full)",
-                                                          group="physics"))
-    scatter_photons: int = field(default=_PHYSICS.scatter_photons, metadata=opt(
-        "Monte Carlo histories per image (full)", group="physics", metavar="N"))
-    scatter_voxel: float = field(default=_PHYSICS.scatter_voxel_mm, metadata=opt(
-        "voxel size of the Monte Carlo transport grid (full)", group="physics", unit="mm"))
-    grid_ratio: float = field(default=_PHYSICS.grid_ratio, metadata=opt(
-        "anti-scatter grid ratio, 0 = no grid (full)", group="physics", metavar="R"))
+        "sections, CsI detector, noise; full: poly + Monte Carlo scatter"))
+    kvp: float = physics_option("kvp")
+    filter: tuple[str, ...] = physics_option("filter")
+    anode_angle: float = physics_option("anode_angle")
+    mas: float = physics_option("mas")
+    bins: int = physics_option("bins")
+    detector_mm: float = physics_option("detector_mm")
+    noise: bool = physics_option("noise")
+    seed: int = physics_option("seed")
+    scatter_photons: int = physics_option("scatter_photons")
+    scatter_voxel: float = physics_option("scatter_voxel")
+    grid_ratio: float = physics_option("grid_ratio")
+    label_material: tuple[str, ...] = physics_option("label_material")
     primary: bool = field(default=False, metadata=opt(
         "also write the noise-free primary signal as <out stem>_primary.npy, and with --physics "
         "full the expected scatter signal as <out stem>_scatter.npy (poly, full)", group="output"))
@@ -215,24 +205,16 @@ def run_render(cmd: RenderCommand) -> Path | list[Path]:
     return out
 
 
-#: Options that only mean something at one physics level: given at the other, they are refused.
-_LINE_ONLY = ("quantity", "mu_water")
-_POLY_ONLY = ("kvp", "filter", "anode_angle", "mas", "bins", "detector_mm", "noise", "seed", "primary")
-_FULL_ONLY = ("scatter_photons", "scatter_voxel", "grid_ratio")
+#: Options of ``render`` itself that only mean something at some physics levels (the shared
+#: physics options know their levels: :mod:`sim.physics.options`).
+_LEVEL_BOUND = {"quantity": ("line",), "mu_water": ("line",), "primary": ("poly", "full")}
 
 
 def _check_physics_options(cmd: RenderCommand) -> None:
-    """Refuse options of the other physics level instead of ignoring them silently."""
-    from dataclasses import fields
+    """Refuse options of another physics level instead of ignoring them silently."""
+    from sim.physics.options import check_level_options
 
-    defaults = {f.name: f.default for f in fields(RenderCommand)}
-    levels = {name: lv for names, lv in ((_LINE_ONLY, ("line",)), (_POLY_ONLY, ("poly", "full")),
-                                         (_FULL_ONLY, ("full",))) for name in names}
-    given = [name for name, lv in levels.items() if cmd.physics not in lv and getattr(cmd, name) != defaults[name]]
-    if given:
-        flags = ", ".join("--" + name.replace("_", "-") for name in given)
-        need = " or ".join(sorted({lv for name in given for lv in levels[name]}, key=("line", "poly", "full").index))
-        raise CommandError(f"{flags}: meaningful with --physics {need} only; this render is --physics {cmd.physics}")
+    check_level_options(cmd, extra=_LEVEL_BOUND)
 
 
 def _pose(cmd: RenderCommand, sod_mm: float) -> np.ndarray:
@@ -246,15 +228,11 @@ def _pose(cmd: RenderCommand, sod_mm: float) -> np.ndarray:
 def _render_physics(cmd: RenderCommand, volume, out: Path) -> list[Path]:
     from sim.atomic import atomic_path
     from sim.physics.imaging import XRayImager
-    from sim.physics.spectrum import parse_filters
+    from sim.physics.options import label_materials, physics_settings
 
-    physics = PhysicsSettings(level=cmd.physics, kvp=cmd.kvp, anode_angle_deg=cmd.anode_angle,
-                              filters=parse_filters(cmd.filter), n_bins=cmd.bins, mas=cmd.mas,
-                              detector_mm=cmd.detector_mm, noise=cmd.noise, seed=cmd.seed,
-                              scatter_photons=cmd.scatter_photons, scatter_voxel_mm=cmd.scatter_voxel,
-                              grid_ratio=cmd.grid_ratio)
+    physics = physics_settings(cmd)
     imager = XRayImager(volume, physics, scene=cmd.scene, size=tuple(cmd.size), ray_model=cmd.ray_model,
-                        center_lps=cmd.center)
+                        center_lps=cmd.center, label_materials=label_materials(cmd))
     pose = _pose(cmd, imager.geometry.sod_mm)
     images = imager.render(pose)
     record = {**geometry_record(imager.renderer, pose, "line-integral"), "quantity": "-log(I/I0)",

@@ -52,7 +52,8 @@ _CAMPAIGN_KEYS = ("name", "seed", "images_per_ct", "shard_size")
 _SCENE_KEYS = ("name", "size")
 _PHYSICS_KEYS = ("name", "level", "ray_model", "step_fraction", "mu_water_per_mm", "kvp", "filters", "mas", "noise",
                  "scatter_photons", "grid_ratio")
-_CT_KEYS = ("path", "label_map", "center", "split", "virtual_patients", "held_out_virtual_patients")
+_CT_KEYS = ("path", "label_map", "label_materials", "center", "split", "virtual_patients",
+            "held_out_virtual_patients")
 _OUTPUT_KEYS = ("bone_mask", "projected_center")
 _PHYSICS_NAME = re.compile(r"[a-z0-9_]+")
 _NIFTI_SUFFIXES = (".nii", ".nii.gz")
@@ -156,6 +157,10 @@ class CTEntry:
             splits instead (in this order), e.g. ``(("val", 4),)``. They are deformed,
             re-textured copies of a CT whose other copies may be in training, so they measure
             generalisation to such changes, not to new patients.
+        label_materials: ``((label, material), ...)``: in the poly and full images, voxels of
+            these labels (of ``label_map``, or the phantom's own labels) take this material
+            (:class:`sim.physics.materials.LabelOverride`), e.g. ``((3, "titanium"),)`` for an
+            implant. Virtual patients carry the labels along with the anatomy.
     """
 
     path: str
@@ -164,6 +169,7 @@ class CTEntry:
     split: str | None = None
     virtual_patients: int = 0
     held_out: tuple[tuple[str, int], ...] = ()
+    label_materials: tuple[tuple[int, str], ...] = ()
 
     def vp_split(self, vp_index: int, ct_split: str) -> str:
         """The split of virtual patient ``vp_index`` (0-based) of this CT, whose split is ``ct_split``."""
@@ -196,6 +202,8 @@ class CTEntry:
         out: dict[str, Any] = {"path": self.path}
         if self.label_map is not None:
             out["label_map"] = self.label_map
+        if self.label_materials:  # absent when empty: older campaigns keep their config hash
+            out["label_materials"] = {str(k): v for k, v in self.label_materials}
         if self.center is not None:
             out["center"] = [float(c) for c in self.center]
         if self.split is not None:
@@ -587,6 +595,10 @@ class _Parser:
         if "cts" not in data:
             raise self.err("cts", "at least one [[cts]] entry with a path is required")
         cts = self.cts(data["cts"])
+        if any(e.label_materials for e in cts) and not any(p.level in ("poly", "full") for p in physics):
+            i = next(i for i, e in enumerate(cts) if e.label_materials)
+            raise self.err(f"cts[{i}].label_materials", "only poly and full physics entries use materials; "
+                                                       "this campaign has none")
         vp = self.virtual_patients(data.get("virtual_patients", {}))
         outputs = self.outputs(data.get("outputs", {}))
         return CampaignConfig(name=name, seed=seed, images_per_ct=images, shard_size=shard, scene=scene,
@@ -739,6 +751,20 @@ class _Parser:
                 if self.check_files and not lp.exists():
                     raise self.err(f"{key}.label_map", f"label map not found: {lp} (from {t['label_map']!r})")
                 label_map = str(lp)
+            label_materials: tuple[tuple[int, str], ...] = ()
+            if t.get("label_materials") is not None:
+                lk = f"{key}.label_materials"
+                lm = self.table(t["label_materials"], lk, '{ 3 = "titanium" }')
+                if label_map is None and not phantom:
+                    raise self.err(lk, "needs a label_map (the labels it refers to)")
+                from sim.physics import PhysicsError
+                from sim.physics.materials import parse_label_materials
+
+                try:
+                    parsed = parse_label_materials([f"{k}:{v}" for k, v in lm.items()])
+                except PhysicsError as e:
+                    raise self.err(lk, str(e)) from None
+                label_materials = tuple(sorted(parsed.items()))
             center = None
             if t.get("center") is not None:
                 c = t["center"]
@@ -763,7 +789,7 @@ class _Parser:
                 if sum(n for _, n in held) > vp:
                     raise self.err(hk, f"holds out {sum(n for _, n in held)} virtual patients but the CT has "
                                        f"virtual_patients = {vp}")
-            out.append(CTEntry(path, label_map, center, split, vp, tuple(held)))
+            out.append(CTEntry(path, label_map, center, split, vp, tuple(held), label_materials))
         return tuple(out)
 
     def virtual_patients(self, value: Any) -> dict:

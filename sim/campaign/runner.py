@@ -124,7 +124,8 @@ class SubjectContext:
                                           scatter_photons=p.scatter_photons, grid_ratio=p.grid_ratio)
                 self.renderers[p.name] = LogImageRenderer(volume, physics, scene=cfg.scene.name,
                                                           size=tuple(cfg.scene.size), ray_model=p.ray_model,
-                                                          center_lps=center)
+                                                          center_lps=center,
+                                                          label_materials=dict(entry.label_materials) or None)
                 continue
             settings = RenderSettings(scene=cfg.scene.name, size=tuple(cfg.scene.size),
                                       ray_model=p.ray_model, step_fraction=p.step_fraction,

@@ -92,17 +92,23 @@ class XRayImager:
         label_materials: ``{label: material}``: the CT's label map overrides the HU-based
             materials there (:class:`sim.physics.materials.LabelOverride`), e.g. an implant
             segmented as titanium.
+        fixed_scatter_seed: draw every pose's Monte Carlo from the same seed (common random
+            numbers), so that the image of a pose does not depend on its place in a batch and an
+            optimiser comparing poses sees a deterministic objective. Off (the default), each pose
+            of a batch has its own stream, as independent images of a dataset should.
     """
 
     def __init__(self, volume, physics: PhysicsSettings | None = None, *, scene: str = "cios_fusion",
                  size=None, ray_model: str = "siddon", center_lps=None, geometry=None,
-                 label_materials: dict[int, str] | None = None):
+                 label_materials: dict[int, str] | None = None, fixed_scatter_seed: bool = False):
         from sim.physics.materials import TISSUE_DECOMPOSITION, LabelOverride
         from sim.physics.poly import Detector, Polychromatic
         from sim.physics.spectrum import tube_spectrum
         from sim.render import DRRRenderer, RenderSettings
 
         self.physics = physics or PhysicsSettings()
+        self.label_materials = dict(label_materials or {})
+        self.fixed_scatter_seed = bool(fixed_scatter_seed)
         p = self.physics
         materials = TISSUE_DECOMPOSITION
         if label_materials:
@@ -142,7 +148,7 @@ class XRayImager:
         cnt = np.empty_like(sig)
         sigma = mc.settings.smooth_mm / (g.pixel_spacing_mm * mc.settings.cell_px)
         for b, m in enumerate(cam_to_lps):
-            pose_seed = int(np.random.SeedSequence([seed, b]).generate_state(1)[0])
+            pose_seed = int(np.random.SeedSequence([seed, 0 if self.fixed_scatter_seed else b]).generate_state(1)[0])
             out = mc.run(m, g, photons_per_pixel=ppp, seed=pose_seed)
             sig[b] = upsample_cells(out["scatter"], g.height, g.width, out["cell_px"], sigma)
             cnt[b] = upsample_cells(out["scatter_counts"], g.height, g.width, out["cell_px"], sigma)
@@ -174,6 +180,7 @@ class XRayImager:
 
         return {**asdict(self.physics), "spectrum_mean_energy_keV": self.spectrum.mean_energy_keV,
                 "flat_field_signal": self.flat, "materials": list(self.model.materials),
+                "label_materials": {str(k): v for k, v in self.label_materials.items()},
                 "signal_units": "keV per pixel" if self.detector.mode == "integrating" else "counts per pixel"}
 
 
@@ -192,3 +199,30 @@ class LogImageRenderer:
 
     def render(self, poses, seed: int | None = None) -> np.ndarray:
         return self.imager.render(poses, seed=seed)["log"]
+
+
+def moving_renderer(volume, physics: PhysicsSettings | None = None, *, scene: str = "cios_fusion", size=None,
+                    ray_model: str = "siddon", center_lps=None, geometry=None,
+                    label_materials: dict[int, str] | None = None):
+    """The renderer of a registration's moving images ("DRRs") at a physics level.
+
+    ``line`` (or ``physics=None``): a :class:`sim.render.DRRRenderer` of line integrals of mu.
+    ``poly`` / ``full``: a :class:`LogImageRenderer` of ``-log(I/I0)`` with the settings'
+    spectrum and detector, without noise (a moving image is an expected image: noise would
+    only make the similarity noisy), and for ``full`` with the same Monte Carlo seed for every
+    pose (``fixed_scatter_seed``), so the objective is deterministic. ``label_materials``
+    needs ``poly`` or ``full``. Both renderers have ``render(poses (B, 4, 4) or (4, 4)) ->
+    (B, H, W)``, ``geometry``, ``center_lps`` and ``projection_matrix``.
+    """
+    from dataclasses import replace
+
+    if physics is None or physics.level == "line":
+        from sim.render import DRRRenderer, RenderSettings
+
+        if label_materials:
+            raise PhysicsError("label materials need physics poly or full (line DRRs use mu from HU)")
+        return DRRRenderer(volume, RenderSettings(scene=scene, size=size, ray_model=ray_model),
+                           center_lps=center_lps, geometry=geometry)
+    return LogImageRenderer(volume, replace(physics, noise=False), scene=scene, size=size, ray_model=ray_model,
+                            center_lps=center_lps, geometry=geometry, label_materials=label_materials,
+                            fixed_scatter_seed=True)

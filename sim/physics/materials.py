@@ -16,6 +16,7 @@ above ~3000 HU is titanium at its nominal density.
 
 from __future__ import annotations
 
+import re
 from functools import lru_cache
 
 import numpy as np
@@ -164,3 +165,25 @@ class LabelOverride:
             out[:, mask] = 0.0
             out[m, mask] = rho
         return out
+
+
+def parse_label_materials(items) -> dict[int, str]:
+    """``["3:titanium", "7:cortical_bone"]`` -> ``{3: "titanium", 7: "cortical_bone"}``.
+
+    Each item is ``LABEL:MATERIAL`` with an integer label > 0 (0 is the background of a label map)
+    and a material of :data:`TISSUE_DECOMPOSITION`; a label may appear once.
+    """
+    out: dict[int, str] = {}
+    for item in items:
+        lab, sep, name = str(item).partition(":")
+        name = name.strip()
+        if not sep or not re.fullmatch(r"\s*\d+\s*", lab) or int(lab) == 0:
+            raise PhysicsError(f"label material {item!r}: expected LABEL:MATERIAL with an integer label > 0, "
+                               "e.g. 3:titanium")
+        if name not in TISSUE_DECOMPOSITION.names:
+            raise PhysicsError(f"label material {item!r}: material {name!r} is not one of "
+                               f"{', '.join(TISSUE_DECOMPOSITION.names)}")
+        if int(lab) in out:
+            raise PhysicsError(f"label material {item!r}: label {int(lab)} is given twice")
+        out[int(lab)] = name
+    return out

@@ -83,7 +83,8 @@ def test_bad_near_settings_are_refused():
         NearPairs(0.5, (1.0, 5.0), (0.0, 3.0))
 
 
-def test_online_training_resumes_exactly_and_records_the_image_size(campaign_file, tmp_path, monkeypatch):
+def test_online_training_resumes_exactly_and_records_the_image_size_and_physics(campaign_file, tmp_path,
+                                                                               monkeypatch):
     import learn.train as tr
 
     def cfg_for(out):
@@ -94,6 +95,9 @@ def test_online_training_resumes_exactly_and_records_the_image_size(campaign_fil
     tr.train(cfg_for(tmp_path / "a"), log=lambda *_: None)
     ref = torch.load(tmp_path / "a" / "checkpoint.pt", weights_only=False)
     assert ref["image_size"] == [32, 32]
+    from sim.campaign import load_campaign
+
+    assert ref["physics"] == load_campaign(campaign_file).physics[0].to_dict()  # what the images were
     train_killed_after_first_checkpoint(cfg_for(tmp_path / "b"), monkeypatch)
     tr.train(cfg_for(tmp_path / "b"), resume=True, log=lambda *_: None)
     got = torch.load(tmp_path / "b" / "checkpoint.pt", weights_only=False)

@@ -67,6 +67,9 @@ def test_a_trained_checkpoint_drives_the_contextual_predictor(campaign, tmp_path
     cfg = config(campaign, tmp_path / "p", iterations=3, val_every=3, checkpoint_every=3)
     train(cfg, log=lambda *_: None)
     predictor = NetworkPredictor(str(tmp_path / "p" / "checkpoint.pt"))
+    # the checkpoint records the campaign's physics entry of the training images
+    assert predictor.physics == campaign.manifest["config"]["physics"][0] and predictor.physics["level"] == "line"
+    assert predictor.physics_mismatch(None) is None
     a, b = campaign[0]["images"]["line"], campaign[1]["images"]["line"]
     g = predictor(a, b)
     assert g.shape == (6,) and np.all(np.isfinite(g))

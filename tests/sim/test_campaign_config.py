@@ -182,6 +182,22 @@ def test_to_dict_round_trips_through_json(example, tmp_path, ct_files):
     assert parse_campaign(d, base_dir=tmp_path).source == cfg.source  # source from the dict
 
 
+def test_label_materials_round_trip_change_the_hash_and_need_labels(tmp_path, ct_files):
+    ct, labels = ct_files
+    text = ('[campaign]\nname = "lm"\nimages_per_ct = 2\n[[physics]]\nname = "p"\nlevel = "poly"\n'
+            f'[[cts]]\npath = "{ct}"\nlabel_map = "{labels}"\n')
+    plain = load_campaign(write(tmp_path / "a.toml", text))
+    implant = load_campaign(write(tmp_path / "b.toml", text + 'label_materials = { 7 = "titanium", 2 = "cortical_bone" }\n'))
+    assert plain.cts[0].label_materials == () and "label_materials" not in plain.cts[0].to_dict()
+    assert implant.cts[0].label_materials == ((2, "cortical_bone"), (7, "titanium"))
+    assert implant.config_hash() != plain.config_hash()
+    back = parse_campaign(json.loads(json.dumps(implant.to_dict())), base_dir=tmp_path, source=implant.source)
+    assert back == implant and back.config_hash() == implant.config_hash()
+    no_map = text.replace(f'label_map = "{labels}"\n', "") + 'label_materials = { 7 = "titanium" }\n'
+    with pytest.raises(CampaignConfigError, match=r"cts\[0\]\.label_materials: needs a label_map"):
+        load_campaign(write(tmp_path / "c.toml", no_map))
+
+
 def test_hash_is_stable_across_loads_and_ignores_defaults_written_out(tmp_path):
     a = load_campaign(CAMPAIGNS / "smoke.toml")
     b = load_campaign(CAMPAIGNS / "smoke.toml")
@@ -321,6 +337,16 @@ BAD = {
                              [r"held_out_virtual_patients", r"expected a table"]),
     "center with 2 numbers": (dict(cts="center = [1.0, 2.0]"), [r"cts\[0\]\.center", r"\[x, y, z\]", r"LPS mm"]),
     "phantom with label map": (dict(cts='label_map = "x.nii.gz"'), [r"cts\[0\]\.label_map", r"phantom"]),
+    "label materials without poly": (dict(cts='label_materials = { 3 = "titanium" }'),
+                                     [r"cts\[0\]\.label_materials", r"only poly and full"]),
+    "label material unknown": (dict(rest='[[physics]]\nname = "p"\nlevel = "poly"\n',
+                                    cts='label_materials = { 3 = "steel" }'),
+                               [r"cts\[0\]\.label_materials", r"'steel' is not one of", r"titanium"]),
+    "label zero": (dict(rest='[[physics]]\nname = "p"\nlevel = "poly"\n', cts='label_materials = { 0 = "titanium" }'),
+                   [r"cts\[0\]\.label_materials", r"integer label > 0"]),
+    "label materials as a list": (dict(rest='[[physics]]\nname = "p"\nlevel = "poly"\n',
+                                       cts='label_materials = ["3:titanium"]'),
+                                  [r"cts\[0\]\.label_materials", r"expected a table"]),
     "output not bool": (dict(rest="[outputs]\nbone_mask = 1\n"), [r"outputs\.bone_mask", r"true or false"]),
     "physics as a table": (dict(rest='[physics]\nname = "x"\n'), [r"physics", r"array of tables"]),
 }

@@ -309,3 +309,62 @@ def test_imager_uses_the_label_override_of_a_ct():
     assert np.median(np.abs(a - b)) < 1e-6  # and nothing elsewhere
     with pytest.raises(PhysicsError, match="label map"):
         XRayImager(CTVolume(vol.hu, vol.affine, source="no labels"), size=(32, 32), label_materials={9: "titanium"})
+
+
+def test_label_materials_on_the_command_line_and_in_campaigns(tmp_path):
+    """`--label-material 3:titanium` (the phantom's left femur as an implant) raises -log(I/I0)
+    where the femur projects and nowhere else; a campaign's `label_materials` does the same in
+    its poly images and leaves its line images alone."""
+    import json
+    import subprocess
+    import sys
+
+    from sim.campaign import load_campaign, open_dataset, run_campaign
+    from tests.conftest import REPO
+
+    def render(*extra):
+        out = tmp_path / f"r{len(extra)}.npy"
+        r = subprocess.run([sys.executable, "-m", "register.cli", "render", "--ct", "phantom", "--size", "48", "48",
+                            "--pose", "0", "0", "0", "0", "0", "250", "--physics", "poly", "--no-noise", *extra,
+                            "--out", str(out)], capture_output=True, text=True, cwd=REPO, timeout=300)
+        assert r.returncode == 0, r.stderr
+        return np.load(out), json.loads(out.with_suffix(".json").read_text())
+
+    (a, _), (b, side) = render(), render("--label-material", "3:titanium")
+    assert side["physics"]["label_materials"] == {"3": "titanium"}
+    assert (b - a).max() > 1.0 and np.mean(np.abs(b - a) < 1e-6) > 0.5
+    r = subprocess.run([sys.executable, "-m", "register.cli", "render", "--ct", "phantom", "--label-material",
+                        "3:titanium", "--out", str(tmp_path / "x.png")], capture_output=True, text=True, cwd=REPO)
+    assert r.returncode == 2 and "--label-material: meaningful with --physics poly or full only" in r.stderr
+
+    text = '''
+[campaign]
+name = "lm"
+seed = 4
+images_per_ct = 2
+[scene]
+size = [32, 32]
+[poses]
+tz = { dist = "fixed", value = 250.0 }
+[[physics]]
+name = "line"
+[[physics]]
+name = "poly"
+level = "poly"
+noise = false
+[[cts]]
+path = "phantom:0"
+split = "train"
+'''
+    (tmp_path / "a.toml").write_text(text)
+    (tmp_path / "b.toml").write_text(text + 'label_materials = { 3 = "titanium" }\n')
+    run_campaign(load_campaign(tmp_path / "a.toml"), tmp_path / "a", progress=False)
+    run_campaign(load_campaign(tmp_path / "b.toml"), tmp_path / "b", progress=False)
+    da, db = open_dataset(tmp_path / "a"), open_dataset(tmp_path / "b")
+    for i in range(2):
+        np.testing.assert_array_equal(da[i]["images"]["line"], db[i]["images"]["line"])
+        np.testing.assert_array_equal(da[i]["pose"], db[i]["pose"])
+    gain = max(float((db[i]["images"]["poly"] - da[i]["images"]["poly"]).max()) for i in range(2))
+    assert gain > 1.0
+    da.close()
+    db.close()
