@@ -128,6 +128,16 @@ def test_quantum_noise_is_seeded_and_poisson(spectrum):
     assert a.var() / mean == pytest.approx(1.0, rel=0.1)
 
 
+def test_blockwise_expected_signal_equals_the_per_bin_sum(spectrum, monkeypatch):
+    """``expected`` (pixel blocks, matrix products) equals the plain sum over energy bins of
+    ``expected_counts x response`` to rounding (1e-12 relative), across block boundaries."""
+    poly = Polychromatic(spectrum, Detector(), TISSUE_DECOMPOSITION.names)
+    L = np.random.default_rng(1).gamma(1.0, 2.0, (2, len(TISSUE_DECOMPOSITION.names), 33, 17))
+    monkeypatch.setattr(Polychromatic, "BLOCK_PIXELS", 100)  # 1122 pixels: 12 blocks, the last partial
+    reference = np.einsum("behw,e->bhw", poly.expected_counts(L, **EXPOSURE), poly.response)
+    np.testing.assert_allclose(poly.expected(L, **EXPOSURE), reference, rtol=1e-12, atol=0)
+
+
 def test_bad_inputs_are_named():
     with pytest.raises(PhysicsError, match="kvp"):
         tube_spectrum(300.0)
