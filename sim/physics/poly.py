@@ -147,8 +147,10 @@ class Polychromatic:
         """Expected detector signal ``(B, H, W)`` (keV or counts); ``exposure``: mas, sdd_mm, pixel_area_mm2.
 
         The same sum as ``expected_counts(L) . response``, pixel block by pixel block as two
-        matrix products around an in-place ``exp``: 4x faster than the ``(B, E, H, W)`` array and
-        equal to it within 1e-15 (relative).
+        contractions around an in-place ``exp``: 4x faster than the ``(B, E, H, W)`` array and
+        equal to it within 1e-15 (relative). The contractions are ``np.einsum`` on purpose, not
+        ``@``: BLAS's threads keep spinning after a product and slow the next Dr.Jit kernel on
+        the same cores (a 128 x 128 image took 50 ms instead of 14 in a registration loop).
         """
         L = self._check(L)
         b, m, h, w = L.shape
@@ -157,9 +159,10 @@ class Polychromatic:
         pixels = np.moveaxis(L, 1, -1).reshape(-1, m)  # (P, M)
         out = np.empty(len(pixels))
         for start in range(0, len(pixels), self.BLOCK_PIXELS):
-            path = pixels[start:start + self.BLOCK_PIXELS] @ neg_att  # (p, E): -sum_m (mu/rho)_m(E) L_m
+            # (p, E): -sum_m (mu/rho)_m(E) L_m
+            path = np.einsum("pm,me->pe", pixels[start:start + self.BLOCK_PIXELS], neg_att)
             np.exp(path, out=path)
-            out[start:start + self.BLOCK_PIXELS] = path @ weights
+            out[start:start + self.BLOCK_PIXELS] = np.einsum("pe,e->p", path, weights)
         return out.reshape(b, h, w)
 
     def flat_field(self, **exposure) -> float:
