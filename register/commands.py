@@ -132,6 +132,7 @@ class RegisterCommand:
     anode_angle: float = physics_option("anode_angle")
     bins: int = physics_option("bins")
     detector_mm: float = physics_option("detector_mm")
+    detector_mode: str = physics_option("detector_mode")
     scatter_photons: int = physics_option("scatter_photons", default=REGISTER_SCATTER_PHOTONS)
     scatter_voxel: float = physics_option("scatter_voxel")
     grid_ratio: float = physics_option("grid_ratio")

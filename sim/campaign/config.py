@@ -50,8 +50,11 @@ KIND_SPLIT = 3
 _TOP_KEYS = ("campaign", "scene", "physics", "poses", "split", "cts", "virtual_patients", "outputs")
 _CAMPAIGN_KEYS = ("name", "seed", "images_per_ct", "shard_size")
 _SCENE_KEYS = ("name", "size")
-_PHYSICS_KEYS = ("name", "level", "ray_model", "step_fraction", "mu_water_per_mm", "kvp", "filters", "mas", "noise",
-                 "scatter_photons", "grid_ratio")
+#: keys of poly and full entries, and of full entries only (besides name, level, ray_model, ...)
+_POLY_KEYS = ("kvp", "filters", "mas", "noise", "anode_angle_deg", "bins", "detector_mm", "detector_mode", "blur_mm",
+              "electronic_noise")
+_FULL_KEYS = ("scatter_photons", "grid_ratio", "scatter_voxel_mm")
+_PHYSICS_KEYS = ("name", "level", "ray_model", "step_fraction", "mu_water_per_mm") + _POLY_KEYS + _FULL_KEYS
 _CT_KEYS = ("path", "label_map", "label_materials", "center", "split", "virtual_patients",
             "held_out_virtual_patients")
 _OUTPUT_KEYS = ("bone_mask", "projected_center")
@@ -99,8 +102,11 @@ class PhysicsConfig:
         kvp, filters, mas, noise: poly level only: tube voltage (kV), filtration
             ``(("Al", 2.5), ...)`` (mm), exposure (mAs), quantum/electronic noise and blur
             (seeded per shard from the campaign seed); also for full.
-        scatter_photons, grid_ratio: full level only: Monte Carlo histories per image, and the
-            anti-scatter grid ratio (0 = none).
+        anode_angle_deg, n_bins, detector_mm, detector_mode, blur_mm, electronic_noise: poly and
+            full: the rest of :class:`sim.physics.imaging.PhysicsSettings` (deg, bins, mm of CsI,
+            ``integrating`` / ``counting``, mm at the detector, signal units).
+        scatter_photons, grid_ratio, scatter_voxel_mm: full level only: Monte Carlo histories per
+            image, the anti-scatter grid ratio (0 = none), the transport grid's voxel (mm).
     """
 
     name: str = "line"
@@ -114,16 +120,45 @@ class PhysicsConfig:
     noise: bool = True
     scatter_photons: int = 1_000_000
     grid_ratio: float = 0.0
+    anode_angle_deg: float = 12.0
+    n_bins: int = 30
+    detector_mm: float = 0.6
+    detector_mode: str = "integrating"
+    blur_mm: float = 0.3
+    electronic_noise: float = 0.0
+    scatter_voxel_mm: float = 6.0
+
+    #: fields written by ``to_dict`` only when they differ from the default, so that campaigns
+    #: from before these settings existed keep their config hash (file key -> field)
+    _OPTIONAL_POLY = {"anode_angle_deg": "anode_angle_deg", "bins": "n_bins", "detector_mm": "detector_mm",
+                      "detector_mode": "detector_mode", "blur_mm": "blur_mm", "electronic_noise": "electronic_noise"}
+    _OPTIONAL_FULL = {"scatter_voxel_mm": "scatter_voxel_mm"}
 
     def to_dict(self) -> dict[str, Any]:
         out = {"name": self.name, "level": self.level, "ray_model": self.ray_model,
                "step_fraction": float(self.step_fraction), "mu_water_per_mm": float(self.mu_water_per_mm)}
+        optional = {}
         if self.level in ("poly", "full"):  # line entries keep their old form (and config hash)
             out.update(kvp=float(self.kvp), filters=[f"{s}:{t:g}" for s, t in self.filters], mas=float(self.mas),
                        noise=bool(self.noise))
+            optional.update(self._OPTIONAL_POLY)
         if self.level == "full":
             out.update(scatter_photons=int(self.scatter_photons), grid_ratio=float(self.grid_ratio))
+            optional.update(self._OPTIONAL_FULL)
+        default = PhysicsConfig()
+        out.update({key: getattr(self, f) for key, f in optional.items() if getattr(self, f) != getattr(default, f)})
         return out
+
+    def settings(self):
+        """The :class:`sim.physics.imaging.PhysicsSettings` of a poly or full entry (noise seeds are
+        the runner's)."""
+        from sim.physics.imaging import PhysicsSettings
+
+        return PhysicsSettings(level=self.level, kvp=self.kvp, filters=self.filters, mas=self.mas, noise=self.noise,
+                               anode_angle_deg=self.anode_angle_deg, n_bins=self.n_bins,
+                               detector_mm=self.detector_mm, detector_mode=self.detector_mode, blur_mm=self.blur_mm,
+                               electronic_noise=self.electronic_noise, scatter_photons=self.scatter_photons,
+                               scatter_voxel_mm=self.scatter_voxel_mm, grid_ratio=self.grid_ratio)
 
 
 @dataclass(frozen=True)
@@ -664,10 +699,10 @@ class _Parser:
                                lo_open=True, hi_open=False)
             mu = self.float_(t.get("mu_water_per_mm", MU_WATER_60KEV_PER_MM), f"{key}.mu_water_per_mm", 0.0,
                              math.inf, lo_open=True, hi_open=True, unit=" 1/mm")
-            poly_keys = sorted(set(t) & {"kvp", "filters", "mas", "noise"})
+            poly_keys = sorted(set(t) & set(_POLY_KEYS))
             if level == "line" and poly_keys:
                 raise self.err(f"{key}.{poly_keys[0]}", f"only for level = \"poly\" or \"full\" (this entry is {level!r})")
-            full_keys = sorted(set(t) & {"scatter_photons", "grid_ratio"})
+            full_keys = sorted(set(t) & set(_FULL_KEYS))
             if level != "full" and full_keys:
                 raise self.err(f"{key}.{full_keys[0]}", f"only for level = \"full\" (this entry is {level!r})")
             extra = {}
@@ -678,6 +713,8 @@ class _Parser:
                 extra["scatter_photons"] = photons
                 extra["grid_ratio"] = self.float_(t.get("grid_ratio", 0.0), f"{key}.grid_ratio", 0.0, 50.0,
                                                   lo_open=False, hi_open=False)
+                extra["scatter_voxel_mm"] = self.float_(t.get("scatter_voxel_mm", 6.0), f"{key}.scatter_voxel_mm",
+                                                        0.0, math.inf, lo_open=True, hi_open=True, unit=" mm")
             if level in ("poly", "full"):
                 from sim.physics import PhysicsError
                 from sim.physics.spectrum import parse_filters
@@ -694,7 +731,25 @@ class _Parser:
                     extra["filters"] = parse_filters(filters)
                 except PhysicsError as e:
                     raise self.err(f"{key}.filters", str(e)) from None
-            out.append(PhysicsConfig(name, level, ray, step, mu, **extra))
+                extra["anode_angle_deg"] = self.float_(t.get("anode_angle_deg", 12.0), f"{key}.anode_angle_deg",
+                                                       1.0, 45.0, lo_open=False, hi_open=False, unit=" deg")
+                extra["n_bins"] = self.int_(t.get("bins", 30), f"{key}.bins", 1)
+                extra["detector_mm"] = self.float_(t.get("detector_mm", 0.6), f"{key}.detector_mm", 0.0, math.inf,
+                                                   lo_open=True, hi_open=True, unit=" mm")
+                mode = t.get("detector_mode", "integrating")
+                if mode not in ("integrating", "counting"):
+                    raise self.err(f"{key}.detector_mode", f"unknown mode {mode!r}; allowed: integrating, counting")
+                extra["detector_mode"] = mode
+                for k in ("blur_mm", "electronic_noise"):
+                    extra[k] = self.float_(t.get(k, getattr(PhysicsConfig, k)), f"{key}.{k}", 0.0, math.inf,
+                                           lo_open=False, hi_open=True)
+            entry = PhysicsConfig(name, level, ray, step, mu, **extra)
+            if level in ("poly", "full"):
+                try:
+                    entry.settings()  # the physics' own checks (e.g. bins <= 1000, scatter settings)
+                except PhysicsError as e:
+                    raise self.err(key, str(e)) from None
+            out.append(entry)
         return tuple(out)
 
     def split(self, value: Any) -> SplitConfig:

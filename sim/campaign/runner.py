@@ -118,11 +118,9 @@ class SubjectContext:
         self.renderers = {}
         for p in cfg.physics:
             if p.level in ("poly", "full"):
-                from sim.physics.imaging import LogImageRenderer, PhysicsSettings
+                from sim.physics.imaging import LogImageRenderer
 
-                physics = PhysicsSettings(level=p.level, kvp=p.kvp, filters=p.filters, mas=p.mas, noise=p.noise,
-                                          scatter_photons=p.scatter_photons, grid_ratio=p.grid_ratio)
-                self.renderers[p.name] = LogImageRenderer(volume, physics, scene=cfg.scene.name,
+                self.renderers[p.name] = LogImageRenderer(volume, p.settings(), scene=cfg.scene.name,
                                                           size=tuple(cfg.scene.size), ray_model=p.ray_model,
                                                           center_lps=center,
                                                           label_materials=dict(entry.label_materials) or None)

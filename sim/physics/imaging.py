@@ -66,10 +66,20 @@ class PhysicsSettings:
     grid_ratio: float = 0.0
 
     def __post_init__(self) -> None:
+        from sim.physics.poly import Detector
+
         if self.level not in LEVELS:
             raise PhysicsError(f"physics level must be one of {LEVELS}, got {self.level!r}")
         if not (math.isfinite(self.mas) and self.mas > 0):
             raise PhysicsError(f"mas must be a positive number of mAs, got {self.mas}")
+        # the cheap checks of tube_spectrum, here so that bad settings fail before any rendering
+        if isinstance(self.kvp, bool) or not (isinstance(self.kvp, (int, float)) and 20.0 <= self.kvp <= 150.0):
+            raise PhysicsError(f"kvp must be in [20, 150] kV, got {self.kvp!r}")
+        if not (isinstance(self.anode_angle_deg, (int, float)) and 1.0 <= self.anode_angle_deg <= 45.0):
+            raise PhysicsError(f"anode angle must be in [1, 45] deg, got {self.anode_angle_deg!r}")
+        if isinstance(self.n_bins, bool) or not (isinstance(self.n_bins, int) and 1 <= self.n_bins <= 1000):
+            raise PhysicsError(f"energy bins must be an integer in [1, 1000], got {self.n_bins!r}")
+        Detector(self.detector_mm, self.detector_mode, self.electronic_noise, self.blur_mm)  # validates them
         if self.level == "full":
             self.scatter_settings()  # validates the Monte Carlo options
 

@@ -182,6 +182,28 @@ def test_to_dict_round_trips_through_json(example, tmp_path, ct_files):
     assert parse_campaign(d, base_dir=tmp_path).source == cfg.source  # source from the dict
 
 
+def test_detector_and_spectrum_keys_round_trip_and_old_entries_keep_their_hash(tmp_path):
+    head = '[campaign]\nname = "d"\nimages_per_ct = 2\n[[cts]]\npath = "phantom:0"\n'
+    plain = load_campaign(write(tmp_path / "a.toml", head + '[[physics]]\nname = "p"\nlevel = "full"\n'))
+    # an entry written without the newer keys has the to_dict form it had before they existed
+    assert set(plain.physics[0].to_dict()) == {"name", "level", "ray_model", "step_fraction", "mu_water_per_mm", "kvp",
+                                               "filters", "mas", "noise", "scatter_photons", "grid_ratio"}
+    spelled = load_campaign(write(tmp_path / "b.toml", head + '[[physics]]\nname = "p"\nlevel = "full"\n'
+                                  "anode_angle_deg = 12.0\nbins = 30\nblur_mm = 0.3\nscatter_voxel_mm = 6.0\n"))
+    assert spelled.config_hash() == plain.config_hash()  # defaults spelled out hash the same
+    custom = load_campaign(write(tmp_path / "c.toml", head + '[[physics]]\nname = "p"\nlevel = "full"\n'
+                                 'anode_angle_deg = 10.0\nbins = 20\ndetector_mm = 0.5\ndetector_mode = "counting"\n'
+                                 "blur_mm = 0.2\nelectronic_noise = 3.0\nscatter_voxel_mm = 8.0\n"))
+    p = custom.physics[0]
+    assert (p.anode_angle_deg, p.n_bins, p.detector_mm, p.detector_mode, p.blur_mm, p.electronic_noise,
+            p.scatter_voxel_mm) == (10.0, 20, 0.5, "counting", 0.2, 3.0, 8.0)
+    settings = p.settings()
+    assert (settings.n_bins, settings.detector_mode, settings.scatter_voxel_mm) == (20, "counting", 8.0)
+    assert custom.config_hash() != plain.config_hash()
+    back = parse_campaign(json.loads(json.dumps(custom.to_dict())), base_dir=tmp_path, source=custom.source)
+    assert back == custom and back.config_hash() == custom.config_hash()
+
+
 def test_label_materials_round_trip_change_the_hash_and_need_labels(tmp_path, ct_files):
     ct, labels = ct_files
     text = ('[campaign]\nname = "lm"\nimages_per_ct = 2\n[[physics]]\nname = "p"\nlevel = "poly"\n'
@@ -337,6 +359,15 @@ BAD = {
                              [r"held_out_virtual_patients", r"expected a table"]),
     "center with 2 numbers": (dict(cts="center = [1.0, 2.0]"), [r"cts\[0\]\.center", r"\[x, y, z\]", r"LPS mm"]),
     "phantom with label map": (dict(cts='label_map = "x.nii.gz"'), [r"cts\[0\]\.label_map", r"phantom"]),
+    "detector mode unknown": (dict(rest='[[physics]]\nname = "p"\nlevel = "poly"\ndetector_mode = "hybrid"\n'),
+                              [r"physics\[0\]\.detector_mode", r"'hybrid'", r"integrating, counting"]),
+    "bins on a line entry": (dict(rest='[[physics]]\nname = "p"\nbins = 20\n'), [r"physics\[0\]\.bins", r"only for level"]),
+    "too many bins": (dict(rest='[[physics]]\nname = "p"\nlevel = "poly"\nbins = 5000\n'),
+                      [r"physics\[0\]", r"energy bins must be an integer in \[1, 1000\]"]),
+    "scatter voxel on a poly entry": (dict(rest='[[physics]]\nname = "p"\nlevel = "poly"\nscatter_voxel_mm = 4.0\n'),
+                                      [r"physics\[0\]\.scatter_voxel_mm", r'only for level = "full"']),
+    "negative blur": (dict(rest='[[physics]]\nname = "p"\nlevel = "poly"\nblur_mm = -1.0\n'),
+                      [r"physics\[0\]\.blur_mm"]),
     "label materials without poly": (dict(cts='label_materials = { 3 = "titanium" }'),
                                      [r"cts\[0\]\.label_materials", r"only poly and full"]),
     "label material unknown": (dict(rest='[[physics]]\nname = "p"\nlevel = "poly"\n',

@@ -149,6 +149,16 @@ def test_bad_inputs_are_named():
         poly.expected(np.zeros((1, 2, 4, 4)), **EXPOSURE)
     with pytest.raises(PhysicsError, match="finite"):
         poly.expected(np.full((1, 1, 2, 2), np.nan), **EXPOSURE)
+    from sim.physics.imaging import PhysicsSettings
+
+    # settings fail when made, before any rendering or spekpy call
+    for kwargs, words in ((dict(kvp=300.0), "kvp must be in [20, 150] kV"), (dict(n_bins=0), "energy bins"),
+                          (dict(anode_angle_deg=60.0), "anode angle"), (dict(detector_mode="hybrid"), "detector mode"),
+                          (dict(blur_mm=-1.0), "blur_mm must be >= 0"), (dict(detector_mm=0.0), "thickness_mm"),
+                          (dict(level="full", scatter_photons=10), "scatter photons")):
+        with pytest.raises(PhysicsError) as info:
+            PhysicsSettings(**kwargs)
+        assert words in str(info.value), (kwargs, str(info.value))
 
 
 def test_imager_log_image_tracks_the_line_integral_and_noise_is_reproducible():
@@ -378,3 +388,27 @@ split = "train"
     assert gain > 1.0
     da.close()
     db.close()
+
+
+def test_render_command_with_a_photon_counting_detector(tmp_path):
+    """`--detector-mode counting`: the raw signal is in counts (the sidecar says so), so the
+    integrating detector's flat field over the counting one is the mean energy deposited per
+    interacting photon: between the K edges of Cs/I (~33-36 keV) and the tube's 120 kV."""
+    import json
+    import subprocess
+    import sys
+
+    from tests.conftest import REPO
+
+    sides = {}
+    for mode in ("integrating", "counting"):
+        out = tmp_path / f"{mode}.npy"
+        r = subprocess.run([sys.executable, "-m", "register.cli", "render", "--ct", "phantom", "--size", "32", "32",
+                            "--physics", "poly", "--no-noise", "--detector-mode", mode, "--out", str(out)],
+                           capture_output=True, text=True, cwd=REPO, timeout=300)
+        assert r.returncode == 0, r.stderr
+        sides[mode] = json.loads(out.with_suffix(".json").read_text())["physics"]
+    assert sides["counting"]["detector_mode"] == "counting"
+    assert sides["counting"]["signal_units"] == "counts per pixel"
+    kev_per_count = sides["integrating"]["flat_field_signal"] / sides["counting"]["flat_field_signal"]
+    assert 30.0 < kev_per_count < 80.0, kev_per_count
