@@ -34,6 +34,9 @@ from learn.labels import LabelNormalizer, apply_update, geodesic_label
 
 #: Spawn key of the batch streams: ``SeedSequence(seed, spawn_key=(KIND_BATCH, k))``.
 KIND_BATCH = 40
+#: Spawn key of the noise and Monte Carlo of batch ``k``'s poly / full images, per subject ``u``:
+#: ``(KIND_BATCH_NOISE, k, u)``.
+KIND_BATCH_NOISE = 41
 
 
 class OnlinePairsError(ValueError):
@@ -144,13 +147,20 @@ class OnlinePairs:
     def batch(self, k: int, n: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """Render batch ``k`` of ``n`` pairs; see the class doc for the shapes."""
         subject, T_a, T_b = self.draw(k, n)
-        name = self.cfg.physics[0].name
+        from sim.campaign.runner import rng_for
+
+        entry = self.cfg.physics[0]
         h, w = self.cfg.scene.size
         images = np.empty((2, n, h, w), np.float32)
         for u in np.unique(subject):
             rows = np.flatnonzero(subject == u)
-            renderer = self.context(int(u)).renderers[name]
-            out = renderer.render(np.concatenate([T_a[rows], T_b[rows]]))
+            renderer = self.context(int(u)).renderers[entry.name]
+            poses = np.concatenate([T_a[rows], T_b[rows]])
+            if entry.level in ("poly", "full"):  # fresh noise every batch, reproducible from (seed, k, u)
+                noise_seed = int(rng_for(self.seed, KIND_BATCH_NOISE, int(k), int(u)).integers(2**63))
+                out = renderer.render(poses, seed=noise_seed)
+            else:
+                out = renderer.render(poses)
             images[0, rows], images[1, rows] = out[:len(rows)], out[len(rows):]
         x = torch.from_numpy(images.reshape(2 * n, 1, h, w))
         if self.transform is not None:

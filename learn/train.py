@@ -69,6 +69,10 @@ class TrainConfig:
             Needs ``freeze_backbone = true``, a campaign folder as ``dataset`` (not a ``.toml``
             file: online pairs are new images every batch) and no ``random_convolution`` step.
         seed: every random draw (weights init, pairs, batches).
+        init_from: a ``ctxreg train`` checkpoint whose model weights start this run instead of a
+            random initialisation (fine-tuning, e.g. a network trained on line DRRs continued on
+            ``poly`` images); its backbone and head channels must be this config's. The
+            optimiser and schedule start afresh.
     """
 
     dataset: str
@@ -96,6 +100,7 @@ class TrainConfig:
     head_channels: int = 64
     cache_features: bool = False
     seed: int = 0
+    init_from: str | None = None
 
     @property
     def online(self) -> bool:
@@ -167,7 +172,7 @@ def load_train_config(path: str | os.PathLike) -> TrainConfig:
         raise TrainConfigError(f"{path}: unknown key(s) train.{', train.'.join(unknown)}; allowed: {sorted(names)}")
     if "dataset" not in table:
         raise TrainConfigError(f"{path}: train.dataset (the campaign folder) is required")
-    for key in ("dataset", "out", "weights_path"):
+    for key in ("dataset", "out", "weights_path", "init_from"):
         if table.get(key):
             table[key] = str((path.parent / table[key]).resolve())
     for key in ("preprocess", "near_rot_deg", "near_trans_mm"):
@@ -204,6 +209,28 @@ def _save_checkpoint(path: Path, payload: dict) -> None:
         torch.save(payload, tmp)
 
 
+def _init_weights(model, cfg: TrainConfig) -> None:
+    """Load ``cfg.init_from``'s model weights into ``model`` (see :class:`TrainConfig`)."""
+    path = Path(cfg.init_from)
+    if not path.is_file():
+        raise TrainConfigError(f"train.init_from: checkpoint {path} not found")
+    try:
+        state = torch.load(path, weights_only=False, map_location="cpu")
+    except Exception as e:  # noqa: BLE001 - torch raises many types for a bad file
+        raise TrainConfigError(f"train.init_from: {path} is not a ctxreg training checkpoint ({e})") from None
+    if not isinstance(state, dict) or "model" not in state or "config" not in state:
+        raise TrainConfigError(f"train.init_from: {path} is not a ctxreg training checkpoint")
+    theirs = state["config"]
+    for key in ("backbone", "head_channels"):
+        if theirs.get(key, getattr(TrainConfig, key)) != getattr(cfg, key):
+            raise TrainConfigError(f"train.init_from: {path} has {key} = {theirs.get(key)!r}, this run "
+                                   f"{getattr(cfg, key)!r}")
+    try:
+        model.load_state_dict(state["model"])
+    except RuntimeError as e:
+        raise TrainConfigError(f"train.init_from: {path}: weights do not fit the model ({e})") from None
+
+
 def _errors(pred_norm: torch.Tensor, true_norm: torch.Tensor, normalizer) -> tuple[float, float]:
     """Mean rotation (deg) and translation (mm) error of predicted gradients."""
     p, t = normalizer.denormalize(pred_norm), normalizer.denormalize(true_norm)
@@ -228,6 +255,9 @@ def train(cfg: TrainConfig, *, resume: bool = False, log=print) -> dict:
                             weights=Weights.IMAGENET_LOCAL if cfg.weights == "imagenet_local" else Weights.NONE,
                             weights_path=cfg.weights_path, freeze_backbone=cfg.freeze_backbone,
                             head_channels=cfg.head_channels)
+    if cfg.init_from and not (resume and ckpt_path.exists()):
+        _init_weights(model, cfg)
+        log(f"weights from {cfg.init_from}")
     if source is None:  # the cache needs the (frozen) backbone; neither draws random numbers
         source = _CachedSource(cfg, model, rebuild=not (resume and ckpt_path.exists()), log=log)
     params = [p for p in model.parameters() if p.requires_grad]

@@ -139,3 +139,29 @@ def test_predictor_resamples_other_image_sizes_to_the_training_size(campaign, tm
     a, b = campaign[0]["images"]["line"], campaign[1]["images"]["line"]
     big_a, big_b = (np.kron(x, np.ones((2, 2))) for x in (a, b))  # 64 x 64, each pixel repeated 2 x 2
     np.testing.assert_allclose(predictor(big_a, big_b), predictor(a, b), rtol=1e-5, atol=1e-6)
+
+
+def test_init_from_starts_a_run_from_a_checkpoints_weights(campaign, tmp_path):
+    """With ``init_from`` the first step starts at the given weights: one Adam step of lr 1e-12
+    leaves them within 1e-9 (Adam's step is about lr per weight), while the same run without it
+    starts elsewhere. A checkpoint of another architecture or a missing file is refused."""
+    from learn.train import TrainConfigError, train
+
+    cfg_a = config(campaign, tmp_path / "a", iterations=2, val_every=2, checkpoint_every=2)
+    train(cfg_a, log=lambda *_: None)
+    a_path = tmp_path / "a" / "checkpoint.pt"
+    a = torch.load(a_path, weights_only=False)["model"]
+    tiny_step = dict(iterations=1, val_every=1, checkpoint_every=1, lr=1e-12, seed=9)
+    train(config(campaign, tmp_path / "b", init_from=str(a_path), **tiny_step), log=lambda *_: None)
+    train(config(campaign, tmp_path / "c", **tiny_step), log=lambda *_: None)
+    b = torch.load(tmp_path / "b" / "checkpoint.pt", weights_only=False)
+    c = torch.load(tmp_path / "c" / "checkpoint.pt", weights_only=False)["model"]
+    weights = [k for k in a if "running_" not in k and "num_batches" not in k]  # BN statistics move anyway
+    for k in weights:
+        torch.testing.assert_close(b["model"][k], a[k], rtol=0, atol=1e-9, msg=k)
+    assert max(float((c[k] - a[k]).abs().max()) for k in weights) > 1e-3
+    assert b["config"]["init_from"] == str(a_path)
+    with pytest.raises(TrainConfigError, match="init_from: checkpoint .* not found"):
+        train(config(campaign, tmp_path / "d", init_from=str(tmp_path / "none.pt"), **tiny_step))
+    with pytest.raises(TrainConfigError, match="head_channels = 64, this run 32"):
+        train(config(campaign, tmp_path / "e", init_from=str(a_path), head_channels=32, **tiny_step))
