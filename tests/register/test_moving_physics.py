@@ -173,3 +173,26 @@ def test_evaluate_records_the_physics_of_targets_and_moving_images(tmp_path):
     summary = json.loads((tmp_path / "summary.json").read_text())
     assert summary["target_physics"]["level"] == "poly" and summary["target_physics"]["mas"] == 5.0
     assert summary["moving_physics"]["level"] == "poly" and summary["moving_physics"]["noise"] is False
+
+
+def test_physics_options_are_declared_once_for_every_command():
+    """render, register and evaluate take their physics options from sim/physics/options.py: the
+    same help, unit and choices, the levels in the help; only register's scatter default differs."""
+    from dataclasses import fields
+
+    from register.commands import REGISTER_SCATTER_PHOTONS, EvaluateCommand, RegisterCommand
+    from sim.cli import RenderCommand
+    from sim.physics.options import physics_option
+
+    render = {f.name: f for f in fields(RenderCommand)}
+    register = {f.name: f for f in fields(RegisterCommand)}
+    shared = sorted(set(render) & set(register) - {"ct", "label_map", "center", "scene", "size", "out", "physics"})
+    assert shared == ["anode_angle", "bins", "detector_mm", "detector_mode", "filter", "grid_ratio", "kvp",
+                      "label_material", "scatter_photons", "scatter_voxel"]
+    for name in shared:
+        assert render[name].metadata == register[name].metadata, name
+        assert "(poly or full)" in render[name].metadata["help"] or "(full)" in render[name].metadata["help"]
+    assert register["scatter_photons"].default == REGISTER_SCATTER_PHOTONS != render["scatter_photons"].default
+    assert {f.name for f in fields(EvaluateCommand)} >= {"physics", "target_physics"}
+    with pytest.raises(KeyError, match="unknown physics option 'kv'"):
+        physics_option("kv")
