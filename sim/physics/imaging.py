@@ -157,9 +157,10 @@ class XRayImager:
         sig = np.empty((len(poses), g.height, g.width))
         cnt = np.empty_like(sig)
         sigma = mc.settings.smooth_mm / (g.pixel_spacing_mm * mc.settings.cell_px)
-        for b, m in enumerate(cam_to_lps):
-            pose_seed = int(np.random.SeedSequence([seed, 0 if self.fixed_scatter_seed else b]).generate_state(1)[0])
-            out = mc.run(m, g, photons_per_pixel=ppp, seed=pose_seed)
+        seeds = [int(np.random.SeedSequence([seed, 0 if self.fixed_scatter_seed else b]).generate_state(1)[0])
+                 for b in range(len(poses))]
+        # all poses in shared launches; pose b's result is that of mc.run with seeds[b]
+        for b, out in enumerate(mc.run_batch(cam_to_lps, g, photons_per_pixel=ppp, seeds=seeds)):
             sig[b] = upsample_cells(out["scatter"], g.height, g.width, out["cell_px"], sigma)
             cnt[b] = upsample_cells(out["scatter_counts"], g.height, g.width, out["cell_px"], sigma)
         return sig, cnt

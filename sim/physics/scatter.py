@@ -355,74 +355,142 @@ class MonteCarloScatter:
             ``energy_keV``: ``{"emitted", "deposited", "escaped", "truncated"}`` photon energy
             totals (keV, per history weight 1), ``histories``, ``cell_px``.
         """
+        cam = np.asarray(camera_to_lps, dtype=np.float64)
+        if cam.shape != (4, 4):
+            raise PhysicsError(f"camera_to_lps must be (4, 4), got {cam.shape}")
+        return self.run_batch(cam[None], geometry, photons_per_pixel=photons_per_pixel, seeds=[seed],
+                              photons=photons)[0]
+
+    def run_batch(self, cameras_to_lps: np.ndarray, geometry, *, photons_per_pixel: float, seeds,
+                  photons: int | None = None) -> list[dict]:
+        """Transport ``photons`` histories for each of ``B`` poses in shared wavefront launches.
+
+        The photons of several poses travel in the same kernels (each lane carries its pose
+        index), so a batch of small images pays the per-launch cost once, not once per pose.
+        Pose ``b``'s histories draw from ``seeds[b]`` only, in the same streams as
+        :meth:`run` with that seed: its result does not depend on the other poses of the batch
+        (equal up to float64 summation order).
+
+        Args:
+            cameras_to_lps: ``(B, 4, 4)`` camera frames -> LPS mm (as :meth:`run`).
+            geometry: :class:`sim.geometry.CArmGeometry`, the same detector for every pose.
+            photons_per_pixel: incident photons per pixel without an object (all energies).
+            seeds: ``(B,)`` integer seeds, one per pose.
+            photons: histories per pose (default the settings').
+
+        Returns:
+            ``B`` dicts as :meth:`run` returns.
+        """
         dr, mi = self._dr, self._mi
         s = self.settings
+        cams = np.asarray(cameras_to_lps, dtype=np.float64)
+        if cams.ndim != 3 or cams.shape[1:] != (4, 4) or len(cams) == 0:
+            raise PhysicsError(f"cameras_to_lps must be (B, 4, 4) with B >= 1, got {cams.shape}")
+        if not np.all(np.isfinite(cams)):
+            raise PhysicsError("cameras_to_lps must be finite")
+        seeds = [int(x) for x in np.atleast_1d(np.asarray(seeds))]
+        n_pose = len(cams)
+        if len(seeds) != n_pose:
+            raise PhysicsError(f"need one seed per pose: {n_pose} poses, {len(seeds)} seeds")
         n_total = int(photons or s.photons)
+        if n_total < 1:
+            raise PhysicsError(f"photons must be >= 1, got {photons}")
         h, w = geometry.height, geometry.width
         cp = s.cell_px
         hc, wc = -(-h // cp), -(-w // cp)
-        # camera -> transport frame
-        q = self._q_from_lps @ np.asarray(camera_to_lps, dtype=np.float64)
-        sp = geometry.pixel_spacing_mm
+        cells = hc * wc
+        sp = float(geometry.pixel_spacing_mm)
         cx = (w - 1) / 2 if geometry.cx is None else geometry.cx
         cy = (h - 1) / 2 if geometry.cy is None else geometry.cy
-        src = q[:3, 3]
-        corner = q[:3, :3] @ np.array([(-0.5 - cx) * sp, (-0.5 - cy) * sp, geometry.sdd_mm]) + src
-        eu, ev, nrm = q[:3, 0], q[:3, 1], q[:3, 2]
-        sp = float(sp)
+        # camera -> transport frame, per pose: source, detector corner, detector axes and normal
+        q = self._q_from_lps[None] @ cams  # (B, 4, 4)
+        src = q[:, :3, 3]
+        corner = np.einsum("bij,j->bi", q[:, :3, :3], np.array([(-0.5 - cx) * sp, (-0.5 - cy) * sp,
+                                                                  geometry.sdd_mm])) + src
+        frames = {"src": src, "corner": corner, "eu": q[:, :3, 0], "ev": q[:, :3, 1], "nrm": q[:, :3, 2]}
+        frames = {k: mi.Vector3f(*(mi.Float(v[:, i].astype(np.float32)) for i in range(3))) for k, v in frames.items()}
         area = float(h * w * sp * sp)
         weight = float(photons_per_pixel) * h * w / n_total  # photons per history
-        vs = self.voxel_size
-        box = np.array(self.shape) * vs
+        box = np.array(self.shape) * self.voxel_size
 
         def V3(*xyz):
             return mi.Vector3f(*(float(c) for c in xyz))
 
-        src_v, corner_v = V3(*src), V3(*corner)
-        eu_v, ev_v, nrm_v = V3(*eu), V3(*ev), V3(*nrm)
-        cells = hc * wc
+        def frame(pose):
+            """Per-lane source, corner, eu, ev, normal of the lanes' poses."""
+            return tuple(dr.gather(mi.Vector3f, frames[k], pose) for k in ("src", "corner", "eu", "ev", "nrm"))
+
         # tallies are reduced in NumPy (float64, fixed order): atomic scatter-adds from parallel
         # threads would make the images differ in the last bits from run to run
-        tallies = {name: np.zeros(cells) for name in ("scatter", "scatter_counts", "primary")}
+        tallies = {name: np.zeros(n_pose * cells) for name in ("scatter", "scatter_counts", "primary")}
 
-        def tally(name, cell, value, mask):
+        def tally(name, pose, cell, value, mask):
             keep = np.array(mask, dtype=bool)
             if keep.any():
-                tallies[name] += np.bincount(np.array(cell, dtype=np.int64)[keep],
-                                             weights=np.array(value, dtype=np.float64)[keep], minlength=cells)
-        energy = {"emitted": 0.0, "deposited": 0.0, "escaped": 0.0, "truncated": 0.0}
+                index = np.array(pose, dtype=np.int64)[keep] * cells + np.array(cell, dtype=np.int64)[keep]
+                tallies[name] += np.bincount(index, weights=np.array(value, dtype=np.float64)[keep],
+                                             minlength=n_pose * cells)
+        energy = {k: np.zeros(n_pose) for k in ("emitted", "deposited", "escaped", "truncated")}
+
+        def tally_energy(name, pose, x):
+            if dr.width(x):
+                energy[name] += np.bincount(np.array(pose, dtype=np.int64), weights=np.array(x, dtype=np.float64),
+                                            minlength=n_pose)
         m_count = len(self.materials)
         grid_r, grid_tp = float(s.grid_ratio), float(s.grid_transmission if s.grid_ratio > 0 else 1.0)
 
-        def grid(dn, y):
+        def grid(dn, y, fr):
             if grid_r <= 0:
                 return mi.Float(1.0)
+            src_v, _, eu_v, _, nrm_v = fr
             f = dr.normalize(y - src_v)
             tan_b = dr.dot(dn, eu_v) / dr.dot(dn, nrm_v) - dr.dot(f, eu_v) / dr.dot(f, nrm_v)
             return grid_tp * dr.maximum(1.0 - grid_r * dr.abs(tan_b), 0.0)
 
-        def detector_point(rng, active):
+        def detector_point(rng, active, fr):
+            _, corner_v, eu_v, ev_v, _ = fr
             px = rng.next_float32(active) * float(w)
             py = rng.next_float32(active) * float(h)
             y = corner_v + eu_v * (px * sp) + ev_v * (py * sp)
             cell = mi.UInt32(dr.minimum(mi.UInt32(py) // cp, hc - 1) * wc + dr.minimum(mi.UInt32(px) // cp, wc - 1))
             return y, cell
 
-        def tally_sum(x):
-            return float(dr.sum(mi.Float64(x))[0]) if dr.width(x) else 0.0
+        # units of work: (pose, chunk of at most s.batch histories); chunk j of pose b draws from
+        # SeedSequence([seed_b, 0x5CA7]).spawn(...)[j], lanes numbered within the chunk
+        chunk_sizes = [min(s.batch, n_total - start) for start in range(0, n_total, s.batch)]
+        units = []
+        for b, sd in enumerate(seeds):
+            children = np.random.SeedSequence([sd, 0x5CA7]).spawn(len(chunk_sizes))
+            units += [(b, int(c.generate_state(1, np.uint64)[0]), n) for c, n in zip(children, chunk_sizes)]
+        launches, current, filled = [], [], 0
+        for u in units:  # pack units into launches of at most s.batch lanes
+            if current and filled + u[2] > s.batch:
+                launches.append(current)
+                current, filled = [], 0
+            current.append(u)
+            filled += u[2]
+        launches.append(current)
 
-        chunk_seed = np.random.SeedSequence([int(seed), 0x5CA7])
-        for start in range(0, n_total, s.batch):
-            n = min(s.batch, n_total - start)
-            init = int(chunk_seed.spawn(1)[0].generate_state(1, np.uint64)[0])
-            rng = mi.PCG32(size=n, initstate=mi.UInt64(init), initseq=dr.arange(mi.UInt64, n))
+        for launch in launches:
+            counts = np.array([n for _, _, n in launch])
+            n = int(counts.sum())
+            pose = mi.UInt32(np.repeat([b for b, _, _ in launch], counts).astype(np.uint32))
+            state = mi.UInt64(np.repeat(np.array([st for _, st, _ in launch], dtype=np.uint64), counts))
+            lane = np.arange(n, dtype=np.uint64) - np.repeat(np.cumsum(counts) - counts, counts).astype(np.uint64)
+            # the constructor would add arange(n) to both arguments; seed() takes them as given:
+            # each unit's lanes get (state + i, 2 i), the streams of a one-pose launch
+            rng = mi.PCG32(size=n)
+            local = mi.UInt64(lane)
+            rng.seed(initstate=state + local, initseq=local + local)
             # source energies: the bin of u in the spectrum's CDF
             u = rng.next_float32()
             cdf = self._spec_cdf
             nb = len(self._cdf)
             b = dr.binary_search(0, nb - 1, lambda i: dr.gather(mi.Float, cdf, i) < u)
             e = dr.gather(mi.Float, self._spec_e, b)
-            y0, cell0 = detector_point(rng, mi.Bool(True))
+            fr = frame(pose)
+            y0, cell0 = detector_point(rng, mi.Bool(True), fr)
+            src_v = fr[0]
             d = dr.normalize(y0 - src_v)
             # enter the box
             inv = dr.rcp(dr.select(dr.abs(d) < 1e-12, 1e-12, d))
@@ -432,14 +500,14 @@ class MonteCarloScatter:
             t_far = dr.min(dr.maximum(t0, t1))
             hits = t_near < t_far
             p = src_v + d * (t_near + 1e-4)
-            energy["emitted"] += tally_sum(e)
+            tally_energy("emitted", pose, e)
             # photons that miss the volume are primary at once
             miss = ~hits
             resp = self._lerp_table(self._resp, 0, e)
-            tally("primary", cell0, weight * grid_tp * resp, miss)
-            energy["escaped"] += tally_sum(dr.select(miss, e, 0.0))
+            tally("primary", pose, cell0, weight * grid_tp * resp, miss)
+            tally_energy("escaped", pose, dr.select(miss, e, 0.0))
             idx = dr.compress(hits)
-            p, d, e, cell0 = (dr.gather(type(v), v, idx) for v in (p, d, e, cell0))
+            p, d, e, cell0, pose = (dr.gather(type(v), v, idx) for v in (p, d, e, cell0, pose))
             rng = _gather_rng(rng, idx, mi, dr)
             n_scat = dr.zeros(mi.UInt32, dr.width(idx))
             for _ in range(s.max_scatter + 1):
@@ -451,13 +519,15 @@ class MonteCarloScatter:
                 escaped = ~collided
                 first = escaped & (n_scat == 0)
                 resp = self._lerp_table(self._resp, 0, e)
-                tally("primary", cell0, weight * grid_tp * resp, first)
-                energy["escaped"] += tally_sum(dr.select(escaped, e, 0.0))
+                tally("primary", pose, cell0, weight * grid_tp * resp, first)
+                tally_energy("escaped", pose, dr.select(escaped, e, 0.0))
                 idx = dr.compress(collided)
-                p, d, e, cell0, n_scat = (dr.gather(type(v), v, idx) for v in (p, d, e, cell0, n_scat))
+                p, d, e, cell0, n_scat, pose = (dr.gather(type(v), v, idx) for v in (p, d, e, cell0, n_scat, pose))
                 rng = _gather_rng(rng, idx, mi, dr)
                 if dr.width(e) == 0:
                     break
+                fr = frame(pose)
+                _, corner_v, eu_v, ev_v, nrm_v = fr
                 # choose material and process
                 # Loop outputs are evaluated once here: a symbolic loop used by two later kernels
                 # would otherwise run twice.
@@ -485,7 +555,7 @@ class MonteCarloScatter:
                 # point, uniform over the detector or along the process's angular pdf (balance
                 # heuristic). The uniform strategy alone gives "fireflies" where the Rayleigh
                 # forward peak meets the detector; the mixture keeps every score bounded.
-                y1, cell1 = detector_point(rng, scat)
+                y1, cell1 = detector_point(rng, scat, fr)
                 th2 = self._sample_theta(sk, mat, e, rng.next_float32(scat), rng.next_float32(scat))
                 d2 = _rotate(d, dr.cos(th2), dr.sin(th2), 2.0 * math.pi * rng.next_float32(scat), mi, dr)
                 den = dr.dot(d2, nrm_v)
@@ -508,15 +578,15 @@ class MonteCarloScatter:
                 cos_a = dr.abs(dr.dot(dn, nrm_v))
                 geo = cos_a / (r * r)
                 mix = 0.5 / area + 0.5 * pdf * geo  # the two strategies' densities per mm^2
-                value = weight * pdf * geo / mix * grid(dn, y)
+                value = weight * pdf * geo / mix * grid(dn, y, fr)
                 nee = scat & (~by_pdf | on2)
                 mu_n, node_n = self._invariants(e_n)
                 dr.eval(dn, e_n, value, cell, kind, mat, scat, nee)
                 trans, rng = self._track(p, dn, mu_n, node_n, rng, nee, ratio=True, t_max=r)
                 dr.eval(trans, rng)
                 value = dr.select(nee, value * trans, 0.0)
-                tally("scatter", cell, value * self._lerp_table(self._resp, 0, e_n), scat)
-                tally("scatter_counts", cell, value * self._lerp_table(self._pint, 0, e_n), scat)
+                tally("scatter", pose, cell, value * self._lerp_table(self._resp, 0, e_n), scat)
+                tally("scatter_counts", pose, cell, value * self._lerp_table(self._pint, 0, e_n), scat)
                 # --- the real interaction
                 theta = self._sample_theta(sk, mat, e, rng.next_float32(), rng.next_float32())
                 phi = 2.0 * math.pi * rng.next_float32()
@@ -526,22 +596,25 @@ class MonteCarloScatter:
                 d = _rotate(d, cos_t, dr.sin(theta), phi, mi, dr)
                 n_scat += 1
                 low = scat & (e_new < float(s.e_cut_keV))
-                energy["deposited"] += tally_sum(e - dr.select(low, 0.0, e_new))
+                tally_energy("deposited", pose, e - dr.select(low, 0.0, e_new))
                 e = dr.select(low, 0.0, e_new)
                 alive = scat & ~low
                 last = n_scat > s.max_scatter
-                energy["truncated"] += tally_sum(dr.select(alive & last, e, 0.0))
+                tally_energy("truncated", pose, dr.select(alive & last, e, 0.0))
                 dr.eval(p, d, e, n_scat, alive, last)
                 idx = dr.compress(alive & ~last)
-                p, d, e, cell0, n_scat = (dr.gather(type(v), v, idx) for v in (p, d, e, cell0, n_scat))
+                p, d, e, cell0, n_scat, pose = (dr.gather(type(v), v, idx) for v in (p, d, e, cell0, n_scat, pose))
                 rng = _gather_rng(rng, idx, mi, dr)
-            energy["truncated"] += tally_sum(e)
+            tally_energy("truncated", pose, e)
         px_per_cell = _pixels_per_cell(h, w, cp)
-        out = {name: arr.reshape(hc, wc) / px_per_cell for name, arr in tallies.items()}
-        out["energy_keV"] = energy
-        out["histories"] = n_total
-        out["cell_px"] = cp
-        return out
+        results = []
+        for b in range(n_pose):
+            out = {name: arr[b * cells:(b + 1) * cells].reshape(hc, wc) / px_per_cell for name, arr in tallies.items()}
+            out["energy_keV"] = {k: float(v[b]) for k, v in energy.items()}
+            out["histories"] = n_total
+            out["cell_px"] = cp
+            results.append(out)
+        return results
 
     def _angular_pdf(self, sk, mat, e, theta):
         """Per-steradian pdf of scatter table ``sk`` of material ``mat`` at ``e``, ``theta`` (bilinear)."""
