@@ -13,7 +13,8 @@ pose after a warm-up, and its ratio to ``line`` measured in the same run.
 Monte Carlo throughput: histories per second of the Dr.Jit transport alone (median of
 ``--repeats`` runs of 2 x 10^6 histories) on the pelvis at AP and on a 20 cm water slab, and,
 as the peer in the same run, the simple analog NumPy Monte Carlo of ``tests/sim/slab_mc.py``
-on the same slab.
+on the same slab. Batched scatter: 32 poses at 64 x 64 (a training batch's targets), one
+transport per pose against one shared transport for all (same seeds, same images).
 
 The panel shows the same AP pose in line, poly, and full physics with noise, and the scatter
 image alone. ``--spr-table`` prints the scatter-to-primary ratio at the detector centre for
@@ -73,6 +74,7 @@ def main(argv=None) -> int:
     for name, t in rows:
         print(f"| {name} | {t * 1e3:.1f} | {t / rows[0][1]:.1f} |")
     _throughput(full_quiet, pose, args.repeats)
+    _batched(vol, line.center_lps, args.repeats)
     if args.spr_table:
         _spr_table()
     if args.panel:
@@ -140,6 +142,29 @@ def _throughput(imager, pose, repeats: int) -> None:
     for name, rate in (("Dr.Jit, pelvis at AP (6 mm grid)", n / t_pelvis), ("Dr.Jit, 20 cm water slab", n / t_slab),
                        ("NumPy analog peer, same slab", ref)):
         print(f"| {name} | {rate:.3g} | {rate / ref:.1f} |")
+
+
+def _batched(vol, center_lps, repeats: int) -> None:
+    """Scatter of 32 poses at 64 x 64 with 3 x 10^4 histories each (a training batch's
+    targets): one ``run`` per pose against one ``run_batch`` for all, same seeds and results."""
+    import numpy as np
+
+    from sim.campaign.poses import ORIGINAL_PROTOCOL
+    from sim.geometry import extrinsic_lps_to_camera, pose_from_params
+    from sim.physics.imaging import PhysicsSettings, XRayImager
+
+    small = XRayImager(vol, PhysicsSettings(level="full", noise=False, scatter_photons=30_000), size=(64, 64),
+                       center_lps=center_lps)
+    poses = pose_from_params(ORIGINAL_PROTOCOL.sample(np.random.default_rng(0), 32), small.geometry.sod_mm)
+    cams = np.linalg.inv(extrinsic_lps_to_camera(poses, center_lps))
+    mc, g, seeds = small.scatter, small.geometry, list(range(32))
+    t_one = timed(lambda: [mc.run(c, g, photons_per_pixel=1.0, seed=s) for c, s in zip(cams, seeds)], repeats)
+    t_batch = timed(lambda: mc.run_batch(cams, g, photons_per_pixel=1.0, seeds=seeds), repeats)
+    print()
+    print("| scatter, 32 poses, 64 x 64, 3e4 histories each | ms per pose | ratio |")
+    print("|---|---|---|")
+    print(f"| one run per pose | {t_one / 32 * 1e3:.1f} | 1.0 |")
+    print(f"| run_batch, all 32 poses | {t_batch / 32 * 1e3:.1f} | {t_one / t_batch:.1f}x faster |")
 
 
 def _spr_table() -> None:

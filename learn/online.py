@@ -6,8 +6,8 @@ and ~120 mm apart, and pairs closer than a few degrees, the ones that decide whe
 registration iteration comes to rest, are rare. Rendering is cheap here (a 128 x 128 DRR of the
 3 mm pelvis CT takes about 1 ms in a batch), so :class:`OnlinePairs` renders every batch
 from the campaign *file* instead: the same subjects (CTs and their virtual patients, the same
-seeds, so the same anatomies as ``ctxreg simulate``), the same scene, image size and first
-physics entry, and pairs drawn as follows (all angles in degrees, lengths in mm):
+seeds, so the same anatomies as ``ctxreg simulate``), the same scene and image size, the first
+physics entry (or the named ones: targets and currents may differ), and pairs drawn as follows (all angles in degrees, lengths in mm):
 
 * target pose ``T_A``: from the campaign's pose distribution ``[poses]``;
 * current pose ``T_B``: with probability ``1 - near.fraction`` an independent draw from the
@@ -35,7 +35,8 @@ from learn.labels import LabelNormalizer, apply_update, geodesic_label
 #: Spawn key of the batch streams: ``SeedSequence(seed, spawn_key=(KIND_BATCH, k))``.
 KIND_BATCH = 40
 #: Spawn key of the noise and Monte Carlo of batch ``k``'s poly / full images, per subject ``u``:
-#: ``(KIND_BATCH_NOISE, k, u)``.
+#: ``(KIND_BATCH_NOISE, k, u)`` (the targets, and the currents when they share the targets'
+#: physics entry), ``(KIND_BATCH_NOISE, k, u, 1)`` (currents with their own entry).
 KIND_BATCH_NOISE = 41
 
 
@@ -97,6 +98,15 @@ class OnlinePairs:
         transform: a callable on ``(2 B, 1, H, W)`` float32 tensors (targets then currents).
         normalizer: label scaling (default :class:`LabelNormalizer()`).
         seed: batch ``k`` draws from ``SeedSequence(seed, spawn_key=(40, k))``.
+        physics: name of the campaign's ``[[physics]]`` entry of the target images (default: the
+            first entry).
+        current_physics: name of the entry of the current images (default: as the targets). With
+            two entries, e.g. ``full`` targets (scatter, noise) and noise-free ``poly`` currents,
+            the pairs look like a registration's: a realistic X-ray against moving images.
+        subjects_per_batch: draw each batch's pairs from this many distinct subjects (uniformly
+            among them) instead of a subject per pair (default None). Rendering costs a fixed
+            amount per subject and batch, a lot for ``full`` images (one Monte Carlo run per
+            subject): 4 subjects instead of ~16 makes a 32-pair batch about 3x cheaper.
 
     ``batch(k, n)`` returns ``target (n, 1, H, W)``, ``current (n, 1, H, W)`` float32 and the
     normalised label ``(n, 6)`` float32. Subjects are loaded (and virtual patients built) on first
@@ -104,14 +114,29 @@ class OnlinePairs:
     """
 
     def __init__(self, cfg, split: str, *, near: NearPairs | None = None, transform=None,
-                 normalizer: LabelNormalizer | None = None, seed: int = 0):
+                 normalizer: LabelNormalizer | None = None, seed: int = 0, physics: str | None = None,
+                 current_physics: str | None = None, subjects_per_batch: int | None = None):
         self.cfg = cfg
+        entries = {p.name: p for p in cfg.physics}
+        for key, name in (("physics", physics), ("current_physics", current_physics)):
+            if name is not None and name not in entries:
+                raise OnlinePairsError(f"{key} {name!r} is not a physics entry of campaign {cfg.name!r} "
+                                       f"(it has {sorted(entries)})")
+        #: the campaign physics entries of the target and of the current images
+        self.target_entry = entries[physics] if physics is not None else cfg.physics[0]
+        self.current_entry = entries[current_physics] if current_physics is not None else self.target_entry
         self.split = split
         self.subjects = [s for s in cfg.subjects() if s.split == split]
         if not self.subjects:
             splits = sorted({s.split for s in cfg.subjects()})
             raise OnlinePairsError(f"campaign {cfg.name!r} has no subject in split {split!r} (it has {splits})")
         self.near = near if near is not None else NearPairs()
+        if subjects_per_batch is not None and (isinstance(subjects_per_batch, bool)
+                                               or not isinstance(subjects_per_batch, numbers.Integral)
+                                               or not 1 <= subjects_per_batch <= len(self.subjects)):
+            raise OnlinePairsError(f"subjects_per_batch must be an integer in [1, {len(self.subjects)}] (the "
+                                   f"{split} subjects), got {subjects_per_batch!r}")
+        self.subjects_per_batch = subjects_per_batch
         self.transform = transform
         self.normalizer = normalizer or LabelNormalizer()
         self.seed = int(seed)
@@ -133,8 +158,12 @@ class OnlinePairs:
         if n < 1:
             raise OnlinePairsError(f"batch size must be >= 1, got {n}")
         rng = rng_for(self.seed, KIND_BATCH, int(k))
-        subject = rng.integers(0, len(self.subjects), n)
-        sod = self.context(0).renderers[self.cfg.physics[0].name].geometry.sod_mm
+        if self.subjects_per_batch is None:
+            subject = rng.integers(0, len(self.subjects), n)
+        else:
+            chosen = rng.choice(len(self.subjects), self.subjects_per_batch, replace=False)
+            subject = chosen[rng.integers(0, len(chosen), n)]
+        sod = self.context(0).renderers[self.target_entry.name].geometry.sod_mm
         T_a = pose_from_params(self.cfg.poses.sample(rng, n), sod)
         T_b = pose_from_params(self.cfg.poses.sample(rng, n), sod)
         near = rng.random(n) < self.near.fraction
@@ -149,19 +178,24 @@ class OnlinePairs:
         subject, T_a, T_b = self.draw(k, n)
         from sim.campaign.runner import rng_for
 
-        entry = self.cfg.physics[0]
         h, w = self.cfg.scene.size
         images = np.empty((2, n, h, w), np.float32)
+
+        def render(entry, u, poses, stream):
+            renderer = self.context(int(u)).renderers[entry.name]
+            if entry.level in ("poly", "full"):  # fresh noise every batch, reproducible from (seed, k, u)
+                key = (KIND_BATCH_NOISE, int(k), int(u)) + stream
+                return renderer.render(poses, seed=int(rng_for(self.seed, *key).integers(2**63)))
+            return renderer.render(poses)
+
         for u in np.unique(subject):
             rows = np.flatnonzero(subject == u)
-            renderer = self.context(int(u)).renderers[entry.name]
-            poses = np.concatenate([T_a[rows], T_b[rows]])
-            if entry.level in ("poly", "full"):  # fresh noise every batch, reproducible from (seed, k, u)
-                noise_seed = int(rng_for(self.seed, KIND_BATCH_NOISE, int(k), int(u)).integers(2**63))
-                out = renderer.render(poses, seed=noise_seed)
+            if self.current_entry is self.target_entry:  # one launch for both images of the pairs
+                out = render(self.target_entry, u, np.concatenate([T_a[rows], T_b[rows]]), ())
+                images[0, rows], images[1, rows] = out[:len(rows)], out[len(rows):]
             else:
-                out = renderer.render(poses)
-            images[0, rows], images[1, rows] = out[:len(rows)], out[len(rows):]
+                images[0, rows] = render(self.target_entry, u, T_a[rows], ())
+                images[1, rows] = render(self.current_entry, u, T_b[rows], (1,))
         x = torch.from_numpy(images.reshape(2 * n, 1, h, w))
         if self.transform is not None:
             x = self.transform(x)

@@ -46,7 +46,16 @@ class TrainConfig:
         weights: "none" or "imagenet_local" (needs ``weights_path``).
         weights_path: local torchvision DenseNet checkpoint (no download is possible).
         freeze_backbone: train the heads only.
-        physics: campaign physics name of the images (default: the campaign's first).
+        physics: campaign physics name of the images (default: the campaign's first); with
+            ``current_physics``, of the target images only.
+        current_physics: campaign physics name of the *current* images of each pair (online
+            only; default: the same as the targets). Registration compares a realistic X-ray
+            with noise-free moving images, so a network can be trained the same way: e.g. targets
+            with scatter and noise (``full``), currents noise-free ``poly``, and registration
+            then run with ``--physics poly``.
+        subjects_per_batch: online only: each batch's pairs come from this many distinct
+            subjects (default: a subject per pair). Makes ``full`` batches cheaper
+            (:class:`learn.online.OnlinePairs`).
         preprocess: preprocessing step names applied to both images (:mod:`learn.preprocess`).
         batch_size: pairs per step; iterations: optimiser steps in all.
         lr: Adam learning rate; lr_decay / lr_step: multiply the rate by ``lr_decay`` every
@@ -82,6 +91,8 @@ class TrainConfig:
     weights_path: str | None = None
     freeze_backbone: bool = False
     physics: str | None = None
+    current_physics: str | None = None
+    subjects_per_batch: int | None = None
     preprocess: tuple[str, ...] = ("normalize",)
     batch_size: int = 16
     iterations: int = 1000
@@ -152,6 +163,12 @@ class TrainConfig:
         elif self.near_fraction is not None:
             raise TrainConfigError("train.near_fraction needs pairs rendered on the fly: set train.dataset to a "
                                    "campaign .toml file (a campaign folder has fixed images)")
+        if not self.online and self.subjects_per_batch is not None:
+            raise TrainConfigError("train.subjects_per_batch needs pairs rendered on the fly: set train.dataset to "
+                                   "a campaign .toml file")
+        if not self.online and self.current_physics is not None:
+            raise TrainConfigError("train.current_physics needs pairs rendered on the fly: set train.dataset to a "
+                                   "campaign .toml file (a campaign folder's pairs share one physics entry)")
 
 
 def load_train_config(path: str | os.PathLike) -> TrainConfig:
@@ -308,7 +325,8 @@ def train(cfg: TrainConfig, *, resume: bool = False, log=print) -> dict:
             _save_checkpoint(ckpt_path, {"model": model.state_dict(), "optimizer": optimizer.state_dict(),
                                          "scheduler": scheduler.state_dict(), "iteration": iteration,
                                          "rng": _rng_state(), "config": asdict(cfg),
-                                         "image_size": list(source.size), "physics": source.physics})
+                                         "image_size": list(source.size), "physics": source.physics,
+                                         "current_physics": getattr(source, "current_physics", source.physics)})
     _plot(rows, out / "loss.png")
     source.close()
     return last
@@ -440,20 +458,27 @@ class _OnlineSource:
             campaign = load_campaign(cfg.dataset)
         except CampaignConfigError as e:
             raise TrainConfigError(f"train.dataset: {e}") from None
-        if cfg.physics is not None and cfg.physics != campaign.physics[0].name:
-            raise TrainConfigError(f"train.physics = {cfg.physics!r}: online pairs use the campaign's first "
-                                   f"physics entry, {campaign.physics[0].name!r}")
+        entries = {p.name: p for p in campaign.physics}
+        for key in ("physics", "current_physics"):
+            name = getattr(cfg, key)
+            if name is not None and name not in entries:
+                raise TrainConfigError(f"train.{key} = {name!r} is not a [[physics]] entry of {cfg.dataset} "
+                                       f"(it has {sorted(entries)})")
+        target = entries[cfg.physics] if cfg.physics is not None else campaign.physics[0]
+        current = entries[cfg.current_physics] if cfg.current_physics is not None else target
         transform = build(list(cfg.preprocess))
         splits = {s.split for s in campaign.subjects()}
         val_split = "val" if "val" in splits else "test"
         try:
-            self.train = OnlinePairs(campaign, "train", near=cfg.near(), transform=transform, seed=cfg.seed)
-            self.val = OnlinePairs(campaign, val_split, near=cfg.near(), transform=transform, seed=cfg.seed + 1)
+            kw = {"near": cfg.near(), "transform": transform, "physics": target.name, "current_physics": current.name}
+            self.train = OnlinePairs(campaign, "train", seed=cfg.seed, subjects_per_batch=cfg.subjects_per_batch, **kw)
+            self.val = OnlinePairs(campaign, val_split, seed=cfg.seed + 1, **kw)  # all subjects, every batch
         except OnlinePairsError as e:
             raise TrainConfigError(f"train.dataset {cfg.dataset}: {e}") from None
         self._val = None
         self.size = tuple(campaign.scene.size)  # (H, W) pixels
-        self.physics = campaign.physics[0].to_dict()  # the physics entry of the images
+        self.physics = target.to_dict()  # the physics entries of the target and current images
+        self.current_physics = current.to_dict()
 
     forward = staticmethod(_CampaignSource.forward)
 

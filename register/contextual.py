@@ -75,26 +75,31 @@ class NetworkPredictor:
         #: the campaign physics entry of the training images (``{"name", "level", "kvp", ...}``),
         #: or None for checkpoints that do not record it
         self.physics = state.get("physics")
+        #: the physics entry of the training pairs' *current* images (the registration's moving
+        #: images): ``physics`` unless the run set ``train.current_physics``
+        self.current_physics = state.get("current_physics") or self.physics
 
     def physics_mismatch(self, physics) -> str | None:
         """A sentence when the moving images' :class:`~sim.physics.imaging.PhysicsSettings` (None =
-        line) differ from the training images' physics (level, and kVp and filtration for poly and
-        full); None when they agree or the checkpoint does not record its physics."""
-        if self.physics is None:
+        line) differ from the physics of the training pairs' current images (level, and kVp and
+        filtration for poly and full); None when they agree or the checkpoint does not record its
+        physics."""
+        ref = self.current_physics
+        if ref is None:
             return None
         level = "line" if physics is None else physics.level
-        trained = self.physics.get("level", "line")
+        trained = ref.get("level", "line")
         differ = level != trained
         if not differ and level in ("poly", "full"):
             from sim.physics.spectrum import parse_filters
 
-            filters = parse_filters(self.physics.get("filters", ()))  # stored as "SYMBOL:MM" strings
-            differ = (abs(float(self.physics.get("kvp", physics.kvp)) - physics.kvp) > 1e-9
+            filters = parse_filters(ref.get("filters", ()))  # stored as "SYMBOL:MM" strings
+            differ = (abs(float(ref.get("kvp", physics.kvp)) - physics.kvp) > 1e-9
                       or filters != tuple((s, float(t)) for s, t in physics.filters))
         if not differ:
             return None
-        spec = f"{trained}" + (f" at {self.physics.get('kvp'):g} kVp" if trained in ("poly", "full") else "")
-        return (f"the network was trained on {spec} images (campaign physics {self.physics.get('name')!r}) but "
+        spec = f"{trained}" + (f" at {ref.get('kvp'):g} kVp" if trained in ("poly", "full") else "")
+        return (f"the network was trained on {spec} current images (campaign physics {ref.get('name')!r}) but "
                 f"the current images are rendered with {level} physics"
                 + (f" at {physics.kvp:g} kVp" if level in ("poly", "full") else "")
                 + ": its predictions may be off (the domain gap); set --physics to match")

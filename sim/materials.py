@@ -80,13 +80,31 @@ class MaterialDecomposition:
         a = np.array([h for _, h in self.anchors])
         if len(a) == 1:
             return np.ones((1,) + hu.shape)
-        # fractional anchor index, clamped at both ends, then hat weights of its two neighbours
-        pos = np.interp(hu, a, np.arange(len(a), dtype=np.float64))
+        lower, t = self._hat(hu)
+        return self._spread(lower, 1.0 - t, t, hu.shape, np.float64)
+
+    def _hat(self, hu: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Fractional anchor index of each voxel, clamped at both ends: its lower anchor
+        ``(N,)`` and the weight ``t`` ``(N,)`` of the upper one (hat weights of the two)."""
+        a = np.array([h for _, h in self.anchors])
+        pos = np.interp(hu.ravel(), a, np.arange(len(a), dtype=np.float64))
         lower = np.clip(np.floor(pos), 0, len(a) - 2)
-        t = pos - lower
-        m = np.arange(len(a)).reshape((-1,) + (1,) * hu.ndim)
-        return np.where(m == lower, 1.0 - t, 0.0) + np.where(m == lower + 1, t, 0.0)
+        return lower.astype(np.intp), pos - lower
+
+    def _spread(self, lower, w_lower, w_upper, shape, dtype) -> np.ndarray:
+        """``(M, *shape)``: ``w_lower`` in channel ``lower``, ``w_upper`` in ``lower + 1``, else 0
+        (each voxel touches two channels: no (M, N) temporaries)."""
+        out = np.zeros((len(self.anchors), w_lower.size), dtype=dtype)
+        cols = np.arange(w_lower.size)
+        out[lower, cols] = w_lower
+        out[lower + 1, cols] = w_upper
+        return out.reshape((len(self.anchors),) + tuple(shape))
 
     def partial_densities(self, hu: np.ndarray) -> np.ndarray:
         """``(M, *hu.shape)`` float32 partial densities (g/cm^3): fraction x density."""
-        return (self.fractions(hu) * self.density(hu)[None]).astype(np.float32)
+        hu = np.asarray(hu, dtype=np.float64)
+        if len(self.anchors) == 1:
+            return self.density(hu)[None].astype(np.float32)
+        lower, t = self._hat(hu)
+        rho = self.density(hu).ravel()
+        return self._spread(lower, (1.0 - t) * rho, t * rho, hu.shape, np.float32)

@@ -25,6 +25,7 @@ distribution (sampling theta from ``u`` in [0, 1)). Units: keV, radians, cm^2/g,
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 
@@ -118,14 +119,20 @@ class InteractionTables:
     def build(cls, materials, e_max_keV: float, *, e_min_keV: float = 5.0, energy_step_keV: float = 0.5,
               angular_step_keV: float = 2.0, n_theta: int = 721, n_u: int = 2049) -> InteractionTables:
         """Tables from ``e_min_keV`` to at least ``e_max_keV``; ``n_theta`` angles (0.25 deg
-        default), ``n_u`` inverse-CDF nodes."""
-        from sim.physics.materials import KINDS, mass_attenuation
-
+        default), ``n_u`` inverse-CDF nodes. Tables are kept per arguments (a few seconds of
+        xraylib calls each): every subject of a campaign shares one, read-only."""
         materials = tuple(materials)
         if not materials:
             raise PhysicsError("interaction tables need at least one material")
         if not (1.0 <= e_min_keV < e_max_keV <= 1000.0):
             raise PhysicsError(f"energy range [{e_min_keV}, {e_max_keV}] keV must lie in [1, 1000]")
+        return _build_tables(cls, materials, float(e_max_keV), float(e_min_keV), float(energy_step_keV),
+                             float(angular_step_keV), int(n_theta), int(n_u))
+
+    @classmethod
+    def _build(cls, materials, e_max_keV, e_min_keV, energy_step_keV, angular_step_keV, n_theta, n_u):
+        from sim.physics.materials import KINDS, mass_attenuation
+
         n_e = int(math.ceil((e_max_keV - e_min_keV) / energy_step_keV)) + 1
         energies = e_min_keV + energy_step_keV * np.arange(n_e)
         mu = np.stack([np.stack([mass_attenuation(m, energies, k) for m in materials]) for k in KINDS[1:]])
@@ -150,4 +157,12 @@ class InteractionTables:
                     # invert: strictly increasing support for np.interp
                     keep = np.concatenate([[True], np.diff(cdf) > 0])
                     icdf[k, m, a] = np.interp(u, cdf[keep], fine[keep])
-        return cls(materials, energies, mu, e_ang, theta, pdf.astype(np.float32), icdf.astype(np.float32))
+        out = cls(materials, energies, mu, e_ang, theta, pdf.astype(np.float32), icdf.astype(np.float32))
+        for a in (out.energies_keV, out.mu_mass, out.angular_energies_keV, out.theta_rad, out.pdf_sr, out.icdf_theta):
+            a.setflags(write=False)  # shared between callers (see build)
+        return out
+
+
+@functools.lru_cache(maxsize=8)
+def _build_tables(cls, *args) -> InteractionTables:
+    return cls._build(*args)

@@ -11,6 +11,7 @@ dropped; after any realistic filtration there are essentially none.
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 
@@ -95,11 +96,25 @@ def parse_filters(items) -> tuple[tuple[str, float], ...]:
     return tuple(out)
 
 
+@functools.lru_cache(maxsize=32)
+def _spek(kvp: float, anode_angle_deg: float, filters: tuple[tuple[str, float], ...]) -> tuple[np.ndarray, np.ndarray]:
+    """spekpy's spectrum at 0.25 keV steps: ``(keV (N,), photons / cm^2 / mAs / keV at 100 cm (N,))``,
+    read-only and kept per settings (spekpy takes about a second for each)."""
+    import spekpy
+
+    s = spekpy.Spek(kvp=kvp, th=anode_angle_deg, dk=0.25)
+    for sym, mm in filters:
+        if mm > 0:
+            s.filter(sym, mm)
+    k, phi = (np.asarray(a, dtype=np.float64) for a in s.get_spectrum())
+    k.setflags(write=False)
+    phi.setflags(write=False)
+    return k, phi
+
+
 def tube_spectrum(kvp: float = 120.0, *, anode_angle_deg: float = 12.0, filters=(("Al", 2.5),),
                   n_bins: int = DEFAULT_BINS, e_min_keV: float = 10.0) -> Spectrum:
     """The spekpy spectrum of a tungsten tube, binned (see the module doc)."""
-    import spekpy
-
     if not (isinstance(kvp, (int, float)) and 20.0 <= kvp <= 150.0):
         raise PhysicsError(f"kvp must be in [20, 150] kV, got {kvp!r}")
     if not (isinstance(anode_angle_deg, (int, float)) and 1.0 <= anode_angle_deg <= 45.0):
@@ -109,11 +124,7 @@ def tube_spectrum(kvp: float = 120.0, *, anode_angle_deg: float = 12.0, filters=
     if not 1.0 <= e_min_keV < kvp:
         raise PhysicsError(f"e_min_keV must be in [1, kvp), got {e_min_keV}")
     filters = tuple((str(s), float(t)) for s, t in filters)
-    s = spekpy.Spek(kvp=float(kvp), th=float(anode_angle_deg), dk=0.25)
-    for sym, mm in filters:
-        if mm > 0:
-            s.filter(sym, mm)
-    k, phi = s.get_spectrum()  # keV bin centres (dk = 0.25), photons / cm^2 / mAs / keV at 100 cm
+    k, phi = _spek(float(kvp), float(anode_angle_deg), filters)  # keV bin centres (dk = 0.25), photons / cm^2 / mAs / keV at 100 cm
     fine = phi * 0.25 / 100.0  # photons / mm^2 / mAs per fine bin
     edges = np.linspace(e_min_keV, kvp, n_bins + 1)
     idx = np.digitize(k, edges) - 1
@@ -126,11 +137,5 @@ def tube_spectrum(kvp: float = 120.0, *, anode_angle_deg: float = 12.0, filters=
 
 def fine_spectrum(kvp: float = 120.0, *, anode_angle_deg: float = 12.0, filters=(("Al", 2.5),)):
     """spekpy's unbinned spectrum: ``(energies_keV (N,), photons / mm^2 / mAs per 0.25 keV (N,))``."""
-    import spekpy
-
-    s = spekpy.Spek(kvp=float(kvp), th=float(anode_angle_deg), dk=0.25)
-    for sym, mm in filters:
-        if mm > 0:
-            s.filter(sym, float(mm))
-    k, phi = s.get_spectrum()
+    k, phi = _spek(float(kvp), float(anode_angle_deg), tuple((str(s), float(t)) for s, t in filters))
     return k, phi * 0.25 / 100.0

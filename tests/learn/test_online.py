@@ -184,3 +184,109 @@ split = "train"
         residuals.append((target - noiseless.render(T_a)["log"]).ravel())
     assert np.std(residuals[0]) > 0.02  # there is noise (0.001 mAs)
     assert abs(np.corrcoef(residuals[0], residuals[1])[0, 1]) < 0.2
+
+
+TWO_PHYSICS = '''
+[campaign]
+name = "two"
+images_per_ct = 2
+[scene]
+size = [32, 32]
+[[physics]]
+name = "full"
+level = "full"
+mas = 0.01
+scatter_photons = 2000
+[[physics]]
+name = "poly_clean"
+level = "poly"
+noise = false
+[[cts]]
+path = "phantom:0"
+split = "train"
+[[cts]]
+path = "phantom:1"
+split = "train"
+[[cts]]
+path = "phantom:2"
+split = "train"
+'''
+
+
+def test_targets_and_currents_can_have_their_own_physics(tmp_path):
+    """train.physics / current_physics: the targets are the noisy, scattered ``full`` images and
+    the currents exactly the noise-free ``poly`` images of their poses (what a registration's
+    moving images are); with one entry for both, the targets would be noise-free too."""
+    from learn.online import NearPairs, OnlinePairs, OnlinePairsError
+    from sim.campaign import load_campaign
+
+    (tmp_path / "two.toml").write_text(TWO_PHYSICS)
+    cfg = load_campaign(tmp_path / "two.toml")
+    pairs = OnlinePairs(cfg, "train", near=NearPairs(0.5), seed=1, physics="full", current_physics="poly_clean")
+    subject, T_a, T_b = pairs.draw(0, 6)
+    target, current, _ = pairs.batch(0, 6)
+    for i in range(6):
+        clean = pairs.context(int(subject[i])).renderers["poly_clean"]
+        np.testing.assert_array_equal(current[i, 0].numpy(), clean.render(T_b[i:i + 1])[0])
+        residual = target[i, 0].numpy() - clean.render(T_a[i:i + 1])[0]
+        assert np.std(residual) > 0.02  # quantum noise at 0.01 mAs, and scatter
+    assert torch.equal(target, pairs.batch(0, 6)[0])  # reproducible
+    both_clean = OnlinePairs(cfg, "train", near=NearPairs(0.5), seed=1, physics="poly_clean")
+    assert torch.equal(both_clean.batch(0, 6)[1], current)
+    with pytest.raises(OnlinePairsError, match="'poly' is not a physics entry"):
+        OnlinePairs(cfg, "train", current_physics="poly")
+
+
+def test_subjects_per_batch_limits_each_batch_to_that_many_subjects(tmp_path):
+    from learn.online import OnlinePairs, OnlinePairsError
+    from sim.campaign import load_campaign
+
+    (tmp_path / "two.toml").write_text(TWO_PHYSICS)
+    cfg = load_campaign(tmp_path / "two.toml")
+    pairs = OnlinePairs(cfg, "train", seed=0, physics="poly_clean", subjects_per_batch=2)
+    seen = set()
+    for k in range(12):
+        subject = pairs.draw(k, 32)[0]
+        assert len(set(subject.tolist())) == 2
+        seen |= set(subject.tolist())
+    assert seen == {0, 1, 2}  # the chosen subjects change from batch to batch
+    # without the option, a 32-pair batch draws from all three subjects
+    assert len(set(OnlinePairs(cfg, "train", seed=0).draw(0, 32)[0].tolist())) == 3
+    for bad in (0, 4, 1.5, True):
+        with pytest.raises(OnlinePairsError, match="subjects_per_batch"):
+            OnlinePairs(cfg, "train", subjects_per_batch=bad)
+
+
+def test_train_config_checks_the_physics_entries(campaign, tmp_path):
+    import learn.train as tr
+
+    (tmp_path / "two.toml").write_text(TWO_PHYSICS)
+    with pytest.raises(tr.TrainConfigError, match="current_physics needs pairs rendered on the fly"):
+        tr.TrainConfig(dataset=str(campaign.folder), current_physics="poly_clean")
+    with pytest.raises(tr.TrainConfigError, match="subjects_per_batch needs pairs rendered on the fly"):
+        tr.TrainConfig(dataset=str(campaign.folder), subjects_per_batch=2)
+    cfg = tr.TrainConfig(dataset=str(tmp_path / "two.toml"), out=str(tmp_path / "o"), current_physics="clean")
+    with pytest.raises(tr.TrainConfigError, match=r"train.current_physics = 'clean' is not a \[\[physics\]\] entry"):
+        tr.train(cfg, log=lambda *_: None)
+
+
+def test_a_checkpoint_records_the_current_images_physics(tmp_path):
+    """The checkpoint of a run with full targets and poly currents records both entries, and the
+    registration's physics note compares the moving images with the *current* images' entry."""
+    import learn.train as tr
+    from register.contextual import NetworkPredictor
+    from sim.physics.imaging import PhysicsSettings
+
+    (tmp_path / "two.toml").write_text(TWO_PHYSICS)
+    cfg = tr.TrainConfig(dataset=str(tmp_path / "two.toml"), out=str(tmp_path / "o"), backbone="tiny",
+                         batch_size=2, iterations=1, val_pairs=2, val_every=1, checkpoint_every=1,
+                         physics="full", current_physics="poly_clean", subjects_per_batch=1)
+    (tmp_path / "two.toml").write_text(TWO_PHYSICS.replace('split = "train"\n[[cts]]\npath = "phantom:2"\nsplit = "train"',
+                                                           'split = "train"\n[[cts]]\npath = "phantom:2"\nsplit = "val"'))
+    tr.train(cfg, log=lambda *_: None)
+    state = torch.load(tmp_path / "o" / "checkpoint.pt", weights_only=False)
+    assert state["physics"]["name"] == "full" and state["current_physics"]["name"] == "poly_clean"
+    p = NetworkPredictor(str(tmp_path / "o" / "checkpoint.pt"))
+    assert p.physics_mismatch(PhysicsSettings(level="poly")) is None
+    assert "poly at 120 kVp current images" in p.physics_mismatch(PhysicsSettings(level="full"))
+    assert "poly" in p.physics_mismatch(None)

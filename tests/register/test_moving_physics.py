@@ -101,7 +101,7 @@ def test_a_checkpoint_reports_a_physics_mismatch(tmp_path):
                tmp_path / "poly.pt")
     p = NetworkPredictor(str(tmp_path / "poly.pt"))
     assert p.physics_mismatch(PhysicsSettings(level="poly")) is None
-    for moving, words in ((PhysicsSettings(level="full"), "rendered with full physics"),(None, "trained on poly at 120 kVp"), (PhysicsSettings(level="line"), "with line physics"),
+    for moving, words in ((PhysicsSettings(level="full"), "rendered with full physics"),(None, "trained on poly at 120 kVp current images"), (PhysicsSettings(level="line"), "with line physics"),
                           (PhysicsSettings(level="poly", kvp=80.0), "at 80 kVp"),
                           (PhysicsSettings(level="poly", filters=(("Al", 2.5), ("Cu", 0.1))), "poly")):
         msg = p.physics_mismatch(moving)
