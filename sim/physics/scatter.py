@@ -407,8 +407,9 @@ class MonteCarloScatter:
         src = q[:, :3, 3]
         corner = np.einsum("bij,j->bi", q[:, :3, :3], np.array([(-0.5 - cx) * sp, (-0.5 - cy) * sp,
                                                                   geometry.sdd_mm])) + src
-        frames = {"src": src, "corner": corner, "eu": q[:, :3, 0], "ev": q[:, :3, 1], "nrm": q[:, :3, 2]}
-        frames = {k: mi.Vector3f(*(mi.Float(v[:, i].astype(np.float32)) for i in range(3))) for k, v in frames.items()}
+        frames_np = {"src": src, "corner": corner, "eu": q[:, :3, 0], "ev": q[:, :3, 1], "nrm": q[:, :3, 2]}
+        frames = {k: mi.Vector3f(*(mi.Float(v[:, i].astype(np.float32)) for i in range(3)))
+                  for k, v in frames_np.items()}
         area = float(h * w * sp * sp)
         weight = float(photons_per_pixel) * h * w / n_total  # photons per history
         box = np.array(self.shape) * self.voxel_size
@@ -416,8 +417,15 @@ class MonteCarloScatter:
         def V3(*xyz):
             return mi.Vector3f(*(float(c) for c in xyz))
 
+        # one pose: its frame as literals, which the kernels fold in (per-lane gathers of 15
+        # floats cost a one-pose run about a quarter of its throughput)
+        single = None if n_pose > 1 else tuple(V3(*np.asarray(frames_np[k][0], np.float32))
+                                               for k in ("src", "corner", "eu", "ev", "nrm"))
+
         def frame(pose):
             """Per-lane source, corner, eu, ev, normal of the lanes' poses."""
+            if single is not None:
+                return single
             return tuple(dr.gather(mi.Vector3f, frames[k], pose) for k in ("src", "corner", "eu", "ev", "nrm"))
 
         # tallies are reduced in NumPy (float64, fixed order): atomic scatter-adds from parallel
@@ -427,15 +435,17 @@ class MonteCarloScatter:
         def tally(name, pose, cell, value, mask):
             keep = np.array(mask, dtype=bool)
             if keep.any():
-                index = np.array(pose, dtype=np.int64)[keep] * cells + np.array(cell, dtype=np.int64)[keep]
+                index = np.array(cell, dtype=np.int64)[keep]
+                if pose is not None:
+                    index += np.array(pose, dtype=np.int64)[keep] * cells
                 tallies[name] += np.bincount(index, weights=np.array(value, dtype=np.float64)[keep],
                                              minlength=n_pose * cells)
         energy = {k: np.zeros(n_pose) for k in ("emitted", "deposited", "escaped", "truncated")}
 
         def tally_energy(name, pose, x):
             if dr.width(x):
-                energy[name] += np.bincount(np.array(pose, dtype=np.int64), weights=np.array(x, dtype=np.float64),
-                                            minlength=n_pose)
+                lanes = np.zeros(dr.width(x), np.int64) if pose is None else np.array(pose, dtype=np.int64)
+                energy[name] += np.bincount(lanes, weights=np.array(x, dtype=np.float64), minlength=n_pose)
         m_count = len(self.materials)
         grid_r, grid_tp = float(s.grid_ratio), float(s.grid_transmission if s.grid_ratio > 0 else 1.0)
 
@@ -474,14 +484,18 @@ class MonteCarloScatter:
         for launch in launches:
             counts = np.array([n for _, _, n in launch])
             n = int(counts.sum())
-            pose = mi.UInt32(np.repeat([b for b, _, _ in launch], counts).astype(np.uint32))
-            state = mi.UInt64(np.repeat(np.array([st for _, st, _ in launch], dtype=np.uint64), counts))
-            lane = np.arange(n, dtype=np.uint64) - np.repeat(np.cumsum(counts) - counts, counts).astype(np.uint64)
-            # the constructor would add arange(n) to both arguments; seed() takes them as given:
-            # each unit's lanes get (state + i, 2 i), the streams of a one-pose launch
-            rng = mi.PCG32(size=n)
-            local = mi.UInt64(lane)
-            rng.seed(initstate=state + local, initseq=local + local)
+            # the lanes' pose indices (None for a one-pose run: nothing to carry)
+            pose = None if single is not None else mi.UInt32(np.repeat([b for b, _, _ in launch], counts)
+                                                            .astype(np.uint32))
+            # each unit's lanes i get the PCG32 streams (state + i, 2 i)
+            if len(launch) == 1:  # the constructor adds arange(n) to both arguments
+                rng = mi.PCG32(size=n, initstate=mi.UInt64(launch[0][1]), initseq=dr.arange(mi.UInt64, n))
+            else:  # seed() takes them as given
+                state = mi.UInt64(np.repeat(np.array([st for _, st, _ in launch], dtype=np.uint64), counts))
+                lane = np.arange(n, dtype=np.uint64) - np.repeat(np.cumsum(counts) - counts, counts).astype(np.uint64)
+                rng = mi.PCG32(size=n)
+                local = mi.UInt64(lane)
+                rng.seed(initstate=state + local, initseq=local + local)
             # source energies: the bin of u in the spectrum's CDF
             u = rng.next_float32()
             cdf = self._spec_cdf
@@ -507,7 +521,7 @@ class MonteCarloScatter:
             tally("primary", pose, cell0, weight * grid_tp * resp, miss)
             tally_energy("escaped", pose, dr.select(miss, e, 0.0))
             idx = dr.compress(hits)
-            p, d, e, cell0, pose = (dr.gather(type(v), v, idx) for v in (p, d, e, cell0, pose))
+            p, d, e, cell0, pose = _compact(idx, dr, p, d, e, cell0, pose)
             rng = _gather_rng(rng, idx, mi, dr)
             n_scat = dr.zeros(mi.UInt32, dr.width(idx))
             for _ in range(s.max_scatter + 1):
@@ -522,7 +536,7 @@ class MonteCarloScatter:
                 tally("primary", pose, cell0, weight * grid_tp * resp, first)
                 tally_energy("escaped", pose, dr.select(escaped, e, 0.0))
                 idx = dr.compress(collided)
-                p, d, e, cell0, n_scat, pose = (dr.gather(type(v), v, idx) for v in (p, d, e, cell0, n_scat, pose))
+                p, d, e, cell0, n_scat, pose = _compact(idx, dr, p, d, e, cell0, n_scat, pose)
                 rng = _gather_rng(rng, idx, mi, dr)
                 if dr.width(e) == 0:
                     break
@@ -603,7 +617,7 @@ class MonteCarloScatter:
                 tally_energy("truncated", pose, dr.select(alive & last, e, 0.0))
                 dr.eval(p, d, e, n_scat, alive, last)
                 idx = dr.compress(alive & ~last)
-                p, d, e, cell0, n_scat, pose = (dr.gather(type(v), v, idx) for v in (p, d, e, cell0, n_scat, pose))
+                p, d, e, cell0, n_scat, pose = _compact(idx, dr, p, d, e, cell0, n_scat, pose)
                 rng = _gather_rng(rng, idx, mi, dr)
             tally_energy("truncated", pose, e)
         px_per_cell = _pixels_per_cell(h, w, cp)
@@ -681,6 +695,11 @@ def _pixels_per_cell(h: int, w: int, cp: int) -> np.ndarray:
     rows = np.minimum(cp, h - cp * np.arange(-(-h // cp)))
     cols = np.minimum(cp, w - cp * np.arange(-(-w // cp)))
     return rows[:, None] * cols[None, :].astype(np.float64)
+
+
+def _compact(idx, dr, *values):
+    """The lanes ``idx`` of each value (``None`` stays ``None``)."""
+    return tuple(None if v is None else dr.gather(type(v), v, idx) for v in values)
 
 
 def _gather_rng(rng, idx, mi, dr):
