@@ -419,13 +419,16 @@ class MonteCarloScatter:
 
         # one pose: its frame as literals, which the kernels fold in (per-lane gathers of 15
         # floats cost a one-pose run about a quarter of its throughput)
-        single = None if n_pose > 1 else tuple(V3(*np.asarray(frames_np[k][0], np.float32))
+        single = None if n_pose > 1 else tuple(np.asarray(frames_np[k][0], np.float32)
                                                for k in ("src", "corner", "eu", "ev", "nrm"))
 
         def frame(pose):
             """Per-lane source, corner, eu, ev, normal of the lanes' poses."""
             if single is not None:
-                return single
+                # new literals each time: Dr.Jit 1.5 widens a literal 0.0 in place when it is
+                # multiplied by an array, so a frame component that is exactly zero would keep
+                # the width of the first wavefront and clash with the compacted ones
+                return tuple(V3(*v) for v in single)
             return tuple(dr.gather(mi.Vector3f, frames[k], pose) for k in ("src", "corner", "eu", "ev", "nrm"))
 
         # tallies are reduced in NumPy (float64, fixed order): atomic scatter-adds from parallel
