@@ -41,6 +41,12 @@ class AccuracyCommand:
         metavar="FILE.toml"))
     split: str = field(default="val", metadata=opt("split of --campaign", group="input",
                                                    choices=("train", "val", "test")))
+    physics: str | None = field(default=None, metadata=opt(
+        "[[physics]] entry of --campaign for the target images (default: its first)", group="input",
+        metavar="NAME"))
+    current_physics: str | None = field(default=None, metadata=opt(
+        "[[physics]] entry of --campaign for the current images, e.g. noise-free poly beside full targets "
+        "(default: as --physics)", group="input", metavar="NAME"))
     kind: tuple[str, ...] = field(default=("far", "ap", "near"), metadata=opt(
         "pair kinds: far (independent poses), ap (current at AP), near (current close to the target)",
         group="protocol", nargs="+", choices=("far", "ap", "near")))
@@ -66,34 +72,41 @@ def run_accuracy(cmd: AccuracyCommand) -> list[Path]:
     predictor = NetworkPredictor(cmd.model)
     if predictor.size is None:
         raise AccuracyError(f"{cmd.model} does not record its image size (trained before it was stored)")
-    renderers = _accuracy_renderers(cmd, predictor.size)
+    renderers, names, current_settings = _accuracy_renderers(cmd, predictor.size)
+    note = predictor.physics_mismatch(current_settings)
+    if note:
+        print(f"note: {note}")
     errors, results = {}, {}
     for ki, kind in enumerate(cmd.kind):
         parts = []
         counts = np.diff(np.linspace(0, cmd.pairs, len(renderers) + 1).round().astype(int))
-        for si, (renderer, n) in enumerate(zip(renderers, counts)):
+        for si, ((target, current), n) in enumerate(zip(renderers, counts)):
             if n == 0:
                 continue
             rng = np.random.Generator(np.random.PCG64(np.random.SeedSequence(cmd.seed, spawn_key=(30, ki, si))))
-            T_a, T_b = sample_eval_pairs(kind, rng, int(n), renderer.geometry.sod_mm)
-            parts.append(prediction_errors(predictor, renderer, T_a, T_b))
+            T_a, T_b = sample_eval_pairs(kind, rng, int(n), target.geometry.sod_mm)
+            parts.append(prediction_errors(predictor, target, T_a, T_b, current_renderer=current))
         errors[kind] = merge_errors(parts)
         results[kind] = summarize_errors(errors[kind])
     out = Path(cmd.out)
     out.mkdir(parents=True, exist_ok=True)
     source = cmd.ct or f"{cmd.campaign} [{cmd.split}]"
+    images = f"targets {names[0]}, current images {names[1]}"
     table = format_accuracy_table(results)
-    print(f"{cmd.model} on {source} ({len(renderers)} subject(s))\n{table}")
+    print(f"{cmd.model} on {source} ({len(renderers)} subject(s); {images})\n{table}")
     with atomic_path(out / "accuracy.md") as tmp:
-        tmp.write_text(f"Model: `{cmd.model}`; subjects: `{source}` ({len(renderers)}); "
+        tmp.write_text(f"Model: `{cmd.model}`; subjects: `{source}` ({len(renderers)}); {images}; "
                        f"{cmd.pairs} pairs per kind, seed {cmd.seed}.\n\n{table}")
     write_json(out / "accuracy.json", {"model": cmd.model, "source": source, "subjects": len(renderers),
+                                       "physics": names[0], "current_physics": names[1], "note": note,
                                        "pairs": cmd.pairs, "seed": cmd.seed, "results": results})
     accuracy_figure(errors, out / "accuracy.png", title=f"single-prediction errors: {Path(source).name}")
     return [out / "accuracy.md", out / "accuracy.json", out / "accuracy.png"]
 
 
-def _accuracy_renderers(cmd: AccuracyCommand, size) -> list:
+def _accuracy_renderers(cmd: AccuracyCommand, size) -> tuple[list, tuple[str, str], object]:
+    """Per subject ``(target renderer, current renderer)``; the two images' physics names; the
+    current images' :class:`~sim.physics.imaging.PhysicsSettings` (None for line DRRs)."""
     from learn.evaluate import AccuracyError
     from sim.render import DRRRenderer, RenderSettings
 
@@ -101,8 +114,12 @@ def _accuracy_renderers(cmd: AccuracyCommand, size) -> list:
         from sim.anatomy import anatomy_center
         from sim.ct_io import load_ct_spec
 
+        if cmd.physics is not None or cmd.current_physics is not None:
+            raise AccuracyError("--physics and --current-physics name [[physics]] entries of --campaign; "
+                                "with --ct both images are line DRRs")
         volume = load_ct_spec(cmd.ct)
-        return [DRRRenderer(volume, RenderSettings(size=tuple(size)), center_lps=anatomy_center(volume))]
+        drr = DRRRenderer(volume, RenderSettings(size=tuple(size)), center_lps=anatomy_center(volume))
+        return [(drr, drr)], ("line DRRs", "line DRRs"), None
     from dataclasses import replace
 
     from sim.campaign.config import load_campaign
@@ -113,4 +130,13 @@ def _accuracy_renderers(cmd: AccuracyCommand, size) -> list:
     subjects = [s for s in campaign.subjects() if s.split == cmd.split]
     if not subjects:
         raise AccuracyError(f"{cmd.campaign} has no subject in split {cmd.split!r}")
-    return [next(iter(SubjectContext(campaign, s).renderers.values())) for s in subjects]
+    entries = [p.name for p in campaign.physics]
+    for option, name in (("--physics", cmd.physics), ("--current-physics", cmd.current_physics)):
+        if name is not None and name not in entries:
+            raise AccuracyError(f"{option} {name!r} is not a [[physics]] entry of {cmd.campaign} (it has {entries})")
+    target = cmd.physics if cmd.physics is not None else entries[0]
+    current = cmd.current_physics if cmd.current_physics is not None else target
+    contexts = [SubjectContext(campaign, s) for s in subjects]
+    entry = next(p for p in campaign.physics if p.name == current)
+    settings = entry.settings() if entry.level in ("poly", "full") else None
+    return [(c.renderers[target], c.renderers[current]) for c in contexts], (target, current), settings

@@ -56,12 +56,15 @@ def sample_eval_pairs(kind: str, rng: np.random.Generator, n: int, sod_mm: float
     return T_a, T_b
 
 
-def prediction_errors(predictor, renderer, T_a: np.ndarray, T_b: np.ndarray) -> dict[str, np.ndarray]:
+def prediction_errors(predictor, renderer, T_a: np.ndarray, T_b: np.ndarray, *,
+                      current_renderer=None) -> dict[str, np.ndarray]:
     """Per-pair errors ``{output: (rot_deg (n,), trans_mm (n,))}`` of a
-    :class:`register.contextual.NetworkPredictor` on the renderer's DRRs at ``T_a``, ``T_b``."""
+    :class:`register.contextual.NetworkPredictor` on target images at ``T_a`` ``(n, 4, 4)`` from
+    ``renderer`` and current images at ``T_b`` from ``current_renderer`` (default: the same)."""
     from learn.labels import geodesic_label
 
-    ia, ib = renderer.render(T_a), renderer.render(T_b)
+    ia = renderer.render(T_a)
+    ib = (renderer if current_renderer is None else current_renderer).render(T_b)
     true = geodesic_label(torch.from_numpy(T_a), torch.from_numpy(T_b)).numpy()
     model, norm = predictor.model, predictor.normalizer
     preds, levels = [], []

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import csv
+import json
 import math
 
 import numpy as np
@@ -290,3 +291,24 @@ def test_a_checkpoint_records_the_current_images_physics(tmp_path):
     assert p.physics_mismatch(PhysicsSettings(level="poly")) is None
     assert "poly at 120 kVp current images" in p.physics_mismatch(PhysicsSettings(level="full"))
     assert "poly" in p.physics_mismatch(None)
+    # ctxreg accuracy on the same pairs as a registration sees them: full targets, poly currents
+    from learn.commands import AccuracyCommand, run_accuracy
+    from learn.evaluate import AccuracyError
+
+    def accuracy(out, **kw):
+        run_accuracy(AccuracyCommand(model=str(tmp_path / "o" / "checkpoint.pt"), campaign=str(tmp_path / "two.toml"),
+                                     kind=("ap",), pairs=3, out=str(tmp_path / out), **kw))
+        return json.loads((tmp_path / out / "accuracy.json").read_text())
+
+    mixed = accuracy("acc_mixed", physics="full", current_physics="poly_clean")
+    same = accuracy("acc_full", physics="full")
+    assert (mixed["physics"], mixed["current_physics"], mixed["note"]) == ("full", "poly_clean", None)
+    assert same["current_physics"] == "full" and "poly at 120 kVp current images" in same["note"]
+    # the same poses (the baselines agree), but other current images (the predictions do not)
+    assert mixed["results"]["ap"]["zero_baseline"] == same["results"]["ap"]["zero_baseline"]
+    assert mixed["results"]["ap"]["weighted_sum"] != same["results"]["ap"]["weighted_sum"]
+    with pytest.raises(AccuracyError, match="'clean' is not a \\[\\[physics\\]\\] entry"):
+        accuracy("x", current_physics="clean")
+    with pytest.raises(AccuracyError, match="with --ct both images are line DRRs"):
+        run_accuracy(AccuracyCommand(model=str(tmp_path / "o" / "checkpoint.pt"), ct="phantom:0", physics="full",
+                                     out=str(tmp_path / "y")))
