@@ -165,3 +165,25 @@ def test_init_from_starts_a_run_from_a_checkpoints_weights(campaign, tmp_path):
         train(config(campaign, tmp_path / "d", init_from=str(tmp_path / "none.pt"), **tiny_step))
     with pytest.raises(TrainConfigError, match="head_channels = 64, this run 32"):
         train(config(campaign, tmp_path / "e", init_from=str(a_path), head_channels=32, **tiny_step))
+
+
+def test_shipped_training_configs_load_and_chain_up():
+    """Every file in configs/ is a valid training config; the campaign entries it names exist;
+    a fine-tuning config starts from the output of another shipped config (a typo in a path or
+    an entry name would otherwise surface only an hour into a recipe)."""
+    from pathlib import Path
+
+    from learn.train import load_train_config
+    from sim.campaign import load_campaign
+
+    configs = sorted((Path(__file__).resolve().parents[2] / "configs").glob("*.toml"))
+    assert len(configs) >= 4
+    loaded = {path.name: load_train_config(path) for path in configs}
+    outs = {str(Path(cfg.out) / "checkpoint.pt") for cfg in loaded.values()}
+    for name, cfg in loaded.items():
+        if cfg.dataset.endswith(".toml"):
+            entries = {p.name for p in load_campaign(cfg.dataset).physics}
+            for key in ("physics", "current_physics"):
+                assert getattr(cfg, key) in entries | {None}, f"{name}: train.{key}"
+        if cfg.init_from is not None:
+            assert cfg.init_from in outs, f"{name}: init_from is no shipped config's output"
