@@ -130,13 +130,14 @@ def _accuracy_renderers(cmd: AccuracyCommand, size) -> tuple[list, tuple[str, st
     subjects = [s for s in campaign.subjects() if s.split == cmd.split]
     if not subjects:
         raise AccuracyError(f"{cmd.campaign} has no subject in split {cmd.split!r}")
-    entries = [p.name for p in campaign.physics]
+    entries = {p.name: p for p in campaign.physics}
     for option, name in (("--physics", cmd.physics), ("--current-physics", cmd.current_physics)):
         if name is not None and name not in entries:
-            raise AccuracyError(f"{option} {name!r} is not a [[physics]] entry of {cmd.campaign} (it has {entries})")
-    target = cmd.physics if cmd.physics is not None else entries[0]
+            raise AccuracyError(f"{option} {name!r} is not a [[physics]] entry of {cmd.campaign} "
+                                f"(it has {list(entries)})")
+    target = cmd.physics if cmd.physics is not None else campaign.physics[0].name
     current = cmd.current_physics if cmd.current_physics is not None else target
     contexts = [SubjectContext(campaign, s) for s in subjects]
-    entry = next(p for p in campaign.physics if p.name == current)
+    entry = entries[current]
     settings = entry.settings() if entry.level in ("poly", "full") else None
     return [(c.renderers[target], c.renderers[current]) for c in contexts], (target, current), settings
