@@ -1,14 +1,26 @@
 """X-ray reading: DICOM round trips, MONOCHROME1, rescale, spacing tags, real compressed DICOM, Pillow
-formats, bad inputs, and the C-arm geometry for an image (explicit > DICOM tags > scene)."""
+formats, bad inputs, the C-arm geometry for an image (explicit > DICOM tags > scene) with the source
+of each value and the refusal of contradicting tags, intensity tags, and the writer's options."""
 
 from __future__ import annotations
+
+import json
 
 import numpy as np
 import pydicom
 import pytest
 from PIL import Image
 
-from register.xray_io import XRayImage, XRayInputError, geometry_for, load_xray, write_xray_dicom
+from register.xray_io import (
+    INTENSITY_TAG_KEYS,
+    GeometrySources,
+    XRayImage,
+    XRayInputError,
+    geometry_for,
+    load_xray,
+    resolve_geometry,
+    write_xray_dicom,
+)
 from sim.scene import load_scene
 from tests.conftest import shared_file
 
@@ -286,3 +298,309 @@ def test_missing_geometry_names_the_missing_value(tmp_path):
         geometry_for(x, scene=None, pixel_spacing_mm=0.5, sdd_mm=1000.0)
     g = geometry_for(x, scene=None, pixel_spacing_mm=0.5, sdd_mm=1000.0, sod_mm=700.0)
     assert (g.height, g.width) == (100, 200)
+
+
+# ------------------------------------------------------------------ geometry sources (resolve_geometry)
+
+ERMF = "EstimatedRadiographicMagnificationFactor"
+SCENE = "scene 'cios_fusion' (assumed)"
+CIOS = load_scene("cios_fusion").geometry  # SDD 1020, SOD 700, 1536 x 1536 x 0.194 mm
+
+
+def _dcm(tmp_path, name="g.dcm", shape=(8, 8), pixel_spacing_mm=0.3, **kw):
+    return write_xray_dicom(tmp_path / name, _ramp(*shape), pixel_spacing_mm=pixel_spacing_mm, **kw)
+
+
+def _edit(path, **tags):
+    """Set (value) or blank (None / "") tags of a written file with pydicom, then save it."""
+    ds = pydicom.dcmread(path)
+    for k, v in tags.items():
+        setattr(ds, k, v)
+    ds.save_as(path)
+    return path
+
+
+def test_sources_for_tag_scene_and_the_one_line_summary(tmp_path):
+    x = load_xray(_dcm(tmp_path, sdd_mm=1020.0))
+    g, src = resolve_geometry(x)
+    assert isinstance(src, GeometrySources)
+    assert (g.sdd_mm, g.sod_mm, g.pixel_spacing_mm) == (1020.0, CIOS.sod_mm, 0.3)
+    assert (src.sdd_mm, src.sdd_source) == (1020.0, "DICOM DistanceSourceToDetector")
+    assert (src.sod_mm, src.sod_source) == (700.0, SCENE)
+    assert (src.pixel_spacing_mm, src.pixel_spacing_source) == (0.3, "DICOM ImagerPixelSpacing")
+    assert src.assumed == ["sod_mm"]
+    assert src.line() == (
+        "geometry: SDD 1020 mm (DICOM DistanceSourceToDetector), SOD 700 mm (scene 'cios_fusion' "
+        "(assumed)), pixel 0.300 mm (DICOM ImagerPixelSpacing)"
+    )
+    d = json.loads(json.dumps(src.to_dict()))
+    assert d["sod_source"] == SCENE and d["assumed"] == ["sod_mm"] and d["pixel_spacing_mm"] == 0.3
+    assert geometry_for(x) == g  # the thin wrapper gives the same geometry
+
+
+def test_flags_override_tags_and_are_reported_as_flags(tmp_path):
+    x = load_xray(_dcm(tmp_path, sdd_mm=1100.0, sod_mm=650.0, magnification_factor=1100 / 650))
+    g, src = resolve_geometry(x, sdd_mm=900.0, sod_mm=450.0, pixel_spacing_mm=0.25)
+    assert (g.sdd_mm, g.sod_mm, g.pixel_spacing_mm) == (900.0, 450.0, 0.25)
+    sources = (src.sdd_source, src.sod_source, src.pixel_spacing_source)
+    assert sources == ("flag --sdd", "flag --sod", "flag --pixel-spacing")
+    assert src.assumed == []
+    line = src.line()
+    assert "\n" not in line and all(w in line for w in ("SDD 900 mm", "SOD 450 mm", "pixel 0.250 mm"))
+
+
+def test_all_from_the_tags(tmp_path):
+    x = load_xray(_dcm(tmp_path, sdd_mm=1100.0, sod_mm=650.0))
+    _, src = resolve_geometry(x)
+    assert (src.sdd_source, src.sod_source, src.pixel_spacing_source) == (
+        "DICOM DistanceSourceToDetector", "DICOM DistanceSourceToPatient", "DICOM ImagerPixelSpacing")
+    assert (src.sdd_mm, src.sod_mm, src.pixel_spacing_mm) == (1100.0, 650.0, 0.3) and src.assumed == []
+
+
+def test_sod_derived_from_sdd_and_the_magnification_factor(tmp_path):
+    x = load_xray(_dcm(tmp_path, sdd_mm=1000.0, magnification_factor=1.25))
+    assert x.sod_mm is None  # the field keeps what the file says; the derivation is resolve_geometry's
+    g, src = resolve_geometry(x)
+    assert g.sod_mm == src.sod_mm == pytest.approx(1000.0 / 1.25, rel=1e-12)
+    assert src.sod_source == "DICOM DistanceSourceToDetector / EstimatedRadiographicMagnificationFactor"
+    assert src.assumed == []
+    # an SDD from a flag (or the scene) is divided by the file's factor too, and says so
+    _, s2 = resolve_geometry(x, sdd_mm=1200.0)
+    assert s2.sod_mm == pytest.approx(960.0) and s2.sod_source == f"flag --sdd / DICOM {ERMF}"
+    _, s3 = resolve_geometry(load_xray(_dcm(tmp_path, "m.dcm", magnification_factor=1.5)))
+    assert s3.sod_mm == pytest.approx(CIOS.sdd_mm / 1.5) and s3.sod_source == f"{SCENE} / DICOM {ERMF}"
+    assert s3.assumed == ["sdd_mm", "sod_mm"]
+
+
+def test_detector_element_spacing_and_binning(tmp_path):
+    x = load_xray(_dcm(tmp_path, "de.dcm", imager_pixel_spacing=False, detector_element_spacing_mm=0.15))
+    assert x.pixel_spacing_mm is None and x.meta["geometry_tags"]["DetectorElementSpacing"] == [0.15, 0.15]
+    _, src = resolve_geometry(x)
+    assert (src.pixel_spacing_mm, src.pixel_spacing_source) == (0.15, "DICOM DetectorElementSpacing")
+    # ImagerPixelSpacing = 2 x 2 binning of the elements: consistent, and preferred
+    binned = _dcm(tmp_path, "bin.dcm", pixel_spacing_mm=0.3, detector_element_spacing_mm=0.15)
+    _, s2 = resolve_geometry(load_xray(binned))
+    assert (s2.pixel_spacing_mm, s2.pixel_spacing_source) == (0.3, "DICOM ImagerPixelSpacing")
+    # within the tolerances: 0.5 % below the element pitch, 1 % from a multiple
+    for ips in (0.14925, 0.303):
+        resolve_geometry(load_xray(_dcm(tmp_path, "tol.dcm", pixel_spacing_mm=ips, detector_element_spacing_mm=0.15)))
+
+
+def test_spacing_from_patient_plane_pixel_spacing_times_the_magnification_factor(tmp_path):
+    imager, m = 0.3, 1.2
+    path = _dcm(tmp_path, "ps.dcm", pixel_spacing_mm=imager, imager_pixel_spacing=False,
+                patient_pixel_spacing_mm=imager / m, magnification_factor=m, sdd_mm=1000.0)
+    ds = pydicom.dcmread(path)
+    assert "ImagerPixelSpacing" not in ds and ds.PixelSpacingCalibrationType == "GEOMETRY"
+    x = load_xray(path)
+    assert x.meta["pixel_spacing_tag"] == "PixelSpacing"
+    g, src = resolve_geometry(x)
+    assert src.pixel_spacing_source == f"DICOM PixelSpacing x {ERMF}"
+    assert g.pixel_spacing_mm == src.pixel_spacing_mm == pytest.approx(imager, rel=1e-9)
+    assert src.sod_mm == pytest.approx(1000.0 / m)
+    # without the calibration type the PixelSpacing is taken as it is
+    _edit(path, PixelSpacingCalibrationType=None)
+    _, s2 = resolve_geometry(load_xray(path))
+    assert s2.pixel_spacing_source == "DICOM PixelSpacing" and s2.pixel_spacing_mm == pytest.approx(imager / m)
+    # calibrated to the patient plane but no factor to undo it: used as it is, with a note
+    _edit(path, PixelSpacingCalibrationType="GEOMETRY", EstimatedRadiographicMagnificationFactor=None)
+    _, s3 = resolve_geometry(load_xray(path))
+    assert s3.pixel_spacing_source == "DICOM PixelSpacing" and "PixelSpacingCalibrationType" in s3.notes[0]
+
+
+def test_image_without_dicom_tags_offers_its_own_fields():
+    x = XRayImage(np.ones((10, 20), np.float32), sdd_mm=1000.0, sod_mm=600.0, pixel_spacing_mm=0.4)
+    _, src = resolve_geometry(x, scene=None)
+    assert (src.sdd_source, src.sod_source, src.pixel_spacing_source) == (
+        "XRayImage.sdd_mm", "XRayImage.sod_mm", "XRayImage.pixel_spacing_mm")
+
+
+IPS_DES = ["ImagerPixelSpacing", "DetectorElementSpacing"]
+
+
+@pytest.mark.parametrize(
+    "tags, flags, words",
+    [
+        (dict(sdd_mm=800.0, sod_mm=900.0), {}, ["SOD 900", "DistanceSourceToPatient", "SDD 800", "DistanceSourceToDetector"]),
+        (dict(sdd_mm=1000.0), dict(sod_mm=1200.0), ["flag --sod", "DICOM DistanceSourceToDetector"]),
+        (dict(sdd_mm=1000.0, magnification_factor=1.0), {}, [ERMF, "DistanceSourceToDetector", ">="]),
+        (dict(sdd_mm=1000.0, magnification_factor=0.8), {}, [ERMF, "< 1"]),
+        (dict(sdd_mm=1000.0, sod_mm=500.0, magnification_factor=1.5), {},
+         [ERMF, "DistanceSourceToDetector", "DistanceSourceToPatient", "25.0%"]),
+        (dict(pixel_spacing_mm=0.14, detector_element_spacing_mm=0.15), {}, [*IPS_DES, "smaller"]),
+        (dict(pixel_spacing_mm=0.148, detector_element_spacing_mm=0.15), {}, [*IPS_DES, "smaller"]),
+        (dict(pixel_spacing_mm=0.2, detector_element_spacing_mm=0.15), {}, [*IPS_DES, "integer multiple"]),
+        (dict(pixel_spacing_mm=0.31, detector_element_spacing_mm=0.15), {}, [*IPS_DES, "integer multiple"]),
+    ],
+    ids=["sod>=sdd-tags", "sod-flag>=sdd-tag", "ermf=1", "ermf<1", "ermf-vs-distances", "ips<des",
+         "ips<des-1.3%", "ips-not-binning", "ips-binning-3.3%-off"],
+)
+def test_contradictions_raise_naming_both(tmp_path, tags, flags, words):
+    spacing = tags.pop("pixel_spacing_mm", 0.3)
+    x = load_xray(_dcm(tmp_path, pixel_spacing_mm=spacing, **tags))
+    with pytest.raises(XRayInputError) as e:
+        resolve_geometry(x, **flags)
+    msg = str(e.value)
+    assert "\n" not in msg and str(x.source) in msg
+    for w in words:
+        assert w in msg, (w, msg)
+
+
+def test_a_flag_settles_a_contradiction_between_tags(tmp_path):
+    x = load_xray(_dcm(tmp_path, "e.dcm", sdd_mm=1000.0, sod_mm=500.0, magnification_factor=1.5))
+    g, src = resolve_geometry(x, sod_mm=1000.0 / 1.5)
+    assert src.sod_source == "flag --sod" and src.sdd_source == "DICOM DistanceSourceToDetector"
+    assert g.sod_mm == pytest.approx(666.6667, rel=1e-6)
+    # 1 % off: not a contradiction
+    resolve_geometry(load_xray(_dcm(tmp_path, "ok.dcm", sdd_mm=1000.0, sod_mm=500.0, magnification_factor=1.98)))
+    y = load_xray(_dcm(tmp_path, "b.dcm", pixel_spacing_mm=0.2, detector_element_spacing_mm=0.15))
+    _, s2 = resolve_geometry(y, pixel_spacing_mm=0.2)
+    assert s2.pixel_spacing_source == "flag --pixel-spacing"
+
+
+def test_empty_geometry_tags_are_absent_and_everything_comes_from_the_scene(tmp_path):
+    path = _dcm(tmp_path, "empty.dcm", sdd_mm=1000.0, sod_mm=600.0, magnification_factor=1000 / 600,
+                detector_element_spacing_mm=0.15, patient_pixel_spacing_mm=0.18)
+    blank = ["DistanceSourceToDetector", "DistanceSourceToPatient", ERMF, "ImagerPixelSpacing",
+             "DetectorElementSpacing", "PixelSpacing", "PixelSpacingCalibrationType"]
+    _edit(path, **{k: None for k in blank})
+    ds = pydicom.dcmread(path)
+    assert all(k in ds and ds[k].is_empty for k in blank)  # present, but empty (as in raw files)
+    x = load_xray(path)
+    assert all(v is None for v in x.meta["geometry_tags"].values()) and x.meta["ignored_tags"] == []
+    assert (x.sdd_mm, x.sod_mm, x.pixel_spacing_mm) == (None, None, None)
+    g, src = resolve_geometry(x)
+    assert src.assumed == ["sdd_mm", "sod_mm", "pixel_spacing_mm"]
+    assert (src.sdd_source, src.sod_source, src.pixel_spacing_source) == (SCENE, SCENE, SCENE)
+    assert (g.sdd_mm, g.sod_mm) == (CIOS.sdd_mm, CIOS.sod_mm)
+    assert g.pixel_spacing_mm == pytest.approx(CIOS.detector_size_mm[1] / 8, rel=1e-12)
+
+
+def test_non_positive_and_non_finite_tags_are_ignored_and_named(tmp_path):
+    path = _dcm(tmp_path, "neg.dcm", sdd_mm=1000.0, sod_mm=600.0, magnification_factor=1.5)
+    _edit(path, DistanceSourceToDetector="-5", EstimatedRadiographicMagnificationFactor="0",
+          ImagerPixelSpacing=["0", "0.3"])
+    with pytest.warns(UserWarning):  # pydicom warns about the invalid DS value
+        _edit(path, DistanceSourceToPatient="nan")
+    x = load_xray(path)
+    assert sorted(x.meta["ignored_tags"]) == sorted(
+        ["DistanceSourceToDetector", "DistanceSourceToPatient", ERMF, "ImagerPixelSpacing"])
+    _, src = resolve_geometry(x)
+    assert src.assumed == ["sdd_mm", "sod_mm", "pixel_spacing_mm"]
+
+
+# ------------------------------------------------------------------------------ intensity tags
+
+
+@pytest.mark.parametrize("modality, sop", [("DX", "1.2.840.10008.5.1.4.1.1.1.1"), ("XA", "1.2.840.10008.5.1.4.1.1.7"),
+                                           ("RF", "1.2.840.10008.5.1.4.1.1.7")])
+def test_intensity_tags_round_trip(tmp_path, modality, sop):
+    path = write_xray_dicom(tmp_path / "i.dcm", _ramp() % 4096, pixel_spacing_mm=0.3, bits_stored=12, modality=modality,
+                            pixel_intensity_relationship="LOG", pixel_intensity_sign=-1,
+                            presentation_lut_shape="IDENTITY", window=(2000.0, 3500.5))
+    x = load_xray(path)
+    t = x.meta["intensity_tags"]
+    assert tuple(t) == INTENSITY_TAG_KEYS
+    assert t == {
+        "PhotometricInterpretation": "MONOCHROME2",
+        "PresentationLUTShape": "IDENTITY",
+        "PixelIntensityRelationship": "LOG",
+        "PixelIntensityRelationshipSign": -1,
+        "RescaleType": "US",
+        "VOILUT": True,
+        "WindowCenter": 2000.0,
+        "WindowWidth": 3500.5,
+        "Modality": modality,
+        "PresentationIntentType": "FOR PRESENTATION",
+        "BitsStored": 12,
+        "SOPClassUID": sop,
+    }
+    assert json.loads(json.dumps(t)) == t and not x.meta["inverted"] and x.meta["inverted_by"] is None
+
+
+def test_intensity_tags_absent_are_none_and_non_dicom_has_none(tmp_path):
+    t = load_xray(_dcm(tmp_path, attenuation_bright=False)).meta["intensity_tags"]
+    assert t["VOILUT"] is False and t["PresentationIntentType"] == "FOR PROCESSING" and t["BitsStored"] == 16
+    for k in ("PresentationLUTShape", "PixelIntensityRelationship", "PixelIntensityRelationshipSign",
+              "WindowCenter", "WindowWidth"):
+        assert t[k] is None
+    Image.fromarray(np.zeros((4, 4), np.uint8)).save(tmp_path / "z.png")
+    np.save(tmp_path / "z.npy", np.zeros((4, 4)))
+    assert load_xray(tmp_path / "z.png").meta["intensity_tags"] is None
+    assert load_xray(tmp_path / "z.npy").meta["intensity_tags"] is None
+
+
+def test_monochrome2_with_inverse_presentation_lut_loads_inverted(tmp_path):
+    px = _ramp()
+    m2 = load_xray(write_xray_dicom(tmp_path / "m2.dcm", px, pixel_spacing_mm=0.2))
+    inv = load_xray(write_xray_dicom(tmp_path / "inv.dcm", px, pixel_spacing_mm=0.2, presentation_lut_shape="INVERSE"))
+    assert inv.meta["inverted"] and inv.meta["inverted_by"] == "PresentationLUTShape INVERSE"
+    np.testing.assert_array_equal(inv.pixels, m2.pixels.max() + m2.pixels.min() - m2.pixels)
+    # MONOCHROME1 (+ INVERSE, as the DX IOD pairs them) is inverted once only
+    m1 = load_xray(write_xray_dicom(tmp_path / "m1.dcm", px, pixel_spacing_mm=0.2, monochrome1=True,
+                                    presentation_lut_shape="INVERSE"))
+    assert m1.meta["inverted_by"] == "MONOCHROME1"
+    np.testing.assert_array_equal(m1.pixels, inv.pixels)
+
+
+def test_12_bit_round_trip_within_half_a_quantum(tmp_path):
+    rng = np.random.default_rng(2)
+    px = rng.uniform(-1.0, 3.0, (16, 20))
+    path = write_xray_dicom(tmp_path / "b12.dcm", px, pixel_spacing_mm=0.5, bits_stored=12)
+    ds = pydicom.dcmread(path)
+    assert (ds.BitsAllocated, ds.BitsStored, ds.HighBit) == (16, 12, 11)
+    assert ds.pixel_array.min() == 0 and ds.pixel_array.max() == 4095  # the automatic slope fills 12 bits
+    x = load_xray(path)
+    quantum = (px.max() - px.min()) / 4095
+    assert np.abs(x.pixels - px).max() <= quantum / 2 + 1e-6
+    assert x.meta["bits_stored"] == 12
+    with pytest.raises(XRayInputError, match="12-bit"):
+        write_xray_dicom(tmp_path / "big.dcm", np.full((4, 4), 5000, np.uint16), pixel_spacing_mm=0.5, bits_stored=12)
+
+
+def test_writer_without_spacing_tags(tmp_path):
+    ds = pydicom.dcmread(write_xray_dicom(tmp_path / "n.dcm", _ramp(4, 4), pixel_spacing_mm=None))
+    assert not any(k in ds for k in ("ImagerPixelSpacing", "PixelSpacing", "DetectorElementSpacing", ERMF))
+    with pytest.raises(XRayInputError, match="modality"):
+        write_xray_dicom(tmp_path / "ct.dcm", _ramp(4, 4), pixel_spacing_mm=None, modality="CT")
+
+
+# ------------------------------------------------------------------------- real DICOM: tags
+
+
+def _real_dicoms():
+    folder = shared_file(f"{PAED}/dicoms")
+    paths = sorted(folder.glob("*.dcm"))
+    if not paths:
+        pytest.skip(f"no .dcm files in {folder}")
+    return paths
+
+
+def test_real_dicoms_intensity_tags_and_geometry_sources():
+    for path in _real_dicoms():
+        ds = pydicom.dcmread(path, stop_before_pixels=True)
+        x = load_xray(path)
+        t = x.meta["intensity_tags"]
+        assert tuple(t) == INTENSITY_TAG_KEYS
+        assert t["Modality"] == str(ds.Modality) and t["PhotometricInterpretation"] == str(ds.PhotometricInterpretation)
+        assert t["SOPClassUID"] == str(ds.SOPClassUID) and t["BitsStored"] == int(ds.BitsStored)
+        g, src = resolve_geometry(x)
+        # what the file holds decides each source: these files have PixelSpacing only, no distances
+        expect_sdd = "DICOM DistanceSourceToDetector" if ds.get("DistanceSourceToDetector") else SCENE
+        assert src.sdd_source == expect_sdd
+        if ds.get("DistanceSourceToPatient"):
+            assert src.sod_source == "DICOM DistanceSourceToPatient"
+        elif ds.get(ERMF):
+            assert src.sod_source.endswith(ERMF)
+        else:
+            assert src.sod_source == SCENE
+        if ds.get("ImagerPixelSpacing"):
+            assert src.pixel_spacing_source == "DICOM ImagerPixelSpacing"
+        elif ds.get("PixelSpacing") and not ds.get("PixelSpacingCalibrationType"):
+            assert src.pixel_spacing_source == "DICOM PixelSpacing"
+            assert src.pixel_spacing_mm == float(ds.PixelSpacing[1])
+        assert (g.height, g.width) == x.shape and g.pixel_spacing_mm == src.pixel_spacing_mm
+        line = src.line()
+        assert line.startswith("geometry: SDD ") and "\n" not in line
+        assert set(src.assumed) == {n for n, s in [("sdd_mm", src.sdd_source), ("sod_mm", src.sod_source),
+                                                   ("pixel_spacing_mm", src.pixel_spacing_source)] if "(assumed)" in s}
