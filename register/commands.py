@@ -137,11 +137,22 @@ class RegisterCommand:
     scatter_voxel: float = physics_option("scatter_voxel")
     grid_ratio: float = physics_option("grid_ratio")
     label_material: tuple[str, ...] = physics_option("label_material")
-    preprocess: tuple[str, ...] = field(default=("crop", "median", "normalize"), metadata=opt(
-        "preprocessing steps in order (crop, median, log, normalize, invert); add 'log' for raw "
-        "detector intensities", group="image", nargs="*"))
+    preprocess: tuple[str, ...] = field(default=("field", "median", "intensity", "normalize", "crop"), metadata=opt(
+        "preprocessing steps in order: field (collimated field, text and saturation -> valid-pixel mask), "
+        "median, intensity (decides raw / log / display and bone bright / dark, then log and/or invert), "
+        "log, invert, normalize (over the mask), crop (to the mask)", group="image", nargs="*"))
+    intensity: str = field(default="auto", metadata=opt(
+        "what the pixel values are: linear (raw detector intensity: takes the log), log, display "
+        "(a vendor's LUT); auto decides from the DICOM tags, then the image", group="image",
+        choices=("auto", "linear", "log", "display")))
+    polarity: str = field(default="auto", metadata=opt(
+        "bone in the image as displayed: bone-bright (radiograph) or bone-dark (fluoroscopy, raw); auto "
+        "decides from the DICOM tags, then DRRs of the CT around the start, then the image", group="image",
+        choices=("auto", "bone-bright", "bone-dark")))
     out: str = field(default="out/register", metadata=opt(
-        "folder for result.json, overlay.png, convergence.png (and trajectory.npz, trajectory.png for the contextual methods)", group="output", metavar="DIR"))
+        "folder for result.json, overlay.png (DRR edges and the field outline over the X-ray at its full "
+        "resolution), checkerboard.png, convergence.png (and trajectory.npz, trajectory.png for the "
+        "contextual methods)", group="output", metavar="DIR"))
 
 
 def _parse_init(values: tuple[str, ...]) -> np.ndarray:
@@ -158,78 +169,50 @@ def _parse_init(values: tuple[str, ...]) -> np.ndarray:
     return x
 
 
-def fit_to_size(image: np.ndarray, mask: np.ndarray | None, geometry, longer: int):
-    """Centre-crop and resample ``image`` so its longer side is ``longer`` px (a multiple of 4).
-
-    Pixels stay square: the crop removes the fraction of a pixel that keeps both sides an exact
-    multiple of the new spacing. Returns (image, mask, geometry) with the geometry's spacing
-    and principal point moved accordingly.
-    """
-    from dataclasses import replace
-
-    from scipy import ndimage
-
-    h, w = image.shape
-    f = max(h, w) / float(longer)  # old pixels per new pixel
-    H = max(4, int(round(h / f / 4)) * 4)
-    W = max(4, int(round(w / f / 4)) * 4)
-    f = min(h / H, w / W)
-    ch, cw = H * f, W * f
-    y0, x0 = (h - ch) / 2.0, (w - cw) / 2.0
-    rows = y0 + (np.arange(H) + 0.5) * f - 0.5
-    cols = x0 + (np.arange(W) + 0.5) * f - 0.5
-    smooth = ndimage.gaussian_filter(image.astype(np.float64), sigma=max(f / 2.0 - 0.5, 0.0))
-    rr, cc = np.meshgrid(rows, cols, indexing="ij")
-    out = ndimage.map_coordinates(smooth, [rr, cc], order=1, mode="nearest")
-    new_mask = None
-    if mask is not None:
-        new_mask = ndimage.map_coordinates(mask.astype(np.float64), [rr, cc], order=1, mode="nearest") > 0.999
-    cx, cy = geometry.principal_point
-    geom = replace(geometry, height=H, width=W, pixel_spacing_mm=geometry.pixel_spacing_mm * f,
-                   cx=(cx - x0 + 0.5) / f - 0.5, cy=(cy - y0 + 0.5) / f - 0.5)
-    return out, new_mask, geom
-
-
 def run_register(cmd: RegisterCommand) -> list[Path]:
     import sys
     from dataclasses import asdict
 
-    from register.cmaes import CMAESRegistration, CMAESSettings, RegistrationError
-    from register.plots import convergence_plot, overlay_png
-    from register.preprocess import Pipeline, cropped_geometry
-    from register.xray_io import geometry_for, load_xray
+    from register.cmaes import XRAY_SEARCH, CMAESRegistration, CMAESSettings, RegistrationError
+    from register.plots import checkerboard_png, convergence_plot, overlay_png
+    from register.prepare import confirm_polarity, prepare_xray
+    from register.xray_io import load_xray
     from sim.anatomy import anatomy_center
     from sim.atomic import write_json
     from sim.ct_io import load_ct_spec
-
     from sim.physics.options import check_level_options, label_materials, physics_settings
+    from sim.render import DRRRenderer, RenderSettings
 
     init = _parse_init(cmd.init)
     check_level_options(cmd)
     physics = physics_settings(cmd, noise=False)
     materials = label_materials(cmd)
+    steps = [str(n).strip().lower() for n in cmd.preprocess]
+    if cmd.method != "cmaes" and cmd.model is None:
+        raise RegistrationError(f"--method {cmd.method} needs a trained model: --model CHECKPOINT")
     volume = load_ct_spec(cmd.ct, label_map=cmd.label_map)
     center = np.asarray(cmd.center, float) if cmd.center is not None else anatomy_center(volume)
     xray = load_xray(cmd.xray)
-    geometry = geometry_for(xray, cmd.scene, sdd_mm=cmd.sdd, sod_mm=cmd.sod, pixel_spacing_mm=cmd.pixel_spacing)
-    image, mask, record = Pipeline.from_names(list(cmd.preprocess)).apply(xray.pixels)
-    geometry = cropped_geometry(geometry, record)  # a crop moves the principal point
-    if not xray.attenuation_bright and "invert" not in cmd.preprocess and "log" not in cmd.preprocess:
-        raise RegistrationError(f"{xray.source}: raw detector data (bone dark): add 'log' to --preprocess")
-    image, mask, geometry = fit_to_size(image, mask, geometry, cmd.size)
+    if not xray.attenuation_bright and not {"intensity", "log", "invert"} & set(steps):
+        raise RegistrationError(f"{xray.source}: raw detector data (bone dark): add 'intensity' or 'log' to --preprocess")
+    prepared = prepare_xray(xray, volume=volume, center_lps=center, init_params=init, scene=cmd.scene, steps=steps,
+                            scale=cmd.intensity, polarity=cmd.polarity, size=cmd.size, sdd_mm=cmd.sdd,
+                            sod_mm=cmd.sod, pixel_spacing_mm=cmd.pixel_spacing)
+    prepared = confirm_polarity(prepared, volume, center, init, physics=physics, label_materials=materials)
+    print(prepared.sources.line())
+    for line in _input_lines(prepared):
+        print(line)
+    image, mask, geometry = prepared.image, prepared.mask, prepared.geometry
     size = (geometry.height, geometry.width)
     if cmd.method == "cmaes":
-        engine = CMAESRegistration(volume, CMAESSettings(size=size), scene=cmd.scene, geometry=geometry,
+        engine = CMAESRegistration(volume, CMAESSettings(size=size, **XRAY_SEARCH), scene=cmd.scene, geometry=geometry,
                                    center_lps=center, physics=physics, label_materials=materials)
         result = engine.register(image, init, mask=mask)
-        drr = engine.render(result.params)[0]
     else:
         from dataclasses import replace
 
         from register.contextual import REFINE_SETTINGS, ContextualRegistration, ContextualSettings, NetworkPredictor
 
-        if cmd.model is None:
-            raise RegistrationError(f"--method {cmd.method} needs a trained model: --model CHECKPOINT")
         refine = replace(REFINE_SETTINGS, size=size) if cmd.method == "contextual+cmaes" else None
         predictor = NetworkPredictor(cmd.model)
         mismatch = predictor.physics_mismatch(physics)
@@ -238,8 +221,7 @@ def run_register(cmd: RegisterCommand) -> list[Path]:
         engine = ContextualRegistration(volume, predictor, ContextualSettings(keep_drrs=True),
                                         size=size, scene=cmd.scene, geometry=geometry, center_lps=center,
                                         refine=refine, physics=physics, label_materials=materials)
-        result = engine.register(image, init)
-        drr = engine.renderer.render(result.pose)[0]
+        result = engine.register(image, init, mask=mask)
     out = Path(cmd.out)
     written = []
     if result.trajectory is not None:
@@ -252,11 +234,17 @@ def run_register(cmd: RegisterCommand) -> list[Path]:
                                     drrs=result.trajectory["drrs"].astype(np.float32), xray=image.astype(np.float32))
         trajectory_figure(image, result.trajectory["drrs"], result.trajectory["params"], out / "trajectory.png")
         written = [out / "trajectory.npz", out / "trajectory.png"]
-    overlay_png(image, drr, out / "overlay.png")
+    # figures at the X-ray's own resolution: a line DRR with the X-ray's full geometry (its edges
+    # are those of any physics level)
+    full = prepared.full_geometry
+    full_drr = DRRRenderer(volume, RenderSettings(size=(full.height, full.width)), center_lps=center,
+                           geometry=full).render(result.pose)[0]
+    overlay_png(xray.pixels, full_drr, out / "overlay.png", mask=prepared.full_mask)
+    checkerboard_png(prepared.full_image, full_drr, out / "checkerboard.png", mask=prepared.full_mask)
     convergence_plot(result.history, out / "convergence.png")
     write_json(out / "result.json", {
         **result.to_dict(), "method": cmd.method, "ct": volume.source, "xray": xray.source, "init_params": init.tolist(),
-        "anatomy_center_lps_mm": center.tolist(), "preprocessing": record,
+        "anatomy_center_lps_mm": center.tolist(), "xray_input": prepared.summary(), "preprocessing": prepared.record,
         "moving_physics": {**asdict(physics), "label_materials": {str(k): v for k, v in (materials or {}).items()}},
         "geometry": {"sdd_mm": geometry.sdd_mm, "sod_mm": geometry.sod_mm, "height": geometry.height,
                      "width": geometry.width, "pixel_spacing_mm": geometry.pixel_spacing_mm,
@@ -264,4 +252,25 @@ def run_register(cmd: RegisterCommand) -> list[Path]:
     })
     print(f"similarity {result.similarity:.4f} after {result.renders} renders; pose: "
           + " ".join(f"{v:.2f}" for v in result.params))
-    return [out / "result.json", out / "overlay.png", out / "convergence.png", *written]
+    return [out / "result.json", out / "overlay.png", out / "checkerboard.png", out / "convergence.png", *written]
+
+
+def _input_lines(prepared) -> list[str]:
+    """One line each for the field and the intensity decision (what a user should check first)."""
+    lines = []
+    fld = prepared.step("field")
+    if fld is not None:
+        kind = fld.get("kind")
+        outside = f", {fld.get('outside')} outside" if fld.get("outside") else ""
+        lines.append(f"field: {kind}{outside}; {100 * fld.get('valid_fraction', 0):.0f} % of the pixels valid")
+    dec = prepared.step("intensity")
+    if dec is not None:
+        steps = " + ".join(dec["steps"]) or "nothing"
+        lines.append(f"intensity: {dec['scale']} ({dec['scale_source']}), {dec['polarity']} "
+                     f"({dec['polarity_source']}): {steps}")
+    check = prepared.step("polarity_check")
+    if check is not None:
+        verdict = "inverted the image" if check["inverted"] else "confirmed"
+        lines.append(f"polarity check by registration: {verdict} (similarity {check['similarity_as_decided']:.3f} "
+                     f"as decided, {check['similarity_inverted']:.3f} inverted): {check['polarity']}")
+    return lines

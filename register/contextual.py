@@ -141,12 +141,26 @@ class ContextualRegistration:
                                             center_lps=self.center_lps, physics=physics,
                                             label_materials=label_materials)
 
-    def register(self, fixed: np.ndarray, init_params=np.zeros(6)) -> RegistrationResult:
+    def register(self, fixed: np.ndarray, init_params=np.zeros(6), *, mask: np.ndarray | None = None
+                 ) -> RegistrationResult:
+        """Register ``fixed`` ``(H, W)`` (preprocessed like the DRRs: bone bright) from ``init_params``
+        (deg, mm). ``mask`` ``(H, W)`` bool: the valid pixels (collimated field). The predictor then
+        sees both images with the pixels outside the mask filled by the valid pixels' mean
+        (:func:`register.prepare.masked_fill`: no contrast of its own, and the same field edge in
+        both images, so the edge says nothing about the pose); CMA-ES and the final similarity
+        use the valid pixels only."""
         from learn.labels import apply_update
+        from register.prepare import masked_fill
         from sim.geometry import params_from_pose, pose_from_params
 
         s = self.settings
         fixed = np.asarray(fixed, np.float64)
+        if mask is not None:
+            mask = np.asarray(mask, bool)
+            if mask.shape != fixed.shape or not mask.any():
+                raise RegistrationError(f"mask: expected a non-empty bool array of shape {fixed.shape}, "
+                                        f"got {mask.shape} with {int(mask.sum())} valid pixels")
+        net_fixed = masked_fill(fixed, mask)
         T = pose_from_params(np.asarray(init_params, float).reshape(6), self.geometry.sod_mm)
         history, drrs, visited, grads = [], [], [], []
         t0 = time.perf_counter()
@@ -156,7 +170,7 @@ class ContextualRegistration:
             renders += 1
             if s.keep_drrs:
                 drrs.append(drr)
-            g = np.asarray(self.predictor(fixed, drr), float).reshape(6)
+            g = np.asarray(self.predictor(net_fixed, masked_fill(drr, mask)), float).reshape(6)
             if not np.all(np.isfinite(g)):
                 raise RegistrationError(f"the predictor returned a non-finite gradient {g.tolist()}")
             params_now = params_from_pose(T, self.geometry.sod_mm)
@@ -174,7 +188,7 @@ class ContextualRegistration:
         if s.keep_drrs:
             trajectory["drrs"] = np.array(drrs)
         if self.refine is not None:
-            res = self.refine.register(fixed, params)
+            res = self.refine.register(fixed, params, mask=mask)
             res.stage_seconds = {**stages, **{f"cmaes_{k}": v for k, v in res.stage_seconds.items()}}
             res.history = history + res.history
             res.renders += renders
@@ -182,7 +196,7 @@ class ContextualRegistration:
             return res
         from register.metrics import gradient_ncc
 
-        sim_value = float(gradient_ncc(fixed, self.renderer.render(T))[0])
+        sim_value = float(gradient_ncc(fixed, self.renderer.render(T), mask=mask)[0])
         return RegistrationResult(params=params, pose=T, projection=self.renderer.projection_matrix(T),
                                   similarity=sim_value, renders=renders + 1, stage_seconds=stages,
                                   history=history, trajectory=trajectory)

@@ -7,25 +7,79 @@ from pathlib import Path
 import numpy as np
 
 
-def _window(img: np.ndarray) -> np.ndarray:
-    lo, hi = np.percentile(img, (0.5, 99.5))
+def _window(img: np.ndarray, mask: np.ndarray | None = None) -> np.ndarray:
+    """``img`` mapped to [0, 1] by the 0.5 / 99.5 percentiles of the valid pixels."""
+    v = img if mask is None or not mask.any() else img[mask]
+    lo, hi = np.percentile(v, (0.5, 99.5))
     return np.clip((img - lo) / max(hi - lo, 1e-12), 0, 1)
 
 
-def overlay_png(xray: np.ndarray, drr: np.ndarray, path: str | Path) -> None:
-    """The X-ray in grey with the DRR's strongest edges (top 8 % of Sobel magnitude) in red."""
-    from PIL import Image
+def drr_edges(drr: np.ndarray, mask: np.ndarray | None = None) -> np.ndarray:
+    """``(H, W)`` bool: the DRR's edges (Canny; sigma 1 px per 256 px of the image's longer side,
+    thresholds at the 80th / 95th percentile of the gradient magnitude), inside ``mask`` only."""
+    from skimage.feature import canny
+
+    sigma = max(1.0, max(drr.shape) / 256.0)
+    edges = canny(np.asarray(drr, float), sigma=sigma, low_threshold=0.80, high_threshold=0.95,
+                  use_quantiles=True)
+    return edges if mask is None else edges & mask
+
+
+def _outline(mask: np.ndarray) -> np.ndarray:
+    """The one-pixel boundary of ``mask`` (its pixels next to an invalid one)."""
     from scipy import ndimage
+
+    return mask & ~ndimage.binary_erosion(mask, border_value=0)
+
+
+def _thicken(a: np.ndarray, px: int) -> np.ndarray:
+    from scipy import ndimage
+
+    return ndimage.binary_dilation(a, iterations=px) if px > 0 else a
+
+
+def overlay_png(xray: np.ndarray, drr: np.ndarray, path: str | Path, mask: np.ndarray | None = None) -> None:
+    """The X-ray in grey (windowed over the valid pixels) with the DRR's edges in red and the
+    valid-pixel mask's outline in cyan, at the resolution of ``xray`` ``(H, W)`` (``drr`` the same
+    shape: render it with the X-ray's own geometry). Lines are 1 px per 512 px of the longer side."""
+    from PIL import Image
 
     from sim.atomic import atomic_path
 
-    grey = _window(np.asarray(xray, float))
-    mag = np.hypot(ndimage.sobel(drr, 0), ndimage.sobel(drr, 1))
-    edges = mag > np.percentile(mag, 92)
+    xray = np.asarray(xray, float)
+    if drr.shape != xray.shape:
+        raise ValueError(f"overlay: the DRR {drr.shape} must have the X-ray's shape {xray.shape}")
+    width = max(0, int(max(xray.shape) // 512))
+    grey = _window(xray, mask)
     rgb = np.stack([grey] * 3, -1)
-    rgb[edges] = (1.0, 0.15, 0.1)
+    rgb[_thicken(drr_edges(drr, mask), width)] = (1.0, 0.15, 0.1)
+    if mask is not None and not mask.all():
+        rgb[_thicken(_outline(mask), width)] = (0.1, 0.9, 1.0)
     with atomic_path(path) as tmp:
         Image.fromarray((rgb * 255 + 0.5).astype(np.uint8)).save(tmp, format="PNG")
+
+
+def checkerboard_png(xray: np.ndarray, drr: np.ndarray, path: str | Path, mask: np.ndarray | None = None,
+                     tiles: int = 8) -> None:
+    """Alternating square tiles (``tiles`` along the longer side) of the preprocessed X-ray and the
+    DRR, each windowed over the valid pixels (so both are bone bright on the same grey scale);
+    pixels outside ``mask`` are dimmed to a quarter. Continuous structures across tile borders
+    mean a good registration."""
+    from PIL import Image
+
+    from sim.atomic import atomic_path
+
+    xray = np.asarray(xray, float)
+    if drr.shape != xray.shape:
+        raise ValueError(f"checkerboard: the DRR {drr.shape} must have the X-ray's shape {xray.shape}")
+    a, b = _window(xray, mask), _window(np.asarray(drr, float), mask)
+    side = max(1, int(np.ceil(max(xray.shape) / tiles)))
+    i, j = np.indices(xray.shape)
+    img = np.where(((i // side) + (j // side)) % 2 == 0, a, b)
+    if mask is not None:
+        img = np.where(mask, img, 0.25 * img)
+    with atomic_path(path) as tmp:
+        Image.fromarray((img * 255 + 0.5).astype(np.uint8)).save(tmp, format="PNG")
 
 
 def convergence_plot(history, path: str | Path) -> None:

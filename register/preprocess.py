@@ -6,20 +6,24 @@ JSON-serialisable list with one entry per step, ``{"step": name, "params": {...}
 {...}}`` (the crop box, the chosen ``I0``, the normalisation percentiles, ...), so a run can say
 exactly what was done to its input.
 
-Steps (names for :meth:`Pipeline.from_names` in brackets):
+Steps (names for :meth:`Pipeline.from_names` in brackets), in the order of :data:`DEFAULT_STEPS`:
 
-* :class:`CropBorder` (``crop``): removes near-constant border rows/columns (a frame, padding or a
-  collimator shadow) from the image edges; the crop box goes into the record, and
-  :func:`crop_box` / :func:`cropped_geometry` turn it into the detector geometry of the cropped
-  image (principal point ``cx - col0``, ``cy - row0``).
+* :class:`Field` (``field``): detects the collimated field (circle, rectangle, polygon, off-centre;
+  black or white outside) and excludes burned-in text, markers and saturated or empty plateaus;
+  the result is the valid-pixel mask that travels with the image (:mod:`register.field`).
 * :class:`Median` (``median``): ``size x size`` median filter (salt-and-pepper / dead pixels).
+* :class:`Intensity` (``intensity``): decides whether the pixels are raw intensity, log or
+  display-processed, bone bright or dark (DICOM tags, the CT, the image: :mod:`register.intensity`)
+  and applies ``log`` and / or ``invert`` accordingly; the decision and its evidence are recorded.
 * :class:`LogCorrect` (``log``): ``-ln(I / I0)``; turns *transmitted intensity* (bone dark) into
   line-integral-like values (bone bright, air ~ 0), like a DRR. ``I0`` (the unattenuated intensity)
-  is a high percentile of the image when not given. Only meaningful for transmission images
-  (``XRayImage.attenuation_bright`` False); display images (bone bright) skip it.
+  is a high percentile of the valid pixels when not given.
 * :class:`Normalize` (``normalize``): maps the ``low_pct`` / ``high_pct`` percentiles to 0 and 1
   and clips to ``[0, 1]``.
 * :class:`Invert` (``invert``): ``max + min - value`` (same range, reversed).
+* :class:`Crop` (``crop``): crops to the valid pixels' bounding box (a consequence of the mask);
+  :func:`crop_box` / :func:`cropped_geometry` turn the record into the detector geometry of the
+  cropped image (principal point ``cx - col0``, ``cy - row0``).
 
 Percentiles and statistics use the valid (mask) pixels only. Images leave the pipeline as float32.
 """
@@ -39,7 +43,10 @@ from sim.geometry import CArmGeometry
 __all__ = [
     "PreprocessError",
     "Step",
-    "CropBorder",
+    "Field",
+    "Crop",
+    "Intensity",
+    "DEFAULT_STEPS",
     "Median",
     "LogCorrect",
     "Normalize",
@@ -90,74 +97,106 @@ class Step:
 
 
 @dataclass(frozen=True)
-class CropBorder(Step):
-    """Crop near-constant rows/columns at the image edges (frame, padding, collimator shadow).
+class Field(Step):
+    """Detect the collimated field of view and exclude what is not anatomy (:mod:`register.field`).
 
-    Statistics are taken on a 3 x 3 median-filtered copy (robust to isolated noisy pixels). A row
-    is *border* when the standard deviation of its valid pixels (across the columns kept so far) is
-    at most ``std_frac`` times the median row standard deviation of the central half of the rows;
-    rows with fewer than 2 valid pixels are border too. Columns likewise. Border rows/columns are
-    removed from each edge inward up to the first non-border one, at most ``max_frac`` of the size
-    per edge. The first pass measures rows over the central half of the columns (and columns over
-    the central half of the rows), so bands on the other axis do not hide a border; passes repeat
-    with the found box until it no longer changes. An image without structure (zero reference
-    standard deviation) is left uncropped.
+    The valid-pixel mask becomes the detected field (circle, rectangle, polygon or the whole
+    image) eroded by ``margin_px``, minus burned-in text, rulers and markers and saturated or empty
+    plateaus; with a mask given, the two are intersected. The image is unchanged. Run it first:
+    it reads the stored values as the vendor painted them. Measured: :meth:`register.field.Field.to_dict`
+    (kind, outside colour, shape parameters, excluded pixel counts, valid fraction).
+    """
 
-    Measured: ``crop_box = [row0, row1, col0, col1]`` (half-open: ``image[row0:row1, col0:col1]``,
-    in this step's input pixels), ``reference_std``.
+    name: ClassVar[str] = "field"
+    margin_px: float = 2.0
+
+    def __post_init__(self) -> None:
+        _num(self.margin_px, "field.margin_px", lo=0.0, hi=50.0)
+
+    def apply(self, image, mask):
+        from register.field import FieldSettings, detect_field
+
+        found = detect_field(image, FieldSettings(margin_px=float(self.margin_px)))
+        out = found.mask if mask is None else (mask & found.mask)
+        if not out.any():
+            raise PreprocessError("field: no valid pixel is left inside the detected field and the given mask")
+        return image, out, found.to_dict()
+
+
+@dataclass(frozen=True)
+class Crop(Step):
+    """Crop to the bounding box of the valid pixels, ``margin_px`` wider on each side (clipped).
+
+    Cropping follows the mask (a detected field): it only spends the optimiser's pixels on the
+    field. Without a mask, nothing is cropped. Measured: ``crop_box = [row0, row1, col0, col1]``
+    (half-open, this step's input pixels), ``input_shape``.
     """
 
     name: ClassVar[str] = "crop"
-    std_frac: float = 0.1
-    max_frac: float = 0.4
+    margin_px: int = 2
 
     def __post_init__(self) -> None:
-        _num(self.std_frac, "crop.std_frac", lo=0.0)
-        _num(self.max_frac, "crop.max_frac", lo=0.0, hi=0.5)
-
-    def _edges(self, stats: np.ndarray, valid: np.ndarray, across: slice, central: slice) -> tuple[int, int, float]:
-        """Border extent along axis 0 of ``stats``, measured over columns ``across``."""
-        s = stats[:, across]
-        v = valid[:, across]
-        n = v.sum(axis=1)
-        mean = np.where(n > 0, (s * v).sum(axis=1) / np.maximum(n, 1), 0.0)
-        var = np.where(n > 1, (((s - mean[:, None]) ** 2) * v).sum(axis=1) / np.maximum(n, 1), 0.0)
-        std = np.sqrt(var)
-        central_std = std[central][n[central] > 1]
-        ref = float(np.median(central_std)) if central_std.size else 0.0
-        if ref <= 0.0:
-            return 0, stats.shape[0], ref
-        border = (n < 2) | (std <= self.std_frac * ref)
-        limit = int(math.floor(self.max_frac * stats.shape[0]))
-        lead = 0
-        while lead < limit and border[lead]:
-            lead += 1
-        trail = 0
-        while trail < limit and border[stats.shape[0] - 1 - trail]:
-            trail += 1
-        return lead, stats.shape[0] - trail, ref
+        if isinstance(self.margin_px, bool) or not isinstance(self.margin_px, (int, np.integer)) or self.margin_px < 0:
+            raise PreprocessError(f"crop.margin_px: must be a non-negative integer (pixels), got {self.margin_px!r}")
 
     def apply(self, image, mask):
         H, W = image.shape
-        stats = ndimage.median_filter(image, size=3, mode="nearest")
-        valid = np.ones_like(image, dtype=bool) if mask is None else mask
-        rows = slice(H // 4, H - H // 4)
-        cols = slice(W // 4, W - W // 4)
-        box = None
-        ref_r = ref_c = 0.0
-        for _ in range(5):
-            r0, r1, ref_r = self._edges(stats, valid, cols, slice(H // 4, H - H // 4))
-            c0, c1, ref_c = self._edges(stats.T, valid.T, rows, slice(W // 4, W - W // 4))
-            new = (r0, r1, c0, c1)
-            if new == box:
-                break
-            box = new
-            rows, cols = slice(r0, r1), slice(c0, c1)
-        r0, r1, c0, c1 = box  # type: ignore[misc]
+        if mask is None:
+            box = [0, H, 0, W]
+        else:
+            rows, cols = np.nonzero(mask.any(axis=1))[0], np.nonzero(mask.any(axis=0))[0]
+            m = int(self.margin_px)
+            box = [max(0, int(rows[0]) - m), min(H, int(rows[-1]) + 1 + m),
+                   max(0, int(cols[0]) - m), min(W, int(cols[-1]) + 1 + m)]
+        r0, r1, c0, c1 = box
         out_mask = None if mask is None else mask[r0:r1, c0:c1]
-        measured = {"crop_box": [r0, r1, c0, c1], "reference_std": [ref_r, ref_c],
-                    "input_shape": [H, W]}
-        return image[r0:r1, c0:c1], out_mask, measured
+        return image[r0:r1, c0:c1], out_mask, {"crop_box": box, "input_shape": [H, W]}
+
+
+@dataclass(frozen=True)
+class Intensity(Step):
+    """Make the pixels line-integral-like (bone bright) from what they are (:mod:`register.intensity`).
+
+    Decides the scale (``linear`` raw intensity, ``log``, ``display``) and the polarity
+    (``bone-bright`` / ``bone-dark``) from the DICOM ``tags``, the CT ``reference`` (DRRs) and the
+    image (valid pixels only), unless ``scale`` / ``polarity`` are given, then applies
+    :class:`LogCorrect` (linear) and / or :class:`Invert` (bone dark). ``tags``: the reader's
+    ``meta["intensity_tags"]``; ``inverted``: whether the reader inverted the stored values;
+    ``bits``: the stored bit depth. Measured: the decision with its evidence, and the records of
+    the steps it applied.
+    """
+
+    name: ClassVar[str] = "intensity"
+    scale: str = "auto"
+    polarity: str = "auto"
+    tags: dict | None = dataclasses.field(default=None, compare=False, repr=False)
+    inverted: bool = False
+    bits: int | None = None
+    reference: Any = dataclasses.field(default=None, compare=False, repr=False)
+
+    def __post_init__(self) -> None:
+        from register.intensity import POLARITIES, SCALES
+
+        if self.scale != "auto" and self.scale not in SCALES:
+            raise PreprocessError(f"intensity.scale: 'auto' or one of {', '.join(SCALES)}, got {self.scale!r}")
+        if self.polarity != "auto" and self.polarity not in POLARITIES:
+            raise PreprocessError(
+                f"intensity.polarity: 'auto' or one of {', '.join(POLARITIES)}, got {self.polarity!r}")
+
+    def params(self) -> dict[str, Any]:
+        return {"scale": self.scale, "polarity": self.polarity, "inverted": bool(self.inverted),
+                "bits": self.bits, "ct_reference": self.reference is not None}
+
+    def apply(self, image, mask):
+        from register.intensity import decide
+
+        decision = decide(image, mask, tags=self.tags, inverted=self.inverted, scale=self.scale,
+                          polarity=self.polarity, reference=self.reference, bits=self.bits)
+        applied = []
+        for step in (STEPS[n]() for n in decision.steps()):
+            image, mask, measured = step.apply(image, mask)
+            applied.append({"step": step.name, "params": step.params(), "measured": _jsonable(measured)})
+        return image, mask, {**decision.to_dict(), "applied": applied}
 
 
 @dataclass(frozen=True)
@@ -256,7 +295,10 @@ class Invert(Step):
 
 
 #: Step names for :meth:`Pipeline.from_names` -> step classes (built with their defaults).
-STEPS: dict[str, type[Step]] = {cls.name: cls for cls in (CropBorder, Median, LogCorrect, Normalize, Invert)}
+STEPS: dict[str, type[Step]] = {cls.name: cls for cls in (Field, Median, Intensity, LogCorrect, Normalize, Invert, Crop)}
+
+#: The default preprocessing of ``ctxreg register``: right for raw and display-processed frames alike.
+DEFAULT_STEPS = ("field", "median", "intensity", "normalize", "crop")
 
 
 def _jsonable(obj: Any) -> Any:
@@ -289,16 +331,20 @@ class Pipeline:
         object.__setattr__(self, "steps", steps)
 
     @classmethod
-    def from_names(cls, names: Iterable[str]) -> Pipeline:
-        """Steps by name with default parameters, e.g. ``["crop", "median", "log", "normalize"]``."""
+    def from_names(cls, names: Iterable[str], options: dict[str, dict[str, Any]] | None = None) -> Pipeline:
+        """Steps by name, e.g. ``["field", "median", "intensity", "normalize", "crop"]``.
+
+        ``options``: keyword arguments per step name (e.g. ``{"intensity": {"tags": ...}}``);
+        steps not named there get their defaults."""
         if isinstance(names, str):
             names = [names]
+        options = options or {}
         steps = []
         for n in names:
             key = str(n).strip().lower()
             if key not in STEPS:
                 raise PreprocessError(f"unknown preprocessing step {n!r}; valid steps: {', '.join(STEPS)}")
-            steps.append(STEPS[key]())
+            steps.append(STEPS[key](**options.get(key, {})))
         return cls(tuple(steps))
 
     @property

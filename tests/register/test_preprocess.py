@@ -1,5 +1,6 @@
-"""Preprocessing steps against known truth: border widths, salt noise, -log of a known I0 exp(-L),
-percentile mapping; the pipeline record and the geometry of a cropped image."""
+"""Preprocessing steps against known truth: frames found by the field step and cropped to, salt
+noise, -log of a known I0 exp(-L), percentile mapping, the intensity step; the pipeline record and
+the geometry of a cropped image."""
 
 from __future__ import annotations
 
@@ -11,7 +12,10 @@ from scipy import ndimage
 
 from register.preprocess import (
     STEPS,
-    CropBorder,
+    DEFAULT_STEPS,
+    Crop,
+    Field,
+    Intensity,
     Invert,
     LogCorrect,
     Median,
@@ -46,39 +50,77 @@ def _framed(top=12, bottom=0, left=20, right=7, seed=0):
     return img, (top, h - bottom, left, w - right)
 
 
-# -------------------------------------------------------------------------------- CropBorder
+# --------------------------------------------------------------------------- Field and Crop
 
 
-@pytest.mark.parametrize("widths", [(12, 0, 20, 7), (0, 9, 0, 15), (30, 25, 3, 1)])
-def test_crop_border_finds_a_frame_of_known_width(widths):
-    img, truth = _framed(*widths)
-    out, mask, rec = Pipeline([CropBorder()]).apply(img)
-    box = rec[0]["measured"]["crop_box"]
-    assert np.abs(np.array(box) - np.array(truth)).max() <= 1, (box, truth)
-    assert out.shape == (box[1] - box[0], box[3] - box[2]) and mask is None
+def _shutters(top, bottom, left, right, level, noise, seed=0):
+    """Anatomy inside rectangular shutters of one level (a vendor's constant or a noisy shadow)."""
+    img = _anatomy(seed=seed)
+    h, w = img.shape
+    rng = np.random.default_rng(seed + 1)
+    out = level + noise * rng.normal(size=img.shape)
+    out[top:h - bottom, left:w - right] = img[top:h - bottom, left:w - right]
+    return out, (top, h - bottom, left, w - right)
+
+
+@pytest.mark.parametrize("widths, level, noise", [((12, 0, 20, 7), 0.0, 0.0), ((0, 9, 0, 15), 900.0, 0.0),
+                                                  ((30, 25, 6, 5), 0.0, 1.0)])
+def test_field_then_crop_finds_shutters_of_known_width(widths, level, noise):
+    """Shutters (black, white, or a noisy shadow) around the anatomy are a rectangular field; the
+    crop follows it."""
+    img, truth = _shutters(*widths, level, noise)
+    out, mask, rec = Pipeline([Field(margin_px=0.0), Crop(margin_px=0)]).apply(img)
+    assert rec[0]["measured"]["kind"] == "rectangle"
+    box = rec[1]["measured"]["crop_box"]
+    assert np.abs(np.array(box) - np.array(truth)).max() <= 2, (box, truth)
+    assert out.shape == mask.shape == (box[1] - box[0], box[3] - box[2])
     np.testing.assert_array_equal(out, img[box[0]:box[1], box[2]:box[3]].astype(np.float32))
 
 
-def test_crop_border_leaves_an_image_without_border_alone():
+def test_crop_follows_the_mask_and_leaves_an_image_without_one_alone():
     img = _anatomy()
-    _, _, rec = Pipeline([CropBorder()]).apply(img)
-    assert rec[0]["measured"]["crop_box"] == [0, 120, 0, 150]
+    assert Pipeline([Crop()]).apply(img)[2][0]["measured"]["crop_box"] == [0, 120, 0, 150]
+    mask = np.zeros(img.shape, bool)
+    mask[30:61, 40:101] = True
+    out, m, rec = Pipeline([Crop(margin_px=3)]).apply(img, mask)
+    assert rec[0]["measured"]["crop_box"] == [27, 64, 37, 104]
+    assert m.shape == out.shape and m.sum() == mask.sum()
 
 
-def test_crop_border_finds_a_frame_added_to_a_real_radiograph():
+def test_field_finds_a_frame_added_to_a_real_radiograph():
     from register.xray_io import load_xray
 
     x = load_xray(shared_file("xray/paediatric_ap_pelvis/dicoms/331_DDH_10.dcm")).pixels
-    assert Pipeline([CropBorder()]).apply(x)[2][0]["measured"]["crop_box"] == [0, 331, 0, 331]  # already tight
     padded = np.pad(x, ((14, 6), (25, 0)), constant_values=255.0)  # white collimator shadow top/bottom/left
-    box = Pipeline([CropBorder()]).apply(padded)[2][0]["measured"]["crop_box"]
-    assert np.abs(np.array(box) - [14, 14 + 331, 25, 25 + 331]).max() <= 1, box
+    _, _, rec = Pipeline([Field(margin_px=0.0), Crop(margin_px=0)]).apply(padded)
+    box = rec[1]["measured"]["crop_box"]
+    assert np.abs(np.array(box) - [14, 14 + 331, 25, 25 + 331]).max() <= 3, box
+
+
+def test_intensity_step_applies_what_it_decides_and_records_why():
+    """A bone-dark noisy frame tagged as raw (FOR PROCESSING) is log-corrected: the result is the
+    line integral of the truth up to noise."""
+    rng = np.random.default_rng(0)
+    L = 1.0 + (_anatomy() - 500.0) / 200.0
+    raw = rng.poisson(5000.0 * np.exp(-L)).astype(np.float64)
+    tags = {"PresentationIntentType": "FOR PROCESSING", "Modality": "DX"}
+    out, _, rec = Pipeline([Intensity(tags=tags)]).apply(raw)
+    m = rec[0]["measured"]
+    assert (m["scale"], m["polarity"], m["steps"]) == ("linear", "bone-dark", ["log"])
+    assert m["scale_source"] == "DICOM PresentationIntentType" and m["evidence"]
+    assert [a["step"] for a in m["applied"]] == ["log"]
+    assert np.corrcoef(out.ravel(), L.ravel())[0, 1] > 0.99
+    assert rec[0]["params"]["scale"] == "auto" and json.loads(json.dumps(rec)) == rec
+
+
+def test_default_steps_are_the_register_default():
+    assert Pipeline.from_names(DEFAULT_STEPS).names == ["field", "median", "intensity", "normalize", "crop"]
 
 
 def test_cropped_geometry_keeps_each_pixel_on_its_ray():
     img, _ = _framed(12, 0, 20, 7)
     geom = CArmGeometry(1020.0, 700.0, img.shape[0], img.shape[1], 0.5, cx=70.3, cy=61.0)
-    out, _, rec = Pipeline.from_names(["median", "crop"]).apply(img)
+    out, _, rec = Pipeline.from_names(["field", "median", "crop"]).apply(img)
     r0, r1, c0, c1 = crop_box(rec, img.shape)
     g = cropped_geometry(geom, rec)
     assert (g.height, g.width) == out.shape == (r1 - r0, c1 - c0)
@@ -173,13 +215,13 @@ def test_pipeline_record_is_json_and_lists_every_step_with_its_measurements():
     img, truth = _framed(12, 0, 20, 7)
     transmitted = 2000.0 * np.exp(-img / 1000.0)  # a positive transmission-like image
     mask = np.ones(img.shape, dtype=bool)
-    p = Pipeline.from_names(["crop", "median", "log", "normalize", "invert"])
+    p = Pipeline.from_names(["field", "median", "log", "normalize", "invert", "crop"])
     out, m, rec = p.apply(transmitted, mask)
     back = json.loads(json.dumps(rec))
     assert back == rec
-    assert [r["step"] for r in rec] == ["crop", "median", "log", "normalize", "invert"] == p.names
-    assert np.abs(np.array(rec[0]["measured"]["crop_box"]) - truth).max() <= 1
-    assert rec[0]["params"] == {"std_frac": 0.1, "max_frac": 0.4}
+    assert [r["step"] for r in rec] == ["field", "median", "log", "normalize", "invert", "crop"] == p.names
+    assert np.abs(np.array(rec[5]["measured"]["crop_box"]) - truth).max() <= 4  # the 2 px field margin
+    assert rec[0]["params"] == {"margin_px": 2.0} and rec[0]["measured"]["kind"] == "rectangle"
     assert rec[2]["measured"]["i0_source"] == "percentile" and rec[2]["measured"]["i0"] > 0
     assert {"low", "high"} <= set(rec[3]["measured"])
     assert out.dtype == np.float32 and out.shape == m.shape and 0.0 <= out.min() and out.max() <= 1.0
@@ -187,7 +229,7 @@ def test_pipeline_record_is_json_and_lists_every_step_with_its_measurements():
 
 def test_unknown_step_names_and_bad_parameters_are_errors():
     with pytest.raises(PreprocessError, match="valid steps") as e:
-        Pipeline.from_names(["crop", "sharpen"])
+        Pipeline.from_names(["field", "sharpen"])
     assert "sharpen" in str(e.value) and all(n in str(e.value) for n in STEPS)
     with pytest.raises(PreprocessError, match="odd"):
         Median(4)

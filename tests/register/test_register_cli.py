@@ -8,6 +8,7 @@ import sys
 
 import numpy as np
 import pytest
+from PIL import Image
 
 from tests.conftest import REPO
 
@@ -55,9 +56,80 @@ def test_register_recovers_the_pose_of_a_synthetic_dicom(synthetic_case, tmp_pat
     assert np.abs(est[3:5] - truth[3:5]).max() < 3.0, est
     assert abs(est[5] - truth[5]) < 15.0, est  # depth is the weakly observed direction
     assert result["geometry"]["sdd_mm"] == pytest.approx(1020.0)
-    assert [s["step"] for s in result["preprocessing"]] == ["crop", "median", "normalize"]
-    for name in ("overlay.png", "convergence.png"):
+    assert [s["step"] for s in result["preprocessing"]] == ["field", "median", "intensity", "normalize", "crop"]
+    assert result["xray_input"]["geometry_sources"]["sdd_source"] == "DICOM DistanceSourceToDetector"
+    assert "geometry: SDD 1020 mm (DICOM DistanceSourceToDetector)" in r.stdout
+    for name in ("overlay.png", "checkerboard.png", "convergence.png"):
         assert (out / name).read_bytes()[:4] == b"\x89PNG"
+    assert np.asarray(Image.open(out / "overlay.png")).shape == (192, 192, 3)  # the X-ray's own size
+
+
+@pytest.fixture(scope="module")
+def fluoro_case(synthetic_case, tmp_path_factory):
+    """The synthetic case as a C-arm shows it: Poisson noise, round collimator black outside,
+    fluoroscopy display (log, bone dark, gamma 0.8, edge enhancement), 12-bit RF DICOM."""
+    from register.xray_io import load_xray, write_xray_dicom
+    from sim.physics.display import Collimator, DisplayChain
+
+    ct, xray, truth, center = synthetic_case
+    x = load_xray(xray)
+    L = x.pixels.astype(np.float64)
+    raw = np.random.default_rng(0).poisson(2e4 * np.exp(-L / max(L.max(), 1e-9) * 4.0)).astype(np.float64)
+    col = Collimator(shape="circle", center=(0.52, 0.47), radius=0.42)
+    chain = DisplayChain(polarity="bone-dark", gamma=0.8, unsharp_sigma_px=2.0, unsharp_amount=0.5, bits=12)
+    frame = chain.apply(col.apply(raw), 2e4, col.mask(*raw.shape))
+    d = tmp_path_factory.mktemp("fluoro")
+    path = write_xray_dicom(d / "fluoro.dcm", frame, pixel_spacing_mm=x.pixel_spacing_mm, sdd_mm=x.sdd_mm,
+                            sod_mm=x.sod_mm, bits_stored=12, modality="RF")
+    return ct, path, truth, center, col.mask(*raw.shape)
+
+
+def test_register_handles_a_collimated_fluoroscopy_frame_by_default(fluoro_case, tmp_path):
+    ct, xray, truth, center, field = fluoro_case
+    start = truth + np.array([3.0, -2.0, 2.0, 6.0, -5.0, 10.0])
+    out = tmp_path / "out"
+    r = run_cli("register", "--ct", ct, "--xray", xray, "--init", *start, "--size", 96,
+                "--center", *center, "--out", out)
+    assert r.returncode == 0, r.stderr
+    result = json.loads((out / "result.json").read_text())
+    est = np.array([result["params"][k] for k in ("phi", "theta", "psi", "tx", "ty", "tz")])
+    assert np.abs(est[:3] - truth[:3]).max() < 1.0, est
+    assert np.abs(est[3:5] - truth[3:5]).max() < 3.0, est
+    inp = result["xray_input"]
+    assert inp["field"]["kind"] == "circle" and inp["field"]["outside"] == "black"
+    assert inp["intensity"]["polarity"] == "bone-dark" and inp["intensity"]["steps"] == ["invert"]
+    assert "field: circle, black outside" in r.stdout and "intensity: display" in r.stdout
+    o = np.asarray(Image.open(out / "overlay.png"))
+    cyan = (o[..., 0] < 80) & (o[..., 1] > 180) & (o[..., 2] > 200)
+    assert cyan.sum() > 300  # the field's outline
+
+
+def test_register_says_which_geometry_it_assumed(synthetic_case, tmp_path):
+    from register.xray_io import load_xray
+
+    ct, xray, truth, center = synthetic_case
+    png = tmp_path / "plain.png"
+    px = load_xray(xray).pixels
+    Image.fromarray((255 * (px - px.min()) / np.ptp(px)).astype(np.uint8)).save(png)
+    r = run_cli("register", "--ct", ct, "--xray", png, "--init", *truth, "--size", 64, "--center", *center,
+                "--sdd", 1000, "--out", tmp_path / "o")
+    assert r.returncode == 0, r.stderr
+    line = [ln for ln in r.stdout.splitlines() if ln.startswith("geometry:")]
+    assert len(line) == 1 and "SDD 1000 mm (flag --sdd)" in line[0] and "(assumed)" in line[0], r.stdout
+
+
+@pytest.mark.parametrize("make, words", [
+    (lambda: np.full((64, 64), 700, np.uint16), "constant"),
+    (lambda: np.where(np.hypot(*(np.indices((128, 128)) - 64)) < 15,
+                      np.random.default_rng(0).integers(500, 900, (128, 128)), 0).astype(np.uint16), "%"),
+])
+def test_register_refuses_a_flat_image_or_a_tiny_field(synthetic_case, tmp_path, make, words):
+    from register.xray_io import write_xray_dicom
+
+    ct, *_ = synthetic_case
+    path = write_xray_dicom(tmp_path / "bad.dcm", make(), pixel_spacing_mm=1.0, sdd_mm=1020.0, sod_mm=700.0)
+    r = run_cli("register", "--ct", ct, "--xray", path, "--out", tmp_path / "o")
+    assert r.returncode == 2 and "Traceback" not in r.stderr and words in r.stderr, r.stderr
 
 
 @pytest.mark.parametrize("extra, words", [

@@ -1,0 +1,266 @@
+"""An X-ray made ready for registration: geometry with its sources, field mask, intensity, size.
+
+:func:`prepare_xray` is what ``ctxreg register`` (and any Python caller) does to a user's X-ray
+before an optimiser sees it:
+
+1. the C-arm geometry of the image, each value with its source (flag, DICOM tag, scene default:
+   :func:`register.xray_io.resolve_geometry`);
+2. the preprocessing pipeline (default :data:`register.preprocess.DEFAULT_STEPS`: field mask,
+   median, intensity decision, normalisation over the mask, crop to the field), with DRRs of the
+   CT around the start pose as the polarity reference (:class:`register.intensity.PolarityReference`);
+3. the crop's geometry (each pixel keeps its ray) and the resampling to the optimiser's size,
+   where the mask follows the image (:func:`fit_to_size`).
+
+The result keeps the full-resolution image and mask too, for figures a person can judge.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from scipy import ndimage
+
+__all__ = ["PreparedXRay", "prepare_xray", "confirm_polarity", "fit_to_size", "masked_fill", "reference_drrs",
+           "REFERENCE_POSES", "REFERENCE_SIZE", "POLARITY_CHECK"]
+
+#: Number of DRRs (poses around the start) of the polarity reference, and their longer side (px).
+REFERENCE_POSES = 96
+REFERENCE_SIZE = 48
+
+
+def _fit_plan(shape: tuple[int, int], geometry, longer: int):
+    """Sampling of :func:`fit_to_size`: ``(rows, cols, f, geometry)``."""
+    from dataclasses import replace
+
+    h, w = shape
+    f = max(h, w) / float(longer)  # old pixels per new pixel
+    H = max(4, int(round(h / f / 4)) * 4)
+    W = max(4, int(round(w / f / 4)) * 4)
+    f = min(h / H, w / W)
+    y0, x0 = (h - H * f) / 2.0, (w - W * f) / 2.0
+    rows = y0 + (np.arange(H) + 0.5) * f - 0.5
+    cols = x0 + (np.arange(W) + 0.5) * f - 0.5
+    cx, cy = geometry.principal_point
+    geom = replace(geometry, height=H, width=W, pixel_spacing_mm=geometry.pixel_spacing_mm * f,
+                   cx=(cx - x0 + 0.5) / f - 0.5, cy=(cy - y0 + 0.5) / f - 0.5)
+    return rows, cols, f, geom
+
+
+def fit_to_size(image: np.ndarray, mask: np.ndarray | None, geometry, longer: int):
+    """Centre-crop and resample ``image`` ``(h, w)`` so its longer side is ``longer`` px (a multiple of 4).
+
+    Pixels stay square: the crop removes the fraction of a pixel that keeps both sides an exact
+    multiple of the new spacing. The anti-aliasing blur (Gaussian, sigma ``f / 2 - 0.5`` old
+    pixels for a reduction by ``f``) is mask-normalised: pixels outside ``mask`` never leak into
+    the result, and a new pixel is valid only when at least 99 % of its blur weight falls on valid
+    pixels. Returns ``(image (H, W) float64, mask (H, W) bool or None, geometry)`` with the
+    geometry's spacing and principal point moved accordingly.
+    """
+    h, w = image.shape
+    rows, cols, f, geom = _fit_plan((h, w), geometry, longer)
+    sigma = max(f / 2.0 - 0.5, 0.0)
+    rr, cc = np.meshgrid(rows, cols, indexing="ij")
+    img = np.asarray(image, np.float64)
+    if mask is None:
+        smooth = ndimage.gaussian_filter(img, sigma=sigma)
+        return ndimage.map_coordinates(smooth, [rr, cc], order=1, mode="nearest"), None, geom
+    wgt = mask.astype(np.float64)
+    num = ndimage.gaussian_filter(img * wgt, sigma=sigma)
+    den = ndimage.gaussian_filter(wgt, sigma=sigma)
+    num = ndimage.map_coordinates(num, [rr, cc], order=1, mode="nearest")
+    den = ndimage.map_coordinates(den, [rr, cc], order=1, mode="nearest")
+    new_mask = den > 0.99
+    fill = float(np.median(img[mask])) if mask.any() else 0.0
+    out = np.where(den > 1e-6, num / np.maximum(den, 1e-6), fill)
+    return out, new_mask, geom
+
+
+def reference_drrs(volume, center_lps, geometry, init_params, *, poses: int = REFERENCE_POSES,
+                   longer: int = REFERENCE_SIZE, seed: int = 0):
+    """The polarity reference of an X-ray with detector ``geometry`` (its full ``(H, W)``).
+
+    Line-integral DRRs ``(poses, h, w)`` at the start pose and at ``poses - 1`` poses around it
+    (offsets drawn, seeded, from the original capture range :data:`sim.campaign.poses.ORIGINAL_PROTOCOL`:
+    up to 40 / 20 / 20 deg and 75 mm), rendered with the X-ray's geometry sampled as
+    :func:`fit_to_size` samples the X-ray to ``longer`` px. Returns a
+    :class:`register.intensity.PolarityReference`.
+    """
+    from register.intensity import PolarityReference
+    from sim.campaign.poses import ORIGINAL_PROTOCOL
+    from sim.geometry import pose_from_params
+    from sim.render import DRRRenderer, RenderSettings
+
+    _, _, _, small = _fit_plan((geometry.height, geometry.width), geometry, longer)
+    rng = np.random.Generator(np.random.PCG64(np.random.SeedSequence(seed, spawn_key=(13,))))
+    x0 = np.asarray(init_params, float).reshape(1, 6)
+    params = np.concatenate([x0, x0 + ORIGINAL_PROTOCOL.sample(rng, poses - 1)])
+    renderer = DRRRenderer(volume, RenderSettings(size=(small.height, small.width)), center_lps=center_lps,
+                           geometry=small)
+    drrs = renderer.render(pose_from_params(params, small.sod_mm))
+
+    def resample(image, mask):
+        out, m, _ = fit_to_size(image, mask, geometry, longer)
+        return out, m
+
+    return PolarityReference(drrs=np.asarray(drrs, np.float64), resample=resample)
+
+
+@dataclass
+class PreparedXRay:
+    """An X-ray ready for an optimiser, and what was done to it.
+
+    Attributes:
+        xray: the :class:`register.xray_io.XRayImage` as read.
+        image: ``(h, w)`` float64 at the optimiser's size: line-integral-like (bone bright),
+            normalised over the valid pixels.
+        mask: ``(h, w)`` bool valid pixels (the field minus exclusions), or None.
+        geometry: :class:`sim.geometry.CArmGeometry` of ``image`` (cropped and resampled).
+        full_geometry: the geometry of the X-ray's own ``(H, W)`` pixels.
+        full_image: ``(H, W)`` the preprocessed image at full resolution (outside the crop: the
+            median of the valid pixels).
+        full_mask: ``(H, W)`` bool the valid pixels at full resolution.
+        record: the preprocessing record (one entry per step).
+        sources: :class:`register.xray_io.GeometrySources` (where each geometry value came from).
+    """
+
+    xray: Any
+    image: np.ndarray
+    mask: np.ndarray | None
+    geometry: Any
+    full_geometry: Any
+    full_image: np.ndarray
+    full_mask: np.ndarray
+    record: list
+    sources: Any
+
+    def step(self, name: str) -> dict | None:
+        """The measured values of the first pipeline step called ``name`` (None if it did not run)."""
+        for entry in self.record:
+            if entry["step"] == name:
+                return entry["measured"]
+        return None
+
+    def summary(self) -> dict:
+        """JSON: the geometry sources, field, intensity decision (and its check by registration),
+        and sizes, for result.json."""
+        return {"geometry_sources": self.sources.to_dict(), "field": self.step("field"),
+                "intensity": self.step("intensity"), "polarity_check": self.step("polarity_check"), "full_size": [self.full_geometry.height, self.full_geometry.width],
+                "optimiser_size": [self.geometry.height, self.geometry.width]}
+
+
+def prepare_xray(xray, *, volume=None, center_lps=None, init_params=None, scene: str = "cios_fusion",
+                 steps=None, scale: str = "auto", polarity: str = "auto", size: int = 128,
+                 sdd_mm: float | None = None, sod_mm: float | None = None,
+                 pixel_spacing_mm: float | None = None) -> PreparedXRay:
+    """Prepare ``xray`` (a path or :class:`register.xray_io.XRayImage`) for registration.
+
+    Args:
+        volume, center_lps, init_params: the CT, its anatomy centre (LPS mm) and the start pose
+            (deg, mm); with ``volume`` given, DRRs around the start decide the polarity when the
+            DICOM tags do not (:func:`reference_drrs`).
+        scene: C-arm scene for geometry values the image does not give.
+        steps: preprocessing step names (default :data:`register.preprocess.DEFAULT_STEPS`).
+        scale / polarity: ``"auto"`` or an override (:data:`register.intensity.SCALES`,
+            :data:`register.intensity.POLARITIES`).
+        size: the longer side (px) of the optimiser's image.
+        sdd_mm, sod_mm, pixel_spacing_mm: explicit geometry (override tags and scene).
+    """
+    from register.preprocess import DEFAULT_STEPS, Pipeline, PreprocessError, cropped_geometry, crop_box
+    from register.xray_io import XRayImage, load_xray, resolve_geometry
+
+    if not isinstance(xray, XRayImage):
+        xray = load_xray(xray)
+    full_geometry, sources = resolve_geometry(xray, scene, sdd_mm=sdd_mm, sod_mm=sod_mm,
+                                              pixel_spacing_mm=pixel_spacing_mm)
+    steps = tuple(DEFAULT_STEPS if steps is None else steps)
+    reference = None
+    if "intensity" in steps and volume is not None and polarity == "auto":
+        from sim.anatomy import anatomy_center
+
+        center = anatomy_center(volume) if center_lps is None else center_lps
+        reference = reference_drrs(volume, center, full_geometry, np.zeros(6) if init_params is None else init_params)
+    tags = xray.meta.get("intensity_tags")
+    bits = (tags or {}).get("BitsStored") if tags else (8 if xray.meta.get("dtype") == "uint8" else None)
+    options = {"intensity": {"scale": scale, "polarity": polarity, "tags": tags,
+                             "inverted": bool(xray.meta.get("inverted", False)), "bits": bits,
+                             "reference": reference}}
+    image, mask, record = Pipeline.from_names(list(steps), options).apply(xray.pixels)
+    H, W = xray.shape
+    r0, r1, c0, c1 = crop_box(record, (H, W))
+    full_mask = np.zeros((H, W), bool)
+    full_mask[r0:r1, c0:c1] = True if mask is None else mask
+    fill = float(np.median(image[mask])) if mask is not None else float(np.median(image))
+    full_image = np.full((H, W), fill, np.float64)
+    full_image[r0:r1, c0:c1] = image
+    geometry = cropped_geometry(full_geometry, record)  # a crop moves the principal point
+    if mask is not None and mask.mean() < 0.02:
+        raise PreprocessError(f"{xray.source}: only {mask.sum()} valid pixels are left after preprocessing")
+    small, small_mask, geometry = fit_to_size(image, mask, geometry, int(size))
+    if small_mask is not None and not small_mask.any():
+        raise PreprocessError(f"{xray.source}: no valid pixel is left at the optimiser's {size} px")
+    return PreparedXRay(xray=xray, image=small, mask=small_mask, geometry=geometry, full_geometry=full_geometry,
+                        full_image=full_image, full_mask=full_mask, record=record, sources=sources)
+
+
+def masked_fill(image: np.ndarray, mask: np.ndarray | None) -> np.ndarray:
+    """``image`` with the pixels outside ``mask`` set to the mean of the valid pixels.
+
+    The neutral fill for a network's input: it adds no contrast of its own (the valid pixels'
+    mean), does not move a min-max normalisation, and, applied with the same mask to both images
+    of a pair, makes the field edge a feature they share rather than one that depends on the pose.
+    """
+    if mask is None:
+        return np.asarray(image, np.float64)
+    img = np.asarray(image, np.float64)
+    return np.where(mask, img, float(img[mask].mean()) if mask.any() else 0.0)
+
+
+
+#: Polarity sources that a registration check does not question: the user's option and a decisive tag.
+_DECISIVE_POLARITY = ("option", "DICOM PixelIntensityRelationshipSign")
+
+#: The coarse search of :func:`confirm_polarity` (one level at 1/4 of the optimiser's size).
+POLARITY_CHECK = dict(levels=(4,), generations=(40,), metrics=("gncc",), polish=False)
+
+
+def confirm_polarity(prepared: PreparedXRay, volume, center_lps, init_params, *, physics=None,
+                     label_materials=None) -> PreparedXRay:
+    """Check the decided polarity by registration, unless an option or a decisive tag set it.
+
+    A coarse CMA-ES search (:data:`POLARITY_CHECK`: 1/4 resolution, 40 generations, gradient NCC)
+    runs for the prepared image and for its inverse (``1 - image``: the image is normalised to
+    [0, 1]); the polarity whose best similarity is higher is kept. With the wrong polarity every
+    edge of the X-ray points against the DRR's, so the right one matches better wherever the
+    search finds the anatomy. The outcome goes into the record as step ``polarity_check``
+    (similarities, whether the image was inverted). Costs about a third of a CMA-ES registration.
+    """
+    from dataclasses import replace
+
+    from register.cmaes import CMAESRegistration, CMAESSettings
+
+    decision = prepared.step("intensity")
+    if decision is None or decision.get("polarity_source") in _DECISIVE_POLARITY:
+        return prepared
+    size = (prepared.geometry.height, prepared.geometry.width)
+    engine = CMAESRegistration(volume, CMAESSettings(size=size, **POLARITY_CHECK), geometry=prepared.geometry,
+                               center_lps=center_lps, physics=physics, label_materials=label_materials)
+    init = np.asarray(init_params, float).reshape(6)
+    lo, hi = (float(v) for v in np.percentile(prepared.image if prepared.mask is None else prepared.image[prepared.mask],
+                                               [0, 100]))
+    inverse = (hi + lo) - prepared.image
+    as_decided = engine.register(prepared.image, init, mask=prepared.mask).similarity
+    inverted = engine.register(inverse, init, mask=prepared.mask).similarity
+    flip = inverted > as_decided
+    measured = {"similarity_as_decided": float(as_decided), "similarity_inverted": float(inverted),
+                "inverted": bool(flip),
+                "polarity": (decision["polarity"] if not flip else
+                             ("bone-dark" if decision["polarity"] == "bone-bright" else "bone-bright"))}
+    params = {k: list(v) if isinstance(v, tuple) else v for k, v in POLARITY_CHECK.items()}
+    record = [*prepared.record, {"step": "polarity_check", "params": params, "measured": measured}]
+    if not flip:
+        return replace(prepared, record=record)
+    m = prepared.full_mask
+    flo, fhi = (float(v) for v in np.percentile(prepared.full_image[m] if m.any() else prepared.full_image, [0, 100]))
+    return replace(prepared, image=inverse, full_image=(fhi + flo) - prepared.full_image, record=record)

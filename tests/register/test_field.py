@@ -1,0 +1,442 @@
+"""register.field: collimated field detection and the valid-pixel mask, checked against truth.
+
+Synthetic anatomy-like images (smooth random texture, blobs, noise) inside a known field (circle,
+rectangle, polygon; clipped by the image edges or not), with the outside painted black or white
+or a noisy raw shadow, in 8-bit, 12-bit and float. Truth distances are measured on a padded grid
+so that a field boundary just beyond the image edge counts as a boundary.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+
+import numpy as np
+import pytest
+from PIL import Image, ImageDraw, ImageFont
+from scipy import ndimage
+
+from register.field import Field, FieldError, FieldSettings, detect_field
+from register.xray_io import XRayInputError
+
+PAD = 12
+
+
+# ------------------------------------------------------------------------------------------
+# synthetic images
+
+
+def _anatomy(shape, seed, lo=0.25, hi=0.85, noise=0.01):
+    """Anatomy-like texture in [lo, hi]: smooth random field + Gaussian blobs + pixel noise."""
+    rng = np.random.default_rng(seed)
+    H, W = shape
+    t = ndimage.gaussian_filter(rng.normal(size=shape), 10)
+    yy, xx = np.mgrid[:H, :W]
+    t = (t - t.min()) / (t.max() - t.min())
+    for _ in range(6):
+        cy, cx = rng.uniform(0, H), rng.uniform(0, W)
+        sy, sx = rng.uniform(5, 25, 2)
+        t = t + rng.uniform(-0.4, 0.6) * np.exp(-(((yy - cy) / sy) ** 2 + ((xx - cx) / sx) ** 2))
+    t = ndimage.gaussian_filter(t, 1.0)
+    t = (t - t.min()) / (t.max() - t.min())
+    span = hi - lo
+    a = lo + 0.05 * span + 0.9 * span * t + rng.normal(0.0, noise, shape)
+    return np.clip(a, lo, hi)
+
+
+def _circle(cx, cy, r):
+    def truth(shape, pad=0):
+        yy, xx = np.mgrid[: shape[0], : shape[1]]
+        return (xx - pad - cx) ** 2 + (yy - pad - cy) ** 2 <= r * r
+    truth.circle = (cx, cy, r)
+    return truth
+
+
+def _rect(r0, r1, c0, c1):
+    def truth(shape, pad=0):
+        yy, xx = np.mgrid[: shape[0], : shape[1]]
+        rr, cc = yy - pad, xx - pad
+        # an edge on the image border continues beyond it
+        r0e, r1e = (-10**6 if r0 == 0 else r0), (10**6 if r1 == shape[0] - 2 * pad else r1)
+        c0e, c1e = (-10**6 if c0 == 0 else c0), (10**6 if c1 == shape[1] - 2 * pad else c1)
+        return (rr >= r0e) & (rr < r1e) & (cc >= c0e) & (cc < c1e)
+    return truth
+
+
+def _regular_polygon(cx, cy, radius, n, rot):
+    ang = rot + 2 * np.pi * np.arange(n) / n
+    verts = np.column_stack([cx + radius * np.cos(ang), cy + radius * np.sin(ang)])  # (x, y)
+
+    def truth(shape, pad=0):
+        yy, xx = np.mgrid[: shape[0], : shape[1]]
+        x, y = xx - pad, yy - pad
+        inside = np.ones(shape, dtype=bool)
+        for (x0, y0), (x1, y1) in zip(verts, np.roll(verts, -1, axis=0)):
+            inside &= (x1 - x0) * (y - y0) - (y1 - y0) * (x - x0) >= 0
+        return inside
+    truth.vertices = verts
+    return truth
+
+
+def _compose(truth, anat, outside=0.0, blur=0.0, out_noise=0.0, seed=0):
+    w = truth.astype(np.float64)
+    if blur > 0:
+        w = ndimage.gaussian_filter(w, blur)
+    img = w * anat + (1.0 - w) * outside
+    if out_noise > 0:
+        img = img + (1.0 - w) * np.random.default_rng(seed + 99).normal(0.0, out_noise, truth.shape)
+    return img
+
+
+def _as(img, dtype):
+    if dtype == "u8":
+        return np.round(np.clip(img, 0, 1) * 255).astype(np.uint8)
+    if dtype == "u12":
+        return np.round(np.clip(img, 0, 1) * 4095).astype(np.uint16)
+    return img.astype(np.float32)
+
+
+def _boundary_distance(truth_fn, shape):
+    """Distance (px) of every pixel to the truth boundary, the truth rendered with a margin."""
+    big = truth_fn((shape[0] + 2 * PAD, shape[1] + 2 * PAD), PAD)
+    d = np.where(big, ndimage.distance_transform_edt(big), ndimage.distance_transform_edt(~big))
+    return d[PAD:-PAD, PAD:-PAD]
+
+
+def _glyphs(shape, items):
+    """Binary (aliased, as burned in by vendors) text / lines drawn with Pillow: (H, W) bool."""
+    im = Image.new("L", (shape[1], shape[0]), 0)
+    draw = ImageDraw.Draw(im)
+    draw.fontmode = "1"
+    for item in items:
+        if item[0] == "text":
+            draw.text(item[1], item[2], fill=255, font=item[3] if len(item) > 3 else None)
+        else:
+            draw.line(item[1], fill=255, width=item[2])
+    return np.array(im) > 0
+
+
+def _ruler(x0, x1, y):
+    return [("line", [(x0, y), (x1, y)], 1)] + [
+        ("line", [(x, y), (x, y - (8 if (x - x0) % 50 == 0 else 4))], 1) for x in range(x0, x1 + 1, 10)]
+
+
+def _assert_matches_truth(f: Field, truth, dist, tol=3.0):
+    wrong = (f.mask != truth) & (dist > tol)
+    assert wrong.sum() == 0, f"{int(wrong.sum())} pixels farther than {tol} px from the truth boundary are wrong"
+
+
+# ------------------------------------------------------------------------------------------
+# fields of every kind
+
+S = (256, 256)
+S2 = (200, 300)
+
+FIELD_CASES = {
+    # name: (shape, truth, outside value, dtype, kind, outside colour, extra)
+    "centred circle, black, float": (S, _circle(127.5, 127.5, 110), 0.0, "f", "circle", "black", {}),
+    "circle clipped by top and right edges, 8-bit": (S, _circle(185, 75, 120), 0.0, "u8", "circle", "black", {}),
+    "circle, white outside, 12-bit": (S, _circle(120, 133, 105), 1.0, "u12", "circle", "white", {}),
+    "circle clipped top/bottom, non-square, white, float": (S2, _circle(160, 95, 105), 1.0, "f", "circle", "white", {}),
+    "rectangle, black, 12-bit": (S, _rect(30, 220, 40, 200), 0.0, "u12", "rectangle", "black", {}),
+    "off-centre rectangle at top/right edges, white, 8-bit": (S, _rect(0, 180, 60, 256), 1.0, "u8", "rectangle", "white", {}),
+    "rectangle, non-square, black, float": (S2, _rect(20, 170, 35, 260), 0.0, "f", "rectangle", "black", {}),
+    "hexagon, black, 8-bit": (S, _regular_polygon(128, 128, 115, 6, 0.2), 0.0, "u8", "polygon", "black", {}),
+    "octagon, tilted, white, 12-bit": (S, _regular_polygon(126, 131, 120, 8, 0.1), 1.0, "u12", "polygon", "white", {}),
+    "octagon clipped by the edges, float": (S, _regular_polygon(128, 128, 150, 8, 0.3), 0.0, "f", "polygon", "black", {}),
+    "raw noisy dark shadow, float": (S, _circle(127.5, 127.5, 110), 0.06, "f", "circle", "black", {"out_noise": 0.015}),
+    "soft edge (blur 1.5 px), 8-bit": (S, _circle(130, 125, 108), 0.0, "u8", "circle", "black", {"blur": 1.5}),
+    "soft edge + noisy shadow, 12-bit": (S, _rect(25, 230, 20, 236), 0.05, "u12", "rectangle", "black",
+                                         {"blur": 1.5, "out_noise": 0.01}),
+}
+
+
+@pytest.mark.parametrize("name", list(FIELD_CASES))
+def test_field_of_each_kind_matches_truth(name):
+    shape, truth_fn, outside, dtype, kind, colour, extra = FIELD_CASES[name]
+    seed = sum(map(ord, name)) % 1000
+    truth = truth_fn(shape)
+    img = _as(_compose(truth, _anatomy(shape, seed), outside=outside, seed=seed, **extra), dtype)
+    f = detect_field(img)
+    assert f.kind == kind, f.params
+    assert f.outside == colour
+    dist = _boundary_distance(truth_fn, shape)
+    _assert_matches_truth(f, truth, dist)
+    # the field itself (before exclusions) also; and no exclusions on a clean image
+    assert ((f.field_mask != truth) & (dist > 3)).sum() == 0
+    assert f.excluded == {"overlay": 0, "saturated": 0, "empty": 0}
+    # the margin: every valid pixel lies inside the truth (soft edges: within 1 px of it)
+    assert not (f.mask & ~truth & (dist > 1)).any()
+    json.dumps(f.to_dict())
+
+
+@pytest.mark.parametrize("name", [n for n, c in FIELD_CASES.items() if c[4] == "circle"])
+def test_circle_centre_and_radius(name):
+    shape, truth_fn, outside, dtype, _, _, extra = FIELD_CASES[name]
+    seed = sum(map(ord, name)) % 1000
+    img = _as(_compose(truth_fn(shape), _anatomy(shape, seed), outside=outside, seed=seed, **extra), dtype)
+    p = detect_field(img).params
+    cx, cy, r = truth_fn.circle
+    assert abs(p["centre_x"] - cx) <= 1.5 and abs(p["centre_y"] - cy) <= 1.5
+    assert abs(p["radius"] - r) <= 1.5
+
+
+def test_rectangle_and_polygon_params():
+    truth_fn = _rect(30, 220, 40, 200)
+    f = detect_field(_compose(truth_fn(S), _anatomy(S, 5)))
+    assert f.params == {"row0": 30, "row1": 220, "col0": 40, "col1": 200}
+    for n in (6, 8):
+        poly = _regular_polygon(128, 128, 115, n, 0.2)
+        f = detect_field(_compose(poly(S), _anatomy(S, n)))
+        assert f.kind == "polygon"
+        found = np.array(f.params["vertices"])
+        assert found.shape == (n, 2)
+        # every true vertex has a found vertex within 1.5 px
+        d = np.hypot(*(found[None, :, :] - poly.vertices[:, None, :]).transpose(2, 0, 1))
+        assert d.min(axis=1).max() <= 1.5
+
+
+def test_margin_setting_erodes_from_the_model_boundary():
+    truth_fn = _circle(127.5, 127.5, 110)
+    img = _compose(truth_fn(S), _anatomy(S, 7))
+    dist = _boundary_distance(truth_fn, S)
+    f0 = detect_field(img, FieldSettings(margin_px=0))
+    f6 = detect_field(img, FieldSettings(margin_px=6))
+    assert ((f0.field_mask != truth_fn(S)) & (dist > 1)).sum() == 0
+    assert f6.field_mask.any() and not (f6.field_mask & (dist < 5) & truth_fn(S)).any()
+    assert (f6.field_mask & ~(dist > 4)).sum() == 0
+    assert (truth_fn(S) & (dist > 7) & ~f6.field_mask).sum() == 0
+
+
+@pytest.mark.parametrize("margin", [0.0, 2.0, 6.0])
+def test_margin_is_exact_for_a_circle(margin):
+    cx, cy, r = 127.5, 127.5, 110.0
+    img = _compose(_circle(cx, cy, r)(S), _anatomy(S, 7))
+    f = detect_field(img, FieldSettings(margin_px=margin))
+    yy, xx = np.mgrid[:256, :256]
+    depth = r - np.hypot(xx - cx, yy - cy)  # exact distance inside the true circle, px
+    assert depth[f.field_mask].min() >= margin - 0.6
+    assert f.field_mask[depth >= margin + 0.6].all()
+
+
+def test_margin_does_not_erode_at_the_image_edges():
+    truth_fn = _rect(0, 256, 40, 200)  # shutters left and right only
+    f = detect_field(_compose(truth_fn(S), _anatomy(S, 8)))
+    assert f.kind == "rectangle"
+    assert f.field_mask[0, 60:180].all() and f.field_mask[-1, 60:180].all()
+
+
+# ------------------------------------------------------------------------------------------
+# burned-in text, rulers, markers
+
+
+@pytest.mark.parametrize("outside,dtype", [(0.0, "u8"), (1.0, "u12")])
+@pytest.mark.parametrize("shape_name", ["circle", "octagon"])
+def test_text_ruler_and_marker_are_excluded(outside, dtype, shape_name):
+    truth_fn = _circle(130, 126, 116) if shape_name == "circle" else _regular_polygon(128, 128, 124, 8, 0.3)
+    truth = truth_fn(S)
+    top = 255 if dtype == "u8" else 4095
+    img = _as(_compose(truth, _anatomy(S, 11), outside=outside), dtype)
+    big = ImageFont.load_default(28)
+    white = _glyphs(S, [("text", (2, 2), "PATIENT^NAME 12345"),        # outside corner
+                        ("text", (80, 110), "Lij 12.5 kV 3.2 mA"),     # over the anatomy
+                        ("text", (190, 55), "L", big)]                 # side marker
+                    + _ruler(60, 190, 200))
+    black = _glyphs(S, [("text", (150, 242), "SIEMENS Cios"),         # outside corner
+                        ("text", (60, 150), "AP 2024-01-01")])        # over the anatomy
+    img[white] = top
+    img[black] = 0
+    f = detect_field(img)
+    assert f.kind == ("circle" if shape_name == "circle" else "polygon")
+    assert f.outside == ("black" if outside == 0.0 else "white")
+    dist = _boundary_distance(truth_fn, S)
+    assert ((f.field_mask != truth) & (dist > 3)).sum() == 0
+    glyph = white | black
+    assert (f.mask & glyph).sum() == 0, "glyph pixels inside the field must be excluded"
+    far = truth & (dist > 3) & (ndimage.distance_transform_edt(~glyph) > 6)
+    assert far.sum() > 0.6 * truth.sum()
+    assert f.mask[far].all(), f"{int((~f.mask[far]).sum())} pixels far from glyphs were excluded"
+    assert f.excluded["overlay"] > (glyph & f.field_mask).sum()
+    assert f.excluded["saturated"] == 0 and f.excluded["empty"] == 0
+
+
+def test_text_crossing_the_field_edge_does_not_bend_the_field():
+    truth_fn = _rect(20, 236, 10, 240)
+    truth = truth_fn(S)
+    img = _as(_compose(truth, _anatomy(S, 12), outside=1.0), "u12")
+    white = _glyphs(S, [("text", (195, 14), "EDGE TEXT"), ("text", (225, 120), "BORDER")])
+    img[white] = 4095
+    f = detect_field(img)
+    assert f.kind == "rectangle" and f.params == {"row0": 20, "row1": 236, "col0": 10, "col1": 240}
+    assert (f.mask & white).sum() == 0
+
+
+def test_text_without_collimation():
+    img = _as(_anatomy(S, 13), "u8")
+    text = _glyphs(S, [("text", (3, 3), "R  ACC 0042"), ("text", (100, 120), "35 cm")])
+    img[text] = 255
+    f = detect_field(img)
+    assert f.kind == "none" and f.outside is None
+    assert (f.mask & text).sum() == 0
+    assert f.valid_fraction > 0.95
+
+
+# ------------------------------------------------------------------------------------------
+# saturated and empty plateaus, raw noise
+
+
+def test_saturated_plateau_is_excluded():
+    truth_fn = _circle(127.5, 127.5, 112)
+    truth = truth_fn(S)
+    anat = _anatomy(S, 3)
+    yy, xx = np.mgrid[:256, :256]
+    anat = anat + 0.6 * np.exp(-(((xx - 150) / 24.0) ** 2 + ((yy - 100) / 16.0) ** 2))  # a bright implant
+    img = _as(np.minimum(_compose(truth, anat), 0.95) / 0.95, "u8")  # clipped at the maximum
+    plateau = (img == 255) & truth
+    lab, n = ndimage.label(plateau, np.ones((3, 3)))
+    sizes = np.bincount(lab.ravel())
+    sizes[0] = 0
+    big = np.isin(lab, np.nonzero(sizes >= 20)[0])
+    assert big.sum() > 300
+    f = detect_field(img)
+    assert f.kind == "circle"
+    assert not (f.mask & big).any()
+    assert f.excluded["saturated"] >= big.sum() and f.excluded["overlay"] == 0
+    dist = _boundary_distance(truth_fn, S)
+    far = truth & (dist > 3) & (ndimage.distance_transform_edt(~plateau) > 5)
+    assert f.mask[far].all()
+
+
+def test_empty_plateau_is_excluded():
+    truth_fn = _circle(127.5, 127.5, 112)
+    truth = truth_fn(S)
+    anat = _anatomy(S, 4)
+    yy, xx = np.mgrid[:256, :256]
+    hole = (xx - 100) ** 2 + (yy - 140) ** 2 < 20 ** 2
+    anat[hole] = 0.0  # clipped to the minimum, as the black outside
+    f = detect_field(_as(_compose(truth, anat), "u12"))
+    assert f.kind == "circle" and f.outside == "black"
+    assert not (f.mask & hole).any()
+    assert f.excluded["empty"] >= hole.sum()
+    dist = _boundary_distance(truth_fn, S)
+    _assert_matches_truth(f, truth & ~ndimage.binary_dilation(hole, iterations=3), np.minimum(
+        dist, ndimage.distance_transform_edt(~hole)))
+
+
+@pytest.mark.parametrize("dtype", ["f", "u12", "u8"])
+def test_raw_noisy_image_keeps_its_field(dtype):
+    truth_fn = _circle(127.5, 127.5, 115)
+    truth = truth_fn(S)
+    anat = _anatomy(S, 21, lo=0.3, hi=0.95, noise=0.04)
+    img = _as(_compose(truth, anat, outside=0.05, out_noise=0.02, seed=3), dtype)
+    f = detect_field(img)
+    assert f.kind == "circle" and f.outside == "black"
+    assert (f.mask & truth).sum() > 0.95 * truth.sum()
+    assert f.mask.sum() == f.field_mask.sum()  # no pixel of the noisy field excluded
+    assert f.excluded == {"overlay": 0, "saturated": 0, "empty": 0}
+
+
+# ------------------------------------------------------------------------------------------
+# no collimation
+
+
+@pytest.mark.parametrize("seed,shape,dtype", [(1, S, "f"), (5, S, "u8"), (6, S2, "u12"), (9, (300, 220), "f")])
+def test_no_collimator(seed, shape, dtype):
+    f = detect_field(_as(_anatomy(shape, seed), dtype))
+    assert f.kind == "none" and f.outside is None
+    assert f.field_mask.all()
+    assert f.valid_fraction > 0.99
+    assert f.params["reason"]
+
+
+def test_non_convex_body_outline_is_not_a_field():
+    yy, xx = np.mgrid[:256, :256]
+    blob = ((xx - 128) / 100) ** 2 + ((yy - 128) / 70) ** 2 + 0.3 * np.sin(3 * np.arctan2(yy - 128, xx - 128)) <= 1
+    f = detect_field(_compose(blob, _anatomy(S, 2)))
+    assert f.kind == "none"
+    # the flat black background is still excluded as an empty plateau
+    assert not (f.mask & ~ndimage.binary_dilation(blob, iterations=2)).any()
+
+
+def test_two_separate_regions_are_not_one_field():
+    yy, xx = np.mgrid[:256, :256]
+    legs = (((xx - 80) / 45) ** 2 + ((yy - 140) / 120) ** 2 <= 1) | (((xx - 176) / 45) ** 2 + ((yy - 140) / 120) ** 2 <= 1)
+    f = detect_field(_compose(legs, _anatomy(S, 4)))
+    assert f.kind == "none" and "split" in f.params["reason"]
+    assert f.mask[legs & (ndimage.distance_transform_edt(legs) > 3)].all()
+
+
+# ------------------------------------------------------------------------------------------
+# errors, settings, record, determinism
+
+
+def test_errors_are_field_errors_with_clear_messages():
+    with pytest.raises(FieldError, match="constant .*every pixel = 7.*no anatomy"):
+        detect_field(np.full(S, 7, dtype=np.uint16))
+    tiny = _circle(128, 128, 25)
+    with pytest.raises(FieldError, match=r"field \(circle\) covers only 2\.\d % of the image \(< 10 %\)"):
+        detect_field(_compose(tiny(S), _anatomy(S, 1)))
+    bad = _anatomy(S, 1)
+    bad[10, 10] = np.nan
+    with pytest.raises(FieldError, match="NaN"):
+        detect_field(bad)
+    with pytest.raises(FieldError, match="2-D"):
+        detect_field(np.zeros((3, 64, 64)))
+    with pytest.raises(FieldError, match="real numbers"):
+        detect_field(np.ones((64, 64), dtype=complex))
+    assert issubclass(FieldError, XRayInputError) and issubclass(FieldError, ValueError)
+
+
+def test_min_fraction_setting():
+    truth_fn = _circle(128, 128, 60)  # 17 % of the image
+    img = _compose(truth_fn(S), _anatomy(S, 2))
+    assert detect_field(img).kind == "circle"
+    with pytest.raises(FieldError, match=r"covers only 1\d\.\d % of the image \(< 30 %\)"):
+        detect_field(img, FieldSettings(min_fraction=0.3))
+
+
+@pytest.mark.parametrize("kwargs,words", [
+    ({"margin_px": -1}, "margin_px: must be in"),
+    ({"min_fraction": 1.5}, "min_fraction: must be in"),
+    ({"level_tolerance": 0}, "level_tolerance: must be in"),
+    ({"max_boundary_px": float("nan")}, "max_boundary_px: must be in"),
+    ({"circle_min_inliers": "0.8"}, "circle_min_inliers: expected a number"),
+    ({"overlay_min_px": 2.5}, "overlay_min_px: must be an integer"),
+    ({"polygon_max_vertices": True}, "polygon_max_vertices: must be an integer"),
+])
+def test_bad_settings(kwargs, words):
+    with pytest.raises(FieldError, match=words):
+        FieldSettings(**kwargs)
+
+
+def test_to_dict_is_json_and_complete():
+    f = detect_field(_compose(_circle(127.5, 127.5, 110)(S), _anatomy(S, 1)))
+    d = json.loads(json.dumps(f.to_dict()))
+    assert set(d) == {"kind", "outside", "params", "excluded", "valid_fraction", "field_fraction", "settings"}
+    assert d["kind"] == "circle" and set(d["params"]) == {"centre_x", "centre_y", "radius"}
+    assert d["settings"]["margin_px"] == 2.0
+    assert d["valid_fraction"] == pytest.approx(f.mask.mean(), abs=1e-5)
+    assert d["field_fraction"] == pytest.approx(f.field_mask.mean(), abs=1e-5)
+
+
+def test_reproducible_and_input_untouched():
+    truth = _regular_polygon(128, 128, 115, 6, 0.2)(S)
+    img = _as(_compose(truth, _anatomy(S, 3), outside=0.05, out_noise=0.02), "u12")
+    img[_glyphs(S, [("text", (90, 120), "kV 70")])] = 4095
+    copy = img.copy()
+    a, b = detect_field(img), detect_field(img)
+    assert np.array_equal(img, copy)
+    assert np.array_equal(a.mask, b.mask) and np.array_equal(a.field_mask, b.field_mask)
+    assert a.to_dict() == b.to_dict()
+    assert a.mask.dtype == bool and a.mask.shape == S
+
+
+def test_speed_512():
+    truth = _circle(250, 260, 230)((512, 512))
+    img = _as(_compose(truth, _anatomy((512, 512), 5)), "u12")
+    detect_field(img)
+    t = time.perf_counter()
+    for _ in range(3):
+        detect_field(img)
+    per_call = (time.perf_counter() - t) / 3
+    assert per_call < 0.6, f"{per_call:.3f} s per 512 x 512 image"  # ~0.1 s unloaded; slack for CI

@@ -1,0 +1,128 @@
+"""Preparing an X-ray: masks that follow the resampling, pixels that keep their rays, a neutral
+fill for the network, the contextual iteration blind to what lies outside the field, and the
+full-resolution figures."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from PIL import Image
+from scipy import ndimage
+
+from register.prepare import fit_to_size, masked_fill
+from sim.geometry import CArmGeometry, backproject_pixel
+
+
+def _image(h=150, w=210, seed=0):
+    rng = np.random.default_rng(seed)
+    return ndimage.gaussian_filter(rng.normal(size=(h, w)), 3.0)
+
+
+def _disc(h, w, r, cy=None, cx=None):
+    i, j = np.indices((h, w)) + 0.5
+    return np.hypot(i - (h / 2 if cy is None else cy), j - (w / 2 if cx is None else cx)) < r
+
+
+def test_fit_to_size_never_lets_outside_pixels_in():
+    img = _image()
+    mask = _disc(*img.shape, 60)
+    a, ma, ga = fit_to_size(img, mask, CArmGeometry(1000.0, 600.0, 150, 210, 0.3), 64)
+    wild = np.where(mask, img, 1e6 * np.random.default_rng(1).random(img.shape))  # outside: anything
+    b, mb, gb = fit_to_size(wild, mask, CArmGeometry(1000.0, 600.0, 150, 210, 0.3), 64)
+    np.testing.assert_array_equal(ma, mb)
+    np.testing.assert_allclose(a[ma], b[mb], rtol=0, atol=1e-9)
+    assert ga == gb and a.shape == ma.shape == (44, 64)  # 150 x 210 -> a multiple of 4 on each side
+    # the mask shrinks by about the blur radius, no more: it keeps > 80 % of the disc's area
+    assert 0.8 < ma.sum() * (210 / 64) ** 2 / mask.sum() < 1.0
+
+
+def test_fit_to_size_keeps_each_pixel_on_its_ray():
+    """A bright dot at input pixel (row 70, col 121) lands in the output pixel whose ray it is."""
+    g = CArmGeometry(1000.0, 600.0, 150, 210, 0.3, cx=101.0, cy=77.0)
+    img = np.zeros((150, 210))
+    img[70, 121] = 1.0
+    out, _, g2 = fit_to_size(img, None, g, 70)
+    r, c = np.unravel_index(np.argmax(out), out.shape)
+    ray_in = backproject_pixel(g, 121, 70)
+    ray_out = backproject_pixel(g2, c, r)
+    # within half an output pixel at the detector
+    assert np.linalg.norm(ray_in[..., :2] - ray_out[..., :2]) <= 0.5 * g2.pixel_spacing_mm * np.sqrt(2) + 1e-9
+
+
+def test_masked_fill_is_the_valid_mean_and_changes_nothing_inside():
+    img = _image()
+    mask = _disc(*img.shape, 50)
+    out = masked_fill(img, mask)
+    np.testing.assert_array_equal(out[mask], img[mask])
+    np.testing.assert_allclose(out[~mask], img[mask].mean())
+    np.testing.assert_array_equal(masked_fill(img, None), img)
+
+
+def test_contextual_iteration_ignores_what_lies_outside_the_mask():
+    """The predictor, CMA-ES refinement and final similarity see nothing of the pixels outside
+    the field: any values there give the same trajectory and result."""
+    from register.contextual import ContextualRegistration, ContextualSettings
+    from sim.phantom import make_pelvis_phantom
+
+    vol = make_pelvis_phantom(3, spacing_mm=6.0)
+    seen = []
+
+    def predictor(fixed, drr):
+        seen.append((fixed.copy(), drr.copy()))
+        return np.array([0.01, -0.02, 0.0, 1.0, -0.5, 2.0]) * (fixed.mean() + 1.0)
+
+    reg = ContextualRegistration(vol, predictor, ContextualSettings(max_iterations=3), size=(32, 32))
+    fixed = _image(32, 32, 3)
+    mask = _disc(32, 32, 12)
+    a = reg.register(fixed, np.zeros(6), mask=mask)
+    first = seen[:]
+    seen.clear()
+    b = reg.register(np.where(mask, fixed, 50.0), np.zeros(6), mask=mask)
+    np.testing.assert_allclose(a.params, b.params, atol=1e-12)
+    assert a.similarity == b.similarity
+    for (f1, d1), (f2, d2) in zip(first, seen):
+        np.testing.assert_array_equal(f1, f2)
+        np.testing.assert_array_equal(d1, d2)
+        assert np.ptp(f1[~mask]) == 0 and np.ptp(d1[~mask]) == 0  # the neutral fill, one value
+
+
+def test_overlay_and_checkerboard_are_at_full_resolution_with_the_field_outline():
+    from register.plots import checkerboard_png, overlay_png
+
+    h, w = 300, 360
+    mask = _disc(h, w, 130)
+    drr = np.zeros((h, w))
+    drr[100:200, 120:240] = 1.0  # a box: its edges are the DRR's edges
+    xray = _image(h, w, 5)
+
+    import tempfile
+    from pathlib import Path
+
+    with tempfile.TemporaryDirectory() as d:
+        overlay_png(xray, drr, Path(d) / "o.png", mask=mask)
+        checkerboard_png(xray, drr, Path(d) / "c.png", mask=mask, tiles=6)
+        o = np.asarray(Image.open(Path(d) / "o.png"))
+        c = np.asarray(Image.open(Path(d) / "c.png"))
+    assert o.shape == (h, w, 3) and c.shape == (h, w)
+    red = (o[..., 0] > 200) & (o[..., 1] < 80) & (o[..., 2] < 80)
+    cyan = (o[..., 0] < 80) & (o[..., 1] > 180) & (o[..., 2] > 200)
+    box_edge = np.zeros((h, w), bool)
+    box_edge[100:200, 120:240] = True
+    box_edge ^= ndimage.binary_erosion(box_edge)
+    near_box = ndimage.distance_transform_edt(~box_edge) <= 2
+    assert red.sum() > 300 and (red & ~near_box).sum() == 0  # every red pixel is on the box's edge
+    ring = mask ^ ndimage.binary_erosion(mask)
+    assert (cyan & ring).sum() >= 0.9 * ring.sum()  # the field outline drawn all round
+    # tile (0, 0) shows the X-ray, tile (0, 1) the DRR (both windowed over the mask; outside dimmed)
+    side = 60
+    inside = mask[side:2 * side, :side]
+    assert np.ptp(c[side:2 * side, side:2 * side][mask[side:2 * side, side:2 * side]]) > 50  # (1, 1): the X-ray
+    drr_tile = c[side:2 * side, :side]  # (1, 0): odd tile -> the DRR, all zeros there: one grey
+    assert np.ptp(drr_tile[inside]) == 0
+
+
+def test_overlay_refuses_a_drr_of_another_shape():
+    from register.plots import overlay_png
+
+    with pytest.raises(ValueError, match="shape"):
+        overlay_png(np.zeros((10, 10)), np.zeros((5, 5)), "x.png")
