@@ -13,25 +13,28 @@ Polarity is stated for :attr:`register.xray_io.XRayImage.pixels` (which are alre
 MONOCHROME1 and an INVERSE presentation LUT are undone by the reader): ``bone-bright`` (a
 radiograph) or ``bone-dark`` (a fluoroscopy frame, a raw image).
 
-:func:`decide` takes, in this order of strength (an option always wins):
+:func:`decide` weighs, in this order of strength (an option always wins):
 
 1. **decisive DICOM tags**: Pixel Intensity Relationship (LIN / LOG / DISP) and its Sign (+1:
    larger stored value = more X-ray intensity = bone dark; -1: bone bright; flipped when the
-   reader inverted the pixels), Presentation Intent "FOR PROCESSING" (raw: linear, bone dark);
-2. **the image against the CT** (when a :class:`PolarityReference` is given): the low-resolution,
-   blurred X-ray correlated (NCC over the field) with line-integral DRRs of the CT at poses
-   around the start. With the right polarity the best DRR correlates positively; the polarity
-   whose best correlation is larger wins when it leads by :data:`REFERENCE_MARGIN`;
-3. **conventions of the file**: a VOI LUT / window, a display modality (fluoroscopy ``RF``/``XA``
+   reader inverted the pixels), Presentation Intent "FOR PROCESSING" (raw: linear);
+2. **the noise trend** (:func:`noise_trend`): quantum noise grows where fewer photons arrive, so in
+   a linear image the noise grows with the value (Poisson, ``var ~ I``), in a bone-bright log or
+   display image it grows with the value too (``var ~ 1/I``), and in a bone-dark display image it
+   falls with the value. A falling trend means a bone-dark display image; a bone-dark image whose
+   noise grows with its value is raw (linear);
+3. **the image against the CT** (a :class:`PolarityReference`): the low-resolution, blurred X-ray
+   correlated (NCC over the field) with line-integral DRRs of the CT at poses around the start;
+   the polarity whose best correlation leads by :data:`REFERENCE_CLEAR`;
+4. **conventions of the file**: a VOI LUT / window, the modality (fluoroscopy ``RF``/``XA``
    frames are shown bone dark; ``DX``/``CR``/``MG`` radiographs "FOR PRESENTATION" bone bright),
    8-bit exports (display);
-4. **the image alone**: (a) *noise trend*: quantum noise grows where fewer photons arrive, so in a
-   linear image the noise grows with the value (Poisson, ``var ~ I``), in a bone-bright log or
-   display image it grows with the value too (``var ~ 1/I``), and in a bone-dark display image it
-   falls with the value. A bone-dark image whose noise grows with its value is therefore a raw
-   (linear) image. (b) *centre contrast*: the middle of a field (the thickest path through the
-   body) attenuates more than its rim in ~90 % of pelvis views; used only when nothing else
-   decides.
+5. a weaker CT reference (:data:`REFERENCE_MARGIN`), then the **centre contrast**
+   (:func:`centre_contrast`): the middle of a field (the thickest path through the body)
+   attenuates more than its rim in ~90 % of pelvis views.
+
+``ctxreg register`` then checks the polarity by registration unless an option or the Sign tag
+set it (:func:`register.prepare.confirm_polarity`).
 
 The decision (:class:`IntensityDecision`) records every piece of evidence it saw and which one
 decided, so that ``result.json`` can say why an image was log-corrected or inverted.

@@ -1,0 +1,34 @@
+"""Realistic collimated fluoroscopy frames of the real pelvis CT through ``ctxreg register``
+(default preprocessing and method), at a reduced size: the full study is
+``benchmarks/xray_input.py`` (docs/results.md)."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from register.xray_study import run_study, summarize_study
+
+
+@pytest.mark.slow
+def test_collimated_frames_register_like_open_ones_from_a_local_start(pelvis_ct_path, tmp_path):
+    rows = run_study(str(pelvis_ct_path), tmp_path, cases=2, size=192, starts=("local",),
+                     scatter_photons=200_000, progress=None)
+    assert len(rows) == 4 and all(r["exit_code"] == 0 for r in rows)
+    s = summarize_study(rows)
+    # every frame registers from a local start (<= 5 deg, 10 mm away): mTRE < 10 mm, collimated or not
+    assert s["collimated/local"]["successes"] == 2 and s["open/local"]["successes"] == 2, s
+    for r in rows:
+        assert r["intensity"] == "bone-dark" and r["scale"] == "display"
+        if r["kind"] == "collimated":
+            assert r["field_kind"] == "circle"
+            # the valid pixels: the round field less the 2 px margin and the clipped spots
+            assert 0.85 * r["truth_field_fraction"] < r["field_valid_fraction"] <= r["truth_field_fraction"]
+    result = json.loads((tmp_path / "case_000" / "collimated_local" / "result.json").read_text())
+    src = result["xray_input"]["geometry_sources"]
+    assert (src["sdd_source"], src["sod_source"], src["pixel_spacing_source"]) == (
+        "DICOM DistanceSourceToDetector", "DICOM DistanceSourceToPatient", "DICOM ImagerPixelSpacing")
+    assert result["xray_input"]["full_size"] == [192, 192]
+    assert np.isfinite(result["similarity"])
