@@ -26,9 +26,10 @@ Method (deterministic; about 0.1 s for 512 x 512):
 2. **Candidate.** The rest, opened with a radius-2 disk (glyph strokes crossing the field edge go),
    its largest 8-connected component with holes filled (glyphs in the outside corners and text
    over the anatomy go). A second component larger than 10 % of it means no single field (a body
-   outline, two legs). The candidate's boundary layer (5 px) is then re-thresholded at the
-   midpoint between ``L`` and the in-field level next to the boundary, so that a soft (blurred)
-   edge is placed at its 50 % point.
+   outline, two legs). The candidate's boundary layer (5 px, and 5 px along the image edges,
+   where a thin shutter may be all blur) is then re-thresholded at the midpoint between ``L`` and
+   the local in-field level (mean of the layer 5-10 px deep in a 21 x 21 window), so that a soft
+   (blurred) edge is placed at its 50 % point and dark anatomy at the edge is not cut.
 3. **Shape model**, the simplest that agrees with the candidate (mean boundary deviation =
    ``|model XOR candidate| / model boundary length`` at most ``max_boundary_px``): an axis-aligned
    **rectangle** (rows and columns where the candidate fills at least half of its widest
@@ -171,10 +172,13 @@ class FieldSettings:
         overlay_contrast: fraction of the in-field value range (1st-99th percentile), 0.10, [0, 1].
             Smallest step between an extreme-valued component and its surroundings for it to be
             drawn (text) rather than clipped (a saturated plateau blends into its surroundings).
-        overlay_noise_k: multiples of the in-field noise, 6.0, [0, 50]. Same step in noise units:
-            noise clusters that touch the extreme stand ~4 noise sigmas above their surroundings.
-        overlay_min_px: px (pixel count), 3, [1, 1000]. Smaller extreme components are noise unless
-            within 4 px of an overlay (dots, full stops).
+        overlay_noise_k: multiples of the in-field noise, 4.0, [0, 50]. Same step in noise units.
+            With the other conditions (at least ``overlay_min_px`` pixels exactly at the extreme),
+            noise reaches the extreme in clusters only where the anatomy comes within ~2 noise
+            sigmas of it, so such clusters stand < 4 sigmas above their surroundings.
+        overlay_min_px: px (pixel count), 3, [1, 1000]. An overlay has at least this many pixels
+            exactly at the extreme. Smaller extreme components are noise unless within 4 px of an
+            overlay (dots, full stops) or cut by the field's edge (then judged by contrast alone).
         overlay_max_width_px: px, 8.0, [1, 100]. Widest stroke (2 x the largest inner distance - 1)
             of an overlay; thicker high-contrast components of at least ``plateau_min_px`` pixels
             count as saturated / empty plateaus.
@@ -197,7 +201,7 @@ class FieldSettings:
     polygon_tolerance_px: float = 1.0
     polygon_max_vertices: int = 64
     overlay_contrast: float = 0.10
-    overlay_noise_k: float = 6.0
+    overlay_noise_k: float = 4.0
     overlay_min_px: int = 3
     overlay_max_width_px: float = 8.0
     overlay_dilate_px: float = 2.0
@@ -228,7 +232,7 @@ class FieldSettings:
                 raise FieldError(f"FieldSettings.{name}: must be an integer in [{lo}, {hi}], got {v!r}")
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class Field:
     """The detected field of view and the valid pixels of one image.
 
@@ -240,7 +244,8 @@ class Field:
         outside: colour outside the field, ``"black"``, ``"white"`` or ``None`` (kind ``"none"``).
         params: the model in px (x = column, y = row, pixel centres at integers): circle
             ``centre_x, centre_y, radius``; rectangle ``row0, row1, col0, col1`` (half-open, before
-            the margin); polygon ``vertices [[x, y], ...]``; kind ``"none"``: ``reason``.
+            the margin); polygon ``vertices [[x, y], ...]`` (a vertex may lie beyond the image
+            where the field runs off it); kind ``"none"``: ``reason``.
         excluded: disjoint pixel counts inside ``field_mask``: ``overlay`` (text, rulers, markers),
             ``saturated`` (plateaus at the maximum), ``empty`` (plateaus at the minimum).
         settings: the :class:`FieldSettings` used.
@@ -298,6 +303,7 @@ def _jsonable(obj: Any) -> Any:
 
 
 def _validated(image: object) -> np.ndarray:
+    """The image as ``(H, W)`` float64, or :class:`FieldError` naming what is wrong with it."""
     arr = np.asarray(image)
     if arr.ndim != 2:
         raise FieldError(f"the image must be 2-D (H, W), got shape {arr.shape}")
@@ -322,23 +328,23 @@ def _quant_step(img: np.ndarray, lo: float, hi: float) -> float:
 
 
 def _disk(radius: float) -> np.ndarray:
+    """Disk structuring element of ``radius`` px, ``(2r+1, 2r+1)`` bool."""
     r = int(math.floor(radius))
     yy, xx = np.mgrid[-r:r + 1, -r:r + 1]
     return (yy * yy + xx * xx) <= radius * radius + 1e-9
 
 
 def _dilate(mask: np.ndarray, radius: float) -> np.ndarray:
+    """``mask`` grown by a disk of ``radius`` px (pixel centres within ``radius`` of it)."""
     if radius <= 0 or not mask.any():
         return mask.copy()
-    r = int(math.ceil(radius))
-    # distance-based dilation: exact disk, independent of the number of objects
-    dist = ndimage.distance_transform_edt(~mask) if r > 1 else None
-    if dist is None:
+    if radius < 2:
         return ndimage.binary_dilation(mask, structure=_disk(radius))
-    return dist <= radius
+    return ndimage.distance_transform_edt(~mask) <= radius
 
 
 def _mad_sigma(x: np.ndarray) -> float:
+    """Robust standard deviation (1.4826 x median absolute deviation); 0 for no values."""
     if x.size == 0:
         return 0.0
     return float(1.4826 * np.median(np.abs(x - np.median(x))))
@@ -370,6 +376,8 @@ def _thin_parts(mask: np.ndarray, max_width: float) -> np.ndarray:
 
 def _find_outside(img: np.ndarray, med: np.ndarray, ext_hi: np.ndarray, ext_lo: np.ndarray,
                   lo: float, hi: float, s: FieldSettings) -> tuple[_Outside | None, str]:
+    """Step 1: the outside level and region grown from the border, or ``None`` and the reason
+    (one line) why the image shows no collimator."""
     H, W = img.shape
     rng = hi - lo
     ring = np.zeros((H, W), dtype=bool)
@@ -388,6 +396,8 @@ def _find_outside(img: np.ndarray, med: np.ndarray, ext_hi: np.ndarray, ext_lo: 
         return None, "no structure away from the border level"
     inside_level = float(np.median(med[far]))
     contrast = abs(inside_level - level)
+    if contrast < 0.05 * rng:
+        return None, "the border level lies amid the image's values"
     tol = min(max(s.level_tolerance * contrast, s.noise_k * sigma), 0.5 * contrast)
     f_border = float(np.mean(np.abs(v - level) <= tol))
     if f_border < s.min_border_fraction:
@@ -396,13 +406,13 @@ def _find_outside(img: np.ndarray, med: np.ndarray, ext_hi: np.ndarray, ext_lo: 
     beyond = float(np.mean(sign * (level - med) > tol))
     if beyond > _MAX_BEYOND:
         return None, f"the border level is not an extreme ({100 * beyond:.1f} % of the pixels lie beyond it)"
-    # locally flat: 3 x 3 standard deviation (overlay strokes counted as outside) no larger than
-    # the outside's own (noise) or 1 % of the contrast; keeps the growth out of anatomy that
-    # happens to come near the outside level (its texture and noise are not flat)
-    # overlay strokes (everything at the outside's own extreme, thin components at the other one)
-    # do not spoil the flatness of the outside around them; they are not outside themselves:
-    # strokes crossing into the field become thin protrusions of the field, which the opening
-    # of step 2 removes, rather than notches in it
+    # Grow over pixels near the level and locally flat: 3 x 3 standard deviation no larger than
+    # the outside's own (noise) or 1 % of the contrast, which keeps the growth out of anatomy
+    # that happens to come near the level (it has texture and noise). Overlay strokes (all
+    # pixels at the outside's own extreme, thin components at the other one) count as the level
+    # for the flatness of the pixels around them, but are not outside themselves: strokes that
+    # cross into the field become thin protrusions of it, which the opening of step 2 removes,
+    # rather than notches in it.
     same, other = (ext_lo, ext_hi) if sign > 0 else (ext_hi, ext_lo)
     extreme = same | _thin_parts(other, s.overlay_max_width_px)
     flat_img = np.where(extreme, level, img)
@@ -449,7 +459,7 @@ def _largest_filled(mask: np.ndarray) -> tuple[np.ndarray, float]:
         return mask, 0.0
     sizes = np.bincount(lab.ravel())
     sizes[0] = 0
-    order = np.argsort(sizes)[::-1]
+    order = np.argsort(-sizes, kind="stable")
     second = float(sizes[order[1]] / sizes[order[0]]) if n > 1 else 0.0
     return ndimage.binary_fill_holes(lab == int(order[0])), second
 
@@ -482,6 +492,13 @@ def _candidate(med: np.ndarray, out: _Outside) -> tuple[np.ndarray, str]:
     v_local = np.where(den > 0.02, num / np.maximum(den, 1e-12), v_in)
     mid = out.level + 0.5 * (v_local - out.level)
     band = cand & ~inner
+    # a shutter only a few px wide at an image edge is mostly blur: its flat core is too thin to
+    # grow from, so the layer along the image edges is re-thresholded too
+    b = _EDGE_BAND_PX
+    edge = np.zeros_like(cand)
+    edge[:b] = edge[-b:] = True
+    edge[:, :b] = edge[:, -b:] = True
+    band |= cand & edge
     refined = cand & ~(band & (sign * (med - mid) < 0))
     refined = _largest_filled(refined)[0]
     return (refined if refined.sum() > 0.5 * cand.sum() else cand), ""
@@ -492,6 +509,7 @@ def _candidate(med: np.ndarray, out: _Outside) -> tuple[np.ndarray, str]:
 
 
 def _boundary_len(model: np.ndarray) -> int:
+    """Number of boundary pixels of ``model`` (px), not counting the image edges."""
     inner = ndimage.binary_erosion(model, structure=np.ones((3, 3), bool), border_value=1)
     return int((model & ~inner).sum())
 
@@ -509,6 +527,8 @@ def _contour(cand: np.ndarray) -> np.ndarray:
 
 
 def _fit_rectangle(cand: np.ndarray) -> tuple[np.ndarray, dict]:
+    """Axis-aligned rectangle: the rows / columns where the candidate fills at least half of its
+    widest row / column (robust to notches and rounded corners); half-open bounds."""
     rows = cand.sum(axis=1)
     cols = cand.sum(axis=0)
     rsel = np.nonzero(rows >= 0.5 * rows.max())[0]
@@ -519,14 +539,18 @@ def _fit_rectangle(cand: np.ndarray) -> tuple[np.ndarray, dict]:
     return model, {"row0": r0, "row1": r1, "col0": c0, "col1": c1}
 
 
-def _circle_mask(shape: tuple[int, int], cx: float, cy: float, r: float, pad: int = 0) -> np.ndarray:
+def _circle_mask(shape: tuple[int, int], cx: float, cy: float, r: float) -> np.ndarray:
+    """``(H, W)`` bool: pixel centres within ``r`` px of (``cx`` = column, ``cy`` = row)."""
     H, W = shape
-    yy = np.arange(-pad, H + pad, dtype=np.float64)[:, None] - cy
-    xx = np.arange(-pad, W + pad, dtype=np.float64)[None, :] - cx
+    yy = np.arange(H, dtype=np.float64)[:, None] - cy
+    xx = np.arange(W, dtype=np.float64)[None, :] - cx
     return yy * yy + xx * xx <= r * r
 
 
 def _fit_circle_points(x: np.ndarray, y: np.ndarray, inlier_px: float) -> tuple[float, float, float, np.ndarray] | None:
+    """Robust circle through points (x, y) px: seeded RANSAC over triples, then geometric least
+    squares on the inliers (within ``inlier_px``), repeated until the inliers settle.
+    Returns ``(cx, cy, r, inlier mask)`` or ``None``."""
     n = x.size
     rng = np.random.default_rng(20240611)
     idx = rng.integers(0, n, size=(_RANSAC_TRIALS, 3))
@@ -542,6 +566,8 @@ def _fit_circle_points(x: np.ndarray, y: np.ndarray, inlier_px: float) -> tuple[
         uy = (a2 * (cxp - bx) + b2 * (ax - cxp) + c2 * (bx - ax)) / d
     r = np.hypot(ax - ux, ay - uy)
     ok &= np.isfinite(r) & (r > 2.0)
+    if not ok.any():
+        return None
     ux, uy, r = ux[ok], uy[ok], r[ok]
     step = max(1, n // 800)
     xs, ys = x[::step], y[::step]
@@ -570,6 +596,8 @@ def _fit_circle_points(x: np.ndarray, y: np.ndarray, inlier_px: float) -> tuple[
 
 
 def _fit_circle(cand: np.ndarray, pts: np.ndarray, s: FieldSettings) -> tuple[np.ndarray, dict] | None:
+    """Circle fitted to the candidate's boundary points away from the image edges (so a circle
+    clipped by the image works); ``(mask, params)`` or ``None`` when too few points agree."""
     H, W = cand.shape
     r, c = pts[:, 0], pts[:, 1]
     keep = (r > -0.25) & (r < H - 0.75) & (c > -0.25) & (c < W - 0.75)
@@ -585,6 +613,7 @@ def _fit_circle(cand: np.ndarray, pts: np.ndarray, s: FieldSettings) -> tuple[np
 
 
 def _fit_polygon(cand: np.ndarray, pts: np.ndarray, s: FieldSettings) -> tuple[np.ndarray, dict] | None:
+    """Convex polygon: hull of the boundary points, simplified and refined to straight edges."""
     H, W = cand.shape
     pts = np.column_stack([np.clip(pts[:, 0], -0.5, H - 0.5), np.clip(pts[:, 1], -0.5, W - 0.5)])
     try:
@@ -595,13 +624,18 @@ def _fit_polygon(cand: np.ndarray, pts: np.ndarray, s: FieldSettings) -> tuple[n
     if len(poly) < 3 or len(poly) > s.polygon_max_vertices:
         return None
     # shutter edges are long; edges of a few px are corner cuts left by the median filter, the
-    # opening and blur: drop as many as still gives a clean convex polygon
+    # opening and blur: drop as many as still gives a clean convex polygon that fits the
+    # candidate at least as well (a field with arcs keeps its many short edges)
+    model = _convex_polygon_mask((H, W), poly)
+    dev = _deviation(model, cand)
     for min_edge in (3 * _POLY_MIN_EDGE_PX, 2 * _POLY_MIN_EDGE_PX, _POLY_MIN_EDGE_PX):
         refined = _refine_polygon(poly, pts, (H, W), min_edge)
-        if refined is not None:
-            poly = refined
+        if refined is None:
+            continue
+        refined_model = _convex_polygon_mask((H, W), refined)
+        if _deviation(refined_model, cand) <= dev:
+            poly, model = refined, refined_model
             break
-    model = _convex_polygon_mask((H, W), poly)
     vertices = [[float(p[1]), float(p[0])] for p in poly]
     return model, {"vertices": vertices}
 
@@ -694,11 +728,16 @@ def _refine_polygon(poly: np.ndarray, pts: np.ndarray, shape: tuple[int, int],
     long_edges = np.nonzero(lengths >= min_edge)[0]
     if len(long_edges) < 3:
         return None
-    lines = []
+    def tls(q: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        c = q.mean(axis=0)
+        _, _, vt = np.linalg.svd(q - c, full_matrices=False)
+        return c, (vt[0] if vt[0] @ u >= 0 else -vt[0])
+
+    lines = []  # (point, direction, supporting points)
     for i in long_edges:
         a, b = poly[i], nxt[i]
         u = (b - a) / lengths[i]
-        c, d = a, u
+        c, d, support = a, u, pts[:0]
         lo_t, hi_t = 2.0, lengths[i] - 2.0  # along the edge, clear of its ends
         for _ in range(3):  # total least squares on the points near the line, then refit
             rel = pts - c
@@ -707,15 +746,28 @@ def _refine_polygon(poly: np.ndarray, pts: np.ndarray, shape: tuple[int, int],
             sel = (np.abs(across) <= 1.5) & (along >= lo_t) & (along <= hi_t)
             if sel.sum() < 5:
                 break
-            q = pts[sel]
-            c = q.mean(axis=0)
-            _, _, vt = np.linalg.svd(q - c, full_matrices=False)
-            d = vt[0] if vt[0] @ u >= 0 else -vt[0]
-        lines.append((c, d))
+            support = pts[sel]
+            c, d = tls(support, u)
+        lines.append((c, d, support))
+    # consecutive lines that continue each other are one edge
+    sin_merge = math.sin(math.radians(_POLY_MERGE_DEG))
+    k = 0
+    while len(lines) > 3 and k < len(lines):
+        (c1, d1, s1), (c2, d2, s2) = lines[k], lines[(k + 1) % len(lines)]
+        if abs(d1[0] * d2[1] - d1[1] * d2[0]) < sin_merge and d1 @ d2 > 0:
+            both = np.vstack([s1, s2])
+            merged = tls(both, d1) + (both,) if len(both) >= 5 else lines[k]
+            lines[k] = merged
+            del lines[(k + 1) % len(lines)]
+            k = 0
+            continue
+        k += 1
+    if len(lines) < 3:
+        return None
     out = []
     m = len(lines)
     for k in range(m):
-        (c1, d1), (c2, d2) = lines[k], lines[(k + 1) % m]
+        (c1, d1, _), (c2, d2, _) = lines[k], lines[(k + 1) % m]
         den = d1[0] * d2[1] - d1[1] * d2[0]
         if abs(den) < math.sin(math.radians(2.0)):
             return None
@@ -734,6 +786,8 @@ def _refine_polygon(poly: np.ndarray, pts: np.ndarray, shape: tuple[int, int],
 
 
 def _fit_model(cand: np.ndarray, s: FieldSettings) -> tuple[str, np.ndarray | None, dict]:
+    """Step 3: the simplest model (rectangle, circle, polygon) within ``max_boundary_px`` of the
+    candidate: ``(kind, mask, params)``, or ``("none", None, {"reason": ...})``."""
     pts = _contour(cand)
     devs = {}
     model, params = _fit_rectangle(cand)
@@ -754,16 +808,15 @@ def _fit_model(cand: np.ndarray, s: FieldSettings) -> tuple[str, np.ndarray | No
     return "none", None, {"reason": f"no field model fits the candidate (mean boundary deviation: {txt})"}
 
 
-def _erode_model(kind: str, model: np.ndarray, params: dict, margin: float) -> np.ndarray:
-    """The model's mask eroded by ``margin`` px from its boundary (not from the image edges)."""
-    if margin <= 0:
-        return model.copy()
+def _erode_model(kind: str, model: np.ndarray, params: dict, margins: tuple[float, ...]) -> list[np.ndarray]:
+    """The model's mask ``(H, W)`` eroded by each of ``margins`` px from its boundary (not from
+    the image edges: the field continues beyond them)."""
     if kind == "circle":
-        return _circle_mask(model.shape, params["centre_x"], params["centre_y"], params["radius"] - margin)
-    p = int(math.ceil(margin)) + 1
-    padded = np.pad(model, p, mode="edge")
-    dist = ndimage.distance_transform_edt(padded)
-    return (dist > margin)[p:-p, p:-p]
+        return [_circle_mask(model.shape, params["centre_x"], params["centre_y"], params["radius"] - m)
+                for m in margins]
+    p = int(math.ceil(max(margins))) + 1
+    dist = ndimage.distance_transform_edt(np.pad(model, p, mode="edge"))[p:-p, p:-p]
+    return [model.copy() if m <= 0 else dist > m for m in margins]
 
 
 # --------------------------------------------------------------------------------------------
@@ -782,9 +835,11 @@ def _classify_extreme(img: np.ndarray, ext: np.ndarray, value: float, within: np
     full = np.ones((3, 3), bool)
     lab, n = ndimage.label(comp, structure=full)
     sizes = np.bincount(lab.ravel())
-    # pieces of glyphs cut by the field's edge are judged whatever their size
+    # pieces of glyphs cut by the field's edge (extreme pixels continue beyond it) are judged
+    # whatever their size
     cut = np.zeros(n + 1, dtype=bool)
-    cut[lab[comp & ndimage.binary_dilation(~within, structure=full)]] = True
+    cut[lab[comp & ndimage.binary_dilation(ext & ~within, structure=full)]] = True
+    cut[0] = False
     small = np.zeros(n + 1, dtype=bool)  # too small to judge alone: joins a neighbour, if any
     for i, sl in enumerate(ndimage.find_objects(lab), start=1):
         size = int(sizes[i])
@@ -803,6 +858,9 @@ def _classify_extreme(img: np.ndarray, ext: np.ndarray, value: float, within: np
         high = bool(ring.any()) and abs(value - float(np.median(img[r0:r1, c0:c1][ring]))) >= step_thr
         width = 2.0 * float(ndimage.distance_transform_edt(np.pad(sub, 1)).max()) - 1.0
         thin = width <= s.overlay_max_width_px
+        # drawn strokes sit exactly at the extreme; a sharp anatomical peak touching it does not
+        exact = int((img[r0:r1, c0:c1][sub] == value).sum())
+        high = high and exact >= min(size, s.overlay_min_px)
         if high and (thin or size < s.plateau_min_px):
             overlay[r0:r1, c0:c1] |= sub
         elif size >= s.plateau_min_px:
@@ -820,18 +878,21 @@ def _classify_extreme(img: np.ndarray, ext: np.ndarray, value: float, within: np
     return overlay, plateau
 
 
-def _exclusions(img: np.ndarray, field: np.ndarray, lo: float, hi: float, q: float, med: np.ndarray,
-                s: FieldSettings) -> dict[str, np.ndarray]:
+def _exclusions(img: np.ndarray, within: np.ndarray, field: np.ndarray, lo: float, hi: float, q: float,
+                med: np.ndarray, s: FieldSettings) -> dict[str, np.ndarray]:
+    """Overlay / saturated / empty masks ``(H, W)`` bool inside ``field``; the extreme-valued
+    components are judged inside ``within`` (the model 1 px in: glyphs crossing into the margin
+    are judged whole, the outside itself stays out)."""
     ext_hi = img >= hi - q
     ext_lo = img <= lo + q
-    vals = img[field & ~ext_hi & ~ext_lo]
+    vals = img[within & ~ext_hi & ~ext_lo]
     if vals.size < 10:
-        vals = img[field]
+        vals = img[within]
     p1, p99 = np.percentile(vals, [1, 99])
-    noise = _mad_sigma((img - med)[field & ~ext_hi & ~ext_lo]) if vals.size >= 10 else 0.0
+    noise = _mad_sigma((img - med)[within & ~ext_hi & ~ext_lo]) if vals.size >= 10 else 0.0
     step_thr = max(s.overlay_contrast * float(p99 - p1), s.overlay_noise_k * noise, q)
-    ov_hi, sat = _classify_extreme(img, ext_hi, hi, field, step_thr, s)
-    ov_lo, emp = _classify_extreme(img, ext_lo, lo, field, step_thr, s)
+    ov_hi, sat = _classify_extreme(img, ext_hi, hi, within, step_thr, s)
+    ov_lo, emp = _classify_extreme(img, ext_lo, lo, within, step_thr, s)
     overlay = _dilate(ov_hi | ov_lo, s.overlay_dilate_px) & field
     saturated = _dilate(sat, s.plateau_dilate_px) & field & ~overlay
     empty = _dilate(emp, s.plateau_dilate_px) & field & ~overlay & ~saturated
@@ -878,13 +939,13 @@ def detect_field(image: np.ndarray, settings: FieldSettings | None = None) -> Fi
             if model is not None:
                 outside_colour = out.colour
     if model is None:
-        field_mask = np.ones(img.shape, dtype=bool)
+        field_mask = within = np.ones(img.shape, dtype=bool)
         kind = "none"
         params = params if params else {"reason": reason}
     else:
-        field_mask = _erode_model(kind, model, params, s.margin_px)
+        field_mask, within = _erode_model(kind, model, params, (s.margin_px, min(s.margin_px, 1.0)))
 
-    excl = _exclusions(img, field_mask, lo, hi, q, med, s)
+    excl = _exclusions(img, within, field_mask, lo, hi, q, med, s)
     mask = field_mask & ~(excl["overlay"] | excl["saturated"] | excl["empty"])
     result = Field(mask=mask, field_mask=field_mask, kind=kind, outside=outside_colour, params=params,
                    excluded={k: int(v.sum()) for k, v in excl.items()}, settings=s)
