@@ -252,9 +252,3 @@ class CMAESRegistration:
                                   projection=self.by_factor[1].projection_matrix(pose),
                                   similarity=final, renders=renders, stage_seconds=stages, history=history)
 
-
-#: The global search of ``ctxreg register`` for a user's X-ray: wider first steps (12 deg / 40 mm)
-#: and a larger population (36) than the evaluation protocol's defaults. On 11 collimated
-#: full-physics pelvis frames from AP (docs/results.md) it found 7 poses where the defaults found 3;
-#: it renders 1.5 times as many DRRs.
-XRAY_SEARCH = dict(sigma_deg=12.0, sigma_mm=40.0, popsize=36)

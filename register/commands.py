@@ -173,7 +173,7 @@ def run_register(cmd: RegisterCommand) -> list[Path]:
     import sys
     from dataclasses import asdict
 
-    from register.cmaes import XRAY_SEARCH, CMAESRegistration, CMAESSettings, RegistrationError
+    from register.cmaes import CMAESRegistration, CMAESSettings, RegistrationError
     from register.plots import checkerboard_png, convergence_plot, overlay_png
     from register.prepare import confirm_polarity, prepare_xray
     from register.xray_io import load_xray
@@ -205,7 +205,7 @@ def run_register(cmd: RegisterCommand) -> list[Path]:
     image, mask, geometry = prepared.image, prepared.mask, prepared.geometry
     size = (geometry.height, geometry.width)
     if cmd.method == "cmaes":
-        engine = CMAESRegistration(volume, CMAESSettings(size=size, **XRAY_SEARCH), scene=cmd.scene, geometry=geometry,
+        engine = CMAESRegistration(volume, CMAESSettings(size=size), scene=cmd.scene, geometry=geometry,
                                    center_lps=center, physics=physics, label_materials=materials)
         result = engine.register(image, init, mask=mask)
     else:

@@ -128,11 +128,13 @@ def run_study(ct: str, out: str | Path, *, cases: int = 10, size: int = 256, see
                     P = imager.renderer.projection_matrix(T_true)
                     err = pose_errors(T_est, T_true, points, center, P, P, g.pixel_spacing_mm)
                     truth_field = frame["field_mask"]
+                    inp = res["xray_input"]
                     row.update({k2: err[k2] for k2 in ("rot_err_deg", "trans_err_mm", "mtre_mm")},
-                               intensity=res["xray_input"]["intensity"]["polarity"],
-                               scale=res["xray_input"]["intensity"]["scale"],
-                               field_kind=res["xray_input"]["field"]["kind"],
-                               field_valid_fraction=res["xray_input"]["field"]["valid_fraction"],
+                               intensity=(inp["polarity_check"] or inp["intensity"])["polarity"],
+                               decided_polarity=inp["intensity"]["polarity"],
+                               scale=inp["intensity"]["scale"],
+                               field_kind=inp["field"]["kind"],
+                               field_valid_fraction=inp["field"]["valid_fraction"],
                                truth_field_fraction=float(truth_field.mean()))
                 rows.append(row)
         done = k + 1
@@ -164,6 +166,7 @@ def summarize_study(rows: list[dict], success_mtre_mm: float = 10.0) -> dict:
                 "mean_mtre_mm": float(np.mean(mtre)) if ok else None,
                 "median_seconds": float(np.median([r["seconds"] for r in sel])),
                 "bone_dark_decided": sum(r.get("intensity") == "bone-dark" for r in ok),
+                "bone_dark_before_check": sum(r.get("decided_polarity") == "bone-dark" for r in ok),
             }
     return summary
 

@@ -56,7 +56,9 @@ def test_register_recovers_the_pose_of_a_synthetic_dicom(synthetic_case, tmp_pat
     assert np.abs(est[3:5] - truth[3:5]).max() < 3.0, est
     assert abs(est[5] - truth[5]) < 15.0, est  # depth is the weakly observed direction
     assert result["geometry"]["sdd_mm"] == pytest.approx(1020.0)
-    assert [s["step"] for s in result["preprocessing"]] == ["field", "median", "intensity", "normalize", "crop"]
+    assert [s["step"] for s in result["preprocessing"]] == ["field", "median", "intensity", "normalize", "crop",
+                                                           "polarity_check"]
+    assert result["xray_input"]["polarity_check"]["inverted"] is False  # a bone-bright DRR stays so
     assert result["xray_input"]["geometry_sources"]["sdd_source"] == "DICOM DistanceSourceToDetector"
     assert "geometry: SDD 1020 mm (DICOM DistanceSourceToDetector)" in r.stdout
     for name in ("overlay.png", "checkerboard.png", "convergence.png"):
