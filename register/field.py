@@ -89,6 +89,7 @@ from scipy.spatial import ConvexHull, QhullError
 from skimage import measure
 
 from register.xray_io import XRayInputError
+from sim.atomic import jsonable
 
 __all__ = ["FieldError", "FieldSettings", "Field", "detect_field"]
 
@@ -274,28 +275,12 @@ class Field:
         return {
             "kind": self.kind,
             "outside": self.outside,
-            "params": _jsonable(self.params),
+            "params": jsonable(self.params),
             "excluded": {k: int(v) for k, v in self.excluded.items()},
             "valid_fraction": round(self.valid_fraction, 6),
             "field_fraction": round(self.field_fraction, 6),
-            "settings": _jsonable(dataclasses.asdict(self.settings)),
+            "settings": jsonable(dataclasses.asdict(self.settings)),
         }
-
-
-def _jsonable(obj: Any) -> Any:
-    if isinstance(obj, dict):
-        return {str(k): _jsonable(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [_jsonable(v) for v in obj]
-    if isinstance(obj, np.ndarray):
-        return _jsonable(obj.tolist())
-    if isinstance(obj, (bool, np.bool_)):
-        return bool(obj)
-    if isinstance(obj, (int, np.integer)):
-        return int(obj)
-    if isinstance(obj, (float, np.floating)):
-        return float(obj)
-    return obj
 
 
 # --------------------------------------------------------------------------------------------

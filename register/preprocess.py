@@ -302,19 +302,12 @@ DEFAULT_STEPS = ("field", "median", "intensity", "normalize", "crop")
 
 
 def _jsonable(obj: Any) -> Any:
-    if isinstance(obj, dict):
-        return {str(k): _jsonable(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [_jsonable(v) for v in obj]
-    if isinstance(obj, (bool, np.bool_)):
-        return bool(obj)
-    if isinstance(obj, (int, np.integer)):
-        return int(obj)
-    if isinstance(obj, (float, np.floating)):
-        return float(obj)
-    if obj is None or isinstance(obj, str):
-        return obj
-    raise PreprocessError(f"record: cannot serialise {type(obj).__name__}")
+    from sim.atomic import jsonable
+
+    try:
+        return jsonable(obj)
+    except TypeError as e:
+        raise PreprocessError(f"record: {e}") from None
 
 
 @dataclass(frozen=True)

@@ -38,6 +38,7 @@ from typing import Any, Mapping
 
 import numpy as np
 
+from sim.atomic import jsonable
 from sim.physics import PhysicsError
 
 SHAPES = ("none", "circle", "rectangle", "polygon")
@@ -87,16 +88,6 @@ def _from_dict(cls, d: Mapping[str, Any]):
     if unknown:
         raise PhysicsError(f"unknown {cls.__name__} setting(s) {unknown}; allowed: {sorted(names)}")
     return cls(**dict(d))
-
-
-def _jsonable(v):
-    if isinstance(v, tuple):
-        return [_jsonable(x) for x in v]
-    if isinstance(v, (bool, str)) or v is None:
-        return v
-    if isinstance(v, (int, np.integer)):
-        return int(v)
-    return float(v)
 
 
 # --------------------------------------------------------------------------------------------
@@ -235,7 +226,7 @@ class Collimator:
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-able settings (tuples as lists); :meth:`from_dict` reads them back."""
-        return {k: _jsonable(v) for k, v in asdict(self).items()}
+        return {k: jsonable(v) for k, v in asdict(self).items()}
 
     @classmethod
     def from_dict(cls, d: Mapping[str, Any]) -> "Collimator":
@@ -374,7 +365,7 @@ class DisplayChain:
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-able settings (tuples as lists); :meth:`from_dict` reads them back."""
-        return {k: _jsonable(v) for k, v in asdict(self).items()}
+        return {k: jsonable(v) for k, v in asdict(self).items()}
 
     @classmethod
     def from_dict(cls, d: Mapping[str, Any]) -> "DisplayChain":

@@ -18,6 +18,17 @@ def run_cli(*args):
                           text=True, cwd=REPO, timeout=600)
 
 
+def _assert_recovered(out, truth) -> dict:
+    """result.json of a run whose pose is within 1 deg, 3 mm in-plane and 15 mm in depth (the
+    weakly observed direction) of ``truth``; returns the result."""
+    result = json.loads((out / "result.json").read_text())
+    est = np.array([result["params"][k] for k in ("phi", "theta", "psi", "tx", "ty", "tz")])
+    assert np.abs(est[:3] - truth[:3]).max() < 1.0, est
+    assert np.abs(est[3:5] - truth[3:5]).max() < 3.0, est
+    assert abs(est[5] - truth[5]) < 15.0, est
+    return result
+
+
 @pytest.fixture(scope="module")
 def synthetic_case(tmp_path_factory):
     """A phantom CT (NIfTI) and its DRR at a known pose, stored as a DX DICOM with geometry tags."""
@@ -48,13 +59,9 @@ def test_register_recovers_the_pose_of_a_synthetic_dicom(synthetic_case, tmp_pat
     r = run_cli("register", "--ct", ct, "--xray", xray, "--init", *start, "--size", 96,
                 "--center", *center, "--out", out)
     assert r.returncode == 0, r.stderr
-    result = json.loads((out / "result.json").read_text())
-    est = np.array([result["params"][k] for k in ("phi", "theta", "psi", "tx", "ty", "tz")])
     # geometry from the DICOM tags, image resampled 192 -> 96 px; the DRRs match the target up
     # to the 16-bit storage and the resampling, so the pose comes back within a degree / few mm
-    assert np.abs(est[:3] - truth[:3]).max() < 1.0, est
-    assert np.abs(est[3:5] - truth[3:5]).max() < 3.0, est
-    assert abs(est[5] - truth[5]) < 15.0, est  # depth is the weakly observed direction
+    result = _assert_recovered(out, truth)
     assert result["geometry"]["sdd_mm"] == pytest.approx(1020.0)
     assert [s["step"] for s in result["preprocessing"]] == ["field", "median", "intensity", "normalize", "crop",
                                                            "polarity_check"]
@@ -93,10 +100,7 @@ def test_register_handles_a_collimated_fluoroscopy_frame_by_default(fluoro_case,
     r = run_cli("register", "--ct", ct, "--xray", xray, "--init", *start, "--size", 96,
                 "--center", *center, "--out", out)
     assert r.returncode == 0, r.stderr
-    result = json.loads((out / "result.json").read_text())
-    est = np.array([result["params"][k] for k in ("phi", "theta", "psi", "tx", "ty", "tz")])
-    assert np.abs(est[:3] - truth[:3]).max() < 1.0, est
-    assert np.abs(est[3:5] - truth[3:5]).max() < 3.0, est
+    result = _assert_recovered(out, truth)
     inp = result["xray_input"]
     assert inp["field"]["kind"] == "circle" and inp["field"]["outside"] == "black"
     assert inp["intensity"]["polarity"] == "bone-dark" and inp["intensity"]["steps"] == ["invert"]

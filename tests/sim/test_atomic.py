@@ -32,3 +32,20 @@ def test_a_failed_write_leaves_the_old_file_and_no_temporary(tmp_path):
             raise RuntimeError("interrupted")
     assert (tmp_path / "a.txt").read_text() == "old"
     assert [p.name for p in tmp_path.iterdir()] == ["a.txt"]
+
+
+def test_jsonable_turns_numpy_and_tuples_into_plain_json_and_refuses_objects():
+    import json
+
+    import numpy as np
+    import pytest
+
+    from sim.atomic import jsonable
+
+    data = {1: (np.float32(0.5), np.int64(3), np.bool_(True)), "a": np.arange(4).reshape(2, 2), "n": None}
+    out = jsonable(data)
+    assert out == {"1": [0.5, 3, True], "a": [[0, 1], [2, 3]], "n": None}
+    assert json.loads(json.dumps(out)) == out
+    assert type(out["1"][1]) is int and type(out["1"][2]) is bool
+    with pytest.raises(TypeError, match="object"):
+        jsonable({"x": object()})
