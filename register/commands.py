@@ -147,7 +147,8 @@ class RegisterCommand:
         choices=("auto", "linear", "log", "display")))
     polarity: str = field(default="auto", metadata=opt(
         "bone in the image as displayed: bone-bright (radiograph) or bone-dark (fluoroscopy, raw); auto "
-        "decides from the DICOM tags, then DRRs of the CT around the start, then the image", group="image",
+        "decides from the DICOM tags, the image's noise, DRRs of the CT around the start and the file's "
+        "modality, then checks by a coarse registration of the image and its inverse", group="image",
         choices=("auto", "bone-bright", "bone-dark")))
     out: str = field(default="out/register", metadata=opt(
         "folder for result.json, overlay.png (DRR edges and the field outline over the X-ray at its full "
