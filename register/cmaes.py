@@ -46,6 +46,12 @@ class CMAESSettings:
         polish: run a Powell polish at the finest level after CMA-ES.
         polish_evals: the most similarity evaluations of the polish.
         seed: CMA-ES seed.
+        restarts: the most restarts of the whole search (IPOP-CMA-ES, Auger & Hansen 2005: each
+            restart starts again at the start pose with a new seed and twice the population) while
+            the best final similarity is below ``restart_below``; the result with the highest
+            final similarity is kept, so a restart can only improve the similarity. 0 = none.
+        restart_below: final similarity under which a search counts as lost (gradient NCC of a
+            right pose on realistic frames is 0.65-0.97; lost searches end at 0.1-0.5).
     """
 
     levels: tuple[int, ...] = (4, 2)
@@ -61,6 +67,8 @@ class CMAESSettings:
     polish: bool = True
     polish_evals: int = 300
     seed: int = 0
+    restarts: int = 0
+    restart_below: float = 0.6
 
     def __post_init__(self) -> None:
         if not self.levels or any(int(f) < 1 for f in self.levels):
@@ -71,6 +79,10 @@ class CMAESSettings:
             v = getattr(self, name)
             if not (np.isfinite(v) and v > 0):
                 raise RegistrationError(f"{name} must be positive, got {v}")
+        if not (isinstance(self.restarts, int) and 0 <= self.restarts <= 10):
+            raise RegistrationError(f"restarts must be an integer in [0, 10], got {self.restarts}")
+        if not (np.isfinite(self.restart_below) and -1.0 <= self.restart_below <= 1.0):
+            raise RegistrationError(f"restart_below must be a similarity in [-1, 1], got {self.restart_below}")
         if self.popsize < 4:
             raise RegistrationError(f"popsize must be >= 4, got {self.popsize}")
         for name in ("generations", "metrics"):
@@ -171,10 +183,6 @@ class CMAESRegistration:
         ``fixed`` must already be preprocessed like the DRRs (line-integral-like: bone bright);
         ``mask`` ``(H, W)`` bool excludes pixels (collimator, tools) from the similarity.
         """
-        import cma
-        from scipy.optimize import minimize
-
-        from register.metrics import downsample, get_metric
         from sim.geometry import pose_from_params
 
         s = self.settings
@@ -193,10 +201,36 @@ class CMAESRegistration:
         scale = np.array([1.0] * 3 + [s.sigma_mm / s.sigma_deg] * 3)  # search in deg-like units
         lo = x0 - np.array([s.range_deg] * 3 + [s.range_mm] * 3)
         hi = x0 + np.array([s.range_deg] * 3 + [s.range_mm] * 3)
-        best = x0.copy()
         renders = 0
         stages: dict[str, float] = {}
         history: list[tuple[str, float, list[float]]] = []
+        best, final = x0, -np.inf
+        for attempt in range(s.restarts + 1):
+            prefix = "" if attempt == 0 else f"restart{attempt}."
+            params, value, n = self._search(fixed, mask, x0, lo, hi, scale, seed=s.seed + 100 * attempt,
+                                            popsize=s.popsize * 2 ** attempt, prefix=prefix, stages=stages,
+                                            history=history, progress=progress)
+            renders += n
+            if value > final:
+                best, final = params, value
+            if final >= s.restart_below:
+                break
+        pose = pose_from_params(best, self.geometry.sod_mm)
+        return RegistrationResult(params=best, pose=pose,
+                                  projection=self.by_factor[1].projection_matrix(pose),
+                                  similarity=final, renders=renders, stage_seconds=stages, history=history)
+
+    def _search(self, fixed, mask, x0, lo, hi, scale, *, seed, popsize, prefix, stages, history, progress):
+        """One coarse-to-fine CMA-ES search and polish from ``x0``; returns (params, final similarity,
+        renders) and appends to ``stages`` / ``history`` under stage names ``prefix + level<i>``."""
+        import cma
+        from scipy.optimize import minimize
+
+        from register.metrics import downsample, get_metric
+
+        s = self.settings
+        best = x0.copy()
+        renders = 0
         sigma = s.sigma_deg
         for level, factor in enumerate(s.levels):
             t0 = time.perf_counter()
@@ -208,27 +242,27 @@ class CMAESRegistration:
 
             def cost(z_batch):
                 nonlocal renders
-                x = np.asarray(z_batch) * scale
-                x = np.clip(x, lo, hi)
+                x = np.clip(np.asarray(z_batch) * scale, lo, hi)
                 imgs = self.render(x, factor)
                 renders += len(x)
                 return -metric(target, imgs, mask=lvl_mask)
 
             es = cma.CMAEvolutionStrategy(best / scale, sigma, {
-                "popsize": s.popsize, "seed": s.seed + 1 + level, "verbose": -9,
+                "popsize": popsize, "seed": seed + 1 + level, "verbose": -9,
                 "bounds": [list(lo / scale), list(hi / scale)],
                 "maxiter": s.per_level("generations", level), "tolfun": 1e-6, "tolx": 1e-3,
             })
+            stage = f"{prefix}level{level}"
             while not es.stop():
                 z = es.ask()
                 values = cost(np.array(z))
                 es.tell(z, values.tolist())
-                history.append((f"level{level}", float(-es.result.fbest), (es.result.xbest * scale).tolist()))
+                history.append((stage, float(-es.result.fbest), (es.result.xbest * scale).tolist()))
                 if progress:
-                    progress(f"level{level}", history[-1][1])
+                    progress(stage, history[-1][1])
             best = np.clip(np.asarray(es.result.xbest) * scale, lo, hi)
             sigma *= s.sigma_shrink
-            stages[f"level{level}"] = time.perf_counter() - t0
+            stages[stage] = time.perf_counter() - t0
         finest_metric = get_metric(s.per_level("metrics", len(s.levels) - 1))
         if s.polish:
             t0 = time.perf_counter()
@@ -243,12 +277,7 @@ class CMAESRegistration:
                                     "direc": np.diag([0.5, 0.5, 0.5, 1.0, 1.0, 2.0])})
             if res.fun <= polish_cost(best):
                 best = np.clip(res.x, lo, hi)
-            stages["polish"] = time.perf_counter() - t0
-            history.append(("polish", float(-res.fun), best.tolist()))
+            stages[f"{prefix}polish"] = time.perf_counter() - t0
+            history.append((f"{prefix}polish", float(-res.fun), best.tolist()))
         final = float(finest_metric(fixed, self.render(best, 1), mask=mask)[0])
-        renders += 1
-        pose = pose_from_params(best, self.geometry.sod_mm)
-        return RegistrationResult(params=best, pose=pose,
-                                  projection=self.by_factor[1].projection_matrix(pose),
-                                  similarity=final, renders=renders, stage_seconds=stages, history=history)
-
+        return best, final, renders + 1

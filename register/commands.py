@@ -7,6 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
+from register.cmaes import CMAESSettings
 from sim.cli import CT_HELP
 from sim.cliargs import opt
 from sim.physics.options import level_field, physics_option
@@ -14,6 +15,10 @@ from sim.physics.options import level_field, physics_option
 #: Monte Carlo histories per moving image with --physics full: a registration renders thousands
 #: of images, and the smoothed scatter of 10^5 histories differs from that of 10^6 by a few %.
 REGISTER_SCATTER_PHOTONS = 100_000
+
+#: CMA-ES restarts of ``ctxreg register`` (IPOP, see :class:`register.cmaes.CMAESSettings`): a
+#: user's X-ray is registered once, so spending up to 4x the time on a lost search is worth it.
+REGISTER_RESTARTS = 3
 
 
 @dataclass(frozen=True)
@@ -113,6 +118,9 @@ class RegisterCommand:
         "registration method", group="pose", choices=("cmaes", "contextual", "contextual+cmaes")))
     model: str | None = field(default=None, metadata=opt(
         "trained network checkpoint (ctxreg train) for the contextual methods", group="pose", metavar="CKPT"))
+    restarts: int = field(default=REGISTER_RESTARTS, metadata=opt(
+        "CMA-ES restarts (new seed, twice the population) while the final gradient NCC is below "
+        f"{CMAESSettings.restart_below}: a search lost far from the start tries again", group="pose", metavar="N"))
     scene: str = field(default="cios_fusion", metadata=opt(
         "C-arm scene: the geometry where the image does not give it", group="geometry"))
     sdd: float | None = field(default=None, metadata=opt(
@@ -206,8 +214,8 @@ def run_register(cmd: RegisterCommand) -> list[Path]:
     image, mask, geometry = prepared.image, prepared.mask, prepared.geometry
     size = (geometry.height, geometry.width)
     if cmd.method == "cmaes":
-        engine = CMAESRegistration(volume, CMAESSettings(size=size), scene=cmd.scene, geometry=geometry,
-                                   center_lps=center, physics=physics, label_materials=materials)
+        engine = CMAESRegistration(volume, CMAESSettings(size=size, restarts=cmd.restarts), scene=cmd.scene,
+                                   geometry=geometry, center_lps=center, physics=physics, label_materials=materials)
         result = engine.register(image, init, mask=mask)
     else:
         from dataclasses import replace
@@ -271,7 +279,8 @@ def _input_lines(prepared) -> list[str]:
                      f"({dec['polarity_source']}): {steps}")
     check = prepared.step("polarity_check")
     if check is not None:
-        verdict = "inverted the image" if check["inverted"] else "confirmed"
+        verdict = {"inverted": "inverted the image", "confirmed": "confirmed",
+                   "inconclusive": "inconclusive, the decision stands"}[check["verdict"]]
         lines.append(f"polarity check by registration: {verdict} (similarity {check['similarity_as_decided']:.3f} "
                      f"as decided, {check['similarity_inverted']:.3f} inverted): {check['polarity']}")
     return lines

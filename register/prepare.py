@@ -224,6 +224,11 @@ _DECISIVE_POLARITY = ("option", "DICOM PixelIntensityRelationshipSign")
 #: The coarse search of :func:`confirm_polarity` (one level at 1/4 of the optimiser's size).
 POLARITY_CHECK = dict(levels=(4,), generations=(40,), metrics=("gncc",), polish=False)
 
+#: The inverse must match better by this much (gradient NCC) to overturn the decided polarity.
+#: A search that found the anatomy scores 0.5-0.95 with the right polarity and 0.1-0.5 with the
+#: wrong one; two lost searches score alike (0.09 against 0.10), which says nothing.
+POLARITY_FLIP_MARGIN = 0.1
+
 
 def confirm_polarity(prepared: PreparedXRay, volume, center_lps, init_params, *, physics=None,
                      label_materials=None) -> PreparedXRay:
@@ -233,8 +238,11 @@ def confirm_polarity(prepared: PreparedXRay, volume, center_lps, init_params, *,
     runs for the prepared image and for its inverse (``1 - image``: the image is normalised to
     [0, 1]); the polarity whose best similarity is higher is kept. With the wrong polarity every
     edge of the X-ray points against the DRR's, so the right one matches better wherever the
-    search finds the anatomy. The outcome goes into the record as step ``polarity_check``
-    (similarities, whether the image was inverted). Costs about a third of a CMA-ES registration.
+    search finds the anatomy. The inverse wins only by :data:`POLARITY_FLIP_MARGIN`: when
+    neither search finds the anatomy the similarities are alike and the decision stands
+    (``verdict`` ``inconclusive``). The outcome goes into the record as step ``polarity_check``
+    (similarities, verdict, whether the image was inverted). Costs about a third of a CMA-ES
+    registration.
     """
     from dataclasses import replace
 
@@ -252,9 +260,11 @@ def confirm_polarity(prepared: PreparedXRay, volume, center_lps, init_params, *,
     inverse = (hi + lo) - prepared.image
     as_decided = engine.register(prepared.image, init, mask=prepared.mask).similarity
     inverted = engine.register(inverse, init, mask=prepared.mask).similarity
-    flip = inverted > as_decided
+    flip = inverted >= as_decided + POLARITY_FLIP_MARGIN
+    verdict = ("inverted" if flip else "confirmed" if as_decided >= inverted + POLARITY_FLIP_MARGIN
+               else "inconclusive")
     measured = {"similarity_as_decided": float(as_decided), "similarity_inverted": float(inverted),
-                "inverted": bool(flip),
+                "margin": POLARITY_FLIP_MARGIN, "verdict": verdict, "inverted": bool(flip),
                 "polarity": (decision["polarity"] if not flip else
                              ("bone-dark" if decision["polarity"] == "bone-bright" else "bone-bright"))}
     params = {k: list(v) if isinstance(v, tuple) else v for k, v in POLARITY_CHECK.items()}

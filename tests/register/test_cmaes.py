@@ -51,7 +51,35 @@ def test_similarity_history_never_gets_worse_within_a_level(phantom):
         assert np.all(np.diff(best) >= -1e-12)
 
 
+def test_restarts_run_only_while_lost_and_keep_the_best_similarity(phantom):
+    vol, c = phantom
+    truth = np.array([4.0, 2.0, -2.0, 0.0, 5.0, 0.0])
+    target = DRRRenderer(vol, RenderSettings(size=(64, 64)), center_lps=c).render_params(truth)[0]
+    tiny = CMAESSettings(levels=(1,), size=(64, 64), popsize=6, generations=(4,), metrics=("gncc",), polish=False)
+    first = CMAESRegistration(vol, tiny, center_lps=c).register(target, np.zeros(6))
+    # a bar no search can reach: every restart runs (new seed, twice the population each time);
+    # one full-resolution level, so the history's best is the final similarity
+    from dataclasses import replace
+
+    lost = CMAESRegistration(vol, replace(tiny, restarts=2, restart_below=1.0), center_lps=c).register(
+        target, np.zeros(6))
+    assert set(lost.stage_seconds) == {"level0", "restart1.level0", "restart2.level0"}
+    finals = [lost.history[i][1] for i, h in enumerate(lost.history)
+              if i + 1 == len(lost.history) or lost.history[i + 1][0] != h[0]]
+    assert lost.similarity >= first.similarity - 1e-9 and lost.similarity == pytest.approx(max(finals), abs=1e-6)
+    assert lost.renders > 3 * first.renders  # 6 + 12 + 24 per generation
+    # a bar the first search clears: no restart, the same result as without restarts
+    found = CMAESRegistration(vol, replace(tiny, restarts=2, restart_below=-1.0), center_lps=c).register(
+        target, np.zeros(6))
+    assert set(found.stage_seconds) == {"level0"}
+    np.testing.assert_array_equal(found.params, first.params)
+
+
 def test_bad_settings_and_inputs_are_named(phantom):
+    with pytest.raises(RegistrationError, match="restarts"):
+        CMAESSettings(restarts=-1)
+    with pytest.raises(RegistrationError, match="restart_below"):
+        CMAESSettings(restart_below=float("nan"))
     with pytest.raises(RegistrationError, match="divisible"):
         CMAESSettings(levels=(3,), size=(64, 64))
     with pytest.raises(RegistrationError, match="popsize"):

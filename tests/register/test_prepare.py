@@ -11,6 +11,7 @@ from scipy import ndimage
 
 from register.prepare import fit_to_size, masked_fill
 from sim.geometry import CArmGeometry, backproject_pixel
+from sim.render import DRRRenderer, RenderSettings
 
 
 def _image(h=150, w=210, seed=0):
@@ -126,3 +127,37 @@ def test_overlay_refuses_a_drr_of_another_shape():
 
     with pytest.raises(ValueError, match="shape"):
         overlay_png(np.zeros((10, 10)), np.zeros((5, 5)), "x.png")
+
+
+def test_polarity_check_overturns_only_by_a_clear_margin():
+    """The check keeps a right decision, inverts a wrong one, and leaves the decision alone when
+    neither search finds the anatomy (two lost searches score alike)."""
+    from dataclasses import replace
+
+    from register.prepare import POLARITY_FLIP_MARGIN, confirm_polarity, prepare_xray
+    from register.xray_io import XRayImage
+    from sim.anatomy import anatomy_center
+    from sim.phantom import make_pelvis_phantom
+
+    vol = make_pelvis_phantom(0, spacing_mm=4.0)
+    c = anatomy_center(vol)
+    truth = np.array([5.0, -3.0, 2.0, 4.0, -6.0, 10.0])
+    drr = DRRRenderer(vol, RenderSettings(size=(128, 128)), center_lps=c).render_params(truth)[0]
+    kw = dict(volume=vol, center_lps=c, init_params=np.zeros(6), polarity="auto", size=64)
+    right = prepare_xray(XRayImage(drr.astype(np.float32), source="drr"), **kw)
+    assert right.step("intensity")["polarity"] == "bone-bright"
+    check = confirm_polarity(right, vol, c, np.zeros(6)).step("polarity_check")
+    assert check["verdict"] == "confirmed" and not check["inverted"]
+    assert check["similarity_as_decided"] > check["similarity_inverted"] + POLARITY_FLIP_MARGIN
+    # the same record with the image inverted: a wrong decision, overturned
+    wrong = replace(right, image=1.0 - right.image, full_image=right.full_image.max() - right.full_image)
+    flipped = confirm_polarity(wrong, vol, c, np.zeros(6))
+    check = flipped.step("polarity_check")
+    assert check["verdict"] == "inverted" and check["polarity"] == "bone-dark"
+    # back to the right image, up to a constant offset (the inverse is mirrored about the valid range)
+    np.testing.assert_allclose(flipped.image - flipped.image.mean(), right.image - right.image.mean(), atol=1e-9)
+    # white noise: no anatomy to find, no flip
+    noise = replace(right, image=np.random.default_rng(3).random(right.image.shape))
+    check = confirm_polarity(noise, vol, c, np.zeros(6)).step("polarity_check")
+    assert check["verdict"] == "inconclusive" and not check["inverted"]
+    assert abs(check["similarity_as_decided"] - check["similarity_inverted"]) < POLARITY_FLIP_MARGIN
