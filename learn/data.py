@@ -9,6 +9,8 @@ split's pairs come from that split's subjects only, so no CT leaks between split
 
 from __future__ import annotations
 
+from sim.errors import InputError
+
 import numpy as np
 import torch
 from torch.utils.data import Dataset
@@ -16,7 +18,7 @@ from torch.utils.data import Dataset
 from learn.labels import LabelNormalizer, geodesic_label, sample_pairs
 
 
-class PairDatasetError(ValueError):
+class PairDatasetError(InputError):
     """A campaign split cannot provide pairs; the message says why."""
 
 

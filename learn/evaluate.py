@@ -20,6 +20,8 @@ a JSON file and a box-plot figure (:mod:`learn.commands`).
 
 from __future__ import annotations
 
+from sim.errors import InputError
+
 import numpy as np
 import torch
 
@@ -30,7 +32,7 @@ PAIR_KINDS = ("far", "ap", "near")
 OUTPUTS = ("weighted_sum", "depth1", "depth2", "depth3", "zero_baseline")
 
 
-class AccuracyError(ValueError):
+class AccuracyError(InputError):
     """An accuracy evaluation cannot run; the message says why."""
 
 

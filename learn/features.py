@@ -54,6 +54,8 @@ bit-identical training (tested).
 
 from __future__ import annotations
 
+from sim.errors import InputError
+
 import hashlib
 import json
 import math
@@ -97,7 +99,7 @@ _DTYPES = {"float16": np.float16, "float32": np.float32}
 _STRIDES = (8, 16, 32)  # pixels, of the TAP_MODULES outputs
 
 
-class FeatureCacheError(ValueError):
+class FeatureCacheError(InputError):
     """A feature cache cannot be built, opened or read; the message names the file and what differs."""
 
 

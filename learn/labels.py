@@ -21,6 +21,8 @@ The network regresses ``y = normalize(g)`` (unit-free, :class:`LabelNormalizer`)
 
 from __future__ import annotations
 
+from sim.errors import InputError
+
 import math
 import numbers
 from dataclasses import dataclass
@@ -56,7 +58,7 @@ DEFAULT_TRANS_SCALE_MM = 2.0 * 75.0
 DEFAULT_STEP = 0.15
 
 
-class LearnLabelError(ValueError):
+class LearnLabelError(InputError):
     """An input to :mod:`learn.labels` cannot be used; the message names it and the problem."""
 
 

@@ -28,6 +28,8 @@ Minimum input size: 32 x 32 pixels (the DenseNet divides by 32). Style follows t
 
 from __future__ import annotations
 
+from sim.errors import InputError
+
 import enum
 import math
 import re
@@ -74,11 +76,11 @@ POSE_DIM = 6
 # --------------------------------------------------------------------------------------------
 
 
-class PoseInputError(ValueError):
+class PoseInputError(InputError):
     """An input of the network (image, feature map, label) cannot be used; the message says why."""
 
 
-class WeightsError(ValueError):
+class WeightsError(InputError):
     """Backbone weights cannot be loaded; the message names the file and the problem."""
 
 

@@ -23,6 +23,8 @@ function of the seed and its index only, so a resumed training run takes the sam
 
 from __future__ import annotations
 
+from sim.errors import InputError
+
 import math
 import numbers
 from dataclasses import dataclass
@@ -40,7 +42,7 @@ KIND_BATCH = 40
 KIND_BATCH_NOISE = 41
 
 
-class OnlinePairsError(ValueError):
+class OnlinePairsError(InputError):
     """Online pairs cannot be drawn; the message names the setting and the problem."""
 
 

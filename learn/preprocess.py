@@ -17,6 +17,8 @@ Errors: :class:`LearnPreprocessError` (a ``ValueError``) naming the input and th
 
 from __future__ import annotations
 
+from sim.errors import InputError
+
 import hashlib
 import math
 import numbers
@@ -45,7 +47,7 @@ __all__ = [
 _EPS = 1e-12
 
 
-class LearnPreprocessError(ValueError):
+class LearnPreprocessError(InputError):
     """An input to :mod:`learn.preprocess` cannot be used; the message names it and the problem."""
 
 

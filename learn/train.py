@@ -18,6 +18,8 @@ and takes exactly the steps an uninterrupted run would have taken (tested).
 
 from __future__ import annotations
 
+from sim.errors import InputError
+
 import csv
 import math
 import os
@@ -30,7 +32,7 @@ import numpy as np
 import torch
 
 
-class TrainConfigError(ValueError):
+class TrainConfigError(InputError):
     """A training config key is wrong; the message names the key and the allowed values."""
 
 

@@ -2,7 +2,9 @@
 
 Each command's defaults live in one dataclass (:mod:`sim.cli`, and later :mod:`register` and
 :mod:`learn`); the options and their grouped help are generated from it. Errors in the user's
-input print one line and exit with status 2; set ``CTXREG_DEBUG=1`` for the traceback.
+input (:class:`sim.errors.CtxregError`, or a path that is missing or not writable) print one
+line and exit with status 2; set ``CTXREG_DEBUG=1`` for the traceback. Any other exception is a
+bug: it keeps its traceback.
 """
 
 from __future__ import annotations
@@ -47,12 +49,11 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def _user_errors() -> tuple[type[BaseException], ...]:
-    """Exception types that mean bad input: shown as one line, no traceback."""
-    from sim.backend import BackendError
-    from sim.campaign.runner import CampaignError
+    """Exception types a user can act on (:mod:`sim.errors`): one line, no traceback. Anything
+    else is a bug and keeps its traceback."""
+    from sim.errors import USER_OS_ERRORS, CtxregError
 
-    return (ValueError, FileNotFoundError, NotADirectoryError, PermissionError, BackendError,
-            CampaignError)  # learn's config and weights errors are ValueError / FileNotFoundError
+    return (CtxregError, *USER_OS_ERRORS)
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -15,6 +15,8 @@ inside a box around the start. Everything is seeded.
 
 from __future__ import annotations
 
+from sim.errors import InputError
+
 import time
 from dataclasses import dataclass, field
 
@@ -23,7 +25,7 @@ import numpy as np
 PARAM_NAMES = ("phi", "theta", "psi", "tx", "ty", "tz")
 
 
-class RegistrationError(ValueError):
+class RegistrationError(InputError):
     """Bad registration settings or inputs; the message names the setting."""
 
 

@@ -33,6 +33,8 @@ Every matrix here is a ``(4, 4)`` or ``(3, 4)``/``(3, 3)`` float64 array acting 
 
 from __future__ import annotations
 
+from sim.errors import InputError
+
 import math
 from typing import Literal
 
@@ -84,7 +86,7 @@ _SHIFT_HALF = np.array([[1.0, 0.0, 0.5], [0.0, 1.0, 0.5], [0.0, 0.0, 1.0]])
 _UNSHIFT_HALF = np.array([[1.0, 0.0, -0.5], [0.0, 1.0, -0.5], [0.0, 0.0, 1.0]])
 
 
-class PoseConversionError(ValueError):
+class PoseConversionError(InputError):
     """An input to a pose converter cannot be used; the message names the input and the problem."""
 
 

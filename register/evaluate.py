@@ -19,6 +19,8 @@ Methods are plug-ins (:class:`RegistrationMethod`): anything with ``name`` and
 
 from __future__ import annotations
 
+from sim.errors import InputError
+
 import csv
 import time
 from dataclasses import asdict, dataclass
@@ -33,7 +35,7 @@ START_MODES = ("ap", "local")
 ERROR_COLUMNS = ("rot_err_deg", "trans_err_mm", "mtre_mm", "mpd_mm")
 
 
-class EvaluationError(ValueError):
+class EvaluationError(InputError):
     """Bad evaluation settings; the message names the setting."""
 
 

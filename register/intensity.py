@@ -42,6 +42,8 @@ decided, so that ``result.json`` can say why an image was log-corrected or inver
 
 from __future__ import annotations
 
+from sim.errors import InputError
+
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -83,7 +85,7 @@ _DISPLAY_MODALITIES = ("RF", "XA")  # fluoroscopy / angiography frames: bone dar
 _RADIOGRAPH_MODALITIES = ("DX", "CR", "MG", "IO", "PX")  # radiographs for presentation: bone bright
 
 
-class IntensityError(ValueError):
+class IntensityError(InputError):
     """A scale / polarity option or input cannot be used; the message names it."""
 
 

@@ -27,6 +27,8 @@ defined correlation with anything.
 
 from __future__ import annotations
 
+from sim.errors import InputError
+
 from collections.abc import Callable
 from typing import Any
 
@@ -56,7 +58,7 @@ _CONSTANT_REL = 1e-10
 _LOCAL_VAR_REL = 1e-8
 
 
-class MetricError(ValueError):
+class MetricError(InputError):
     """A metric cannot be computed from its inputs; the message names the input and the problem."""
 
 

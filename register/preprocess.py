@@ -30,6 +30,8 @@ Percentiles and statistics use the valid (mask) pixels only. Images leave the pi
 
 from __future__ import annotations
 
+from sim.errors import InputError
+
 import dataclasses
 import math
 from dataclasses import dataclass
@@ -58,7 +60,7 @@ __all__ = [
 ]
 
 
-class PreprocessError(ValueError):
+class PreprocessError(InputError):
     """A preprocessing step, its parameters or its input cannot be used; the message says which."""
 
 

@@ -60,6 +60,8 @@ A MONOCHROME2 image with ``PresentationLUTShape`` INVERSE is shown inverted, so 
 
 from __future__ import annotations
 
+from sim.errors import InputError
+
 import math
 import os
 from dataclasses import dataclass, field
@@ -119,7 +121,7 @@ INTENSITY_TAG_KEYS = (
 )
 
 
-class XRayInputError(ValueError):
+class XRayInputError(InputError):
     """An X-ray file or its geometry cannot be used; the message names the file and the problem."""
 
 

@@ -8,6 +8,8 @@ volume's affine (exact, the affine being linear).
 
 from __future__ import annotations
 
+from sim.errors import InputError
+
 from typing import Sequence
 
 import numpy as np
@@ -25,7 +27,7 @@ BONE_HU_THRESHOLD = 200.0
 _CONNECTIVITY_26 = np.ones((3, 3, 3), dtype=bool)
 
 
-class AnatomyError(ValueError):
+class AnatomyError(InputError):
     """The anatomy centre or bone mask cannot be computed (empty mask, mismatched label map)."""
 
 

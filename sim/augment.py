@@ -81,6 +81,8 @@ Default ranges (:class:`VirtualPatientRanges`) and why
 
 from __future__ import annotations
 
+from sim.errors import InputError
+
 import math
 from dataclasses import asdict, dataclass, fields
 from typing import Any, Mapping
@@ -149,7 +151,7 @@ _TRUNCATE_SD = 3.0
 _SLAB_VOXELS = 1 << 21
 
 
-class AugmentConfigError(ValueError):
+class AugmentConfigError(InputError):
     """Unusable virtual-patient parameters, ranges or inputs; the message names the key."""
 
 

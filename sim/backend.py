@@ -7,6 +7,8 @@ build are available. The environment variable ``CTXREG_VARIANT`` overrides the c
 
 from __future__ import annotations
 
+from sim.errors import SetupError
+
 import os
 
 from sim import llvm
@@ -16,7 +18,7 @@ DEFAULT_GPU_VARIANT = "cuda_ad_mono"
 SUPPORTED_VARIANTS = (DEFAULT_CPU_VARIANT, DEFAULT_GPU_VARIANT)
 
 
-class BackendError(RuntimeError):
+class BackendError(SetupError):
     """Mitsuba / Dr.Jit cannot run here (no usable libLLVM, unknown variant, no GPU)."""
 
 

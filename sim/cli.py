@@ -7,6 +7,8 @@ geometry (see :func:`geometry_record`).
 
 from __future__ import annotations
 
+from sim.errors import InputError
+
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -22,7 +24,7 @@ _DEFAULTS = RenderSettings()  # the renderer's defaults are the command line's
 CT_HELP = "CT: a NIfTI file, a DICOM series folder, or 'phantom' / 'phantom:SEED' (built-in pelvis)"
 
 
-class CommandError(ValueError):
+class CommandError(InputError):
     """A command-line input that cannot be used; printed as one line."""
 
 

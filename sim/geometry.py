@@ -16,6 +16,8 @@ Conventions (full text with a worked example in ``docs/conventions.md``):
 
 from __future__ import annotations
 
+from sim.errors import InputError
+
 import math
 from dataclasses import dataclass
 
@@ -45,7 +47,7 @@ R_AP.setflags(write=False)
 _GIMBAL_COS = 1e-8
 
 
-class GeometryError(ValueError):
+class GeometryError(InputError):
     """A geometry, pose or point input cannot be used; the message names the input and the problem."""
 
 

@@ -16,6 +16,8 @@ Search order:
 
 from __future__ import annotations
 
+from sim.errors import SetupError
+
 import glob
 import os
 import platform
@@ -34,7 +36,7 @@ INSTALL_HINT = (
 )
 
 
-class LLVMNotFoundError(RuntimeError):
+class LLVMNotFoundError(SetupError):
     """No libLLVM >= 16 could be found for Dr.Jit's CPU backend."""
 
 

@@ -55,6 +55,8 @@ mid-ASIS point), true conjugate about 115 mm, sacral slope 40 degrees, neck-shaf
 
 from __future__ import annotations
 
+from sim.errors import InputError
+
 import math
 import os
 from dataclasses import dataclass, field, fields
@@ -99,7 +101,7 @@ HU_MARROW = 0.0
 MAX_VOXELS = 300_000_000
 
 
-class PhantomInputError(ValueError):
+class PhantomInputError(InputError):
     """An input of the phantom generator is unusable; the message names it and the problem."""
 
 

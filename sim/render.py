@@ -18,6 +18,8 @@ Quantities (``quantity=``):
 
 from __future__ import annotations
 
+from sim.errors import InputError
+
 from dataclasses import dataclass
 
 import numpy as np
@@ -37,7 +39,7 @@ MAX_RAYS_PER_LAUNCH = 1 << 23
 _FLIP_XY = np.diag([-1.0, -1.0, 1.0, 1.0])
 
 
-class RenderError(ValueError):
+class RenderError(InputError):
     """Invalid render settings or poses; the message names the setting and the problem."""
 
 

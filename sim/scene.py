@@ -10,6 +10,8 @@ loads the file at a chosen render size (a downsampled detector keeps the physica
 
 from __future__ import annotations
 
+from sim.errors import InputError
+
 import math
 import xml.etree.ElementTree as ET
 from dataclasses import dataclass
@@ -20,7 +22,7 @@ from sim.geometry import CArmGeometry
 DEFAULT_SCENE = "cios_fusion"
 
 
-class SceneError(ValueError):
+class SceneError(InputError):
     """A scene name or file cannot be used; the message names it and the problem."""
 
 

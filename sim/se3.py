@@ -24,6 +24,8 @@ check reads one boolean back from the device for torch tensors.)
 
 from __future__ import annotations
 
+from sim.errors import InputError
+
 import math
 import numbers
 from typing import Any
@@ -66,7 +68,7 @@ _SMALL_ANGLE = 1e-2
 Array = Any  # numpy.ndarray or torch.Tensor
 
 
-class SE3InputError(ValueError):
+class SE3InputError(InputError):
     """An input to :mod:`sim.se3` cannot be used; the message names the input and the problem."""
 
 

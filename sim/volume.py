@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from sim.errors import InputError
+
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -12,7 +14,7 @@ import numpy as np
 PLAUSIBLE_HU_RANGE = (-1100.0, 32000.0)
 
 
-class CTInputError(ValueError):
+class CTInputError(InputError):
     """A CT (file, array or affine) cannot be used; the message names the input and the problem."""
 
 

@@ -16,6 +16,8 @@ Units: mm, degrees, 1/mm (see ``docs/conventions.md``).
 
 from __future__ import annotations
 
+from sim.errors import InputError
+
 import copy
 import difflib
 import hashlib
@@ -62,7 +64,7 @@ _PHYSICS_NAME = re.compile(r"[a-z0-9_]+")
 _NIFTI_SUFFIXES = (".nii", ".nii.gz")
 
 
-class CampaignConfigError(ValueError):
+class CampaignConfigError(InputError):
     """An invalid campaign file; the message names the file, the key path and what is allowed."""
 
 

@@ -36,6 +36,8 @@ across shards lazily.
 
 from __future__ import annotations
 
+from sim.errors import InputError
+
 import hashlib
 import json
 import os
@@ -53,7 +55,7 @@ MANIFEST = "manifest.json"
 SHARD_DIR = "shards"
 
 
-class DatasetError(ValueError):
+class DatasetError(InputError):
     """A campaign folder is missing, incomplete or corrupt; the message names the file."""
 
 

@@ -20,6 +20,8 @@ values of one parameter do not depend on the others' distributions, and the firs
 
 from __future__ import annotations
 
+from sim.errors import InputError
+
 import difflib
 import math
 import os
@@ -47,7 +49,7 @@ _P_MIN = np.finfo(np.float64).tiny
 _P_MAX = 1.0 - 2.0**-53
 
 
-class PoseDistributionError(ValueError):
+class PoseDistributionError(InputError):
     """An invalid pose distribution; the message names the key (e.g. ``poses.phi.std``)."""
 
 

@@ -17,6 +17,8 @@ runs it, in whatever order, after whatever interruption.
 
 from __future__ import annotations
 
+from sim.errors import InputError
+
 import math
 import os
 import sys
@@ -40,7 +42,7 @@ KIND_NOISE = 4
 BONE_MASK_MIN_PATH_MM = 1.0
 
 
-class CampaignError(RuntimeError):
+class CampaignError(InputError):
     """A campaign cannot run or resume; the message says why and what to do."""
 
 

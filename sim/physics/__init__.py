@@ -6,6 +6,8 @@ them into the polychromatic detector signal for any spectrum and detector. Statu
 validation: ``docs/physics.md``.
 """
 
+from sim.errors import InputError
 
-class PhysicsError(ValueError):
+
+class PhysicsError(InputError):
     """A physics setting or input cannot be used; the message names it and the allowed values."""
