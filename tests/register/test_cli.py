@@ -1,156 +1,93 @@
-"""``ctxreg`` end to end: outputs and their geometry sidecars, and one-line errors for bad input."""
+"""The ``ctxreg`` dispatcher (:mod:`register.cli`): every command reaches its runner, a user's
+error is one line with exit status 2, anything else keeps its traceback. The commands' own
+behaviour is tested beside them (``tests/sim/test_cli.py`` for render and demo,
+``test_register_cli.py``, ``tests/learn``)."""
 
 from __future__ import annotations
 
-import json
-import subprocess
-import sys
-
-import nibabel as nib
-import numpy as np
 import pytest
 
-from register.cli import build_parser
-from tests.conftest import REPO
+import sim.cli
+from register import cli
+from sim.errors import InputError, SetupError
 
 
-def run_cli(*args, cwd=None):
-    return subprocess.run([sys.executable, "-m", "register.cli", *map(str, args)], capture_output=True,
-                          text=True, cwd=cwd or REPO, timeout=300)
+def test_every_command_is_listed_and_reaches_a_runner():
+    help_text = cli.build_parser().format_help()
+    for name, (cls, summary, target) in cli.COMMANDS.items():
+        assert name in help_text and summary in help_text, name
+        module, func = target.split(":")
+        assert callable(getattr(__import__(module, fromlist=[func]), func)), target
 
 
-@pytest.fixture(scope="module")
-def bead_nifti(tmp_path_factory):
-    """A NIfTI CT (RAS affine) with one dense bead at a known LPS point and a bone block."""
-    d = tmp_path_factory.mktemp("ct")
-    hu = np.full((40, 40, 40), -1000.0, np.float32)
-    hu[2:14, 25:38, 2:14] = 0.0  # soft tissue, away from the bead
-    hu[5:9, 28:32, 5:9] = 800.0  # bone block
-    hu[29:32, 11:14, 24:27] = 30000.0  # bead: 3 voxels wide, centred on voxel (30, 12, 25)
-    ras = np.diag([-2.0, -2.0, 2.0, 1.0])  # i to patient right, j to anterior: LPS = index * 2
-    path = d / "bead.nii.gz"
-    nib.save(nib.Nifti1Image(hu, ras), path)
-    bead_lps = np.array([30, 12, 25]) * 2.0
-    return path, bead_lps
+@pytest.fixture
+def render_raises(monkeypatch):
+    """Make ``ctxreg render`` raise the given exception (or return the given paths)."""
+    monkeypatch.delenv("CTXREG_DEBUG", raising=False)
+    seen = {}
+
+    def use(outcome):
+        def fake(cmd):
+            seen["cmd"] = cmd
+            if isinstance(outcome, BaseException):
+                raise outcome
+            return outcome
+
+        monkeypatch.setattr(sim.cli, "run_render", fake)
+        return seen
+
+    return use
 
 
-def test_render_writes_npy_and_sidecar_whose_projection_finds_the_bead(bead_nifti, tmp_path):
-    path, bead_lps = bead_nifti
-    out = tmp_path / "drr.npy"
-    r = run_cli("render", "--ct", path, "--size", 128, 128, "--pose", 10, -5, 20, 4, -3, 30,
-                "--center", 30, 40, 40, "--out", out)
-    assert r.returncode == 0, r.stderr
-    img = np.load(out)
-    assert img.dtype == np.float32 and img.shape == (128, 128)
-    meta = json.loads(out.with_suffix(".json").read_text())
-    for key in ("K", "pose_4x4", "projection_3x4_lps_to_pixels", "sdd_mm", "sod_mm", "pixel_spacing_mm",
-                "image_size_hw", "anatomy_center_lps_mm", "quantity", "mu_water_per_mm"):
-        assert key in meta
-    assert meta["anatomy_center_lps_mm"] == [30.0, 40.0, 40.0]
-    P = np.array(meta["projection_3x4_lps_to_pixels"])
-    uvw = P @ np.append(bead_lps, 1.0)
-    u, v = uvw[:2] / uvw[2]
-    i, j = np.unravel_index(np.argmax(img), img.shape)
-    win = img[i - 5:i + 6, j - 5:j + 6]
-    rows, cols = np.mgrid[i - 5:i + 6, j - 5:j + 6]
-    # the bead's shadow centroid against the sidecar's projection of its centre (0.5 px, as for
-    # the renderer's own bead test)
-    assert abs((win * cols).sum() / win.sum() - u) < 0.5
-    assert abs((win * rows).sum() / win.sum() - v) < 0.5
-
-
-def test_pose_matrix_from_a_sidecar_reproduces_the_image(bead_nifti, tmp_path):
-    path, _ = bead_nifti
-    a = tmp_path / "a.npy"
-    assert run_cli("render", "--ct", path, "--size", 64, 64, "--pose", 5, 5, 5, 1, 2, 3, "--out", a).returncode == 0
-    b = tmp_path / "b.npy"
-    r = run_cli("render", "--ct", path, "--size", 64, 64, "--pose-matrix", a.with_suffix(".json"), "--out", b)
-    assert r.returncode == 0, r.stderr
-    np.testing.assert_array_equal(np.load(a), np.load(b))
-
-
-def test_png_output_is_a_display_image(bead_nifti, tmp_path):
-    from PIL import Image
-
-    path, _ = bead_nifti
-    out = tmp_path / "drr.png"
-    assert run_cli("render", "--ct", path, "--size", 64, 64, "--out", out).returncode == 0
-    img = np.asarray(Image.open(out))
-    assert img.dtype == np.uint8 and img.shape == (64, 64) and img.max() == 255
-
-
-@pytest.mark.parametrize("args, words", [
-    (["render", "--ct", "missing.nii.gz"], "missing.nii.gz"),
-    (["render", "--ct", "phantom:abc"], "seed"),
-    (["render", "--ct", "phantom", "--scene", "no_such_scene"], "no_such_scene"),
-    (["render", "--ct", "phantom", "--size", "100", "50"], "aspect"),
-    (["render", "--ct", "phantom", "--out", "x.tif"], ".npy or .png"),
-    (["render", "--ct", "phantom", "--mu-water", "-1"], "mu_water"),
-    (["render", "--ct", "phantom", "--pose", "nan", "0", "0", "0", "0", "0"], "finite"),
+@pytest.mark.parametrize("error", [
+    InputError("--kvp: 20 is outside 40..150"),
+    SetupError("no libLLVM >= 16 found"),
+    FileNotFoundError(2, "No such file or directory", "ct.nii.gz"),
+    PermissionError(13, "Permission denied", "out/x.png"),
 ])
-def test_bad_input_gives_one_line_error_and_exit_2(args, words, tmp_path):
-    r = run_cli(*args, cwd=tmp_path)
-    assert r.returncode == 2, (r.returncode, r.stderr)
-    assert "Traceback" not in r.stderr
-    lines = [ln for ln in r.stderr.strip().splitlines() if ln]
-    assert len(lines) == 1 and words in lines[0], r.stderr
+def test_a_users_error_is_one_line_and_exit_2(render_raises, capsys, error):
+    render_raises(error)
+    assert cli.main(["render", "--ct", "phantom"]) == 2
+    assert capsys.readouterr().err == f"ctxreg render: error: {error}\n"
 
 
-def test_bad_files_give_one_line_errors(tmp_path):
-    bogus = tmp_path / "bogus.nii.gz"
-    bogus.write_text("not an image")
-    r = run_cli("render", "--ct", bogus)
-    assert r.returncode == 2 and "Traceback" not in r.stderr and "bogus.nii.gz" in r.stderr
-    mat = tmp_path / "m.txt"
-    np.savetxt(mat, np.eye(3))
-    r = run_cli("render", "--ct", "phantom", "--pose-matrix", mat)
-    assert r.returncode == 2 and "4x4" in r.stderr
+@pytest.mark.parametrize("error", [ValueError("a bug"), ZeroDivisionError("a bug"), OSError(5, "I/O error")])
+def test_any_other_exception_keeps_its_traceback(render_raises, error):
+    render_raises(error)
+    with pytest.raises(type(error)) as raised:
+        cli.main(["render", "--ct", "phantom"])
+    assert raised.value is error
 
 
-def test_help_shows_units_and_defaults():
-    parser = build_parser()
-    sub = parser._subparsers._group_actions[0].choices["render"]
-    text = sub.format_help()
-    for piece in ("[1/mm]", "(default: 0.020587)", "[deg deg deg mm mm mm]", "(default: 256 256)",
-                  "geometry:", "pose:", "physics:", "output:"):
-        assert piece in text, piece
+def test_ctxreg_debug_shows_the_traceback_of_a_users_error(render_raises, monkeypatch):
+    error = InputError("--size: must be positive")
+    render_raises(error)
+    monkeypatch.setenv("CTXREG_DEBUG", "1")
+    with pytest.raises(InputError) as raised:
+        cli.main(["render", "--ct", "phantom"])
+    assert raised.value is error
 
 
-def test_demo_renders_the_phantom(tmp_path):
-    r = run_cli("demo", "--out", tmp_path / "demo", "--size", 96, 96)
-    assert r.returncode == 0, r.stderr
-    pngs = sorted((tmp_path / "demo").glob("*.png"))
-    assert len(pngs) == 6 and all(p.with_suffix(".json").is_file() for p in pngs)
+def test_an_interrupt_exits_130(render_raises, capsys):
+    render_raises(KeyboardInterrupt())
+    assert cli.main(["render", "--ct", "phantom"]) == 130
+    assert capsys.readouterr().err == "ctxreg render: interrupted\n"
 
 
-@pytest.mark.parametrize("kind, words", [
-    ("2d", "2-D"),
-    ("nan", "NaN"),
-    ("normalised", "HU"),
-])
-def test_bad_ct_contents_give_one_line_errors(kind, words, tmp_path):
-    if kind == "2d":
-        data = np.zeros((32, 32), np.float32)
-    elif kind == "nan":
-        data = np.full((16, 16, 16), -1000.0, np.float32)
-        data[8:, :, :] = 40.0
-        data[3, 4, 5] = np.nan
-    else:
-        data = np.random.default_rng(0).random((16, 16, 16)).astype(np.float32)
-    path = tmp_path / f"{kind}.nii.gz"
-    nib.save(nib.Nifti1Image(data, np.eye(4)), path)
-    r = run_cli("render", "--ct", path, "--size", 16, 16, "--out", tmp_path / "x.npy")
-    assert r.returncode == 2 and "Traceback" not in r.stderr, r.stderr
-    assert words in r.stderr and path.name in r.stderr, r.stderr
-    assert not (tmp_path / "x.npy").exists()
+@pytest.mark.parametrize("result, lines", [("a.png", ["wrote a.png"]),
+                                           (["a.png", "b.json"], ["wrote a.png", "wrote b.json"])])
+def test_the_written_files_are_listed_and_the_options_reach_the_runner(render_raises, capsys, result, lines):
+    seen = render_raises(result)
+    assert cli.main(["render", "--ct", "phantom:3", "--size", "48", "64"]) == 0
+    assert capsys.readouterr().out.splitlines() == lines
+    cmd = seen["cmd"]
+    assert isinstance(cmd, sim.cli.RenderCommand)
+    assert cmd.ct == "phantom:3" and tuple(cmd.size) == (48, 64)
+    assert cmd.mu_water == sim.cli.RenderCommand(ct="x").mu_water  # left out: the dataclass default
 
 
-def test_dicom_series_renders(tmp_path):
-    from tests.conftest import shared_file
-
-    series = shared_file("ct/abdomen_dicom_series")
-    out = tmp_path / "dicom.npy"
-    r = run_cli("render", "--ct", series, "--size", 64, 64, "--out", out)
-    assert r.returncode == 0, r.stderr
-    img = np.load(out)
-    assert img.shape == (64, 64) and np.isfinite(img).all() and img.max() > 1.0
+@pytest.mark.parametrize("argv", [[], ["no-such-command"], ["render"]])
+def test_a_missing_command_or_option_is_an_argparse_error(argv, capsys):
+    with pytest.raises(SystemExit) as raised:
+        cli.main(argv)
+    assert raised.value.code == 2 and "usage: ctxreg" in capsys.readouterr().err
