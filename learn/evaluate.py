@@ -14,11 +14,13 @@ Pair kinds (:data:`PAIR_KINDS`):
 * ``near``: current = target o Exp(delta) with :class:`learn.online.NearPairs` offsets: the steps
   that decide where the registration comes to rest.
 
-``ctxreg accuracy MODEL --ct SPEC`` or ``--campaign FILE --split val`` runs it and writes a table,
+``ctxreg accuracy --model CKPT --ct SPEC`` or ``--campaign FILE --split val`` runs it and writes a table,
 a JSON file and a box-plot figure (:mod:`learn.commands`).
 """
 
 from __future__ import annotations
+
+import math
 
 from sim.errors import InputError
 
@@ -61,24 +63,21 @@ def sample_eval_pairs(kind: str, rng: np.random.Generator, n: int, sod_mm: float
 def prediction_errors(predictor, renderer, T_a: np.ndarray, T_b: np.ndarray, *,
                       current_renderer=None) -> dict[str, np.ndarray]:
     """Per-pair errors ``{output: (rot_deg (n,), trans_mm (n,))}`` of a
-    :class:`register.contextual.NetworkPredictor` on target images at ``T_a`` ``(n, 4, 4)`` from
-    ``renderer`` and current images at ``T_b`` from ``current_renderer`` (default: the same)."""
+    :class:`learn.predict.NetworkPredictor` on target images at ``T_a`` ``(n, 4, 4)`` from
+    ``renderer`` and current images at ``T_b`` from ``current_renderer`` (default: the same).
+
+    Raises:
+        AccuracyError: the network's predictions are not finite (NaN or infinite) for some pair.
+    """
     from learn.labels import geodesic_label
 
     ia = renderer.render(T_a)
     ib = (renderer if current_renderer is None else current_renderer).render(T_b)
     true = geodesic_label(torch.from_numpy(T_a), torch.from_numpy(T_b)).numpy()
-    model, norm = predictor.model, predictor.normalizer
-    preds, levels = [], []
-    with torch.no_grad():
-        for start in range(0, len(T_a), 32):
-            stop = min(start + 32, len(T_a))
-            x = torch.from_numpy(np.concatenate([ia[start:stop], ib[start:stop]]).astype(np.float32))[:, None]
-            x = predictor.transform(x)
-            out = model(x[:stop - start], x[stop - start:])
-            preds.append(norm.denormalize(out.g.double()).numpy())
-            levels.append(norm.denormalize(out.g_levels.double()).numpy())
-    preds, levels = np.concatenate(preds), np.concatenate(levels)  # (n, 6), (n, 3, 6)
+    preds, levels = predictor.predict(ia, ib)  # (n, 6), (n, 3, 6)
+    bad = int((~(np.isfinite(preds).all(axis=1) & np.isfinite(levels).all(axis=(1, 2)))).sum())
+    if bad:
+        raise AccuracyError(f"the network's prediction is NaN or infinite for {bad} of {len(preds)} pairs")
 
     def errs(p):
         return (np.degrees(np.linalg.norm(p[..., :3] - true[..., :3], axis=-1)),
@@ -108,16 +107,30 @@ def single_prediction_errors(checkpoint: str, volume, *, pairs: int = 200, size=
                              center_lps=None, distribution=None, kind: str = "far", near=None) -> dict:
     """Errors of the weighted sum, of each depth, and of the zero baseline (median and mean)
     on ``pairs`` pairs of ``kind`` for one CT volume. ``size``: image size (default: the model's)."""
-    from register.contextual import NetworkPredictor
+    from learn.predict import NetworkPredictor
     from sim.anatomy import anatomy_center
     from sim.render import DRRRenderer, RenderSettings
 
     predictor = NetworkPredictor(checkpoint)
     center = anatomy_center(volume) if center_lps is None else np.asarray(center_lps, float)
     renderer = DRRRenderer(volume, RenderSettings(size=tuple(size or predictor.size)), center_lps=center)
-    rng = np.random.Generator(np.random.PCG64(np.random.SeedSequence(seed, spawn_key=(30,))))
+    from sim.seeds import KIND_ACCURACY_PAIRS, rng_for
+
+    rng = rng_for(seed, KIND_ACCURACY_PAIRS)
     T_a, T_b = sample_eval_pairs(kind, rng, pairs, renderer.geometry.sod_mm, distribution, near)
     return summarize_errors(prediction_errors(predictor, renderer, T_a, T_b))
+
+
+def finite_or_none(obj):
+    """``obj`` (dicts, lists, tuples of numbers and strings) with every NaN or infinite float
+    replaced by None: JSON without bare ``NaN`` or ``Infinity``."""
+    if isinstance(obj, dict):
+        return {k: finite_or_none(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [finite_or_none(v) for v in obj]
+    if isinstance(obj, float) and not math.isfinite(obj):
+        return None
+    return obj
 
 
 def format_accuracy_table(results: dict[str, dict[str, dict[str, float]]]) -> str:

@@ -54,8 +54,6 @@ bit-identical training (tested).
 
 from __future__ import annotations
 
-from sim.errors import InputError
-
 import hashlib
 import json
 import math
@@ -77,6 +75,7 @@ from learn.model import (
     PoseUpdateNet,
     _tap_channels,
 )
+from sim.errors import InputError
 
 __all__ = [
     "CACHE_FILE",

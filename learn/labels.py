@@ -21,8 +21,6 @@ The network regresses ``y = normalize(g)`` (unit-free, :class:`LabelNormalizer`)
 
 from __future__ import annotations
 
-from sim.errors import InputError
-
 import math
 import numbers
 from dataclasses import dataclass
@@ -31,6 +29,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from sim.errors import InputError
 from sim.se3 import product_exp, product_log
 
 __all__ = [

@@ -28,8 +28,6 @@ Minimum input size: 32 x 32 pixels (the DenseNet divides by 32). Style follows t
 
 from __future__ import annotations
 
-from sim.errors import InputError
-
 import enum
 import math
 import re
@@ -42,6 +40,8 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 from torchvision.models import DenseNet
+
+from sim.errors import InputError
 
 __all__ = [
     "Backbone",
@@ -175,8 +175,10 @@ def load_backbone_weights(model: PoseUpdateNet, path: str | Path) -> None:
 
     Raises:
         WeightsNotFoundError: no file at ``path`` (this machine cannot download weights).
-        WeightsMismatchError: not a state dict, or its keys or shapes do not match the backbone
-            (the message names up to 5 missing / unexpected / mismatched keys).
+        WeightsMismatchError: not a readable PyTorch file of tensors and plain data
+            (:func:`learn.checkpoint.read_plain_torch_file`), not a state dict, or its keys or
+            shapes do not match the backbone (the message names up to 5 missing / unexpected /
+            mismatched keys).
     """
     backbone = model.backbone_kind
     path = Path(path)
@@ -186,12 +188,9 @@ def load_backbone_weights(model: PoseUpdateNet, path: str | Path) -> None:
             f"ImageNet weights for {backbone.value} not found at {path}; this machine cannot download "
             f"them: copy torchvision's {file} there, or use weights=Weights.NONE"
         )
-    try:
-        state = torch.load(path, map_location="cpu", weights_only=True)
-    except Exception as exc:  # torch raises several kinds for a file that is not a checkpoint
-        raise WeightsMismatchError(
-            f"{path}: cannot be read as a torch state dict ({type(exc).__name__}: {exc})"
-        ) from exc
+    from learn.checkpoint import read_plain_torch_file  # tensors and plain data only; one-line refusals
+
+    state = read_plain_torch_file(path, "weights file", error=WeightsMismatchError)
     if not isinstance(state, Mapping) or not all(isinstance(v, Tensor) for v in state.values()):
         raise WeightsMismatchError(f"{path}: expected a state dict (str -> tensor), got {type(state).__name__}")
 

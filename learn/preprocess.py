@@ -17,8 +17,6 @@ Errors: :class:`LearnPreprocessError` (a ``ValueError``) naming the input and th
 
 from __future__ import annotations
 
-from sim.errors import InputError
-
 import hashlib
 import math
 import numbers
@@ -27,6 +25,8 @@ from typing import Any, Iterable, Sequence
 import numpy as np
 import torch
 import torch.nn.functional as F
+
+from sim.errors import InputError
 
 __all__ = [
     "LearnPreprocessError",

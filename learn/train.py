@@ -8,28 +8,33 @@ campaign ``.toml`` file, whose subjects are then rendered on the fly, near pairs
 (:mod:`learn.online`). With ``freeze_backbone`` and ``cache_features`` the backbone's maps of
 every image are computed once (``<out>/features/features.h5``, :class:`learn.features.FeatureCache`)
 and only the heads run per step, on the same pairs in the same order. The output folder holds
-``checkpoint.pt`` (model, optimiser, scheduler, iteration, random states, config, the image size
-(H, W) in pixels; written atomically
+``checkpoint.pt`` (:mod:`learn.checkpoint`: model, architecture, image size (H, W) in pixels,
+preprocessing, physics, config, optimiser, scheduler, iteration, random states; written atomically
 every ``checkpoint_every`` iterations and at the end), ``log.csv`` (iteration, training loss,
 validation loss, rotation and translation error of the predicted gradient) and ``loss.png``.
 A run killed at any point and restarted with ``--resume`` continues from its last checkpoint
-and takes exactly the steps an uninterrupted run would have taken (tested).
+and takes exactly the steps an uninterrupted run would have taken (tested); a resume with another
+config is refused, naming the keys that changed.
+
+Every key of the ``[train]`` table is type-checked (``batch_size = "2"``, ``batch_size = 2.5`` and
+``iterations = true`` are refused, not taken as numbers); the message names the key.
 """
 
 from __future__ import annotations
-
-from sim.errors import InputError
 
 import csv
 import math
 import os
 import time
 import tomllib
-from dataclasses import asdict, dataclass, fields
+import typing
+from dataclasses import MISSING, asdict, dataclass, fields
 from pathlib import Path
 
 import numpy as np
 import torch
+
+from sim.errors import InputError
 
 
 class TrainConfigError(InputError):
@@ -131,10 +136,16 @@ class TrainConfig:
             raise TrainConfigError(f"train.near_*: {e}") from None
 
     def __post_init__(self) -> None:
+        for f in fields(self):
+            problem = _type_problem(f.name, getattr(self, f.name))
+            if problem:
+                raise TrainConfigError(problem)
         for name in ("batch_size", "iterations", "lr_step", "pairs_per_epoch", "val_pairs", "val_every",
                      "checkpoint_every"):
             if int(getattr(self, name)) < 1:
                 raise TrainConfigError(f"train.{name} must be >= 1, got {getattr(self, name)}")
+        if not 0 <= self.seed < 2**32:
+            raise TrainConfigError(f"train.seed must be in [0, 2^32), got {self.seed}")
         if not (self.lr > 0 and math.isfinite(self.lr)):
             raise TrainConfigError(f"train.lr must be positive, got {self.lr}")
         if not 0 < self.lr_decay <= 1:
@@ -173,6 +184,65 @@ class TrainConfig:
                                    "campaign .toml file (a campaign folder's pairs share one physics entry)")
 
 
+def _describe(value) -> str:
+    """A TOML value as a message shows it: its written form and its kind."""
+    if isinstance(value, bool):
+        return f"{str(value).lower()} (a boolean)"
+    if isinstance(value, str):
+        return f"the string {value!r}"
+    if isinstance(value, int):
+        return f"the integer {value}"
+    if isinstance(value, float):
+        return f"the number {value!r}"
+    if isinstance(value, (list, tuple)):
+        return f"the list {list(value)!r}"
+    if isinstance(value, dict):
+        return "a table"
+    return f"a {type(value).__name__} ({value!r})"
+
+
+def _is_int(v) -> bool:
+    return isinstance(v, int) and not isinstance(v, bool)
+
+
+def _is_number(v) -> bool:
+    """A finite int or float (not a bool: TOML's true is not 1)."""
+    return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+
+
+def _type_problem(key: str, value) -> str | None:
+    """A message if ``value`` is not of the type :class:`TrainConfig` declares for ``key``
+    (bool is not a number, a string is not a number, 2.5 is not an integer); None if it is.
+    None is accepted where the default is None."""
+    hint = _FIELD_TYPES[key]
+    optional = type(None) in typing.get_args(hint)
+    if value is None:
+        return None if optional else f"train.{key} is required"
+    base = next((a for a in typing.get_args(hint) if a is not type(None)), hint) if optional else hint
+    origin = typing.get_origin(base)
+    if key == "preprocess":
+        ok = isinstance(value, (list, tuple)) and all(
+            isinstance(v, str) or isinstance(v, dict) and isinstance(v.get("name"), str) for v in value)
+        want = 'a list of step names or tables with a name (e.g. ["normalize"])'
+    elif origin is tuple:  # (low, high) number pairs
+        ok = isinstance(value, (list, tuple)) and len(value) == 2 and all(map(_is_number, value))
+        want = "a list of two finite numbers [low, high]"
+    elif base is bool:
+        ok, want = isinstance(value, bool), "true or false"
+    elif base is int:
+        ok, want = _is_int(value), "an integer"
+    elif base is float:
+        ok, want = _is_number(value), "a finite number"
+    elif base is str:
+        ok, want = isinstance(value, str), "a string"
+    else:  # a new field type: teach this function about it
+        raise TypeError(f"TrainConfig.{key}: no type check for {hint}")
+    return None if ok else f"train.{key} must be {want}, got {_describe(value)}"
+
+
+_FIELD_TYPES = typing.get_type_hints(TrainConfig)
+
+
 def load_train_config(path: str | os.PathLike) -> TrainConfig:
     """Read and validate a training config file."""
     path = Path(path)
@@ -191,6 +261,10 @@ def load_train_config(path: str | os.PathLike) -> TrainConfig:
         raise TrainConfigError(f"{path}: unknown key(s) train.{', train.'.join(unknown)}; allowed: {sorted(names)}")
     if "dataset" not in table:
         raise TrainConfigError(f"{path}: train.dataset (the campaign folder) is required")
+    for key, value in table.items():  # before the paths are resolved: dataset = 5 is not a path
+        problem = _type_problem(key, value)
+        if problem:
+            raise TrainConfigError(f"{path}: {problem}")
     for key in ("dataset", "out", "weights_path", "init_from"):
         if table.get(key):
             table[key] = str((path.parent / table[key]).resolve())
@@ -203,51 +277,81 @@ def load_train_config(path: str | os.PathLike) -> TrainConfig:
         raise TrainConfigError(f"{path}: {e}") from None
 
 
-def _same_config(stored: dict, cfg: TrainConfig) -> bool:
-    """Whether a checkpoint's config is ``cfg``; keys added since it was written (absent from
-    ``stored``) count as equal when ``cfg`` has their default."""
+def _plain(value):
+    """Lists for tuples, recursively (a config read back compares equal to the one written)."""
+    if isinstance(value, (list, tuple)):
+        return [_plain(v) for v in value]
+    if isinstance(value, dict):
+        return {k: _plain(v) for k, v in value.items()}
+    return value
+
+
+def _config_changes(stored: dict, cfg: TrainConfig) -> list[str]:
+    """The keys in which a checkpoint's config differs from ``cfg``, as ``"train.KEY OLD -> NEW"``;
+    keys added since it was written (absent from ``stored``) count as equal when ``cfg`` has
+    their default."""
     now = asdict(cfg)
     defaults = {f.name: f.default for f in fields(TrainConfig)}
-    return (set(stored) <= set(now) and all(stored[k] == now[k] for k in stored)
-            and all(now[k] == defaults[k] for k in set(now) - set(stored)))
+    changes = []
+    for key in sorted(set(stored) | set(now)):
+        if key not in now:
+            changes.append(f"train.{key} {stored[key]!r} -> (no longer a key)")
+        elif key not in stored:
+            if defaults[key] is MISSING or _plain(now[key]) != _plain(defaults[key]):
+                changes.append(f"train.{key} (not recorded: {defaults[key]!r}) -> {now[key]!r}")
+        elif _plain(stored[key]) != _plain(now[key]):
+            changes.append(f"train.{key} {stored[key]!r} -> {now[key]!r}")
+    return changes
 
 
-def _rng_state() -> dict:
-    return {"torch": torch.get_rng_state(), "numpy": np.random.get_state()}
+def _save_checkpoint(path: Path, checkpoint) -> None:
+    """Write the :class:`learn.checkpoint.Checkpoint` (a function of its own: the tests interrupt here)."""
+    from learn.checkpoint import save_checkpoint
+
+    save_checkpoint(path, checkpoint)
 
 
-def _set_rng_state(state: dict) -> None:
-    torch.set_rng_state(state["torch"])
-    np.random.set_state(state["numpy"])
+def _resume_checkpoint(path: Path, cfg: TrainConfig):
+    """The checkpoint at ``path`` to resume ``cfg`` from; refused if unreadable
+    (:class:`learn.checkpoint.CheckpointError`), without training state, or of another config."""
+    from learn.checkpoint import CheckpointError, load_checkpoint
+
+    state = load_checkpoint(path)
+    changes = _config_changes(state.config, cfg)
+    if changes:
+        raise TrainConfigError(f"{path} was written with another config ({'; '.join(changes)}): resume with the "
+                               f"same config, or use another train.out")
+    missing = [k for k in ("iteration", "optimizer", "scheduler", "rng") if getattr(state, k) is None]
+    if missing:
+        raise CheckpointError(f"checkpoint {path} holds no training state ({', '.join(missing)} missing): it cannot "
+                              f"be resumed; use it as train.init_from in a new train.out")
+    return state
 
 
-def _save_checkpoint(path: Path, payload: dict) -> None:
-    from sim.atomic import atomic_path
+def _init_checkpoint(cfg: TrainConfig):
+    """``cfg.init_from`` read and checked against ``cfg``'s architecture (see :class:`TrainConfig`)."""
+    from learn.checkpoint import CheckpointError, load_checkpoint
 
-    with atomic_path(path) as tmp:
-        torch.save(payload, tmp)
-
-
-def _init_weights(model, cfg: TrainConfig) -> None:
-    """Load ``cfg.init_from``'s model weights into ``model`` (see :class:`TrainConfig`)."""
     path = Path(cfg.init_from)
-    if not path.is_file():
-        raise TrainConfigError(f"train.init_from: checkpoint {path} not found")
     try:
-        state = torch.load(path, weights_only=False, map_location="cpu")
-    except Exception as e:  # noqa: BLE001 - torch raises many types for a bad file
-        raise TrainConfigError(f"train.init_from: {path} is not a ctxreg training checkpoint ({e})") from None
-    if not isinstance(state, dict) or "model" not in state or "config" not in state:
-        raise TrainConfigError(f"train.init_from: {path} is not a ctxreg training checkpoint")
-    theirs = state["config"]
+        state = load_checkpoint(path)
+    except CheckpointError as e:
+        raise TrainConfigError(f"train.init_from: {e}") from None
     for key in ("backbone", "head_channels"):
-        if theirs.get(key, getattr(TrainConfig, key)) != getattr(cfg, key):
-            raise TrainConfigError(f"train.init_from: {path} has {key} = {theirs.get(key)!r}, this run "
+        if getattr(state, key) != getattr(cfg, key):
+            raise TrainConfigError(f"train.init_from: {path} has {key} = {getattr(state, key)!r}, this run "
                                    f"{getattr(cfg, key)!r}")
+    return state
+
+
+def _init_weights(model, init) -> None:
+    """Load the :func:`_init_checkpoint`'s weights into ``model``."""
+    from learn.checkpoint import CheckpointError, load_weights
+
     try:
-        model.load_state_dict(state["model"])
-    except RuntimeError as e:
-        raise TrainConfigError(f"train.init_from: {path}: weights do not fit the model ({e})") from None
+        load_weights(model, init.model_state, source=f"checkpoint {init.path}")
+    except CheckpointError as e:
+        raise TrainConfigError(f"train.init_from: {e}") from None
 
 
 def _errors(pred_norm: torch.Tensor, true_norm: torch.Tensor, normalizer) -> tuple[float, float]:
@@ -260,6 +364,7 @@ def _errors(pred_norm: torch.Tensor, true_norm: torch.Tensor, normalizer) -> tup
 
 def train(cfg: TrainConfig, *, resume: bool = False, log=print) -> dict:
     """Train; returns the last log row. See the module doc for the outputs."""
+    from learn.checkpoint import Checkpoint, CheckpointError, capture_rng, load_weights, remove_stale_temps, restore_rng
     from learn.model import Weights, pose_update_net
 
     out = Path(cfg.out)
@@ -267,6 +372,11 @@ def train(cfg: TrainConfig, *, resume: bool = False, log=print) -> dict:
     if ckpt_path.exists() and not resume:
         raise TrainConfigError(f"{out} already holds a checkpoint: use --resume, or another train.out")
     out.mkdir(parents=True, exist_ok=True)
+    for path in (ckpt_path, out / "log.csv", out / "loss.png"):  # temporary files of a killed write
+        remove_stale_temps(path)
+    # the checkpoints are read first: a bad one is refused before any rendering or caching
+    resumed = _resume_checkpoint(ckpt_path, cfg) if resume and ckpt_path.exists() else None
+    init = _init_checkpoint(cfg) if cfg.init_from and resumed is None else None
     torch.manual_seed(cfg.seed)
     np.random.seed(cfg.seed)
     source = _OnlineSource(cfg) if cfg.online else None if cfg.cache_features else _CampaignSource(cfg)
@@ -274,24 +384,24 @@ def train(cfg: TrainConfig, *, resume: bool = False, log=print) -> dict:
                             weights=Weights.IMAGENET_LOCAL if cfg.weights == "imagenet_local" else Weights.NONE,
                             weights_path=cfg.weights_path, freeze_backbone=cfg.freeze_backbone,
                             head_channels=cfg.head_channels)
-    if cfg.init_from and not (resume and ckpt_path.exists()):
-        _init_weights(model, cfg)
+    if init is not None:
+        _init_weights(model, init)
         log(f"weights from {cfg.init_from}")
     if source is None:  # the cache needs the (frozen) backbone; neither draws random numbers
-        source = _CachedSource(cfg, model, rebuild=not (resume and ckpt_path.exists()), log=log)
+        source = _CachedSource(cfg, model, rebuild=resumed is None, log=log)
     params = [p for p in model.parameters() if p.requires_grad]
     optimizer = torch.optim.Adam(params, lr=cfg.lr)
     scheduler = torch.optim.lr_scheduler.StepLR(optimizer, step_size=cfg.lr_step, gamma=cfg.lr_decay)
     iteration = 0
-    if resume and ckpt_path.exists():
-        state = torch.load(ckpt_path, weights_only=False)
-        if not _same_config(state["config"], cfg):
-            raise TrainConfigError(f"{ckpt_path} was written with another config; use another train.out")
-        model.load_state_dict(state["model"])
-        optimizer.load_state_dict(state["optimizer"])
-        scheduler.load_state_dict(state["scheduler"])
-        iteration = state["iteration"]
-        _set_rng_state(state["rng"])
+    if resumed is not None:
+        load_weights(model, resumed.model_state, source=f"checkpoint {ckpt_path}")
+        try:
+            optimizer.load_state_dict(resumed.optimizer)
+            scheduler.load_state_dict(resumed.scheduler)
+        except (ValueError, KeyError) as e:  # torch's refusal of another optimiser's state
+            raise CheckpointError(f"checkpoint {ckpt_path}: its optimiser state does not fit this run ({e})") from None
+        iteration = resumed.iteration
+        restore_rng(resumed.rng, source=f"checkpoint {ckpt_path}")
         log(f"resumed at iteration {iteration}")
     log_path = out / "log.csv"
     rows = []
@@ -324,11 +434,12 @@ def train(cfg: TrainConfig, *, resume: bool = False, log=print) -> dict:
                 f"val {last['val_loss']:.4f}, rotation {last['val_rot_err_deg']:.2f} deg, "
                 f"translation {last['val_trans_err_mm']:.1f} mm ({rate:.0f} pairs/s)")
         if iteration % cfg.checkpoint_every == 0 or iteration == cfg.iterations:
-            _save_checkpoint(ckpt_path, {"model": model.state_dict(), "optimizer": optimizer.state_dict(),
-                                         "scheduler": scheduler.state_dict(), "iteration": iteration,
-                                         "rng": _rng_state(), "config": asdict(cfg),
-                                         "image_size": list(source.size), "physics": source.physics,
-                                         "current_physics": getattr(source, "current_physics", source.physics)})
+            _save_checkpoint(ckpt_path, Checkpoint(
+                model_state=model.state_dict(), backbone=cfg.backbone, head_channels=cfg.head_channels,
+                preprocess=tuple(cfg.preprocess), config=asdict(cfg), image_size=tuple(source.size),
+                physics=source.physics, current_physics=getattr(source, "current_physics", source.physics),
+                iteration=iteration, optimizer=optimizer.state_dict(), scheduler=scheduler.state_dict(),
+                rng=capture_rng()))
     _plot(rows, out / "loss.png")
     source.close()
     return last

@@ -8,9 +8,9 @@ so the anatomy stays in view). The iteration stops when the predicted step is be
 ``stop_rot_deg`` and ``stop_trans_mm``, or after ``max_iterations``. ``contextual+cmaes`` then
 hands the pose to CMA-ES in a narrowed box.
 
-Predictors: :class:`NetworkPredictor` (a trained :class:`learn.model.PoseUpdateNet` checkpoint)
-or any callable ``(fixed (H, W), drr (H, W)) -> g (6,)``; the tests use an oracle that returns
-the true label, which checks the iteration itself.
+Predictors: :class:`learn.predict.NetworkPredictor` (a trained :class:`learn.model.PoseUpdateNet`
+checkpoint; importable from here too) or any callable ``(fixed (H, W), drr (H, W)) -> g (6,)``;
+the tests use an oracle that returns the true label, which checks the iteration itself.
 """
 
 from __future__ import annotations
@@ -20,6 +20,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from learn.predict import NetworkPredictor  # noqa: F401 - the network predictor, importable from here
 from register.cmaes import CMAESRegistration, CMAESSettings, RegistrationError, RegistrationResult
 
 
@@ -41,82 +42,6 @@ class ContextualSettings:
             raise RegistrationError(f"step must be in (0, 1], got {self.step}")
         if self.max_iterations < 1:
             raise RegistrationError(f"max_iterations must be >= 1, got {self.max_iterations}")
-
-
-class NetworkPredictor:
-    """A trained pose-update network (``ctxreg train`` checkpoint) as a predictor of g (rad, mm)."""
-
-    def __init__(self, checkpoint: str):
-        import torch
-
-        from learn.labels import LabelNormalizer
-        from learn.model import pose_update_net
-        from learn.preprocess import build
-
-        try:
-            state = torch.load(checkpoint, weights_only=False, map_location="cpu")
-        except FileNotFoundError:
-            raise RegistrationError(f"model checkpoint {checkpoint} not found") from None
-        except Exception as e:  # noqa: BLE001 - torch raises many types for a bad file
-            raise RegistrationError(f"{checkpoint}: not a ctxreg training checkpoint ({e})") from None
-        if not isinstance(state, dict) or "model" not in state or "config" not in state:
-            raise RegistrationError(f"{checkpoint}: not a ctxreg training checkpoint")
-        cfg = state["config"]
-        self.model = pose_update_net(backbone=cfg["backbone"], head_channels=int(cfg.get("head_channels", 64)))
-        try:
-            self.model.load_state_dict(state["model"])
-        except RuntimeError as e:
-            raise RegistrationError(f"{checkpoint}: weights do not fit the {cfg['backbone']} model ({e})") from None
-        self.model.eval()
-        self.transform = build(list(cfg["preprocess"]))
-        self.normalizer = LabelNormalizer()
-        #: (H, W) pixels of the training images (None for checkpoints that do not record it)
-        self.size = tuple(state["image_size"]) if state.get("image_size") else None
-        #: the campaign physics entry of the training images (``{"name", "level", "kvp", ...}``),
-        #: or None for checkpoints that do not record it
-        self.physics = state.get("physics")
-        #: the physics entry of the training pairs' *current* images (the registration's moving
-        #: images): ``physics`` unless the run set ``train.current_physics``
-        self.current_physics = state.get("current_physics") or self.physics
-
-    def physics_mismatch(self, physics) -> str | None:
-        """A sentence when the moving images' :class:`~sim.physics.imaging.PhysicsSettings` (None =
-        line) differ from the physics of the training pairs' current images (level, and kVp and
-        filtration for poly and full); None when they agree or the checkpoint does not record its
-        physics."""
-        ref = self.current_physics
-        if ref is None:
-            return None
-        level = "line" if physics is None else physics.level
-        trained = ref.get("level", "line")
-        differ = level != trained
-        if not differ and level in ("poly", "full"):
-            from sim.physics.spectrum import parse_filters
-
-            filters = parse_filters(ref.get("filters", ()))  # stored as "SYMBOL:MM" strings
-            differ = (abs(float(ref.get("kvp", physics.kvp)) - physics.kvp) > 1e-9
-                      or filters != tuple((s, float(t)) for s, t in physics.filters))
-        if not differ:
-            return None
-        spec = f"{trained}" + (f" at {ref.get('kvp'):g} kVp" if trained in ("poly", "full") else "")
-        return (f"the network was trained on {spec} current images (campaign physics {ref.get('name')!r}) but "
-                f"the current images are rendered with {level} physics"
-                + (f" at {physics.kvp:g} kVp" if level in ("poly", "full") else "")
-                + ": its predictions may be off (the domain gap); set --physics to match")
-
-    def __call__(self, fixed: np.ndarray, drr: np.ndarray) -> np.ndarray:
-        """``fixed``, ``drr`` ``(H, W)`` -> g ``(6,)`` (rad, mm). Images of another size than the
-        training images are resampled to it first (area averaging, as a coarser detector would)."""
-        import torch
-        import torch.nn.functional as F
-
-        with torch.no_grad():
-            x = torch.from_numpy(np.stack([fixed, drr]).astype(np.float32))[:, None]
-            if self.size is not None and tuple(x.shape[-2:]) != self.size:
-                x = F.interpolate(x, size=self.size, mode="area")
-            x = self.transform(x)
-            out = self.model(x[:1], x[1:2])
-            return self.normalizer.denormalize(out.g[0].double()).numpy()
 
 
 class ContextualRegistration:

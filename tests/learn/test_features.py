@@ -108,7 +108,9 @@ def test_the_cache_is_reused_and_refuses_other_weights_or_preprocessing(campaign
 
 
 def _weights(path):
-    return torch.load(path / "checkpoint.pt", weights_only=False)["model"]
+    from learn.checkpoint import load_checkpoint
+
+    return load_checkpoint(path / "checkpoint.pt").model_state
 
 
 def _rows(path):
@@ -158,7 +160,7 @@ def test_cached_training_takes_the_uncached_steps_and_resumes_exactly(campaign, 
 
 
 def test_cache_features_refusals_name_the_keys(campaign, tmp_path):
-    from learn.train import TrainConfigError, _same_config, load_train_config
+    from learn.train import TrainConfigError, _config_changes, load_train_config
 
     with pytest.raises(TrainConfigError, match="train.cache_features needs train.freeze_backbone"):
         config(campaign, tmp_path, cache_features=True, freeze_backbone=False)
@@ -172,6 +174,7 @@ def test_cache_features_refusals_name_the_keys(campaign, tmp_path):
     # checkpoints written before the key existed still resume when it keeps its default
     cfg = config(campaign, tmp_path)
     old = {k: v for k, v in asdict(cfg).items() if k != "cache_features"}
-    assert _same_config(old, cfg)
-    assert not _same_config(old, config(campaign, tmp_path, cache_features=True))
-    assert not _same_config({**old, "lr": 1.0}, cfg)
+    assert _config_changes(old, cfg) == []
+    assert _config_changes(old, config(campaign, tmp_path, cache_features=True)) == [
+        "train.cache_features (not recorded: False) -> True"]
+    assert _config_changes({**old, "lr": 1.0}, cfg) == [f"train.lr 1.0 -> {cfg.lr!r}"]

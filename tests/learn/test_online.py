@@ -93,17 +93,19 @@ def test_online_training_resumes_exactly_and_records_the_image_size_and_physics(
                               lr=1e-3, val_pairs=6, val_every=3, checkpoint_every=3, seed=2, loss="relative",
                               near_fraction=0.5)
 
+    from learn.checkpoint import load_checkpoint
+
     tr.train(cfg_for(tmp_path / "a"), log=lambda *_: None)
-    ref = torch.load(tmp_path / "a" / "checkpoint.pt", weights_only=False)
-    assert ref["image_size"] == [32, 32]
+    ref = load_checkpoint(tmp_path / "a" / "checkpoint.pt")
+    assert ref.image_size == (32, 32)
     from sim.campaign import load_campaign
 
-    assert ref["physics"] == load_campaign(campaign_file).physics[0].to_dict()  # what the images were
+    assert ref.physics == load_campaign(campaign_file).physics[0].to_dict()  # what the images were
     train_killed_after_first_checkpoint(cfg_for(tmp_path / "b"), monkeypatch)
     tr.train(cfg_for(tmp_path / "b"), resume=True, log=lambda *_: None)
-    got = torch.load(tmp_path / "b" / "checkpoint.pt", weights_only=False)
-    for key, value in ref["model"].items():
-        torch.testing.assert_close(got["model"][key], value, rtol=0, atol=0, msg=key)
+    got = load_checkpoint(tmp_path / "b" / "checkpoint.pt")
+    for key, value in ref.model_state.items():
+        torch.testing.assert_close(got.model_state[key], value, rtol=0, atol=0, msg=key)
     assert list(csv.DictReader(open(tmp_path / "b" / "log.csv"))) == \
         list(csv.DictReader(open(tmp_path / "a" / "log.csv")))
 
@@ -275,7 +277,8 @@ def test_a_checkpoint_records_the_current_images_physics(tmp_path):
     """The checkpoint of a run with full targets and poly currents records both entries, and the
     registration's physics note compares the moving images with the *current* images' entry."""
     import learn.train as tr
-    from register.contextual import NetworkPredictor
+    from learn.checkpoint import load_checkpoint
+    from learn.predict import NetworkPredictor
     from sim.physics.imaging import PhysicsSettings
 
     (tmp_path / "two.toml").write_text(TWO_PHYSICS)
@@ -285,8 +288,8 @@ def test_a_checkpoint_records_the_current_images_physics(tmp_path):
     (tmp_path / "two.toml").write_text(TWO_PHYSICS.replace('split = "train"\n[[cts]]\npath = "phantom:2"\nsplit = "train"',
                                                            'split = "train"\n[[cts]]\npath = "phantom:2"\nsplit = "val"'))
     tr.train(cfg, log=lambda *_: None)
-    state = torch.load(tmp_path / "o" / "checkpoint.pt", weights_only=False)
-    assert state["physics"]["name"] == "full" and state["current_physics"]["name"] == "poly_clean"
+    state = load_checkpoint(tmp_path / "o" / "checkpoint.pt")
+    assert state.physics["name"] == "full" and state.current_physics["name"] == "poly_clean"
     p = NetworkPredictor(str(tmp_path / "o" / "checkpoint.pt"))
     assert p.physics_mismatch(PhysicsSettings(level="poly")) is None
     assert "poly at 120 kVp current images" in p.physics_mismatch(PhysicsSettings(level="full"))
@@ -300,15 +303,16 @@ def test_a_checkpoint_records_the_current_images_physics(tmp_path):
                                      kind=("ap",), pairs=3, out=str(tmp_path / out), **kw))
         return json.loads((tmp_path / out / "accuracy.json").read_text())
 
-    mixed = accuracy("acc_mixed", physics="full", current_physics="poly_clean")
-    same = accuracy("acc_full", physics="full")
+    mixed = accuracy("acc_mixed", entry="full", current_entry="poly_clean")
+    same = accuracy("acc_full", entry="full")
     assert (mixed["physics"], mixed["current_physics"], mixed["note"]) == ("full", "poly_clean", None)
     assert same["current_physics"] == "full" and "poly at 120 kVp current images" in same["note"]
+    assert same["note"].endswith("pick a matching --current-entry")  # accuracy's option, not register's
     # the same poses (the baselines agree), but other current images (the predictions do not)
     assert mixed["results"]["ap"]["zero_baseline"] == same["results"]["ap"]["zero_baseline"]
     assert mixed["results"]["ap"]["weighted_sum"] != same["results"]["ap"]["weighted_sum"]
     with pytest.raises(AccuracyError, match="'clean' is not a \\[\\[physics\\]\\] entry"):
-        accuracy("x", current_physics="clean")
+        accuracy("x", current_entry="clean")
     with pytest.raises(AccuracyError, match="with --ct both images are line DRRs"):
-        run_accuracy(AccuracyCommand(model=str(tmp_path / "o" / "checkpoint.pt"), ct="phantom:0", physics="full",
+        run_accuracy(AccuracyCommand(model=str(tmp_path / "o" / "checkpoint.pt"), ct="phantom:0", entry="full",
                                      out=str(tmp_path / "y")))

@@ -1,0 +1,496 @@
+"""The one checkpoint format of the pose-update network: what ``ctxreg train`` writes and what
+``ctxreg register``, ``evaluate``, ``accuracy`` and ``train --resume`` / ``init_from`` read.
+
+A checkpoint is a ``torch.save`` file of one dict of tensors and plain data (str, int, float,
+bool, None, lists, tuples, dicts), format version :data:`FORMAT_VERSION`:
+
+=================== ============================================================================
+key                 content
+=================== ============================================================================
+``format``          :data:`FORMAT` (marks a ctxreg checkpoint)
+``format_version``  int, :data:`FORMAT_VERSION` when written by this code
+``model``           the :class:`learn.model.PoseUpdateNet` state dict (name -> tensor)
+``architecture``    ``{"backbone": "tiny" | "densenet121" | "densenet161", "head_channels": int}``
+``image_size``      ``[H, W]`` pixels of the training images (the network's input size)
+``preprocess``      the :mod:`learn.preprocess` steps (names or records) applied to both images
+``physics``         the campaign ``[[physics]]`` entry (dict) of the training target images
+``current_physics`` the entry of the training pairs' current images (usually ``physics``)
+``config``          the ``[train]`` table the run used (:class:`learn.train.TrainConfig` as a dict)
+``iteration``       optimiser steps taken
+``optimizer``       ``torch.optim.Adam.state_dict()`` (for ``--resume``)
+``scheduler``       ``StepLR.state_dict()``
+``rng``             ``{"torch": ByteTensor, "numpy": {"bit_generator", "key" (624,) int64 tensor,
+                    "pos", "has_gauss", "cached_gaussian"}}`` (:func:`capture_rng`)
+=================== ============================================================================
+
+Files written before this module (no ``format`` key: a dict with ``model`` and ``config``; the
+``image_size`` and ``physics`` keys may be absent, and the NumPy random state is a NumPy array)
+are read as format version 0; nothing else is lost.
+
+Reading (:func:`load_checkpoint`) never runs code from the file: ``torch.load(...,
+weights_only=True)`` (tensors and plain data; NumPy arrays of numbers too, which version-0 files
+hold).
+A file that pickles any other object, an empty, truncated or foreign file (a bare state dict,
+another program's ``.pt``), a newer format version and weights with NaN or infinite values are
+refused with a one-line :class:`CheckpointError` naming the file. Weights that do not fit a model
+(:func:`load_weights`) are refused in one line naming the architecture difference (e.g.
+``growth_rate 32`` vs ``8``) or the first mismatching tensor.
+
+Writing (:func:`save_checkpoint`) is atomic (:func:`sim.atomic.atomic_path`): a reader sees the
+old file or the new one. A process killed hard during the write leaves its hidden temporary file
+(``.checkpoint.pt.<writer>-XXXXXXXX.tmp.pt``); the next save or ``--resume`` removes it
+(:func:`remove_stale_temps`).
+"""
+
+from __future__ import annotations
+
+import pickle
+import re
+import zipfile
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from sim.errors import InputError
+
+__all__ = ["FORMAT", "FORMAT_VERSION", "Checkpoint", "CheckpointError", "capture_rng", "load_checkpoint",
+           "load_weights", "read_plain_torch_file", "remove_stale_temps", "restore_rng", "save_checkpoint"]
+
+#: The ``format`` value of a ctxreg checkpoint.
+FORMAT = "ctxreg pose-update network"
+#: The format version this code writes (and the newest it reads).
+FORMAT_VERSION = 1
+
+
+class CheckpointError(InputError):
+    """A checkpoint cannot be used; the one-line message names the file and the problem."""
+
+
+@dataclass(frozen=True)
+class Checkpoint:
+    """A loaded checkpoint (see the module doc for the fields' meaning).
+
+    ``model_state`` is the network's state dict; ``backbone`` and ``head_channels`` build the
+    network (:meth:`build_model`); ``image_size`` is ``(H, W)`` pixels or None (old files);
+    ``iteration``, ``optimizer``, ``scheduler`` and ``rng`` are the training state (None where a
+    file lacks it). ``path`` is where it was read from (None for one built in memory)."""
+
+    model_state: Mapping[str, torch.Tensor]
+    backbone: str
+    head_channels: int
+    preprocess: tuple
+    config: dict
+    image_size: tuple[int, int] | None = None
+    physics: dict | None = None
+    current_physics: dict | None = None
+    iteration: int | None = None
+    optimizer: dict | None = None
+    scheduler: dict | None = None
+    rng: dict | None = None
+    format_version: int = FORMAT_VERSION
+    path: str | None = field(default=None, compare=False)
+
+    @property
+    def name(self) -> str:
+        """How messages name it: ``checkpoint <path>``."""
+        return f"checkpoint {self.path}" if self.path is not None else "the checkpoint"
+
+    def build_model(self):
+        """A :class:`learn.model.PoseUpdateNet` of this architecture with these weights (train mode,
+        as built; call ``.eval()`` to predict)."""
+        from learn.model import pose_update_net
+
+        model = pose_update_net(backbone=self.backbone, head_channels=self.head_channels)
+        load_weights(model, self.model_state, source=self.name)
+        return model
+
+    def payload(self) -> dict:
+        """The dict :func:`save_checkpoint` writes (format :data:`FORMAT_VERSION`)."""
+        return {"format": FORMAT, "format_version": FORMAT_VERSION, "model": self.model_state,
+                "architecture": {"backbone": self.backbone, "head_channels": self.head_channels},
+                "image_size": None if self.image_size is None else [int(v) for v in self.image_size],
+                "preprocess": list(self.preprocess), "physics": self.physics,
+                "current_physics": self.current_physics, "config": self.config, "iteration": self.iteration,
+                "optimizer": self.optimizer, "scheduler": self.scheduler, "rng": self.rng}
+
+
+# --------------------------------------------------------------------------------------------
+# Random state as tensors and plain data
+# --------------------------------------------------------------------------------------------
+
+
+def capture_rng() -> dict:
+    """The global torch and NumPy random states, as tensors and plain data."""
+    name, key, pos, has_gauss, cached = np.random.get_state()
+    return {"torch": torch.get_rng_state(),
+            "numpy": {"bit_generator": str(name), "key": torch.from_numpy(np.asarray(key, np.int64)),
+                      "pos": int(pos), "has_gauss": int(has_gauss), "cached_gaussian": float(cached)}}
+
+
+def restore_rng(state: Mapping, *, source: str = "the checkpoint") -> None:
+    """Set the global torch and NumPy random states from :func:`capture_rng`'s dict (or a
+    version-0 file's, whose NumPy state is ``np.random.get_state()``'s tuple); ``source`` names
+    the file in the :class:`CheckpointError` of a damaged state."""
+    try:
+        st = state["numpy"]
+        if isinstance(st, Mapping):
+            key = np.asarray(st["key"].numpy() if isinstance(st["key"], torch.Tensor) else st["key"])
+            st = (st["bit_generator"], key.astype(np.uint32), int(st["pos"]), int(st["has_gauss"]),
+                  float(st["cached_gaussian"]))
+        torch.set_rng_state(state["torch"])
+        np.random.set_state(st)
+    except (KeyError, TypeError, ValueError, RuntimeError) as e:  # what torch / NumPy say to a damaged state
+        raise CheckpointError(f"{source}: its random state is damaged ({_first_line(e)})") from None
+
+
+# --------------------------------------------------------------------------------------------
+# Writing
+# --------------------------------------------------------------------------------------------
+
+
+def _old_temp_pattern(path: Path) -> re.Pattern:
+    """Temporary names of ``path`` as :func:`sim.atomic.atomic_path` made them before it recorded
+    the writer (``.<name>.<8 random characters>.tmp<suffixes>``, ``tempfile.mkstemp``'s)."""
+    sfx = "".join(path.suffixes)
+    return re.compile(rf"\.{re.escape(path.name)}\.[a-z0-9_]{{8}}\.tmp{re.escape(sfx)}")
+
+
+def remove_stale_temps(path: str | Path) -> list[Path]:
+    """Remove the temporary files that killed writes of ``path`` left beside it; returns them.
+
+    Temporary files named with their writer (:func:`sim.atomic.remove_stale_temps`: removed
+    when that process is gone) and those of the older unnamed form (removed always: call this
+    only where no other process writes ``path``, as ``ctxreg train`` owns its output folder)."""
+    path = Path(path)
+    if not path.parent.is_dir():
+        return []
+    removed = []
+    try:
+        from sim.atomic import remove_stale_temps as remove_writerless
+    except ImportError:  # a sim.atomic without writer-named temporary files
+        remove_writerless = None
+    if remove_writerless is not None:
+        removed += remove_writerless(path.parent, path.name)
+    pattern = _old_temp_pattern(path)
+    for p in path.parent.iterdir():
+        if pattern.fullmatch(p.name) and p.is_file():
+            p.unlink(missing_ok=True)
+            removed.append(p)
+    return removed
+
+
+def save_checkpoint(path: str | Path, checkpoint: Checkpoint) -> None:
+    """Write ``checkpoint`` to ``path`` atomically (format :data:`FORMAT_VERSION`), removing
+    stale temporary files of earlier killed writes first.
+
+    Raises:
+        CheckpointError: the weights hold NaN or infinite values (the previous file is kept).
+    """
+    from sim.atomic import atomic_path
+
+    path = Path(path)
+    _check_finite(checkpoint.model_state, f"refusing to write checkpoint {path}",
+                  "the training diverged; the previous checkpoint is kept: lower train.lr")
+    remove_stale_temps(path)
+    with atomic_path(path) as tmp:
+        torch.save(checkpoint.payload(), tmp)
+
+
+# --------------------------------------------------------------------------------------------
+# Reading
+# --------------------------------------------------------------------------------------------
+
+_ZIP_MAGIC = b"PK\x03\x04"
+#: First bytes of a torch.save file in the format before PyTorch 1.6 (a pickled magic number)
+_LEGACY_MAGIC = b"\x80\x02\x8a\x0a"
+
+
+def _numpy_array_globals() -> list:
+    """What a version-0 file's NumPy random state needs besides tensors and plain data (arrays
+    of numbers only: a NumPy array's pickle names these and nothing that runs code)."""
+    reconstruct = np._core.multiarray._reconstruct if hasattr(np, "_core") else np.core.multiarray._reconstruct
+    return [(reconstruct, "numpy._core.multiarray._reconstruct"),
+            (reconstruct, "numpy.core.multiarray._reconstruct"), np.ndarray, np.dtype,
+            *(type(np.dtype(t)) for t in ("uint32", "int64", "float64"))]
+
+
+_ALLOWED_NUMPY = {"numpy._core.multiarray._reconstruct", "numpy.core.multiarray._reconstruct", "numpy.ndarray",
+                  "numpy.dtype", "numpy.dtypes.UInt32DType", "numpy.dtypes.Int64DType", "numpy.dtypes.Float64DType"}
+
+
+def read_plain_torch_file(path: str | Path, what: str = "checkpoint", *, error=CheckpointError,
+                          allow_numpy: bool = False):
+    """``torch.load(path, weights_only=True)`` with one-line errors.
+
+    Refuses (raising ``error`` with a message that starts with ``"<what> <path>"``): a missing
+    file, a folder, an empty file, a truncated or corrupt one, a file that is not a PyTorch
+    file, and a file that pickles any object other than tensors and plain data (such a file
+    could run code when loaded; nothing of it is executed here). ``allow_numpy`` also accepts
+    NumPy arrays of numbers (version-0 checkpoints).
+    """
+    path = Path(path)
+    name = f"{what} {path}"
+    if not path.exists():
+        raise error(f"{name} not found")
+    if not path.is_file():
+        raise error(f"{name} is not a file")
+    size = path.stat().st_size
+    if size == 0:
+        raise error(f"{name} is empty (0 bytes): was its write interrupted?")
+    with open(path, "rb") as f:
+        head = f.read(4)
+    unsafe: set[str] = set()
+    if head == _ZIP_MAGIC:  # torch.save's format since PyTorch 1.6
+        if not zipfile.is_zipfile(path):
+            raise error(f"{name} is truncated or corrupt ({size} bytes, an incomplete zip archive): was its write "
+                        f"interrupted? Use an intact copy")
+        try:
+            unsafe = set(torch.serialization.get_unsafe_globals_in_checkpoint(path))
+        except ValueError as e:  # a zip archive, but no torch.save pickle in it (e.g. TorchScript)
+            raise error(f"{name} is not a torch.save file ({_first_line(e)})") from None
+        except (RuntimeError, KeyError, EOFError, zipfile.BadZipFile, pickle.UnpicklingError) as e:
+            raise error(f"{name} is corrupt ({_first_line(e)})") from None
+    elif head != _LEGACY_MAGIC:  # the format before 1.6 (e.g. torchvision's ImageNet files): torch.load checks
+        raise error(f"{name} is not a PyTorch file (torch.save writes a zip archive; this one starts with "
+                    f"{head!r})")
+    if allow_numpy:
+        unsafe -= _ALLOWED_NUMPY
+    if unsafe:
+        shown = ", ".join(sorted(unsafe)[:3]) + (f" and {len(unsafe) - 3} more" if len(unsafe) > 3 else "")
+        raise error(f"{name} contains objects other than tensors and plain data ({shown}); refused: loading it "
+                    f"could run code. Only load files whose source you trust, re-saved as tensors and plain data")
+    try:
+        if allow_numpy:
+            with torch.serialization.safe_globals(_numpy_array_globals()):
+                return torch.load(path, map_location="cpu", weights_only=True)
+        return torch.load(path, map_location="cpu", weights_only=True)
+    except pickle.UnpicklingError as e:  # weights_only's refusal (never executed) or a broken pickle stream
+        detail = re.search(r"WeightsUnpickler error: ([^\n]*)", str(e))
+        detail = detail.group(1).strip() if detail else _first_line(e)
+        if re.search(r"Unsupported (global|class)|allowed global", detail):
+            # (in the pre-1.6 format a cut stream can also end in a cut, unknown name)
+            damaged = "" if head == _ZIP_MAGIC else ", or it is damaged"
+            raise error(f"{name} contains objects other than tensors and plain data{damaged}; refused: loading it "
+                        f"could run code ({detail[:200]})") from None
+        raise error(f"{name} is truncated or corrupt ({detail[:200]})") from None
+    # torch raises these for a damaged archive (bad CRC, missing record, cut pickle stream)
+    except (RuntimeError, EOFError, KeyError, ValueError, zipfile.BadZipFile) as e:
+        raise error(f"{name} is truncated or corrupt ({_first_line(e)})") from None
+
+
+def _first_line(e: BaseException) -> str:
+    text = str(e).strip().splitlines()
+    line = text[0] if text else ""
+    line = line[:200] + ("..." if len(line) > 200 else "")
+    return f"{type(e).__name__}: {line}" if line else type(e).__name__
+
+
+def _check_finite(state: Mapping[str, torch.Tensor], lead: str, advice: str) -> None:
+    bad = [k for k, v in state.items() if isinstance(v, torch.Tensor) and v.is_floating_point()
+           and not bool(torch.isfinite(v).all())]
+    if bad:
+        first = state[bad[0]]
+        n = int((~torch.isfinite(first)).sum())
+        raise CheckpointError(f"{lead}: {len(bad)} of {len(state)} weight tensors hold NaN or infinite values "
+                              f"(first: {bad[0]}, {n} of {first.numel()} values): {advice}")
+
+
+def _is_state_dict(obj) -> bool:
+    return isinstance(obj, Mapping) and len(obj) > 0 and all(
+        isinstance(k, str) and isinstance(v, torch.Tensor) for k, v in obj.items())
+
+
+def load_checkpoint(path: str | Path) -> Checkpoint:
+    """Read a ``ctxreg train`` checkpoint (any format version up to :data:`FORMAT_VERSION`).
+
+    Raises:
+        CheckpointError: the file is missing, empty, truncated, corrupt, pickles objects other
+            than tensors and plain data, is not a ctxreg checkpoint (e.g. a bare state dict),
+            has a newer format version, or its weights hold NaN or infinite values.
+    """
+    path = Path(path)
+    name = f"checkpoint {path}"
+    state = read_plain_torch_file(path, allow_numpy=True)
+    if not isinstance(state, dict):
+        raise CheckpointError(f"{name} is not a ctxreg checkpoint (it holds a {type(state).__name__}, not the dict "
+                              f"ctxreg train writes)")
+    if "format" in state or "format_version" in state:
+        if state.get("format") != FORMAT:
+            raise CheckpointError(f"{name} is not a ctxreg checkpoint (format {state.get('format')!r})")
+        version = state.get("format_version")
+        if not isinstance(version, int) or isinstance(version, bool) or version < 1:
+            raise CheckpointError(f"{name} is corrupt: format_version {version!r} is not a positive integer")
+        if version > FORMAT_VERSION:
+            raise CheckpointError(f"{name} has format version {version}, newer than this ctxreg reads "
+                                  f"({FORMAT_VERSION}): update ctxreg to use it")
+        ckpt = _from_v1(state, name, path)
+    elif isinstance(state.get("model"), Mapping) and isinstance(state.get("config"), Mapping):
+        ckpt = _from_v0(state, name, path)
+    elif _is_state_dict(state):
+        raise CheckpointError(f"{name} is not a ctxreg checkpoint: it is a bare state dict ({len(state)} tensors, "
+                              f"e.g. {next(iter(state))}) without the model config, image size and preprocessing "
+                              f"ctxreg train records")
+    else:
+        keys = ", ".join(sorted(map(str, state))[:6]) or "none"
+        raise CheckpointError(f"{name} is not a ctxreg checkpoint (keys: {keys}; ctxreg train writes format, "
+                              f"model, architecture, image_size, preprocess, config)")
+    _check_finite(ckpt.model_state, name, "the training diverged; use an earlier checkpoint or retrain "
+                  "with a lower train.lr")
+    return ckpt
+
+
+def _get(state: Mapping, key: str, types: tuple, name: str, *, optional: bool = True):
+    """``state[key]`` if it is one of ``types`` (bool is not an int here); None if absent and ``optional``."""
+    value = state.get(key)
+    if value is None and optional:
+        return None
+    if not isinstance(value, types) or (isinstance(value, bool) and bool not in types):
+        raise CheckpointError(f"{name} is corrupt: {key} is a {type(value).__name__}")
+    return value
+
+
+def _image_size(state: Mapping, name: str) -> tuple[int, int] | None:
+    size = state.get("image_size")
+    if not size:
+        return None
+    if (not isinstance(size, (list, tuple)) or len(size) != 2
+            or not all(isinstance(v, int) and not isinstance(v, bool) and v > 0 for v in size)):
+        raise CheckpointError(f"{name} is corrupt: image_size must be [H, W] positive integers, got {size!r}")
+    return int(size[0]), int(size[1])
+
+
+def _model_state(state: Mapping, name: str) -> Mapping[str, torch.Tensor]:
+    model = state.get("model")
+    if not _is_state_dict(model):
+        raise CheckpointError(f"{name} is corrupt: its model is not a state dict (name -> tensor)")
+    return model
+
+
+def _architecture(backbone, head_channels, name: str) -> tuple[str, int]:
+    from learn.model import Backbone
+
+    names = [b.value for b in Backbone]
+    if backbone not in names:
+        raise CheckpointError(f"{name} is corrupt: backbone {backbone!r} is not one of {names}")
+    if not isinstance(head_channels, int) or isinstance(head_channels, bool) or head_channels < 1:
+        raise CheckpointError(f"{name} is corrupt: head_channels {head_channels!r} is not a positive integer")
+    return backbone, head_channels
+
+
+def _common(state: dict, name: str, path: Path) -> dict:
+    """The fields every format version stores under the same key."""
+    physics = _get(state, "physics", (dict,), name)
+    return dict(model_state=_model_state(state, name), image_size=_image_size(state, name), physics=physics,
+                current_physics=_get(state, "current_physics", (dict,), name) or physics,
+                iteration=_get(state, "iteration", (int,), name), optimizer=_get(state, "optimizer", (dict,), name),
+                scheduler=_get(state, "scheduler", (dict,), name), rng=_get(state, "rng", (dict,), name),
+                path=str(path))
+
+
+def _from_v1(state: dict, name: str, path: Path) -> Checkpoint:
+    arch = _get(state, "architecture", (dict,), name, optional=False)
+    backbone, head_channels = _architecture(arch.get("backbone"), arch.get("head_channels"), name)
+    return Checkpoint(backbone=backbone, head_channels=head_channels,
+                      preprocess=tuple(_get(state, "preprocess", (list, tuple), name, optional=False)),
+                      config=dict(_get(state, "config", (dict,), name) or {}),
+                      format_version=state["format_version"], **_common(state, name, path))
+
+
+def _from_v0(state: dict, name: str, path: Path) -> Checkpoint:
+    """A file of ``ctxreg train`` from before this module: ``model``, ``config`` and, where
+    recorded, ``image_size``, ``physics``, ``current_physics`` and the training state."""
+    cfg = dict(state["config"])
+    backbone, head_channels = _architecture(cfg.get("backbone"), cfg.get("head_channels", 64), name)
+    preprocess = cfg.get("preprocess", ("normalize",))
+    if not isinstance(preprocess, (list, tuple)):
+        raise CheckpointError(f"{name} is corrupt: config.preprocess is a {type(preprocess).__name__}")
+    return Checkpoint(backbone=backbone, head_channels=head_channels, preprocess=tuple(preprocess), config=cfg,
+                      format_version=0, **_common(state, name, path))
+
+
+# --------------------------------------------------------------------------------------------
+# Weights into a model
+# --------------------------------------------------------------------------------------------
+
+_LAYER_KEY = re.compile(r"^backbone\.features\.denseblock(\d)\.denselayer(\d+)\.conv2\.weight$")
+
+
+def _architecture_of(state: Mapping[str, Any]) -> dict[str, Any] | None:
+    """The DenseNet and head sizes a :class:`~learn.model.PoseUpdateNet` state dict holds
+    (``growth_rate``, ``block_config``, ``num_init_features``, ``head_channels``), or None when
+    its keys are not a pose-update network's."""
+    try:
+        init = int(state["backbone.features.conv0.weight"].shape[0])
+        head = int(state["heads.0.stem.weight"].shape[0])
+    except (KeyError, AttributeError, IndexError):
+        return None
+    layers: dict[int, int] = {}
+    growth = None
+    for key, value in state.items():
+        m = _LAYER_KEY.match(key)
+        if m:
+            block, layer = int(m.group(1)), int(m.group(2))
+            layers[block] = max(layers.get(block, 0), layer)
+            growth = int(value.shape[0])
+    if growth is None:
+        return None
+    return {"growth_rate": growth, "block_config": tuple(layers[b] for b in sorted(layers)),
+            "num_init_features": init, "head_channels": head}
+
+
+def _backbone_name(arch: dict) -> str | None:
+    from learn.model import _BACKBONE_CONFIG
+
+    for kind, (growth, blocks, init) in _BACKBONE_CONFIG.items():
+        if (growth, tuple(blocks), init) == (arch["growth_rate"], arch["block_config"], arch["num_init_features"]):
+            return kind.value
+    return None
+
+
+def load_weights(model, state: Mapping[str, torch.Tensor], *, source: str) -> None:
+    """Load the state dict ``state`` into ``model`` (strict), or raise one line.
+
+    ``source`` names the weights in messages (e.g. ``"checkpoint runs/a/checkpoint.pt"``).
+
+    Raises:
+        CheckpointError: the keys or shapes differ; the message names the architecture sizes that
+            differ (``growth_rate``, ``block_config``, ``num_init_features``, ``head_channels``)
+            where both are pose-update networks, and always the first mismatching tensor and the
+            counts.
+    """
+    own = model.state_dict()
+    missing = [k for k in own if k not in state]
+    unexpected = [k for k in state if k not in own]
+    wrong = [k for k, v in own.items() if k in state and tuple(state[k].shape) != tuple(v.shape)]
+    if not (missing or unexpected or wrong):
+        model.load_state_dict(state, strict=True)
+        return
+    theirs, ours = _architecture_of(state), _architecture_of(own)
+    lead = f"{source} does not fit the model"
+    if theirs is not None and ours is not None and theirs != ours:
+        keys = [k for k in theirs if theirs[k] != ours[k]]
+
+        def show(arch):
+            kind = _backbone_name(arch)
+            return ", ".join(f"{k} {_plain(arch[k])}" for k in keys) + (f" ({kind})" if kind else "")
+
+        lead = f"{source} was trained with {show(theirs)}, the model has {show(ours)}"
+    parts = []
+    if wrong:
+        k = wrong[0]
+        parts.append(f"{len(wrong)} of {len(own)} tensors differ in shape, first {k} "
+                     f"{tuple(state[k].shape)} in the file vs {tuple(own[k].shape)} in the model")
+    if missing:
+        parts.append(f"{len(missing)} missing (first {missing[0]})")
+    if unexpected:
+        parts.append(f"{len(unexpected)} unexpected (first {unexpected[0]})")
+    raise CheckpointError(f"{lead} ({'; '.join(parts)})")
+
+
+def _plain(value) -> str:
+    return "-".join(map(str, value)) if isinstance(value, tuple) else str(value)
+

@@ -1,0 +1,123 @@
+"""The trained network as a predictor of the geodesic gradient: the one place that turns image
+pairs into ``g`` (rad, mm).
+
+:class:`NetworkPredictor` loads a ``ctxreg train`` checkpoint (:mod:`learn.checkpoint`) and
+predicts ``g = -2 log_{T_current}(T_target)`` (:func:`learn.labels.geodesic_label`: rotation in
+rad first, then translation in mm) for one pair (``predictor(fixed, drr)``, the registration's
+iteration, :mod:`register.contextual`) or for many (:meth:`NetworkPredictor.predict`, batched;
+``ctxreg accuracy``, :mod:`learn.evaluate`). Images of another size than the training images are
+area-averaged to it first, then preprocessed as in training.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import numpy as np
+
+__all__ = ["NetworkPredictor", "Prediction"]
+
+
+class Prediction(NamedTuple):
+    """Predicted gradients of ``N`` pairs, float64, rad and mm, order ``(w, v)``."""
+
+    g: np.ndarray  #: (N, 6) the weighted sum of the depths
+    g_levels: np.ndarray  #: (N, 3, 6) each depth's estimate
+
+
+class NetworkPredictor:
+    """A trained pose-update network (``ctxreg train`` checkpoint) as a predictor of g (rad, mm).
+
+    ``NetworkPredictor(path)`` reads the checkpoint (:func:`learn.checkpoint.load_checkpoint`:
+    refused in one line if it is missing, damaged, foreign, pickles objects or holds NaN
+    weights). ``predictor(fixed, drr)``: one pair ``(H, W)`` each -> ``g`` ``(6,)``;
+    :meth:`predict`: ``(N, H, W)`` each -> :class:`Prediction`, in batches of :attr:`batch_size`
+    pairs. Either way each batch's target images and current images go through the preprocessing
+    as one stack (targets first), the same arithmetic for one pair or many.
+
+    Attributes:
+        model: the :class:`learn.model.PoseUpdateNet`, eval mode.
+        transform: the training preprocessing (:func:`learn.preprocess.build`).
+        normalizer: :class:`learn.labels.LabelNormalizer` (network units -> rad, mm).
+        size: ``(H, W)`` pixels of the training images, or None (checkpoints that do not record it).
+        physics: the campaign physics entry of the training target images (``{"name", "level",
+            "kvp", ...}``), or None when not recorded.
+        current_physics: the entry of the training pairs' *current* images (the registration's
+            moving images): ``physics`` unless the run set ``train.current_physics``.
+        checkpoint: the loaded :class:`learn.checkpoint.Checkpoint`.
+    """
+
+    #: Pairs per forward pass in :meth:`predict`.
+    batch_size = 32
+
+    def __init__(self, checkpoint):
+        from learn.checkpoint import Checkpoint, load_checkpoint
+        from learn.labels import LabelNormalizer
+        from learn.preprocess import build
+
+        ckpt = checkpoint if isinstance(checkpoint, Checkpoint) else load_checkpoint(checkpoint)
+        self.checkpoint = ckpt
+        self.model = ckpt.build_model()
+        self.model.eval()
+        self.transform = build(list(ckpt.preprocess))
+        self.normalizer = LabelNormalizer()
+        self.size = ckpt.image_size
+        self.physics = ckpt.physics
+        self.current_physics = ckpt.current_physics or ckpt.physics
+
+    def physics_mismatch(self, physics, *, advice: str = "set --physics to match") -> str | None:
+        """A sentence when the moving images' :class:`~sim.physics.imaging.PhysicsSettings` (None =
+        line) differ from the physics of the training pairs' current images (level, and kVp and
+        filtration for poly and full), ending in ``advice``; None when they agree or the checkpoint
+        does not record its physics."""
+        ref = self.current_physics
+        if ref is None:
+            return None
+        level = "line" if physics is None else physics.level
+        trained = ref.get("level", "line")
+        differ = level != trained
+        if not differ and level in ("poly", "full"):
+            from sim.physics.spectrum import parse_filters
+
+            filters = parse_filters(ref.get("filters", ()))  # stored as "SYMBOL:MM" strings
+            differ = (abs(float(ref.get("kvp", physics.kvp)) - physics.kvp) > 1e-9
+                      or filters != tuple((s, float(t)) for s, t in physics.filters))
+        if not differ:
+            return None
+        spec = f"{trained}" + (f" at {ref.get('kvp'):g} kVp" if trained in ("poly", "full") else "")
+        return (f"the network was trained on {spec} current images (campaign physics {ref.get('name')!r}) but "
+                f"the current images are rendered with {level} physics"
+                + (f" at {physics.kvp:g} kVp" if level in ("poly", "full") else "")
+                + f": its predictions may be off (the domain gap); {advice}")
+
+    def predict(self, fixed: np.ndarray, drr: np.ndarray) -> Prediction:
+        """``fixed`` (target) and ``drr`` (current) images ``(N, H, W)`` -> :class:`Prediction`
+        (rad, mm). Images of another size than the training images are resampled to it first
+        (area averaging, as a coarser detector would)."""
+        import torch
+        import torch.nn.functional as F
+
+        fixed, drr = np.asarray(fixed), np.asarray(drr)
+        if fixed.ndim != 3 or fixed.shape != drr.shape:
+            from learn.model import PoseInputError
+
+            raise PoseInputError(f"fixed and drr must be (N, H, W) of one shape, got {fixed.shape} and {drr.shape}")
+        if len(fixed) == 0:
+            return Prediction(np.zeros((0, 6)), np.zeros((0, 3, 6)))
+        g, levels = [], []
+        with torch.no_grad():
+            for start in range(0, len(fixed), self.batch_size):
+                stop = min(start + self.batch_size, len(fixed))
+                b = stop - start
+                x = torch.from_numpy(np.concatenate([fixed[start:stop], drr[start:stop]]).astype(np.float32))[:, None]
+                if self.size is not None and tuple(x.shape[-2:]) != self.size:
+                    x = F.interpolate(x, size=self.size, mode="area")
+                x = self.transform(x)
+                out = self.model(x[:b], x[b:])
+                g.append(self.normalizer.denormalize(out.g.double()).numpy())
+                levels.append(self.normalizer.denormalize(out.g_levels.double()).numpy())
+        return Prediction(np.concatenate(g), np.concatenate(levels))
+
+    def __call__(self, fixed: np.ndarray, drr: np.ndarray) -> np.ndarray:
+        """``fixed``, ``drr`` ``(H, W)`` -> g ``(6,)`` (rad, mm); see :meth:`predict`."""
+        return self.predict(np.asarray(fixed)[None], np.asarray(drr)[None]).g[0]
