@@ -9,13 +9,12 @@ split's pairs come from that split's subjects only, so no CT leaks between split
 
 from __future__ import annotations
 
-from sim.errors import InputError
-
 import numpy as np
 import torch
 from torch.utils.data import Dataset
 
 from learn.labels import LabelNormalizer, geodesic_label, sample_pairs
+from sim.errors import InputError
 
 
 class PairDatasetError(InputError):
@@ -65,7 +64,9 @@ class PairDataset(Dataset):
 
     def set_epoch(self, epoch: int) -> None:
         """Draw this epoch's pairs (deterministic for ``seed`` and ``epoch``)."""
-        rng = np.random.Generator(np.random.PCG64(np.random.SeedSequence(self.seed, spawn_key=(20, epoch))))
+        from sim.seeds import KIND_EPOCH_PAIRS, rng_for
+
+        rng = rng_for(self.seed, KIND_EPOCH_PAIRS, epoch)
         local = sample_pairs(len(self.indices), self.n_pairs, rng, groups=self.subjects)
         self.pairs = self.indices[local]
 

@@ -23,8 +23,6 @@ function of the seed and its index only, so a resumed training run takes the sam
 
 from __future__ import annotations
 
-from sim.errors import InputError
-
 import math
 import numbers
 from dataclasses import dataclass
@@ -33,13 +31,8 @@ import numpy as np
 import torch
 
 from learn.labels import LabelNormalizer, apply_update, geodesic_label
-
-#: Spawn key of the batch streams: ``SeedSequence(seed, spawn_key=(KIND_BATCH, k))``.
-KIND_BATCH = 40
-#: Spawn key of the noise and Monte Carlo of batch ``k``'s poly / full images, per subject ``u``:
-#: ``(KIND_BATCH_NOISE, k, u)`` (the targets, and the currents when they share the targets'
-#: physics entry), ``(KIND_BATCH_NOISE, k, u, 1)`` (currents with their own entry).
-KIND_BATCH_NOISE = 41
+from sim.errors import InputError
+from sim.seeds import KIND_BATCH, KIND_BATCH_NOISE  # batch k: (KIND_BATCH, k); its noise: (KIND_BATCH_NOISE, k, u[, 1])
 
 
 class OnlinePairsError(InputError):
@@ -154,7 +147,7 @@ class OnlinePairs:
 
     def draw(self, k: int, n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Batch ``k``'s draws: subject per pair ``(n,)``, ``T_A`` and ``T_B`` ``(n, 4, 4)`` (mm)."""
-        from sim.campaign.runner import rng_for
+        from sim.seeds import rng_for
         from sim.geometry import pose_from_params
 
         if n < 1:
@@ -178,7 +171,7 @@ class OnlinePairs:
     def batch(self, k: int, n: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """Render batch ``k`` of ``n`` pairs; see the class doc for the shapes."""
         subject, T_a, T_b = self.draw(k, n)
-        from sim.campaign.runner import rng_for
+        from sim.seeds import rng_for
 
         h, w = self.cfg.scene.size
         images = np.empty((2, n, h, w), np.float32)

@@ -81,8 +81,6 @@ Default ranges (:class:`VirtualPatientRanges`) and why
 
 from __future__ import annotations
 
-from sim.errors import InputError
-
 import math
 from dataclasses import asdict, dataclass, fields
 from typing import Any, Mapping
@@ -91,6 +89,8 @@ import numpy as np
 from scipy import ndimage
 
 from sim.anatomy import BONE_HU_THRESHOLD, anatomy_center
+from sim.errors import InputError
+from sim.seeds import KIND_VP_FIELD, KIND_VP_NOISE, rng_for
 from sim.volume import CTVolume
 
 __all__ = [
@@ -141,8 +141,6 @@ PARAM_LIMITS: dict[str, tuple[float, float]] = {
 }
 
 _SEED_MAX = 2**63 - 1
-_STREAM_FIELD = 0
-_STREAM_NOISE = 1
 #: Coarse-grid node spacing and Gaussian smoothing, as fractions of the correlation length.
 _NODE_FRACTION = 0.25
 _SMOOTH_FRACTION = 0.5
@@ -447,8 +445,7 @@ def _coarse_field(shape: tuple[int, int, int], spacing: np.ndarray, params: Virt
     nodes = np.ceil((np.array(shape) - 1) / step).astype(int) + 1
     sigma = _SMOOTH_FRACTION * L / (step * spacing)  # nodes
     pad = np.ceil(_TRUNCATE_SD * sigma).astype(int)
-    rng = np.random.Generator(np.random.PCG64(
-        np.random.SeedSequence(entropy=params.seed, spawn_key=(_STREAM_FIELD,))))
+    rng = rng_for(params.seed, KIND_VP_FIELD)
     noise = rng.standard_normal((3, *(nodes + 2 * pad)))
     crop = tuple(slice(p, p + n) for p, n in zip(pad, nodes))
     field = np.stack([
@@ -623,8 +620,7 @@ def make_virtual_patient(ct: CTVolume, params: VirtualPatientParams, *,
 
     _apply_hu_curve(hu, params)
     if params.noise_hu > 0.0:
-        rng = np.random.Generator(np.random.PCG64(
-            np.random.SeedSequence(entropy=params.seed, spawn_key=(_STREAM_NOISE,))))
+        rng = rng_for(params.seed, KIND_VP_NOISE)
         noise = rng.standard_normal(shape, dtype=np.float32)
         noise *= np.float32(params.noise_hu)
         if in_input is not None:

@@ -55,8 +55,6 @@ mid-ASIS point), true conjugate about 115 mm, sacral slope 40 degrees, neck-shaf
 
 from __future__ import annotations
 
-from sim.errors import InputError
-
 import math
 import os
 from dataclasses import dataclass, field, fields
@@ -67,6 +65,8 @@ import numpy as np
 from scipy.ndimage import distance_transform_edt
 from scipy.spatial import cKDTree
 
+from sim.errors import InputError
+from sim.seeds import TAG_PELVIS_SHAPE, TAG_PHANTOM_TEXTURE, tagged_rng
 from sim.volume import CTVolume
 
 __all__ = [
@@ -209,7 +209,7 @@ class PelvisShape:
         otherwise, with ``z = 2 * Beta(3, 3) - 1`` in (-1, 1): bounded, most values near the mean.
         The acetabulum radius is the drawn head radius plus a joint space of 1.5 to 3.5 mm.
         """
-        rng = np.random.default_rng(np.random.SeedSequence([_check_seed(seed), 0x5E1F15]))
+        rng = tagged_rng(_check_seed(seed), TAG_PELVIS_SHAPE)
         z = 2.0 * rng.beta(3.0, 3.0, size=len(fields(cls))) - 1.0
         joint_space = rng.uniform(1.5, 3.5)
         values = {}
@@ -1210,7 +1210,7 @@ def make_pelvis_phantom(
 
     an = _Anatomy(shape)
     grid = _Grid(grid_shape, spacing)
-    rng = np.random.default_rng(np.random.SeedSequence([0 if seed is None else seed, 0x7E47]))
+    rng = tagged_rng(0 if seed is None else seed, TAG_PHANTOM_TEXTURE)
 
     tc = float(an.mm(shape.cortical_thickness_mm))
     for side in (1, -1):

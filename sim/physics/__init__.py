@@ -2,8 +2,10 @@
 
 The ray marching is done once per pose: the renderer (:mod:`sim.render`, ``quantity="density"``)
 gives per-material density line integrals ``L_m`` (g/cm^2), and :mod:`sim.physics.poly` turns
-them into the polychromatic detector signal for any spectrum and detector. Status and
-validation: ``docs/physics.md``.
+them into the polychromatic detector signal for any spectrum and detector. The settings (kVp,
+filtration, detector, noise, Monte Carlo) are declared once in :mod:`sim.physics.settings`; the
+materials and their cross sections are :mod:`sim.materials`. Status and validation:
+``docs/physics.md``.
 """
 
 from sim.errors import InputError

@@ -1,7 +1,7 @@
 """Realistic X-ray images of a CT: density line integrals once per pose, then spectrum, detector, noise.
 
 :class:`XRayImager` wraps a :class:`sim.render.DRRRenderer` with ``quantity="density"`` over
-:data:`sim.physics.materials.TISSUE_DECOMPOSITION`, and a :class:`sim.physics.poly.Polychromatic`
+:data:`sim.materials.TISSUE_DECOMPOSITION`, and a :class:`sim.physics.poly.Polychromatic`
 model. Physics levels (:data:`LEVELS`):
 
 * ``line``: line integrals of mu at one effective energy (the plain DRR of :mod:`sim.render`);
@@ -9,6 +9,8 @@ model. Physics levels (:data:`LEVELS`):
   quantum and electronic noise with detector blur;
 * ``full``: ``poly`` plus Monte Carlo scatter (:mod:`sim.physics.scatter`), added to the
   primary signal before noise, and an optional anti-scatter grid.
+
+The settings (:class:`PhysicsSettings`, :data:`LEVELS`) are declared in :mod:`sim.physics.settings`.
 
 Outputs per pose (:meth:`XRayImager.render`): ``raw`` detector signal (keV per pixel, or counts),
 ``log`` = ``-log(I / I0)`` (the usual log-corrected image: comparable to a line integral of mu),
@@ -20,75 +22,11 @@ primary does not change.
 
 from __future__ import annotations
 
-import math
-from dataclasses import dataclass
-
 import numpy as np
 
 from sim.physics import PhysicsError
-
-LEVELS = ("line", "poly", "full")
-
-
-@dataclass(frozen=True)
-class PhysicsSettings:
-    """Units: kV, deg, mm, mAs.
-
-    Attributes:
-        level: ``line``, ``poly`` or ``full`` (``poly`` + Monte Carlo scatter).
-        kvp: tube voltage (kV); anode_angle_deg: tungsten anode angle (deg).
-        filters: ``((symbol, mm), ...)`` added filtration, e.g. ``(("Al", 2.5), ("Cu", 0.1))``.
-        n_bins: energy bins of the spectrum.
-        mas: tube current-time product (mAs) of the exposure.
-        detector_mm: CsI:Tl thickness (mm); detector_mode: ``integrating`` or ``counting``.
-        noise: add quantum noise, blur and electronic noise; seed: their random seed.
-        blur_mm: Gaussian sigma of the detector blur at the detector (mm).
-        electronic_noise: Gaussian sigma in signal units (keV per pixel when integrating).
-        scatter_photons: Monte Carlo histories per image (``full``).
-        scatter_voxel_mm: voxel size (mm) of the transport grid (``full``).
-        grid_ratio: anti-scatter grid ratio, 0 = no grid (``full``).
-    """
-
-    level: str = "poly"
-    kvp: float = 120.0
-    anode_angle_deg: float = 12.0
-    filters: tuple[tuple[str, float], ...] = (("Al", 2.5),)
-    n_bins: int = 30
-    mas: float = 2.5
-    detector_mm: float = 0.6
-    detector_mode: str = "integrating"
-    noise: bool = True
-    seed: int = 0
-    blur_mm: float = 0.3
-    electronic_noise: float = 0.0
-    scatter_photons: int = 1_000_000
-    scatter_voxel_mm: float = 6.0
-    grid_ratio: float = 0.0
-
-    def __post_init__(self) -> None:
-        from sim.physics.poly import Detector
-
-        if self.level not in LEVELS:
-            raise PhysicsError(f"physics level must be one of {LEVELS}, got {self.level!r}")
-        if not (math.isfinite(self.mas) and self.mas > 0):
-            raise PhysicsError(f"mas must be a positive number of mAs, got {self.mas}")
-        # the cheap checks of tube_spectrum, here so that bad settings fail before any rendering
-        if isinstance(self.kvp, bool) or not (isinstance(self.kvp, (int, float)) and 20.0 <= self.kvp <= 150.0):
-            raise PhysicsError(f"kvp must be in [20, 150] kV, got {self.kvp!r}")
-        if not (isinstance(self.anode_angle_deg, (int, float)) and 1.0 <= self.anode_angle_deg <= 45.0):
-            raise PhysicsError(f"anode angle must be in [1, 45] deg, got {self.anode_angle_deg!r}")
-        if isinstance(self.n_bins, bool) or not (isinstance(self.n_bins, int) and 1 <= self.n_bins <= 1000):
-            raise PhysicsError(f"energy bins must be an integer in [1, 1000], got {self.n_bins!r}")
-        Detector(self.detector_mm, self.detector_mode, self.electronic_noise, self.blur_mm)  # validates them
-        if self.level == "full":
-            self.scatter_settings()  # validates the Monte Carlo options
-
-    def scatter_settings(self):
-        """The :class:`sim.physics.scatter.ScatterSettings` of these settings."""
-        from sim.physics.scatter import ScatterSettings
-
-        return ScatterSettings(photons=self.scatter_photons, voxel_mm=self.scatter_voxel_mm,
-                               grid_ratio=self.grid_ratio)
+from sim.physics.settings import LEVELS, PhysicsSettings  # noqa: F401  (declared in settings; used from here)
+from sim.seeds import image_noise_rng, pose_seed
 
 
 class XRayImager:
@@ -100,7 +38,7 @@ class XRayImager:
         scene, size, ray_model: as :class:`sim.render.RenderSettings`.
         center_lps, geometry: as :class:`sim.render.DRRRenderer`.
         label_materials: ``{label: material}``: the CT's label map overrides the HU-based
-            materials there (:class:`sim.physics.materials.LabelOverride`), e.g. an implant
+            materials there (:class:`sim.materials.LabelOverride`), e.g. an implant
             segmented as titanium.
         fixed_scatter_seed: draw every pose's Monte Carlo from the same seed (common random
             numbers), so that the image of a pose does not depend on its place in a batch and an
@@ -111,7 +49,7 @@ class XRayImager:
     def __init__(self, volume, physics: PhysicsSettings | None = None, *, scene: str = "cios_fusion",
                  size=None, ray_model: str = "siddon", center_lps=None, geometry=None,
                  label_materials: dict[int, str] | None = None, fixed_scatter_seed: bool = False):
-        from sim.physics.materials import TISSUE_DECOMPOSITION, LabelOverride
+        from sim.materials import TISSUE_DECOMPOSITION, LabelOverride
         from sim.physics.poly import Detector, Polychromatic
         from sim.physics.spectrum import tube_spectrum
         from sim.render import DRRRenderer, RenderSettings
@@ -129,7 +67,7 @@ class XRayImager:
                                                            quantity="density"),
                                     center_lps=center_lps, geometry=geometry, materials=materials)
         self.geometry = self.renderer.geometry
-        self.spectrum = tube_spectrum(p.kvp, anode_angle_deg=p.anode_angle_deg, filters=p.filters, n_bins=p.n_bins)
+        self.spectrum = tube_spectrum(p.kvp, anode_angle_deg=p.anode_angle_deg, filters=p.filters, bins=p.bins)
         self.detector = Detector(p.detector_mm, p.detector_mode, p.electronic_noise, p.blur_mm)
         self.model = Polychromatic(self.spectrum, self.detector, TISSUE_DECOMPOSITION.names)
         g = self.geometry
@@ -157,8 +95,7 @@ class XRayImager:
         sig = np.empty((len(poses), g.height, g.width))
         cnt = np.empty_like(sig)
         sigma = mc.settings.smooth_mm / (g.pixel_spacing_mm * mc.settings.cell_px)
-        seeds = [int(np.random.SeedSequence([seed, 0 if self.fixed_scatter_seed else b]).generate_state(1)[0])
-                 for b in range(len(poses))]
+        seeds = [pose_seed(seed, 0 if self.fixed_scatter_seed else b) for b in range(len(poses))]
         # all poses in shared launches; pose b's result is that of mc.run with seeds[b]
         for b, out in enumerate(mc.run_batch(cam_to_lps, g, photons_per_pixel=ppp, seeds=seeds)):
             sig[b] = upsample_cells(out["scatter"], g.height, g.width, out["cell_px"], sigma)
@@ -176,7 +113,7 @@ class XRayImager:
         scatter = self._scatter_images(poses, seed) if self.scatter is not None else None
         raw = primary if scatter is None else primary + scatter[0]
         if self.physics.noise:
-            rng = np.random.default_rng(seed)
+            rng = image_noise_rng(seed)
             raw = self.model.noisy(L, rng, pixel_spacing_mm=self.geometry.pixel_spacing_mm, scatter=scatter,
                                    gain=self.gain, **self.exposure)
         log = self.model.log_image(raw, self.flat)

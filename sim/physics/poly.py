@@ -38,11 +38,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from sim.materials import mass_attenuation
 from sim.physics import PhysicsError
-from sim.physics.materials import mass_attenuation
+from sim.physics.settings import SETTINGS
 from sim.physics.spectrum import Spectrum
 
-MODES = ("integrating", "counting")
 _ME_C2_KEV = 510.99895
 
 
@@ -61,25 +61,24 @@ def compton_mean_energy_fraction(energies_keV) -> np.ndarray:
 class Detector:
     """Flat-panel detector. ``thickness_mm`` of CsI:Tl (4.51 g/cm^3); ``mode`` integrating or
     counting; ``electronic_noise`` (signal units: keV for integrating, counts for counting);
-    ``blur_mm`` Gaussian sigma at the detector (mm)."""
+    ``blur_mm`` Gaussian sigma at the detector (mm; 0 here, the setting's default is for images).
+    Defaults and ranges: the settings ``detector_mm``, ``detector_mode``, ``electronic_noise``,
+    ``blur_mm`` of :mod:`sim.physics.settings`."""
 
-    thickness_mm: float = 0.6
-    mode: str = "integrating"
-    electronic_noise: float = 0.0
+    thickness_mm: float = SETTINGS["detector_mm"].default
+    mode: str = SETTINGS["detector_mode"].default
+    electronic_noise: float = SETTINGS["electronic_noise"].default
     blur_mm: float = 0.0
     density_g_cm3: float = 4.51
 
     def __post_init__(self) -> None:
-        if self.mode not in MODES:
-            raise PhysicsError(f"detector mode must be one of {MODES}, got {self.mode!r}")
-        for name in ("thickness_mm", "density_g_cm3"):
-            v = getattr(self, name)
-            if not (math.isfinite(v) and v > 0):
-                raise PhysicsError(f"detector {name} must be a positive number, got {v}")
-        for name in ("electronic_noise", "blur_mm"):
-            v = getattr(self, name)
-            if not (math.isfinite(v) and v >= 0):
-                raise PhysicsError(f"detector {name} must be >= 0, got {v}")
+        # the ranges of the physics settings of the same meaning (sim.physics.settings)
+        for setting, name in (("detector_mode", "mode"), ("detector_mm", "thickness_mm"),
+                              ("electronic_noise", "electronic_noise"), ("blur_mm", "blur_mm")):
+            SETTINGS[setting].check(getattr(self, name), f"detector {name}")
+        v = self.density_g_cm3
+        if not (math.isfinite(v) and v > 0):
+            raise PhysicsError(f"detector density_g_cm3 must be a positive number, got {v}")
 
     def _cs(self, f, e: np.ndarray) -> np.ndarray:
         return np.array([f("CsI", float(v)) for v in e.ravel()]).reshape(e.shape)
@@ -103,7 +102,7 @@ class Polychromatic:
     Args:
         spectrum: :class:`Spectrum`.
         detector: :class:`Detector`.
-        materials: names (:data:`sim.physics.materials.MATERIALS`) of the density channels, in
+        materials: names (:data:`sim.materials.MATERIALS`) of the density channels, in
             the renderer's order (its :class:`sim.materials.MaterialDecomposition` names).
     """
 

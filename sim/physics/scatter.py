@@ -56,6 +56,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from sim.physics import PhysicsError
+from sim.physics.settings import SETTINGS
+from sim.seeds import TAG_SCATTER_CHUNKS, tagged
 
 _ME_C2_KEV = 510.99895
 
@@ -65,8 +67,9 @@ class ScatterSettings:
     """Monte Carlo settings.
 
     Attributes:
-        photons: histories per image (int >= 1000; default 10^6).
-        voxel_mm: transport grid voxel (mm, > 0): the CT is block-averaged to about this size.
+        photons: histories per image (int >= 1000; default 10^6); the setting ``scatter_photons``.
+        voxel_mm: transport grid voxel (mm, in (0, 100]): the CT is block-averaged to about this
+            size; the setting ``scatter_voxel_mm``.
         cell_px: detector pixels per side of a tally cell (int >= 1; default 8).
         smooth_mm: Gaussian sigma (mm at the detector) applied to the cell tallies before they
             are interpolated to pixels (0 = none).
@@ -80,25 +83,28 @@ class ScatterSettings:
         batch: photons per wavefront launch.
     """
 
-    photons: int = 1_000_000
-    voxel_mm: float = 6.0
+    photons: int = SETTINGS["scatter_photons"].default
+    voxel_mm: float = SETTINGS["scatter_voxel_mm"].default
     cell_px: int = 8
     smooth_mm: float = 6.0
     max_scatter: int = 40
     e_cut_keV: float = 5.0
     macro_voxels: int = 8
-    grid_ratio: float = 0.0
+    grid_ratio: float = SETTINGS["grid_ratio"].default
     grid_transmission: float = 0.7
     batch: int = 1 << 20
 
     def __post_init__(self) -> None:
-        ints = {"photons": 1000, "cell_px": 1, "max_scatter": 1, "batch": 1024, "macro_voxels": 1}
+        # the ranges of the physics settings of the same meaning (sim.physics.settings)
+        for setting, name in (("scatter_photons", "photons"), ("scatter_voxel_mm", "voxel_mm"),
+                              ("grid_ratio", "grid_ratio")):
+            SETTINGS[setting].check(getattr(self, name), f"scatter {name}")
+        ints = {"cell_px": 1, "max_scatter": 1, "batch": 1024, "macro_voxels": 1}
         for name, lo in ints.items():
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < lo:
                 raise PhysicsError(f"scatter {name} must be an integer >= {lo}, got {v!r}")
-        for name, lo, hi in (("voxel_mm", 0.0, 100.0), ("smooth_mm", -1e-9, 1000.0), ("e_cut_keV", 1.0, 50.0),
-                             ("grid_ratio", -1e-9, 50.0), ("grid_transmission", 0.0, 1.0)):
+        for name, lo, hi in (("smooth_mm", -1e-9, 1000.0), ("e_cut_keV", 1.0, 50.0), ("grid_transmission", 0.0, 1.0)):
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and math.isfinite(v) and lo < v <= hi):
                 raise PhysicsError(f"scatter {name} must be in ({max(lo, 0.0)}, {hi}], got {v!r}")
@@ -469,11 +475,11 @@ class MonteCarloScatter:
             return y, cell
 
         # units of work: (pose, chunk of at most s.batch histories); chunk j of pose b draws from
-        # SeedSequence([seed_b, 0x5CA7]).spawn(...)[j], lanes numbered within the chunk
+        # SeedSequence([seed_b, TAG_SCATTER_CHUNKS]).spawn(...)[j], lanes numbered within the chunk
         chunk_sizes = [min(s.batch, n_total - start) for start in range(0, n_total, s.batch)]
         units = []
         for b, sd in enumerate(seeds):
-            children = np.random.SeedSequence([sd, 0x5CA7]).spawn(len(chunk_sizes))
+            children = tagged(sd, TAG_SCATTER_CHUNKS).spawn(len(chunk_sizes))
             units += [(b, int(c.generate_state(1, np.uint64)[0]), n) for c, n in zip(children, chunk_sizes)]
         launches, current, filled = [], [], 0
         for u in units:  # pack units into launches of at most s.batch lanes

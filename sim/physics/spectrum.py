@@ -1,7 +1,7 @@
 """X-ray tube spectra from spekpy, held as colour-science spectral distributions and binned.
 
 :func:`tube_spectrum` asks spekpy (Poludniowski et al.) for the spectrum of a tungsten anode
-at ``kvp`` with an anode angle and filtration, then bins it into ``n_bins`` equal-width energy
+at ``kvp`` with an anode angle and filtration, then bins it into ``bins`` equal-width energy
 bins between ``e_min_keV`` and ``kvp``. Each bin holds the photons of that bin (the integral over
 its width, conserved by the binning), placed at the bin's fluence-weighted mean energy.
 Fluence unit: photons per mm^2 per mAs at 1000 mm from the focal spot (spekpy gives per cm^2 per
@@ -13,15 +13,17 @@ from __future__ import annotations
 
 import functools
 import math
+import numbers
 from dataclasses import dataclass
 
 import numpy as np
 
 from sim.physics import PhysicsError
+from sim.physics.settings import SETTINGS
 
-#: Default number of energy bins: the polychromatic signal of 0-40 cm of water and bone
-#: changes by < 0.2 % between 30 bins and 120 bins at 120 kVp (docs/physics.md).
-DEFAULT_BINS = 30
+#: Default number of energy bins (the setting ``bins``): the polychromatic signal of 0-40 cm of
+#: water and bone changes by < 0.2 % between 30 bins and 120 bins at 120 kVp (docs/physics.md).
+DEFAULT_BINS = SETTINGS["bins"].default
 
 
 @dataclass(frozen=True)
@@ -75,12 +77,17 @@ class Spectrum:
 
 
 def parse_filters(items) -> tuple[tuple[str, float], ...]:
-    """``["Al:2.5", "Cu:0.1"]`` -> ``(("Al", 2.5), ("Cu", 0.1))`` (element symbol, mm)."""
+    """``["Al:2.5", "Cu:0.1"]`` -> ``(("Al", 2.5), ("Cu", 0.1))`` (element symbol, mm); items that
+    are already ``(symbol, mm)`` pairs are checked the same way."""
     import xraylib as xr
 
     out = []
     for item in items:
-        sym, sep, mm = str(item).partition(":")
+        if isinstance(item, (tuple, list)) and len(item) == 2:
+            sym, sep = str(item[0]), ":"
+            mm = item[1] if isinstance(item[1], numbers.Real) and not isinstance(item[1], bool) else "?"
+        else:
+            sym, sep, mm = str(item).partition(":")
         try:
             z = xr.SymbolToAtomicNumber(sym.strip())
         except ValueError:
@@ -112,30 +119,28 @@ def _spek(kvp: float, anode_angle_deg: float, filters: tuple[tuple[str, float], 
     return k, phi
 
 
-def tube_spectrum(kvp: float = 120.0, *, anode_angle_deg: float = 12.0, filters=(("Al", 2.5),),
-                  n_bins: int = DEFAULT_BINS, e_min_keV: float = 10.0) -> Spectrum:
+def tube_spectrum(kvp: float = SETTINGS["kvp"].default, *, anode_angle_deg: float = SETTINGS["anode_angle_deg"].default,
+                  filters=SETTINGS["filters"].default, bins: int = DEFAULT_BINS, e_min_keV: float = 10.0) -> Spectrum:
     """The spekpy spectrum of a tungsten tube, binned (see the module doc)."""
-    if not (isinstance(kvp, (int, float)) and 20.0 <= kvp <= 150.0):
-        raise PhysicsError(f"kvp must be in [20, 150] kV, got {kvp!r}")
-    if not (isinstance(anode_angle_deg, (int, float)) and 1.0 <= anode_angle_deg <= 45.0):
-        raise PhysicsError(f"anode angle must be in [1, 45] deg, got {anode_angle_deg!r}")
-    if not (isinstance(n_bins, int) and 1 <= n_bins <= 1000):
-        raise PhysicsError(f"n_bins must be an integer in [1, 1000], got {n_bins!r}")
+    SETTINGS["kvp"].check(kvp)  # the ranges of the physics settings of the same names
+    SETTINGS["anode_angle_deg"].check(anode_angle_deg)
+    SETTINGS["bins"].check(bins)
     if not 1.0 <= e_min_keV < kvp:
         raise PhysicsError(f"e_min_keV must be in [1, kvp), got {e_min_keV}")
     filters = tuple((str(s), float(t)) for s, t in filters)
     k, phi = _spek(float(kvp), float(anode_angle_deg), filters)  # keV bin centres (dk = 0.25), photons / cm^2 / mAs / keV at 100 cm
     fine = phi * 0.25 / 100.0  # photons / mm^2 / mAs per fine bin
-    edges = np.linspace(e_min_keV, kvp, n_bins + 1)
+    edges = np.linspace(e_min_keV, kvp, bins + 1)
     idx = np.digitize(k, edges) - 1
-    keep = (idx >= 0) & (idx < n_bins)
-    flu = np.bincount(idx[keep], weights=fine[keep], minlength=n_bins)
-    mean = np.bincount(idx[keep], weights=(fine * k)[keep], minlength=n_bins)
+    keep = (idx >= 0) & (idx < bins)
+    flu = np.bincount(idx[keep], weights=fine[keep], minlength=bins)
+    mean = np.bincount(idx[keep], weights=(fine * k)[keep], minlength=bins)
     energies = np.where(flu > 0, mean / np.where(flu > 0, flu, 1.0), 0.5 * (edges[:-1] + edges[1:]))
     return Spectrum(energies, edges, flu, float(kvp), filters, float(anode_angle_deg))
 
 
-def fine_spectrum(kvp: float = 120.0, *, anode_angle_deg: float = 12.0, filters=(("Al", 2.5),)):
+def fine_spectrum(kvp: float = SETTINGS["kvp"].default, *, anode_angle_deg: float = SETTINGS["anode_angle_deg"].default,
+                  filters=SETTINGS["filters"].default):
     """spekpy's unbinned spectrum: ``(energies_keV (N,), photons / mm^2 / mAs per 0.25 keV (N,))``."""
     k, phi = _spek(float(kvp), float(anode_angle_deg), tuple((str(s), float(t)) for s, t in filters))
     return k, phi * 0.25 / 100.0

@@ -5,7 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from sim.materials import MU_WATER_60KEV_PER_MM, MaterialDecomposition, mu_from_hu
+from sim.errors import InputError
+from sim.materials import MU_WATER_60KEV_PER_MM, MaterialDecomposition, MaterialError, mu_from_hu
 
 
 def test_default_mu_water_is_xraylib_water_at_60_kev():
@@ -18,7 +19,7 @@ def test_default_mu_water_is_xraylib_water_at_60_kev():
 def test_mu_from_hu_is_linear_and_clipped():
     hu = np.array([-1200.0, -1000.0, 0.0, 1000.0])
     np.testing.assert_allclose(mu_from_hu(hu, 0.02), [0.0, 0.0, 0.02, 0.04], rtol=1e-6)
-    with pytest.raises(ValueError, match="mu_water"):
+    with pytest.raises(MaterialError, match="mu_water"):
         mu_from_hu(hu, 0.0)
 
 
@@ -46,10 +47,42 @@ def test_density_curve_passes_its_knots_and_stays_non_negative():
 
 
 def test_bad_decompositions_are_rejected():
-    with pytest.raises(ValueError, match="increasing"):
+    with pytest.raises(MaterialError, match="increasing"):
         MaterialDecomposition(anchors=(("a", 0.0), ("b", -10.0)))
-    with pytest.raises(ValueError, match="increasing"):
+    with pytest.raises(MaterialError, match="increasing"):
         MaterialDecomposition(density_points=((0.0, 1.0),))
+    assert issubclass(MaterialError, InputError)  # a user-facing error: one line from the CLI
+
+
+def test_one_materials_module_without_dr_jit_or_the_physics_package():
+    """The HU decomposition and the materials' cross sections live in sim.materials (sim.physics
+    imports it, not the reverse); importing it loads neither Dr.Jit/Mitsuba nor sim.physics."""
+    import importlib.util
+    import subprocess
+    import sys
+
+    from tests.conftest import REPO
+
+    assert importlib.util.find_spec("sim.physics.materials") is None
+    code = ("import sys, sim.materials as m; m.TISSUE_DECOMPOSITION.partial_densities(m.np.zeros(3)); "
+            "print(sorted(k for k in sys.modules if k.split('.')[0] in ('drjit', 'mitsuba') "
+            "or k.startswith('sim.physics')))")
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=REPO, timeout=120)
+    assert r.returncode == 0 and r.stdout.strip() == "[]", (r.stdout, r.stderr)
+
+
+def test_material_names_and_label_materials_are_refused_with_what_is_allowed():
+    from sim.materials import LabelOverride, mass_attenuation, parse_label_materials
+
+    with pytest.raises(MaterialError, match="unknown material 'steel'; known: air, lung"):
+        mass_attenuation("steel", 60.0)
+    with pytest.raises(MaterialError, match="integer label > 0"):
+        parse_label_materials(["0:titanium"])
+    with pytest.raises(MaterialError, match="given twice"):
+        parse_label_materials(["3:titanium", "3:cortical_bone"])
+    assert parse_label_materials(["3:titanium", " 7 : cortical_bone"]) == {3: "titanium", 7: "cortical_bone"}
+    with pytest.raises(MaterialError, match="integers"):
+        LabelOverride(np.zeros((2, 2, 2), np.float32), {1: "titanium"})
 
 
 def test_fractions_and_partial_densities_equal_the_hat_function_definition():

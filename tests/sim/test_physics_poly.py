@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 import xraylib as xr
 
+from sim.materials import TISSUE_DECOMPOSITION, MaterialError, mass_attenuation, mu_linear
 from sim.physics import PhysicsError
-from sim.physics.materials import TISSUE_DECOMPOSITION, mass_attenuation, mu_linear
 from sim.physics.poly import Detector, Polychromatic, compton_mean_energy_fraction
 from sim.physics.spectrum import Spectrum, fine_spectrum, parse_filters, tube_spectrum
 from tests.sim.test_render import box_chords, rays_lps
@@ -74,11 +74,11 @@ def test_beam_hardening_of_a_water_wedge_matches_an_independent_integration(spec
 
 def test_binning_conserves_the_photons_and_filters_harden():
     k, n = fine_spectrum(100.0, filters=(("Al", 2.5),))
-    s = tube_spectrum(100.0, filters=(("Al", 2.5),), n_bins=20)
+    s = tube_spectrum(100.0, filters=(("Al", 2.5),), bins=20)
     assert s.total_fluence == pytest.approx(n[k >= 10.0].sum(), rel=1e-9)
     assert s.mean_energy_keV == pytest.approx((n * k)[k >= 10.0].sum() / n[k >= 10.0].sum(), rel=1e-9)
     assert np.all((s.energies_keV >= s.edges_keV[:-1]) & (s.energies_keV <= s.edges_keV[1:]))
-    hard = tube_spectrum(100.0, filters=(("Al", 2.5), ("Cu", 0.3)), n_bins=20)
+    hard = tube_spectrum(100.0, filters=(("Al", 2.5), ("Cu", 0.3)), bins=20)
     assert hard.mean_energy_keV > s.mean_energy_keV + 3.0 and hard.total_fluence < s.total_fluence
     sd = s.to_spectral_distribution()
     np.testing.assert_allclose(sd.values * np.diff(s.edges_keV), s.fluence)
@@ -95,7 +95,7 @@ def test_materials_come_from_xraylib_and_partition_smoothly():
     np.testing.assert_allclose(f.sum(0), 1.0, atol=1e-6)
     assert np.abs(np.diff(f, axis=1)).max() < 1e-3  # no jumps: hats change by < 0.1 % per 0.1 HU
     assert len(TISSUE_DECOMPOSITION.names) == 7 and "titanium" in TISSUE_DECOMPOSITION.names
-    with pytest.raises(PhysicsError, match="unknown material"):
+    with pytest.raises(MaterialError, match="unknown material"):
         mass_attenuation("steel", 60.0)
 
 
@@ -152,10 +152,13 @@ def test_bad_inputs_are_named():
     from sim.physics.imaging import PhysicsSettings
 
     # settings fail when made, before any rendering or spekpy call
-    for kwargs, words in ((dict(kvp=300.0), "kvp must be in [20, 150] kV"), (dict(n_bins=0), "energy bins"),
-                          (dict(anode_angle_deg=60.0), "anode angle"), (dict(detector_mode="hybrid"), "detector mode"),
-                          (dict(blur_mm=-1.0), "blur_mm must be >= 0"), (dict(detector_mm=0.0), "thickness_mm"),
-                          (dict(level="full", scatter_photons=10), "scatter photons")):
+    for kwargs, words in ((dict(kvp=300.0), "kvp: must be a number in [20, 150] kV, got 300.0"),
+                          (dict(bins=0), "bins: must be an integer in [1, 1000], got 0"),
+                          (dict(anode_angle_deg=60.0), "anode_angle_deg: must be a number in [1, 45] deg"),
+                          (dict(detector_mode="hybrid"), "detector_mode: must be one of integrating, counting"),
+                          (dict(blur_mm=-1.0), "blur_mm: must be a number >= 0 mm"),
+                          (dict(detector_mm=0.0), "detector_mm: must be a number > 0 mm"),
+                          (dict(level="full", scatter_photons=10), "scatter_photons: must be an integer >= 1000")):
         with pytest.raises(PhysicsError) as info:
             PhysicsSettings(**kwargs)
         assert words in str(info.value), (kwargs, str(info.value))
@@ -197,7 +200,7 @@ def test_render_command_writes_log_raw_and_primary(tmp_path):
 
     out = tmp_path / "poly.npy"
     r = subprocess.run([sys.executable, "-m", "register.cli", "render", "--ct", "phantom", "--size", "32", "32",
-                        "--physics", "poly", "--kvp", "100", "--filter", "Al:2.5", "Cu:0.1", "--no-noise",
+                        "--physics", "poly", "--kvp", "100", "--filters", "Al:2.5", "Cu:0.1", "--no-noise",
                         "--primary", "--out", str(out)], capture_output=True, text=True, cwd=REPO, timeout=300)
     assert r.returncode == 0, r.stderr
     log, raw, primary = (np.load(tmp_path / f) for f in ("poly.npy", "poly_raw.npy", "poly_primary.npy"))
@@ -217,7 +220,7 @@ def test_render_command_writes_log_raw_and_primary(tmp_path):
     # options of the other physics level are refused, not ignored
     for args, words in ((["--kvp", "100"], "--kvp: meaningful with --physics poly or full only"),
                         (["--physics", "poly", "--grid-ratio", "10"], "--grid-ratio: meaningful with --physics full only"),
-                        (["--physics", "full", "--scatter-photons", "10"], "scatter photons must be an integer >= 1000"),
+                        (["--physics", "full", "--scatter-photons", "10"], "--scatter-photons 10: must be >= 1000"),
                         (["--physics", "poly", "--quantity", "intensity"], "--quantity: meaningful with --physics line")):
         r = subprocess.run([sys.executable, "-m", "register.cli", "render", "--ct", "phantom", *args, "--out",
                             str(tmp_path / "y.png")], capture_output=True, text=True, cwd=REPO, timeout=300)
@@ -287,7 +290,7 @@ def test_evaluate_with_poly_targets_registers_through_the_domain_gap(tmp_path):
 def test_a_label_map_overrides_the_materials():
     """A labelled 'implant' in soft tissue: as titanium it gets titanium's nominal density and
     attenuates like Beer-Lambert with xraylib's titanium mu; unlabelled voxels are unchanged."""
-    from sim.physics.materials import LabelOverride, nominal_density
+    from sim.materials import LabelOverride, nominal_density
 
     hu = np.full((4, 4, 4), 40.0, np.float32)
     labels = np.zeros((4, 4, 4), np.int16)
@@ -303,9 +306,9 @@ def test_a_label_map_overrides_the_materials():
     bone = LabelOverride(labels, {7: "cortical_bone"}).partial_densities(hu)  # HU-curve density
     idx = TISSUE_DECOMPOSITION.names.index("cortical_bone")
     assert bone[idx][labels == 7] == pytest.approx(TISSUE_DECOMPOSITION.density(np.array(40.0)))
-    with pytest.raises(PhysicsError, match="steel"):
+    with pytest.raises(MaterialError, match="steel"):
         LabelOverride(labels, {7: "steel"})
-    with pytest.raises(PhysicsError, match="shape"):
+    with pytest.raises(MaterialError, match="shape"):
         over.partial_densities(np.zeros((2, 2, 2)))
 
 
