@@ -1,6 +1,13 @@
 """Atomic file output: write to a temporary file beside the target, then rename over it.
 
 A reader (or a restarted run) never sees a half-written file: either the old one or the new.
+
+Temporary files are named ``.NAME.PID@HOST-XXXXXXXX.tmp.SFX`` (:func:`temp_owner` reads the
+name back): the target's name, the writing process and its host, random characters and the
+target's suffixes. A process killed during a write (``kill -9``, out of memory) cannot remove
+its temporary file; :func:`remove_stale_temps` removes the temporary files whose process is
+gone (same host, PID no longer running), and :func:`atomic_path` does so for its own target
+before every write.
 """
 
 from __future__ import annotations
@@ -8,9 +15,64 @@ from __future__ import annotations
 import contextlib
 import json
 import os
+import re
+import socket
 import tempfile
 from pathlib import Path
 from typing import Iterator
+
+#: ``.NAME.PID@HOST-RANDOM.tmp...``: the target's name, the writer's PID and host.
+_TEMP_NAME = re.compile(r"^\.(?P<name>.+)\.(?P<pid>\d+)@(?P<host>[A-Za-z0-9_-]*)-[a-z0-9_]+\.tmp")
+
+
+def _host() -> str:
+    """This machine's name as it appears in temporary file names (letters, digits, ``_``, ``-``)."""
+    return re.sub(r"[^A-Za-z0-9_-]", "_", socket.gethostname().split(".")[0])[:64]
+
+
+def temp_owner(name: str) -> tuple[str, int, str] | None:
+    """``(target name, PID, host)`` of a temporary file name made by :func:`atomic_path`, else None."""
+    m = _TEMP_NAME.match(name)
+    return (m["name"], int(m["pid"]), m["host"]) if m else None
+
+
+def _pid_alive(pid: int) -> bool:
+    if pid <= 0:
+        return False
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # alive, another user's
+        return True
+    return True
+
+
+def remove_stale_temps(folder: str | os.PathLike, name: str | None = None) -> list[Path]:
+    """Delete the temporary files of :func:`atomic_path` in ``folder`` whose writer is gone.
+
+    A temporary file is stale when it was made on this host by a process that no longer runs.
+    Files of live processes, of other hosts (a folder shared between machines) and files not
+    named by :func:`atomic_path` are kept. ``name``: only the temporary files of this target
+    file name. Returns the files removed; a missing folder removes nothing.
+    """
+    folder = Path(folder)
+    host = _host()
+    removed = []
+    try:
+        entries = list(os.scandir(folder))
+    except (FileNotFoundError, NotADirectoryError):
+        return removed
+    for entry in entries:
+        owner = temp_owner(entry.name)
+        if owner is None or (name is not None and owner[0] != name):
+            continue
+        if owner[2] != host or _pid_alive(owner[1]):
+            continue
+        with contextlib.suppress(FileNotFoundError):
+            os.unlink(entry.path)
+            removed.append(Path(entry.path))
+    return removed
 
 
 @contextlib.contextmanager
@@ -18,12 +80,16 @@ def atomic_path(path: str | os.PathLike, suffix: str | None = None) -> Iterator[
     """Yield a temporary path in the target's folder; on success rename it to ``path``.
 
     ``suffix`` (default: the target's own, e.g. ``.png``) lets writers that pick a format by
-    extension work on the temporary file. On an exception the temporary file is removed.
+    extension work on the temporary file. On an exception the temporary file is removed; the
+    stale temporary files of earlier, killed writers of the same target are removed first
+    (:func:`remove_stale_temps`).
     """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
+    remove_stale_temps(path.parent, path.name)
     sfx = "".join(path.suffixes) if suffix is None else suffix
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=f".tmp{sfx}", dir=path.parent)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.{os.getpid()}@{_host()}-", suffix=f".tmp{sfx}",
+                               dir=path.parent)
     os.close(fd)
     umask = os.umask(0)
     os.umask(umask)

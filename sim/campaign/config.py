@@ -16,8 +16,6 @@ Units: mm, degrees, 1/mm (see ``docs/conventions.md``).
 
 from __future__ import annotations
 
-from sim.errors import InputError
-
 import copy
 import difflib
 import hashlib
@@ -34,34 +32,54 @@ from typing import Any, Mapping, Sequence
 import numpy as np
 
 from sim.campaign.poses import ORIGINAL_PROTOCOL, PoseDistribution, PoseDistributionError
+from sim.errors import InputError
 from sim.materials import MU_WATER_60KEV_PER_MM
-from sim.render import RAY_MODELS
+from sim.render import RAY_MODELS, STEP_FRACTION
+from sim.physics import PhysicsError
+from sim.physics.settings import (FORMER_NAMES, LEVELS, SETTINGS, PhysicsSettings, campaign_settings,
+                                  with_campaign_settings)
 from sim.scene import DEFAULT_SCENE, SceneError, load_scene
+from sim.seeds import KIND_SPLIT, rng_for
 
 #: Split names, in the order used everywhere (tie-breaks, listings).
 SPLIT_NAMES: tuple[str, ...] = ("train", "val", "test")
 #: Default CT-level split fractions (used when the file has no ``[split]`` table).
 DEFAULT_SPLIT: dict[str, float] = {"train": 0.8, "val": 0.1, "test": 0.1}
 #: Physics levels that can be rendered now.
-PHYSICS_LEVELS: tuple[str, ...] = ("line", "poly", "full")
+PHYSICS_LEVELS: tuple[str, ...] = LEVELS
 #: Tolerance on the sum of the split fractions.
 SPLIT_SUM_TOL = 1e-9
-#: ``spawn_key`` kind of the split draw (design rule: 0 poses, 1 virtual patient, 2 noise, 3 split).
-KIND_SPLIT = 3
 
 _TOP_KEYS = ("campaign", "scene", "physics", "poses", "split", "cts", "virtual_patients", "outputs")
 _CAMPAIGN_KEYS = ("name", "seed", "images_per_ct", "shard_size")
 _SCENE_KEYS = ("name", "size")
-#: keys of poly and full entries, and of full entries only (besides name, level, ray_model, ...)
-_POLY_KEYS = ("kvp", "filters", "mas", "noise", "anode_angle_deg", "bins", "detector_mm", "detector_mode", "blur_mm",
-              "electronic_noise")
-_FULL_KEYS = ("scatter_photons", "grid_ratio", "scatter_voxel_mm")
-_PHYSICS_KEYS = ("name", "level", "ray_model", "step_fraction", "mu_water_per_mm") + _POLY_KEYS + _FULL_KEYS
+#: keys of [[physics]] entries: the render's own, then the physics settings (sim.physics.settings)
+_PHYSICS_KEYS = ("name", "level", "ray_model", "step_fraction", "mu_water_per_mm") + tuple(
+    s.name for s in campaign_settings())
 _CT_KEYS = ("path", "label_map", "label_materials", "center", "split", "virtual_patients",
             "held_out_virtual_patients")
 _OUTPUT_KEYS = ("bone_mask", "projected_center")
 _PHYSICS_NAME = re.compile(r"[a-z0-9_]+")
 _NIFTI_SUFFIXES = (".nii", ".nii.gz")
+
+# Declared ranges of the numbers outside [physics] (a value outside is refused with its key,
+# the value and the range; docs/campaigns.md lists them).
+#: ``campaign.seed``: at most the largest int64 (it is stored in every shard).
+MAX_SEED = 2**63 - 1
+#: ``campaign.images_per_ct`` (a subject's poses are drawn at once: 48 MB at the maximum).
+MAX_IMAGES_PER_CT = 1_000_000
+#: ``campaign.shard_size``.
+MAX_SHARD_SIZE = 100_000
+#: Shard files of a campaign (subjects x shards per subject): the run plans them all at once.
+MAX_SHARDS = 1_000_000
+#: Bytes of one shard's images (float32 per physics entry, uint8 bone mask), held in memory.
+MAX_SHARD_BYTES = 4 << 30
+#: ``scene.size`` rows and columns.
+MAX_IMAGE_SIDE = 4096
+#: ``cts[i].virtual_patients``.
+MAX_VIRTUAL_PATIENTS = 10_000
+#: ``cts[i].center``: each coordinate within +-100 m (LPS mm).
+MAX_CENTER_MM = 1e5
 
 
 class CampaignConfigError(InputError):
@@ -90,6 +108,7 @@ class SceneConfig:
 
 
 @dataclass(frozen=True)
+@with_campaign_settings
 class PhysicsConfig:
     """One render setting; every image is rendered once per entry, at the same pose.
 
@@ -99,16 +118,15 @@ class PhysicsConfig:
             polychromatic model with CsI detector and noise, :mod:`sim.physics.imaging`) or ``"full"``
             (``poly`` + Monte Carlo scatter, :mod:`sim.physics.scatter`).
         ray_model: ``"siddon"`` (exact voxel traversal) or ``"trilinear"``.
-        step_fraction: trilinear step as a fraction of the smallest voxel spacing, in (0, 1].
+        step_fraction: trilinear step as a fraction of the smallest voxel spacing, in
+            :data:`sim.render.STEP_FRACTION` ([0.05, 1]).
         mu_water_per_mm: attenuation of water in 1/mm (HU -> mu; line level).
-        kvp, filters, mas, noise: poly level only: tube voltage (kV), filtration
-            ``(("Al", 2.5), ...)`` (mm), exposure (mAs), quantum/electronic noise and blur
-            (seeded per shard from the campaign seed); also for full.
-        anode_angle_deg, n_bins, detector_mm, detector_mode, blur_mm, electronic_noise: poly and
-            full: the rest of :class:`sim.physics.imaging.PhysicsSettings` (deg, bins, mm of CsI,
-            ``integrating`` / ``counting``, mm at the detector, signal units).
-        scatter_photons, grid_ratio, scatter_voxel_mm: full level only: Monte Carlo histories per
-            image, the anti-scatter grid ratio (0 = none), the transport grid's voxel (mm).
+        kvp, anode_angle_deg, filters, bins, mas, detector_mm, detector_mode, noise, blur_mm,
+            electronic_noise, scatter_photons, scatter_voxel_mm, grid_ratio: the physics settings
+            (poly and full; the last three full only), one field each with the name, default and
+            range of :class:`sim.physics.settings.PhysicsSettings`, added by
+            :func:`~sim.physics.settings.with_campaign_settings` (the noise is seeded per shard
+            from the campaign seed).
     """
 
     name: str = "line"
@@ -116,51 +134,25 @@ class PhysicsConfig:
     ray_model: str = "siddon"
     step_fraction: float = 0.5
     mu_water_per_mm: float = MU_WATER_60KEV_PER_MM
-    kvp: float = 120.0
-    filters: tuple[tuple[str, float], ...] = (("Al", 2.5),)
-    mas: float = 2.5
-    noise: bool = True
-    scatter_photons: int = 1_000_000
-    grid_ratio: float = 0.0
-    anode_angle_deg: float = 12.0
-    n_bins: int = 30
-    detector_mm: float = 0.6
-    detector_mode: str = "integrating"
-    blur_mm: float = 0.3
-    electronic_noise: float = 0.0
-    scatter_voxel_mm: float = 6.0
-
-    #: fields written by ``to_dict`` only when they differ from the default, so that campaigns
-    #: from before these settings existed keep their config hash (file key -> field)
-    _OPTIONAL_POLY = {"anode_angle_deg": "anode_angle_deg", "bins": "n_bins", "detector_mm": "detector_mm",
-                      "detector_mode": "detector_mode", "blur_mm": "blur_mm", "electronic_noise": "electronic_noise"}
-    _OPTIONAL_FULL = {"scatter_voxel_mm": "scatter_voxel_mm"}
 
     def to_dict(self) -> dict[str, Any]:
+        """The entry as the file writes it. A line entry has no physics settings; a poly or full
+        entry has the settings of its level, those with ``recorded_always`` always and the others
+        only when they differ from their defaults (so the config hash of campaigns from before
+        they existed is unchanged)."""
         out = {"name": self.name, "level": self.level, "ray_model": self.ray_model,
                "step_fraction": float(self.step_fraction), "mu_water_per_mm": float(self.mu_water_per_mm)}
-        optional = {}
         if self.level in ("poly", "full"):  # line entries keep their old form (and config hash)
-            out.update(kvp=float(self.kvp), filters=[f"{s}:{t:g}" for s, t in self.filters], mas=float(self.mas),
-                       noise=bool(self.noise))
-            optional.update(self._OPTIONAL_POLY)
-        if self.level == "full":
-            out.update(scatter_photons=int(self.scatter_photons), grid_ratio=float(self.grid_ratio))
-            optional.update(self._OPTIONAL_FULL)
-        default = PhysicsConfig()
-        out.update({key: getattr(self, f) for key, f in optional.items() if getattr(self, f) != getattr(default, f)})
+            for s in campaign_settings():
+                value = getattr(self, s.name)
+                if self.level in s.levels and (s.recorded_always or value != s.default):
+                    out[s.name] = s.text(value)
         return out
 
     def settings(self):
-        """The :class:`sim.physics.imaging.PhysicsSettings` of a poly or full entry (noise seeds are
-        the runner's)."""
-        from sim.physics.imaging import PhysicsSettings
-
-        return PhysicsSettings(level=self.level, kvp=self.kvp, filters=self.filters, mas=self.mas, noise=self.noise,
-                               anode_angle_deg=self.anode_angle_deg, n_bins=self.n_bins,
-                               detector_mm=self.detector_mm, detector_mode=self.detector_mode, blur_mm=self.blur_mm,
-                               electronic_noise=self.electronic_noise, scatter_photons=self.scatter_photons,
-                               scatter_voxel_mm=self.scatter_voxel_mm, grid_ratio=self.grid_ratio)
+        """The :class:`sim.physics.settings.PhysicsSettings` of a poly or full entry (noise seeds
+        are the runner's)."""
+        return PhysicsSettings(level=self.level, **{s.name: getattr(self, s.name) for s in campaign_settings()})
 
 
 @dataclass(frozen=True)
@@ -196,7 +188,7 @@ class CTEntry:
             generalisation to such changes, not to new patients.
         label_materials: ``((label, material), ...)``: in the poly and full images, voxels of
             these labels (of ``label_map``, or the phantom's own labels) take this material
-            (:class:`sim.physics.materials.LabelOverride`), e.g. ``((3, "titanium"),)`` for an
+            (:class:`sim.materials.LabelOverride`), e.g. ``((3, "titanium"),)`` for an
             implant. Virtual patients carry the labels along with the anatomy.
     """
 
@@ -400,7 +392,7 @@ def assign_splits(n_cts: int, fractions: Mapping[str, float] | SplitConfig,
        from the split with the most freely assigned CTs among those holding more than one CT
        (receivers in order of decreasing fraction, then train, val, test).
     4. Which free CT goes to which split is a random permutation from
-       ``SeedSequence(entropy=seed, spawn_key=(3,))`` (kind 3 = split).
+       ``SeedSequence(entropy=seed, spawn_key=(3,))`` (:data:`sim.seeds.KIND_SPLIT`).
 
     For example 10 CTs at 0.8/0.1/0.1 give 8/1/1, and 3 CTs give 1/1/1.
 
@@ -467,7 +459,7 @@ def assign_splits(n_cts: int, fractions: Mapping[str, float] | SplitConfig,
         alloc[donor] -= 1
         alloc[s] += 1
 
-    rng = np.random.Generator(np.random.PCG64(np.random.SeedSequence(entropy=int(seed), spawn_key=(KIND_SPLIT,))))
+    rng = rng_for(int(seed), KIND_SPLIT)
     perm = [free[k] for k in rng.permutation(m)]
     out = list(explicit)
     pos = 0
@@ -561,11 +553,12 @@ class _Parser:
                          else f"in [{prefix}]")
                 raise self.err(where, f"unknown key {scope}; allowed: {', '.join(allowed)}{hint}")
 
-    def int_(self, value: Any, key: str, minimum: int) -> int:
+    def int_(self, value: Any, key: str, minimum: int, maximum: int | None = None) -> int:
+        allowed = f">= {minimum}" if maximum is None else f"in [{minimum}, {maximum}]"
         if isinstance(value, bool) or not isinstance(value, (int, np.integer)):
-            raise self.err(key, f"expected an integer >= {minimum}, got {value!r}")
-        if value < minimum:
-            raise self.err(key, f"must be an integer >= {minimum}, got {value}")
+            raise self.err(key, f"expected an integer {allowed}, got {value!r}")
+        if value < minimum or (maximum is not None and value > maximum):
+            raise self.err(key, f"must be an integer {allowed}, got {value}")
         return int(value)
 
     def float_(self, value: Any, key: str, lo: float, hi: float, *, lo_open: bool, hi_open: bool,
@@ -617,9 +610,9 @@ class _Parser:
         name = self.str_(c["name"], "campaign.name")
         if "/" in name or "\\" in name:
             raise self.err("campaign.name", f"must not contain path separators, got {name!r}")
-        seed = self.int_(c.get("seed", 0), "campaign.seed", 0)
-        images = self.int_(c["images_per_ct"], "campaign.images_per_ct", 1)
-        shard = self.int_(c.get("shard_size", 256), "campaign.shard_size", 1)
+        seed = self.int_(c.get("seed", 0), "campaign.seed", 0, MAX_SEED)
+        images = self.int_(c["images_per_ct"], "campaign.images_per_ct", 1, MAX_IMAGES_PER_CT)
+        shard = self.int_(c.get("shard_size", 256), "campaign.shard_size", 1, MAX_SHARD_SIZE)
 
         scene = self.scene(data.get("scene", {}))
         physics = self.physics(data.get("physics", [{"name": "line", "level": "line"}]))
@@ -638,9 +631,26 @@ class _Parser:
                                                        "this campaign has none")
         vp = self.virtual_patients(data.get("virtual_patients", {}))
         outputs = self.outputs(data.get("outputs", {}))
+        self.work_limits(images, shard, scene.size, len(physics), cts, outputs)
         return CampaignConfig(name=name, seed=seed, images_per_ct=images, shard_size=shard, scene=scene,
                               physics=physics, poses=poses, split=split, cts=cts, virtual_patients=vp,
                               outputs=outputs, source=self.source)
+
+    def work_limits(self, images: int, shard: int, size: tuple[int, int], n_physics: int,
+                    cts: Sequence[CTEntry], outputs: OutputConfig) -> None:
+        """Refuse a campaign whose shard count or shard size would exhaust memory."""
+        subjects = sum(1 + c.virtual_patients for c in cts)
+        n_shards = subjects * math.ceil(images / shard)
+        if n_shards > MAX_SHARDS:
+            raise self.err("campaign.shard_size", f"{subjects} subjects x {math.ceil(images / shard)} shards each "
+                                                  f"= {n_shards} shard files, more than {MAX_SHARDS}; raise shard_size")
+        per_image = size[0] * size[1] * (4 * n_physics + (1 if outputs.bone_mask else 0))
+        nbytes = min(shard, images) * per_image
+        if nbytes > MAX_SHARD_BYTES:
+            raise self.err("campaign.shard_size", f"a shard of {min(shard, images)} images of {size[0]} x {size[1]} "
+                                                  f"pixels x {n_physics} physics entries holds {nbytes / 2**30:.1f} GiB; "
+                                                  f"at most {MAX_SHARD_BYTES / 2**30:g} GiB: lower shard_size to at "
+                                                  f"most {MAX_SHARD_BYTES // per_image}")
 
     def scene(self, value: Any) -> SceneConfig:
         t = self.table(value, "scene", "[scene] with name, size")
@@ -649,7 +659,8 @@ class _Parser:
         size_raw = t.get("size", [128, 128])
         if isinstance(size_raw, (str, bytes, Mapping)) or not isinstance(size_raw, (list, tuple)) or len(size_raw) != 2:
             raise self.err("scene.size", f"expected [rows, cols] (2 integers >= 1), got {size_raw!r}")
-        size = (self.int_(size_raw[0], "scene.size[0]", 1), self.int_(size_raw[1], "scene.size[1]", 1))
+        size = (self.int_(size_raw[0], "scene.size[0]", 1, MAX_IMAGE_SIDE),
+                self.int_(size_raw[1], "scene.size[1]", 1, MAX_IMAGE_SIDE))
         from scenes import available
 
         if raw.lower().endswith(".xml") or "/" in raw or "\\" in raw:
@@ -683,6 +694,11 @@ class _Parser:
         seen: dict[str, int] = {}
         for i, t in enumerate(entries):
             key = f"physics[{i}]"
+            for k in t:
+                if k in FORMER_NAMES:
+                    new = SETTINGS[FORMER_NAMES[k]]
+                    raise self.err(f"{key}.{k}", f"unknown key: the setting is spelled {new.name!r} (one name "
+                                                 f"for the campaign key, PhysicsSettings.{new.name} and {new.flag})")
             self.keys(t, _PHYSICS_KEYS, key)
             level = t.get("level", "line")
             if level not in PHYSICS_LEVELS:
@@ -697,54 +713,21 @@ class _Parser:
             ray = t.get("ray_model", "siddon")
             if ray not in RAY_MODELS:
                 raise self.err(f"{key}.ray_model", f"unknown ray model {ray!r}; allowed: {', '.join(RAY_MODELS)}")
-            step = self.float_(t.get("step_fraction", 0.5), f"{key}.step_fraction", 0.0, 1.0,
-                               lo_open=True, hi_open=False)
+            step = self.float_(t.get("step_fraction", 0.5), f"{key}.step_fraction", STEP_FRACTION.lo,
+                               STEP_FRACTION.hi, lo_open=False, hi_open=False)
             mu = self.float_(t.get("mu_water_per_mm", MU_WATER_60KEV_PER_MM), f"{key}.mu_water_per_mm", 0.0,
                              math.inf, lo_open=True, hi_open=True, unit=" 1/mm")
-            poly_keys = sorted(set(t) & set(_POLY_KEYS))
-            if level == "line" and poly_keys:
-                raise self.err(f"{key}.{poly_keys[0]}", f"only for level = \"poly\" or \"full\" (this entry is {level!r})")
-            full_keys = sorted(set(t) & set(_FULL_KEYS))
-            if level != "full" and full_keys:
-                raise self.err(f"{key}.{full_keys[0]}", f"only for level = \"full\" (this entry is {level!r})")
+            outside = sorted(s.name for s in campaign_settings() if s.name in t and level not in s.levels)
+            if outside:
+                levels = " or ".join(f'"{lv}"' for lv in SETTINGS[outside[0]].levels)
+                raise self.err(f"{key}.{outside[0]}", f"only for level = {levels} (this entry is {level!r})")
             extra = {}
-            if level == "full":
-                photons = t.get("scatter_photons", 1_000_000)
-                if isinstance(photons, bool) or not isinstance(photons, int) or photons < 1000:
-                    raise self.err(f"{key}.scatter_photons", f"expected an integer >= 1000, got {photons!r}")
-                extra["scatter_photons"] = photons
-                extra["grid_ratio"] = self.float_(t.get("grid_ratio", 0.0), f"{key}.grid_ratio", 0.0, 50.0,
-                                                  lo_open=False, hi_open=False)
-                extra["scatter_voxel_mm"] = self.float_(t.get("scatter_voxel_mm", 6.0), f"{key}.scatter_voxel_mm",
-                                                        0.0, math.inf, lo_open=True, hi_open=True, unit=" mm")
-            if level in ("poly", "full"):
-                from sim.physics import PhysicsError
-                from sim.physics.spectrum import parse_filters
-
-                extra["kvp"] = self.float_(t.get("kvp", 120.0), f"{key}.kvp", 20.0, 150.0, lo_open=False,
-                                           hi_open=False, unit=" kV")
-                extra["mas"] = self.float_(t.get("mas", 2.5), f"{key}.mas", 0.0, math.inf, lo_open=True,
-                                           hi_open=True, unit=" mAs")
-                extra["noise"] = self.bool_(t.get("noise", True), f"{key}.noise")
-                filters = t.get("filters", ["Al:2.5"])
-                if isinstance(filters, str) or not isinstance(filters, (list, tuple)):
-                    raise self.err(f"{key}.filters", f'expected a list like ["Al:2.5", "Cu:0.1"], got {filters!r}')
-                try:
-                    extra["filters"] = parse_filters(filters)
-                except PhysicsError as e:
-                    raise self.err(f"{key}.filters", str(e)) from None
-                extra["anode_angle_deg"] = self.float_(t.get("anode_angle_deg", 12.0), f"{key}.anode_angle_deg",
-                                                       1.0, 45.0, lo_open=False, hi_open=False, unit=" deg")
-                extra["n_bins"] = self.int_(t.get("bins", 30), f"{key}.bins", 1)
-                extra["detector_mm"] = self.float_(t.get("detector_mm", 0.6), f"{key}.detector_mm", 0.0, math.inf,
-                                                   lo_open=True, hi_open=True, unit=" mm")
-                mode = t.get("detector_mode", "integrating")
-                if mode not in ("integrating", "counting"):
-                    raise self.err(f"{key}.detector_mode", f"unknown mode {mode!r}; allowed: integrating, counting")
-                extra["detector_mode"] = mode
-                for k in ("blur_mm", "electronic_noise"):
-                    extra[k] = self.float_(t.get(k, getattr(PhysicsConfig, k)), f"{key}.{k}", 0.0, math.inf,
-                                           lo_open=False, hi_open=True)
+            for s in campaign_settings():
+                if s.name in t:
+                    try:
+                        extra[s.name] = s.check(t[s.name], f"{key}.{s.name}")
+                    except PhysicsError as e:
+                        raise CampaignConfigError(f"{self.source}: {e}") from None
             entry = PhysicsConfig(name, level, ray, step, mu, **extra)
             if level in ("poly", "full"):
                 try:
@@ -814,12 +797,11 @@ class _Parser:
                 lm = self.table(t["label_materials"], lk, '{ 3 = "titanium" }')
                 if label_map is None and not phantom:
                     raise self.err(lk, "needs a label_map (the labels it refers to)")
-                from sim.physics import PhysicsError
-                from sim.physics.materials import parse_label_materials
+                from sim.materials import MaterialError, parse_label_materials
 
                 try:
                     parsed = parse_label_materials([f"{k}:{v}" for k, v in lm.items()])
-                except PhysicsError as e:
+                except MaterialError as e:
                     raise self.err(lk, str(e)) from None
                 label_materials = tuple(sorted(parsed.items()))
             center = None
@@ -827,14 +809,14 @@ class _Parser:
                 c = t["center"]
                 if isinstance(c, (str, bytes, Mapping)) or not isinstance(c, (list, tuple)) or len(c) != 3:
                     raise self.err(f"{key}.center", f"expected [x, y, z] in LPS mm (3 numbers), got {c!r}")
-                center = tuple(self.float_(v, f"{key}.center[{k}]", -math.inf, math.inf, lo_open=True,
-                                           hi_open=True, unit=" mm") for k, v in enumerate(c))
+                center = tuple(self.float_(v, f"{key}.center[{k}]", -MAX_CENTER_MM, MAX_CENTER_MM, lo_open=False,
+                                           hi_open=False, unit=" mm") for k, v in enumerate(c))
             split = t.get("split")
             if split is not None and split not in SPLIT_NAMES:
                 close = difflib.get_close_matches(str(split), SPLIT_NAMES, n=1, cutoff=0.6)
                 hint = f" (did you mean {close[0]!r}?)" if close else ""
                 raise self.err(f"{key}.split", f"unknown split {split!r}; allowed: {', '.join(SPLIT_NAMES)}{hint}")
-            vp = self.int_(t.get("virtual_patients", 0), f"{key}.virtual_patients", 0)
+            vp = self.int_(t.get("virtual_patients", 0), f"{key}.virtual_patients", 0, MAX_VIRTUAL_PATIENTS)
             held: list[tuple[str, int]] = []
             if t.get("held_out_virtual_patients") is not None:
                 hk = f"{key}.held_out_virtual_patients"

@@ -7,10 +7,15 @@ Layout of a campaign folder::
     DIR/shards/sSSSS_KKKKK.h5         images SSSS (subject) shard KKKKK, written atomically
     DIR/shards/sSSSS_KKKKK.h5.sha256  its checksum, written atomically after the shard
     DIR/pose_histogram.png            the sampled pose parameters against their ranges
+    DIR/.simulate.lock                held while a run writes into DIR (sim.campaign.runner)
 
 A shard is finished when both files exist and the checksum matches: a run killed at any
-moment leaves only finished shards and temporary files (``.*.tmp*``), which ``--resume``
-removes before it renders what is missing.
+moment leaves only finished shards and temporary files (``.NAME.PID@HOST-XXXXXXXX.tmp.h5``,
+:mod:`sim.atomic`), which ``--resume`` removes before it renders what is missing.
+
+The reader checks every shard's SHA-256 against the manifest before it uses the shard's data
+(once per shard file and process, :func:`verified_sha256`): a corrupt or truncated shard is a
+:class:`DatasetError` naming the file and the command that renders it again.
 
 Shard contents (``n`` images, ``H x W`` pixels):
 
@@ -31,12 +36,10 @@ Attributes: ``subject``, ``shard``, ``start``, ``stop``, ``config_hash``, ``spli
 and ``pose_spawn_key`` (the poses are row ``image_index`` of ``PoseDistribution.sample`` drawn from
 ``SeedSequence(seed, spawn_key=(0, subject))``).
 :func:`open_dataset` reads a folder without PyTorch; :class:`CampaignDataset` indexes images
-across shards lazily.
+across shards lazily and verifies each shard when it first opens it.
 """
 
 from __future__ import annotations
-
-from sim.errors import InputError
 
 import hashlib
 import json
@@ -47,7 +50,8 @@ from typing import Iterator
 
 import numpy as np
 
-from sim.atomic import atomic_path, write_json
+from sim.atomic import atomic_path, remove_stale_temps, write_json
+from sim.errors import InputError
 
 FORMAT = "ctxreg-campaign"
 FORMAT_VERSION = 1
@@ -69,6 +73,21 @@ def sha256_file(path: Path, chunk: int = 1 << 20) -> str:
         while block := f.read(chunk):
             h.update(block)
     return h.hexdigest()
+
+
+#: (real path, inode, size, mtime ns, ctime ns) -> SHA-256 of the files this process has hashed.
+_HASHES: dict[tuple[str, int, int, int, int], str] = {}
+
+
+def verified_sha256(path: Path) -> str:
+    """SHA-256 of a file, computed once per process while the file stays the same (same
+    inode, size, modification and status-change time); a changed file is hashed again."""
+    st = os.stat(path)
+    key = (os.path.realpath(path), st.st_ino, st.st_size, st.st_mtime_ns, st.st_ctime_ns)
+    digest = _HASHES.get(key)
+    if digest is None:
+        digest = _HASHES[key] = sha256_file(path)
+    return digest
 
 
 def write_shard(folder: Path, subject: int, shard: int, arrays: dict[str, np.ndarray],
@@ -95,7 +114,7 @@ def write_shard(folder: Path, subject: int, shard: int, arrays: dict[str, np.nda
                 f.attrs[key] = value
             for key, value in arrays.items():
                 f.create_dataset(key, data=value, track_times=False)
-    digest = sha256_file(path)
+    digest = verified_sha256(path)
     with atomic_path(folder / (name + ".sha256")) as tmp:
         tmp.write_text(digest + "\n")
     return name, digest, path.stat().st_size
@@ -112,7 +131,7 @@ def finished_shards(folder: Path) -> dict[str, str]:
         if not h5.is_file():
             continue
         expected = sums.read_text().strip()
-        if sha256_file(h5) == expected:
+        if verified_sha256(h5) == expected:
             out[h5.name] = expected
     return out
 
@@ -127,8 +146,10 @@ def remove_partial_files(folder: Path, only: set[str] | None = None) -> int:
     """Delete temporary files and shards without a matching checksum; returns how many.
 
     ``only``: shard names whose files may be touched (a part of the work cleans up its own
-    shards only, while other parts write into the same folder).
+    shards only, while other parts write into the same folder). The stale temporary files of
+    dead writers in ``folder`` itself (a manifest being written when the run was killed) go too.
     """
+    remove_stale_temps(folder)
     shard_dir = Path(folder) / SHARD_DIR
     if not shard_dir.is_dir():
         return 0
@@ -169,7 +190,8 @@ def read_manifest(folder: Path, name: str = MANIFEST) -> dict:
     try:
         manifest = json.loads(path.read_text())
     except json.JSONDecodeError as e:
-        raise DatasetError(f"{path}: corrupt JSON ({e})") from None
+        raise DatasetError(f"{path}: corrupt JSON ({e}); delete it and run `ctxreg simulate CAMPAIGN.toml "
+                           f"--out {folder} --resume` to rebuild it from the shard files") from None
     if manifest.get("format") != FORMAT:
         raise DatasetError(f"{path}: not a {FORMAT} manifest")
     if manifest.get("format_version") != FORMAT_VERSION:
@@ -193,6 +215,15 @@ class CampaignDataset:
     ``ds[i]`` returns a dict with ``images`` (physics name -> (H, W) float32), ``pose`` (4, 4),
     ``params`` (6,), ``projection`` (3, 4), ``subject``, ``split``, ``image_index`` and the
     optional outputs. Shards are opened lazily and kept open (``close()`` releases them).
+
+    Every shard's size and SHA-256 are checked against the manifest before its data is used:
+    when it is first opened, or for all shards at once with ``verify=True``. A file is hashed
+    once per process (:func:`verified_sha256`), so opening the folder again costs nothing more.
+
+    Raises:
+        DatasetError: no or a corrupt manifest; an incomplete campaign (unless
+            ``allow_incomplete``); a shard missing, truncated or corrupt (named, with the command
+            that renders it again).
     """
 
     def __init__(self, folder: str | os.PathLike, *, verify: bool = False, allow_incomplete: bool = False):
@@ -207,14 +238,40 @@ class CampaignDataset:
         for name, info in sorted(self.manifest["shards"].items()):
             path = self.folder / SHARD_DIR / name
             if not path.is_file():
-                raise DatasetError(f"{path}: listed in the manifest but missing")
-            if verify and sha256_file(path) != info["sha256"]:
-                raise DatasetError(f"{path}: checksum mismatch (corrupt shard)")
+                raise DatasetError(f"{path}: listed in the manifest but missing; {self._fix_hint()}")
             refs.append(_ShardRef(name, info["subject"], info["start"], info["stop"],
                                   subjects[info["subject"]]["split"]))
         self._refs = refs
         self._offsets = np.cumsum([0] + [r.stop - r.start for r in refs])
         self._open: dict[str, object] = {}
+        if verify:
+            for ref in refs:
+                self.verify_shard(ref.name)
+
+    def _fix_hint(self) -> str:
+        source = self.manifest.get("config", {}).get("source", "CAMPAIGN.toml")
+        return (f"render it again with `ctxreg simulate {source} --out {self.folder} --resume` "
+                "(it keeps the good shards)")
+
+    def verify_shard(self, name: str) -> None:
+        """Check one shard file against the manifest (size, then SHA-256; hashed once per process).
+
+        Raises:
+            DatasetError: the file is missing, truncated or corrupt; the message names it.
+        """
+        info = self.manifest["shards"][name]
+        path = self.folder / SHARD_DIR / name
+        try:
+            size = path.stat().st_size
+        except FileNotFoundError:
+            raise DatasetError(f"{path}: listed in the manifest but missing; {self._fix_hint()}") from None
+        if "bytes" in info and size != info["bytes"]:
+            what = "truncated" if size < info["bytes"] else "longer than written"
+            raise DatasetError(f"{path}: {what} ({size} bytes, the manifest says {info['bytes']}); "
+                               f"{self._fix_hint()}")
+        if verified_sha256(path) != info["sha256"]:
+            raise DatasetError(f"{path}: checksum mismatch, the file is corrupt (SHA-256 differs from the "
+                               f"manifest); {self._fix_hint()}")
 
     @property
     def physics(self) -> list[str]:
@@ -235,7 +292,12 @@ class CampaignDataset:
         import h5py
 
         if name not in self._open:
-            self._open[name] = h5py.File(self.folder / SHARD_DIR / name, "r")
+            self.verify_shard(name)
+            try:
+                self._open[name] = h5py.File(self.folder / SHARD_DIR / name, "r")
+            except OSError as e:  # verified, so the file changed since (or HDF5 cannot read it)
+                raise DatasetError(f"{self.folder / SHARD_DIR / name}: cannot read the shard ({e}); "
+                                   f"{self._fix_hint()}") from None
         return self._open[name]
 
     def __getitem__(self, i: int) -> dict:
@@ -293,5 +355,7 @@ class CampaignDataset:
 
 def open_dataset(folder: str | os.PathLike, *, verify: bool = False,
                  allow_incomplete: bool = False) -> CampaignDataset:
-    """Open a campaign folder for reading (see :class:`CampaignDataset`); no PyTorch needed."""
+    """Open a campaign folder for reading (see :class:`CampaignDataset`); no PyTorch needed.
+
+    ``verify``: check every shard's checksum now (else each when first used)."""
     return CampaignDataset(folder, verify=verify, allow_incomplete=allow_incomplete)

@@ -11,6 +11,10 @@ Each parameter has its own :class:`ParamDistribution`:
   truncated to ``[lo, hi]`` (sampled by the inverse CDF, so no draw is rejected);
 * ``fixed``: always ``value``.
 
+Every number must be finite and within its parameter's declared range (:data:`PARAM_LIMITS`:
++-360 deg, +-10000 mm; ``std`` up to twice that), so a typo cannot ask for poses that no C-arm
+could show.
+
 Sampling is by the inverse CDF of one uniform number per parameter and pose:
 :meth:`PoseDistribution.sample` draws ``rng.random((n, 6))`` and maps column ``k`` through
 parameter ``k``'s inverse CDF. So every distribution kind consumes the same random numbers, the
@@ -20,8 +24,6 @@ values of one parameter do not depend on the others' distributions, and the firs
 
 from __future__ import annotations
 
-from sim.errors import InputError
-
 import difflib
 import math
 import os
@@ -30,12 +32,20 @@ from typing import Any, Mapping
 
 import numpy as np
 
+from sim.errors import InputError
+
 #: Pose parameter names, in the order of :func:`sim.geometry.pose_from_params`.
 PARAM_NAMES: tuple[str, ...] = ("phi", "theta", "psi", "tx", "ty", "tz")
 #: Unit of each parameter in :data:`PARAM_NAMES`.
 PARAM_UNITS: tuple[str, ...] = ("deg", "deg", "deg", "mm", "mm", "mm")
 #: Distribution kinds (the ``dist`` key).
 KINDS: tuple[str, ...] = ("uniform", "normal", "fixed")
+#: Declared range of each parameter (its unit): every ``low``, ``high``, ``mean``, ``value``
+#: and ``clip`` bound must lie in ``[-limit, limit]`` and ``std`` in ``(0, 2 limit]``. Angles
+#: beyond one turn mean nothing new; offsets beyond 10 m leave any C-arm's field of view
+#: (the campaign runner also checks every sampled pose against each CT's box).
+PARAM_LIMITS: dict[str, float] = {"phi": 360.0, "theta": 360.0, "psi": 360.0,
+                                  "tx": 10_000.0, "ty": 10_000.0, "tz": 10_000.0}
 
 #: Keys each kind takes besides ``dist`` (required, optional).
 _KIND_KEYS: dict[str, tuple[tuple[str, ...], tuple[str, ...]]] = {
@@ -256,6 +266,20 @@ class ParamDistribution:
         return self.mean - math.inf, self.mean + math.inf
 
 
+def check_limits(dist: ParamDistribution, name: str, key: str) -> None:
+    """Refuse a distribution of parameter ``name`` outside :data:`PARAM_LIMITS`, naming ``key``."""
+    limit = PARAM_LIMITS[name]
+    unit = PARAM_UNITS[PARAM_NAMES.index(name)]
+    values = {"low": dist.low, "high": dist.high, "mean": dist.mean, "value": dist.value}
+    if dist.clip is not None:
+        values.update({"clip[0]": dist.clip[0], "clip[1]": dist.clip[1]})
+    for k, v in values.items():
+        if v is not None and not -limit <= v <= limit:
+            raise PoseDistributionError(f"{key}.{k}: must be in [{-limit:g}, {limit:g}] {unit}, got {v!r}")
+    if dist.std is not None and not dist.std <= 2 * limit:
+        raise PoseDistributionError(f"{key}.std: must be in (0, {2 * limit:g}] {unit}, got {dist.std!r}")
+
+
 def _check_n(n: Any) -> int:
     if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or n < 0:
         raise PoseDistributionError(f"n: the number of draws must be an integer >= 0, got {n!r}")
@@ -277,6 +301,7 @@ class PoseDistribution:
         for name in PARAM_NAMES:
             if not isinstance(getattr(self, name), ParamDistribution):
                 raise PoseDistributionError(f"{name}: expected a ParamDistribution, got {getattr(self, name)!r}")
+            check_limits(getattr(self, name), name, name)
 
     @property
     def params(self) -> tuple[ParamDistribution, ...]:
@@ -328,6 +353,8 @@ class PoseDistribution:
                 )
         kw = {name: (ParamDistribution.from_dict(d[name], f"{key}.{name}") if name in d else getattr(base, name))
               for name in PARAM_NAMES}
+        for name in d:
+            check_limits(kw[name], name, f"{key}.{name}")
         return cls(**kw)
 
 

@@ -2,26 +2,35 @@
 
 The work of a campaign is a list of units, one per shard file: subject (a CT or a virtual
 patient), shard index and image range. Every random draw is keyed by the campaign seed and the
-unit's indices (see :func:`rng_for`), so a unit renders the same images whichever process
+unit's indices (see :func:`sim.seeds.rng_for`), so a unit renders the same images whichever process
 runs it, in whatever order, after whatever interruption.
 
 * ``workers > 1``: units run in spawned worker processes (Dr.Jit is not fork-safe), grouped by
   subject so a worker loads each CT once. A worker that dies (killed, out of memory) stops the
-  run with an error; finished shards are kept.
+  run with an error; finished shards are kept. Workers die with the run: on Linux the kernel
+  kills them when the parent dies (``PR_SET_PDEATHSIG``), elsewhere they notice within a
+  second; SIGTERM, Ctrl-C or an error in the parent stops them first.
 * ``resume``: finished shards (checksum file matches) are kept, partial files removed, the rest
   rendered. The manifest is rewritten atomically after every shard.
 * ``shard=(K, N)``: runs units ``K-1, K-1+N, ...`` only, for batch schedulers; each part writes
   ``manifest.partK-of-N.json``. Once all parts are in one folder, a run with ``resume`` and no
   ``shard`` finds every shard finished, renders nothing, and writes the full manifest.
+
+Before anything is written the run checks the output path, that no other run writes into the
+folder (a lock file; parts share it), and that every pose to render shows some of its CT (the
+CT's box projected for every sampled pose: :func:`check_view`). A campaign whose poses or
+``center`` put a CT out of view is refused naming the subject and the pose, not rendered as
+blank images.
 """
 
 from __future__ import annotations
 
-from sim.errors import InputError
-
+import contextlib
 import math
 import os
+import signal
 import sys
+import threading
 import time
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from concurrent.futures.process import BrokenProcessPool
@@ -32,23 +41,29 @@ import numpy as np
 
 from sim.atomic import write_json
 from sim.campaign import dataset as ds
-
-#: Spawn keys of the random streams (with the subject / CT / image indices after them).
-KIND_POSES, KIND_VIRTUAL_PATIENT = 0, 1
-#: Spawn key of a shard's noise stream (poly physics): ``(KIND_NOISE, subject, shard)``.
-KIND_NOISE = 4
+from sim.errors import InputError
+from sim.seeds import KIND_NOISE, KIND_POSES, KIND_VIRTUAL_PATIENT, rng_for  # the random streams
 
 #: A pixel is bone in ``bone_mask`` where the ray crosses at least this much bone (mm).
 BONE_MASK_MIN_PATH_MM = 1.0
 
+#: Most worker processes (``--workers``); each loads a CT and Dr.Jit's kernels.
+MAX_WORKERS = 256
+#: The lock file in the output folder: a run of the whole campaign holds it exclusively, the
+#: parts of a campaign (``--shard``) hold it shared.
+LOCK_FILE = ".simulate.lock"
+#: A projected CT box counts as in view when it reaches this close to the image (pixels).
+VIEW_MARGIN_PX = 1.0
+#: Poses checked at a time by :func:`visible_poses` (bounds its memory).
+_VIEW_CHUNK = 1 << 16
+#: The manifest is rewritten at most this often while shards finish (seconds), and at the end.
+MANIFEST_EVERY_S = 2.0
+#: Most poses drawn in the pose histogram (48 bytes each).
+HISTOGRAM_POSES = 2_000_000
+
 
 class CampaignError(InputError):
     """A campaign cannot run or resume; the message says why and what to do."""
-
-
-def rng_for(seed: int, *key: int) -> np.random.Generator:
-    """The random stream for one purpose: ``SeedSequence(seed, spawn_key=key)``."""
-    return np.random.Generator(np.random.PCG64(np.random.SeedSequence(entropy=seed, spawn_key=key)))
 
 
 @dataclass(frozen=True)
@@ -91,6 +106,203 @@ def parse_shard(text: str | None) -> tuple[int, int] | None:
 def subject_poses(cfg, subject_index: int) -> np.ndarray:
     """``(images_per_ct, 6)`` pose parameters of a subject (deg, mm), independent of sharding."""
     return cfg.poses.sample(rng_for(cfg.seed, KIND_POSES, subject_index), cfg.images_per_ct)
+
+
+# ----------------------------------------------------------------------------- checks before work
+def visible_poses(box_rel_mm: np.ndarray, params: np.ndarray, geometry) -> np.ndarray:
+    """Which poses show some of a box: ``(n,)`` bool.
+
+    Args:
+        box_rel_mm: ``(m, 3)`` points in LPS mm relative to the anatomy centre (``X - c``)
+            whose convex hull holds the CT (its 8 corners minus the centre).
+        params: ``(n, 6)`` pose parameters (deg, mm), :func:`sim.geometry.pose_from_params`.
+        geometry: the :class:`sim.geometry.CArmGeometry` of the rendered images.
+
+    A pose shows nothing when every point lies at or behind the source plane, or when the
+    bounding rectangle of the projected points misses the image (by more than
+    :data:`VIEW_MARGIN_PX`). Conservative: a box that straddles the source plane counts as
+    visible, so a pose reported as showing nothing renders an all-zero image.
+    """
+    from sim.geometry import pose_from_params
+
+    K = geometry.intrinsics()
+    lo_u, hi_u = -0.5 - VIEW_MARGIN_PX, geometry.width - 0.5 + VIEW_MARGIN_PX
+    lo_v, hi_v = -0.5 - VIEW_MARGIN_PX, geometry.height - 0.5 + VIEW_MARGIN_PX
+    pts = np.asarray(box_rel_mm, dtype=np.float64)
+    out = np.empty(len(params), dtype=bool)
+    for a in range(0, len(params), _VIEW_CHUNK):
+        T = pose_from_params(np.asarray(params[a:a + _VIEW_CHUNK], dtype=np.float64), geometry.sod_mm)
+        cam = pts @ np.swapaxes(T[:, :3, :3], -1, -2) + T[:, None, :3, 3]  # (b, m, 3) camera mm
+        z = cam[..., 2]
+        front = z > 0
+        pix = cam @ K.T
+        with np.errstate(divide="ignore", invalid="ignore"):
+            u = np.where(front, pix[..., 0] / np.where(front, z, 1.0), np.nan)
+            v = np.where(front, pix[..., 1] / np.where(front, z, 1.0), np.nan)
+        overlap = ((np.nanmax(u, 1, initial=-np.inf) >= lo_u) & (np.nanmin(u, 1, initial=np.inf) <= hi_u)
+                   & (np.nanmax(v, 1, initial=-np.inf) >= lo_v) & (np.nanmin(v, 1, initial=np.inf) <= hi_v))
+        straddles = front.any(1) & ~front.all(1)
+        out[a:a + _VIEW_CHUNK] = front.any(1) & (straddles | overlap)
+    return out
+
+
+def ct_box_from_header(path: str) -> np.ndarray | None:
+    """``(8, 3)`` LPS mm corners of a CT's box read without loading the voxels: the built-in
+    phantom's grid, or a NIfTI header. None for a DICOM folder or an unreadable file (the
+    worker checks the loaded CT instead)."""
+    corners = np.array([[a, b, d] for a in (0, 1) for b in (0, 1) for d in (0, 1)], dtype=np.float64)
+    if path.startswith("phantom"):
+        import inspect
+
+        from sim.phantom import make_pelvis_phantom
+
+        sig = inspect.signature(make_pelvis_phantom).parameters
+        spacing = float(sig["spacing_mm"].default)
+        n = np.array([round(s / spacing) for s in sig["size_mm"].default], dtype=np.float64)
+        return (corners - 0.5) * n * spacing  # the grid centre is the LPS origin
+    if not path.lower().endswith((".nii", ".nii.gz")):
+        return None
+    try:
+        import zlib
+
+        import nibabel as nib
+        from nibabel.filebasedimages import ImageFileError
+
+        from sim.ct_io import RAS_TO_LPS
+
+        img = nib.load(path)
+        shape = np.array(img.shape[:3], dtype=np.float64)
+        affine = RAS_TO_LPS @ np.asarray(img.affine, dtype=np.float64)
+    except (OSError, EOFError, ValueError, zlib.error, ImageFileError):  # the worker loads it and says why
+        return None
+    if len(img.shape) < 3 or not np.all(np.isfinite(affine)):
+        return None
+    ijk = corners * shape - 0.5
+    return ijk @ affine[:3, :3].T + affine[:3, 3]
+
+
+def _describe_pose(p: np.ndarray) -> str:
+    return (f"phi {p[0]:.4g}, theta {p[1]:.4g}, psi {p[2]:.4g} deg, tx {p[3]:.4g}, ty {p[4]:.4g}, "
+            f"tz {p[5]:.4g} mm")
+
+
+def _refuse_view(cfg, subject, params: np.ndarray, visible: np.ndarray, box: np.ndarray,
+                 center: np.ndarray | None) -> None:
+    bad = np.flatnonzero(~visible)
+    if not len(bad):
+        return
+    k = int(bad[0])
+    entry = cfg.cts[subject.ct_index]
+    where = (f"the anatomy centre cts[{subject.ct_index}].center = {[float(c) for c in center]} mm"
+             if entry.center is not None else "the anatomy centre (derived from the CT)")
+    raise CampaignError(
+        f"{cfg.source}: cts[{subject.ct_index}] ({entry.path}), subject {subject.name}: pose {k} "
+        f"({_describe_pose(params[k])}) shows nothing of the CT ({len(bad)} of the subject's {len(params)} "
+        f"poses show nothing): the CT's box (LPS mm {np.round(box.min(0), 1).tolist()} to "
+        f"{np.round(box.max(0), 1).tolist()}) lies outside the field of view or behind the source. "
+        f"Check [poses] (tx, ty, tz are offsets of {where} from the isocentre) and cts[{subject.ct_index}].center")
+
+
+def check_view(cfg, subject_indices) -> None:
+    """Refuse before rendering when a pose of these subjects shows nothing of its CT.
+
+    Reads each CT's box from its header (:func:`ct_box_from_header`; DICOM folders are left to
+    the worker, which checks the loaded CT before rendering it). Without an explicit ``center``
+    the centre may lie anywhere in the CT's box, so the box of all ``X - c`` is used: a
+    campaign refused here renders blank images whatever the derived centre is.
+
+    Raises:
+        CampaignError: naming the campaign file, the ``[[cts]]`` entry, the subject and the pose.
+    """
+    from sim.scene import load_scene
+
+    geometry = load_scene(cfg.scene.name).geometry_at(*cfg.scene.size)
+    subjects = cfg.subjects()
+    boxes: dict[int, np.ndarray | None] = {}
+    for index in sorted(set(subject_indices)):
+        subject = subjects[index]
+        ci = subject.ct_index
+        if ci not in boxes:
+            boxes[ci] = ct_box_from_header(cfg.cts[ci].path)
+        box = boxes[ci]
+        if box is None:
+            continue
+        center = cfg.cts[ci].center
+        rel = (box - np.asarray(center, float) if center is not None
+               else (box[:, None, :] - box[None, :, :]).reshape(-1, 3))  # virtual patients share the grid
+        params = subject_poses(cfg, index)
+        _refuse_view(cfg, subject, params, visible_poses(rel, params, geometry), box, center)
+
+
+def check_out_path(out: Path) -> None:
+    """Refuse an output path that cannot be a campaign folder, before any work (one line each):
+    an existing file, a folder under a file, a folder that cannot be written
+    (:func:`sim.outputs.check_output_dir`), a file where the ``shards`` folder goes."""
+    from sim.outputs import check_output_dir
+
+    check_output_dir(out, (ds.MANIFEST, "pose_histogram.png"), flag="--out")
+    shards = out / ds.SHARD_DIR
+    if shards.exists() and not shards.is_dir():
+        raise CampaignError(f"--out {out}: {shards} is a file where the folder of shard files goes")
+
+
+def config_changes(old: dict, new: dict, limit: int = 6) -> str:
+    """The keys that differ between two ``CampaignConfig.to_dict()`` tables (``source`` left out),
+    as ``"campaign.images_per_ct: 6 -> 5; poses.tz.high: 75.0 -> 80.0"``."""
+    changes: list[str] = []
+
+    def walk(a, b, key: str) -> None:
+        if isinstance(a, dict) and isinstance(b, dict):
+            for k in sorted(set(a) | set(b), key=str):
+                if key == "" and k == "source":
+                    continue
+                sub = f"{key}.{k}" if key else str(k)
+                if k not in a:
+                    changes.append(f"{sub}: (absent) -> {b[k]!r}")
+                elif k not in b:
+                    changes.append(f"{sub}: {a[k]!r} -> (absent)")
+                else:
+                    walk(a[k], b[k], sub)
+        elif isinstance(a, list) and isinstance(b, list) and len(a) == len(b):
+            for i, (x, y) in enumerate(zip(a, b)):
+                walk(x, y, f"{key}[{i}]")
+        elif a != b:
+            changes.append(f"{key}: {a!r} -> {b!r}")
+
+    walk(old, new, "")
+    if not changes:
+        return "no key differs (the config hash recipe changed?)"
+    more = f"; and {len(changes) - limit} more" if len(changes) > limit else ""
+    return "; ".join(changes[:limit]) + more
+
+
+class _RunLock:
+    """``flock`` on :data:`LOCK_FILE`: exclusive for a whole run, shared for a part."""
+
+    def __init__(self, out: Path, shared: bool):
+        self.path, self.shared, self.fd = out / LOCK_FILE, shared, None
+
+    def __enter__(self):
+        import fcntl
+
+        fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o666)
+        try:
+            fcntl.flock(fd, (fcntl.LOCK_SH if self.shared else fcntl.LOCK_EX) | fcntl.LOCK_NB)
+        except BlockingIOError:
+            os.close(fd)
+            raise CampaignError(
+                f"{self.path.parent}: another `ctxreg simulate` is writing into this folder (the whole "
+                "campaign, or parts of it while this is a whole run); wait for it to end or stop it, "
+                "then run again with --resume") from None
+        except OSError:  # a file system without locks (some network mounts): go on unlocked
+            pass
+        self.fd = fd
+        return self
+
+    def __exit__(self, *exc):
+        if self.fd is not None:
+            os.close(self.fd)  # releases the lock
+            self.fd = None
 
 
 # ----------------------------------------------------------------------------- worker side
@@ -141,6 +353,10 @@ class SubjectContext:
                                                             mu_water_per_mm=first.mu_water_per_mm),
                                     center_lps=center)
         self.poses = subject_poses(cfg, subject.index)
+        any_renderer = next(iter(self.renderers.values()))
+        box = volume.corners_lps()
+        _refuse_view(cfg, subject, self.poses, visible_poses(box - center, self.poses, any_renderer.geometry),
+                     box, center)
 
     def metadata(self) -> dict:
         return {
@@ -154,9 +370,36 @@ class SubjectContext:
 _worker_cfg = None
 _worker_ctx: SubjectContext | None = None
 
+#: ``prctl`` option: the signal a process gets when its parent dies (Linux).
+_PR_SET_PDEATHSIG = 1
 
-def _init_worker(cfg) -> None:
+
+def _die_with_parent(parent_pid: int) -> None:
+    """Make this worker die with the process that started it.
+
+    Linux: ``prctl(PR_SET_PDEATHSIG, SIGKILL)``. Everywhere: exit at once if the parent is
+    already gone, and a daemon thread that exits within a second once it is.
+    """
+    if sys.platform.startswith("linux"):
+        import ctypes
+
+        with contextlib.suppress(OSError, AttributeError):
+            ctypes.CDLL(None, use_errno=True).prctl(_PR_SET_PDEATHSIG, int(signal.SIGKILL), 0, 0, 0)
+    if os.getppid() != parent_pid:  # died before the prctl
+        os._exit(1)
+
+    def watch() -> None:
+        while os.getppid() == parent_pid:
+            time.sleep(1.0)
+        os._exit(1)
+
+    threading.Thread(target=watch, name="ctxreg-parent-watch", daemon=True).start()
+
+
+def _init_worker(cfg, parent_pid: int | None = None) -> None:
     global _worker_cfg, _worker_ctx
+    if parent_pid is not None:
+        _die_with_parent(parent_pid)
     _worker_cfg, _worker_ctx = cfg, None
 
 
@@ -180,6 +423,13 @@ def render_unit(cfg, unit: Unit, out: Path) -> dict:
             arrays[f"images/{name}"] = renderer.render(poses, seed=int(rng.integers(2**63)))
         else:
             arrays[f"images/{name}"] = renderer.render(poses)
+    for k, p in enumerate(cfg.physics):
+        if p.level == "line" and not np.any(arrays[f"images/{p.name}"]):
+            raise CampaignError(
+                f"{cfg.source}: cts[{ctx.subject.ct_index}] ({cfg.cts[ctx.subject.ct_index].path}), subject "
+                f"{ctx.subject.name}: all {len(params)} images of shard {unit.name} (poses {unit.start} to "
+                f"{unit.stop - 1}, e.g. {_describe_pose(params[0])}) are zero: the rays miss everything "
+                f"but air; check [poses] and cts[{ctx.subject.ct_index}].center")
     proj = any_renderer.projection_matrix(poses)
     arrays.update(pose=poses, params=params, projection=proj,
                   image_index=np.arange(unit.start, unit.stop, dtype=np.int64))
@@ -250,12 +500,20 @@ def run_campaign(cfg, out: str | os.PathLike, *, workers: int = 1, resume: bool 
                  shard: tuple[int, int] | None = None, progress: bool = True) -> dict:
     """Run (or resume) a campaign into ``out``; returns the manifest written.
 
+    Everything that can be checked is checked before anything is written: the output path,
+    the folder's earlier runs (same campaign, ``resume``), a concurrent run (:data:`LOCK_FILE`)
+    and the view of every pose to render (:func:`check_view`). SIGTERM stops the run (and its
+    workers) with a :class:`CampaignError`; finished shards are kept for ``resume``.
+
     Raises:
-        CampaignError: ``out`` holds another campaign or files without ``resume``; a worker died.
+        CampaignError: ``out`` is a file or cannot be made; it holds another campaign (naming the
+            keys that changed) or files without ``resume``; another run writes into it; a pose
+            shows nothing of its CT; a worker died; SIGTERM.
     """
     out = Path(out)
-    if workers < 1:
-        raise CampaignError(f"--workers must be >= 1, got {workers}")
+    if isinstance(workers, bool) or not isinstance(workers, int) or not 1 <= workers <= MAX_WORKERS:
+        raise CampaignError(f"--workers must be an integer in [1, {MAX_WORKERS}], got {workers}")
+    check_out_path(out)
     manifest_path = out / ds.MANIFEST
     if out.exists() and any(out.iterdir()) and not resume:
         raise CampaignError(f"{out} is not empty: use --resume to continue a run there, or another --out")
@@ -263,15 +521,25 @@ def run_campaign(cfg, out: str | os.PathLike, *, workers: int = 1, resume: bool 
         old = ds.read_manifest(out, existing.name)
         if old["config_hash"] != cfg.config_hash():
             raise CampaignError(f"{existing} belongs to a different campaign (config hash "
-                                f"{old['config_hash'][:12]} != {cfg.config_hash()[:12]}): the campaign "
-                                "file changed since that run; use another --out")
+                                f"{old['config_hash'][:12]} != {cfg.config_hash()[:12]}); changed since that "
+                                f"run: {config_changes(old.get('config', {}), cfg.to_dict())}; use another "
+                                "--out, or undo the change to continue")
+    all_units = plan_units(cfg)
+    units = all_units if shard is None else all_units[shard[0] - 1::shard[1]]
+    mine = None if shard is None else {u.name for u in units}
+    finished = {k: v for k, v in ds.finished_shards(out).items() if mine is None or k in mine}
+    check_view(cfg, {u.subject for u in units if u.name not in finished})
     out.mkdir(parents=True, exist_ok=True)
+    with _RunLock(out, shared=shard is not None), _stop_on_sigterm(out):
+        return _run_locked(cfg, out, manifest_path, all_units, units, workers, shard, progress)
+
+
+def _run_locked(cfg, out: Path, manifest_path: Path, all_units: list[Unit], units: list[Unit], workers: int,
+                shard: tuple[int, int] | None, progress: bool) -> dict:
     manifest = _base_manifest(cfg)
     if manifest_path.is_file():  # keep what earlier runs learnt about subjects
         old_subjects = {s["index"]: s for s in ds.read_manifest(out)["subjects"]}
         manifest["subjects"] = [old_subjects.get(s["index"], s) for s in manifest["subjects"]]
-    all_units = plan_units(cfg)
-    units = all_units if shard is None else all_units[shard[0] - 1::shard[1]]
     ds.remove_partial_files(out, only=None if shard is None else {u.name for u in units})
     done = ds.finished_shards(out)
     by_name = {u.name: u for u in all_units}
@@ -283,14 +551,37 @@ def run_campaign(cfg, out: str | os.PathLike, *, workers: int = 1, resume: bool 
     todo = [u for u in units if u.name not in done]
     target = out / (ds.MANIFEST if shard is None else f"manifest.part{shard[0]}-of-{shard[1]}.json")
 
-    def record(result: dict) -> None:
-        manifest["shards"][result["shard"]] = result["entry"]
-        manifest["subjects"][result["subject"]["index"]] = result["subject"]
+    last_write, pending = 0.0, 0  # when the manifest was last written; shards recorded since
+
+    def write_manifest() -> None:
+        nonlocal last_write, pending
         _finish(manifest, all_units)
         write_json(target, manifest)
+        last_write, pending = time.monotonic(), 0
 
-    _finish(manifest, all_units)
-    write_json(target, manifest)
+    def record(result: dict) -> None:
+        nonlocal pending
+        manifest["shards"][result["shard"]] = result["entry"]
+        manifest["subjects"][result["subject"]["index"]] = result["subject"]
+        pending += 1
+        # rewriting a manifest of n shards after each of n shards is quadratic: at most every
+        # MANIFEST_EVERY_S seconds (resume rebuilds it from the shard files anyway), and at the end
+        if time.monotonic() - last_write >= MANIFEST_EVERY_S:
+            write_manifest()
+
+    write_manifest()
+    try:
+        _render_all(cfg, out, todo, units, workers, record, progress)
+    finally:
+        if pending:
+            write_manifest()
+    if shard is None and manifest["complete"]:
+        _pose_histogram(cfg, out)
+    return manifest
+
+
+def _render_all(cfg, out: Path, todo: list[Unit], units: list[Unit], workers: int, record, progress: bool) -> None:
+    """Render the units ``todo`` (of ``units``, this run's share), calling ``record`` with each result."""
     total = sum(u.stop - u.start for u in units)
     bar = Progress(total, total - sum(u.stop - u.start for u in todo), cfg.name) if progress else None
     if workers == 1 or len(todo) <= 1:
@@ -301,20 +592,59 @@ def run_campaign(cfg, out: str | os.PathLike, *, workers: int = 1, resume: bool 
     else:
         import multiprocessing as mp
 
-        with ProcessPoolExecutor(max_workers=workers, mp_context=mp.get_context("spawn"),
-                                 initializer=_init_worker, initargs=(cfg,)) as pool:
+        pool = ProcessPoolExecutor(max_workers=min(workers, len(todo)), mp_context=mp.get_context("spawn"),
+                                   initializer=_init_worker, initargs=(cfg, os.getpid()))
+        try:
             futures = {pool.submit(_worker_unit, u, str(out)): u for u in todo}
-            try:
-                for fut in as_completed(futures):
-                    record(fut.result())
-                    if bar:
-                        bar.update(futures[fut].stop - futures[fut].start)
-            except BrokenProcessPool:
-                raise CampaignError("a worker process died (killed or out of memory); finished shards "
-                                    f"are kept in {out}: rerun with --resume") from None
-    if shard is None and manifest["complete"]:
-        _pose_histogram(cfg, out)
-    return manifest
+            for fut in as_completed(futures):
+                record(fut.result())
+                if bar:
+                    bar.update(futures[fut].stop - futures[fut].start)
+        except BrokenProcessPool:
+            _stop_pool(pool)
+            raise CampaignError("a worker process died (killed or out of memory); finished shards "
+                                f"are kept in {out}: rerun with --resume") from None
+        except BaseException:  # an error, SIGTERM or Ctrl-C: no worker may go on writing
+            _stop_pool(pool)
+            raise
+        pool.shutdown(wait=True)
+
+
+def _stop_pool(pool: ProcessPoolExecutor, timeout_s: float = 5.0) -> None:
+    """Cancel the queued units and end the worker processes now (SIGTERM, then SIGKILL)."""
+    procs = list((getattr(pool, "_processes", None) or {}).values())
+    for p in procs:
+        with contextlib.suppress(OSError, ValueError):
+            p.terminate()
+    deadline = time.monotonic() + timeout_s
+    for p in procs:
+        with contextlib.suppress(OSError, ValueError):
+            p.join(max(deadline - time.monotonic(), 0.0))
+            if p.is_alive():
+                p.kill()
+                p.join(1.0)
+    pool.shutdown(wait=False, cancel_futures=True)
+
+
+@contextlib.contextmanager
+def _stop_on_sigterm(out: Path):
+    """While the run lasts, SIGTERM raises a :class:`CampaignError` in the main thread (so the
+    workers are stopped and temporary files removed) instead of killing the process. Left
+    alone when not in the main thread or when the program has its own SIGTERM handler."""
+    if threading.current_thread() is not threading.main_thread() or \
+            signal.getsignal(signal.SIGTERM) is not signal.SIG_DFL:
+        yield
+        return
+
+    def handler(signum, frame):
+        signal.signal(signal.SIGTERM, signal.SIG_DFL)  # a second SIGTERM kills at once
+        raise CampaignError(f"stopped by SIGTERM; finished shards are kept in {out}: rerun with --resume")
+
+    signal.signal(signal.SIGTERM, handler)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, signal.SIG_DFL)
 
 
 def _finish(manifest: dict, all_units: list[Unit]) -> None:
@@ -332,7 +662,12 @@ def _finish(manifest: dict, all_units: list[Unit]) -> None:
 
 
 def _pose_histogram(cfg, out: Path) -> None:
+    """The histogram of every sampled pose, or of the first poses of every subject when the
+    campaign has more than :data:`HISTOGRAM_POSES` (a subject's first ``m`` poses do not depend
+    on how many it has)."""
     from sim.campaign.poses import pose_histogram
 
-    params = np.concatenate([subject_poses(cfg, s.index) for s in cfg.subjects()])
+    subjects = cfg.subjects()
+    m = min(cfg.images_per_ct, max(1, HISTOGRAM_POSES // len(subjects)))
+    params = np.concatenate([cfg.poses.sample(rng_for(cfg.seed, KIND_POSES, s.index), m) for s in subjects])
     pose_histogram(params, cfg.poses, out / "pose_histogram.png")

@@ -195,10 +195,10 @@ def test_detector_and_spectrum_keys_round_trip_and_old_entries_keep_their_hash(t
                                  'anode_angle_deg = 10.0\nbins = 20\ndetector_mm = 0.5\ndetector_mode = "counting"\n'
                                  "blur_mm = 0.2\nelectronic_noise = 3.0\nscatter_voxel_mm = 8.0\n"))
     p = custom.physics[0]
-    assert (p.anode_angle_deg, p.n_bins, p.detector_mm, p.detector_mode, p.blur_mm, p.electronic_noise,
+    assert (p.anode_angle_deg, p.bins, p.detector_mm, p.detector_mode, p.blur_mm, p.electronic_noise,
             p.scatter_voxel_mm) == (10.0, 20, 0.5, "counting", 0.2, 3.0, 8.0)
     settings = p.settings()
-    assert (settings.n_bins, settings.detector_mode, settings.scatter_voxel_mm) == (20, "counting", 8.0)
+    assert (settings.bins, settings.detector_mode, settings.scatter_voxel_mm) == (20, "counting", 8.0)
     assert custom.config_hash() != plain.config_hash()
     back = parse_campaign(json.loads(json.dumps(custom.to_dict())), base_dir=tmp_path, source=custom.source)
     assert back == custom and back.config_hash() == custom.config_hash()
@@ -338,19 +338,44 @@ BAD = {
                             [r"scene\.size", r"\[rows, cols\]", r"\[64, 64, 3\]"]),
     "size off aspect": (dict(rest="[scene]\nsize = [64, 32]\n"), [r"scene\.size", r"aspect", r"1536 x 1536"]),
     "unknown scene": (dict(rest='[scene]\nname = "cios"\n'), [r"scene\.name", r"cios_fusion"]),
-    "negative images_per_ct": (dict(n="-3"), [r"campaign\.images_per_ct", r">= 1", r"-3"]),
-    "float seed": (dict(campaign="seed = 1.5"), [r"campaign\.seed", r"integer >= 0"]),
+    "negative images_per_ct": (dict(n="-3"), [r"campaign\.images_per_ct", r"in \[1, 1000000\]", r"-3"]),
+    "float seed": (dict(campaign="seed = 1.5"), [r"campaign\.seed", r"integer in \[0, 9223372036854775807\]"]),
+    # declared ranges: a value that would hang or exhaust memory is refused with key, value, range
+    "images_per_ct huge": (dict(n="99999999999999999999"),
+                           [r"campaign\.images_per_ct", r"in \[1, 1000000\]", r"got 99999999999999999999"]),
+    "seed beyond int64": (dict(campaign="seed = 9223372036854775808"),
+                          [r"campaign\.seed", r"in \[0, 9223372036854775807\]", r"9223372036854775808"]),
+    "shard_size huge": (dict(campaign="shard_size = 100001"), [r"campaign\.shard_size", r"in \[1, 100000\]"]),
+    "size huge": (dict(rest="[scene]\nsize = [8192, 8192]\n"), [r"scene\.size\[0\]", r"in \[1, 4096\]", r"8192"]),
+    "shard too large for memory": (dict(n="1000", campaign="shard_size = 1000", rest="[scene]\nsize = [2048, 2048]\n"),
+                                   [r"campaign\.shard_size", r"1000 images of 2048 x 2048", r"15\.6 GiB",
+                                    r"at most 4 GiB", r"at most 256$"]),
+    "too many shard files": (dict(n="1000", campaign="shard_size = 1", cts="virtual_patients = 1000"),
+                             [r"campaign\.shard_size", r"1001 subjects x 1000 shards", r"1001000 shard files",
+                              r"more than 1000000"]),
+    "center far away": (dict(cts="center = [1e6, 0.0, 0.0]"),
+                        [r"cts\[0\]\.center\[0\]", r"\[-100000, 100000\] mm", r"1000000"]),
+    "virtual patients huge": (dict(cts="virtual_patients = 10001"),
+                              [r"cts\[0\]\.virtual_patients", r"in \[0, 10000\]", r"10001"]),
+    "pose offset huge": (dict(rest='[poses]\ntx = { dist = "uniform", low = -1e300, high = 1e300 }\n'),
+                         [r"poses\.tx\.low", r"\[-10000, 10000\] mm", r"-1e\+300"]),
+    "pose angle huge": (dict(rest='[poses]\nphi = { dist = "fixed", value = 1000.0 }\n'),
+                        [r"poses\.phi\.value", r"\[-360, 360\] deg", r"1000"]),
+    "pose std huge": (dict(rest='[poses]\ntz = { dist = "normal", mean = 0.0, std = 1e9 }\n'),
+                      [r"poses\.tz\.std", r"\(0, 20000\] mm"]),
+    "pose clip huge": (dict(rest='[poses]\nty = { dist = "normal", mean = 0.0, std = 5.0, clip = [-1e5, 10.0] }\n'),
+                       [r"poses\.ty\.clip\[0\]", r"\[-10000, 10000\] mm"]),
     "duplicate physics": (dict(rest='[[physics]]\nname = "x"\n[[physics]]\nname = "x"\nray_model = "trilinear"\n'),
                           [r"physics\[1\]\.name", r"duplicate", r"'x'", r"physics\[0\]"]),
     "bad physics name": (dict(rest='[[physics]]\nname = "Line-1"\n'), [r"physics\[0\]\.name", r"\[a-z0-9_\]\+"]),
     "ray model": (dict(rest='[[physics]]\nray_model = "joseph"\n'), [r"physics\[0\]\.ray_model", r"siddon, trilinear"]),
-    "step fraction": (dict(rest='[[physics]]\nstep_fraction = 0.0\n'), [r"physics\[0\]\.step_fraction", r"\(0, 1\]"]),
+    "step fraction": (dict(rest='[[physics]]\nstep_fraction = 0.01\n'), [r"physics\[0\]\.step_fraction", r"\[0.05, 1\]"]),
     "missing CT": (dict(ct_path="nowhere/ct.nii.gz"),
                    [r"cts\[0\]\.path", r"CT not found", r"nowhere/ct\.nii\.gz"]),
     "bad phantom seed": (dict(ct_path="phantom:-1"), [r"cts\[0\]\.path", r"integer >= 0"]),
     "duplicate CT": (dict(cts='[[cts]]\npath = "phantom:0"\n'), [r"cts\[1\]\.path", r"cts\[0\]"]),
     "unknown CT key": (dict(cts="virtual_patient = 2"), [r"cts\[0\]\.virtual_patient", r"did you mean 'virtual_patients'"]),
-    "negative virtual patients": (dict(cts="virtual_patients = -1"), [r"cts\[0\]\.virtual_patients", r">= 0"]),
+    "negative virtual patients": (dict(cts="virtual_patients = -1"), [r"cts\[0\]\.virtual_patients", r"in \[0, 10000\]"]),
     "held out more than there are": (dict(cts="virtual_patients = 2\nheld_out_virtual_patients = { val = 3 }"),
                                      [r"cts\[0\]\.held_out_virtual_patients", r"holds out 3", r"virtual_patients = 2"]),
     "held out to an unknown split": (dict(cts="virtual_patients = 2\nheld_out_virtual_patients = { dev = 1 }"),
@@ -363,7 +388,7 @@ BAD = {
                               [r"physics\[0\]\.detector_mode", r"'hybrid'", r"integrating, counting"]),
     "bins on a line entry": (dict(rest='[[physics]]\nname = "p"\nbins = 20\n'), [r"physics\[0\]\.bins", r"only for level"]),
     "too many bins": (dict(rest='[[physics]]\nname = "p"\nlevel = "poly"\nbins = 5000\n'),
-                      [r"physics\[0\]", r"energy bins must be an integer in \[1, 1000\]"]),
+                      [r"physics\[0\]\.bins: must be an integer in \[1, 1000\]"]),
     "scatter voxel on a poly entry": (dict(rest='[[physics]]\nname = "p"\nlevel = "poly"\nscatter_voxel_mm = 4.0\n'),
                                       [r"physics\[0\]\.scatter_voxel_mm", r'only for level = "full"']),
     "negative blur": (dict(rest='[[physics]]\nname = "p"\nlevel = "poly"\nblur_mm = -1.0\n'),

@@ -1,9 +1,12 @@
-"""Campaign runs: determinism, resume after kill -9, parts of the work, splits, the reader."""
+"""Campaign runs: determinism, resume after kill -9, parts of the work, splits, the reader; and the
+refusals before any work (output path, another campaign, a busy folder, a CT out of view), workers
+that die with their parent, and shards checked before they are read."""
 
 from __future__ import annotations
 
 import json
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -312,3 +315,309 @@ def test_a_part_cleans_up_only_its_own_files(tmp_path):
     assert ds.remove_partial_files(tmp_path, only={mine}) == 1
     assert sorted(p.name for p in shard_dir.iterdir()) == sorted([f".{theirs}.def.tmp.h5", theirs])
     assert ds.remove_partial_files(tmp_path) == 2  # a whole-campaign run cleans everything
+
+
+# ----------------------------------------------------------------------------- robustness (issue 14)
+def _alive(pid: int) -> bool:
+    """A process exists and is not a zombie (a dead child waiting to be reaped)."""
+    try:
+        state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+    except (OSError, IndexError):
+        return False
+    return state != "Z"
+
+
+def _copy(ref_out: Path, dest: Path) -> Path:
+    import shutil
+
+    shutil.copytree(ref_out, dest)
+    return dest
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(not Path("/proc/self/task").is_dir(), reason="needs Linux /proc to find the workers")
+@pytest.mark.parametrize("sig", ["SIGKILL", "SIGTERM"])
+def test_workers_die_with_their_parent_and_resume_finishes_exactly(reference, small_cts, tmp_path, sig):
+    """Kill only the parent of `simulate --workers 2`: no worker may survive and go on writing."""
+    _, ref_out, _ = reference
+    camp = write_campaign(tmp_path, small_cts)
+    out = tmp_path / "out"
+    err_file = tmp_path / "stderr.txt"
+    with open(err_file, "w") as err:  # not a pipe: a surviving worker would hold it open
+        proc = subprocess.Popen([sys.executable, "-m", "register.cli", "simulate", str(camp), "--out", str(out),
+                                 "--workers", "2"], cwd=REPO, stdout=subprocess.DEVNULL, stderr=err,
+                                start_new_session=True)
+    kids: list[int] = []
+    try:
+        t0 = time.monotonic()
+        while not list((out / ds.SHARD_DIR).glob("*.sha256")) and time.monotonic() - t0 < 120:
+            time.sleep(0.05)
+        kids = _children(proc.pid)
+        workers = [k for k in kids if b"spawn_main" in Path(f"/proc/{k}/cmdline").read_bytes()]
+        if len(workers) < 2 or proc.poll() is not None:
+            pytest.skip("the run finished before both workers could be seen")
+        os.kill(proc.pid, getattr(signal, sig))
+        proc.wait(timeout=60)
+        t0 = time.monotonic()
+        while any(_alive(k) for k in kids) and time.monotonic() - t0 < 5:
+            time.sleep(0.05)
+        assert not [k for k in kids if _alive(k)], "a worker outlived its parent"
+        shards = sorted(p.name for p in (out / ds.SHARD_DIR).glob("*.sha256"))
+        time.sleep(1.0)
+        assert sorted(p.name for p in (out / ds.SHARD_DIR).glob("*.sha256")) == shards  # nobody writes on
+        if sig == "SIGTERM":  # the parent stops the pool and says what to do, in one line
+            text = err_file.read_text()
+            assert proc.returncode == 2, text
+            assert "stopped by SIGTERM" in text and "--resume" in text and "Traceback" not in text, text
+    finally:
+        for pid in [proc.pid, *kids]:  # clean up after a failure: only the processes this test started
+            if _alive(pid):
+                os.kill(pid, signal.SIGKILL)
+    r = run_cli("simulate", camp, "--out", out, "--resume", timeout=600)
+    assert r.returncode == 0, r.stderr
+    assert checksums(out) == checksums(ref_out)
+    assert not [p.name for p in (out / ds.SHARD_DIR).iterdir() if ".tmp" in p.name]
+
+
+def test_a_corrupt_or_truncated_shard_is_refused_when_first_used(reference, tmp_path):
+    """No verify=True needed: the reader checks each shard before it uses its data, and says how to fix it."""
+    cfg, ref_out, _ = reference
+    out = _copy(ref_out, tmp_path / "out")
+    shards = sorted((out / ds.SHARD_DIR).glob("*.h5"))
+    data = bytearray(shards[3].read_bytes())
+    data[len(data) // 2] ^= 0xFF
+    shards[3].write_bytes(bytes(data))
+    shards[5].write_bytes(shards[5].read_bytes()[:-100])
+    with ds.open_dataset(out) as reader:  # opening reads only the manifest
+        assert reader[0]["images"]["line"].shape == (48, 48)  # shard 0 is fine
+        first = {ref.name: int(reader._offsets[k]) for k, ref in enumerate(reader._refs)}
+        with pytest.raises(ds.DatasetError) as info:
+            reader[first[shards[3].name]]
+        msg = str(info.value)
+        assert str(shards[3]) in msg and "checksum mismatch" in msg, msg
+        assert f"ctxreg simulate {cfg.source} --out {out} --resume" in msg, msg
+        with pytest.raises(ds.DatasetError, match=rf"{shards[5].name}: truncated \(\d+ bytes, the manifest says"):
+            reader[first[shards[5].name] + 1]
+        with pytest.raises(ds.DatasetError, match="checksum mismatch"):
+            reader.arrays("params")  # every way in is checked
+
+
+def test_each_shard_is_hashed_once_per_process(reference, tmp_path, monkeypatch):
+    _, ref_out, _ = reference
+    out = _copy(ref_out, tmp_path / "out")
+    calls = []
+    real = ds.sha256_file
+    monkeypatch.setattr(ds, "sha256_file", lambda p, *a: calls.append(Path(p).name) or real(p, *a))
+    for _ in range(2):  # two readers of one folder, every image read
+        with ds.open_dataset(out) as reader:
+            for i in range(len(reader)):
+                reader[i]
+    assert sorted(calls) == sorted(p.name for p in (out / ds.SHARD_DIR).glob("*.h5"))
+    victim = sorted((out / ds.SHARD_DIR).glob("*.h5"))[0]
+    victim.write_bytes(victim.read_bytes())  # rewritten: hashed again
+    ds.open_dataset(out, verify=True).close()
+    assert calls.count(victim.name) == 2
+
+
+def test_resume_removes_stale_temporaries_and_re_renders_a_truncated_shard(reference, small_cts, tmp_path):
+    import subprocess as sp
+
+    from sim.atomic import _host
+    from sim.campaign.runner import run_campaign
+
+    _, ref_out, _ = reference
+    out = _copy(ref_out, tmp_path / "out")
+    p = sp.Popen([sys.executable, "-c", "pass"])
+    p.wait()
+    stale = [out / f".manifest.json.{p.pid}@{_host()}-abcd1234.tmp.json",
+             out / ds.SHARD_DIR / f".s0000_00000.h5.{p.pid}@{_host()}-abcd1234.tmp.h5"]
+    for f in stale:
+        f.write_bytes(b"left by a killed run")
+    victim = sorted((out / ds.SHARD_DIR).glob("*.h5"))[4]
+    victim.write_bytes(victim.read_bytes()[: victim.stat().st_size // 2])
+    run_campaign(load(write_campaign(tmp_path, small_cts)), out, resume=True, progress=False)
+    assert not any(f.exists() for f in stale)
+    assert checksums(out) == checksums(ref_out)
+    ds.open_dataset(out, verify=True).close()
+
+
+def test_resume_of_another_campaign_names_the_keys_that_changed(reference, small_cts, tmp_path):
+    from sim.campaign.runner import CampaignError, run_campaign
+
+    _, ref_out, _ = reference
+    other = load(write_campaign(tmp_path, small_cts, n=5, shard=3))
+    with pytest.raises(CampaignError) as info:
+        run_campaign(other, ref_out, resume=True, progress=False)
+    msg = str(info.value)
+    assert "different campaign" in msg
+    assert "campaign.images_per_ct: 6 -> 5" in msg and "campaign.shard_size: 2 -> 3" in msg, msg
+    assert "source" not in msg.split("changed since that run:")[1]  # where the file lives is no change
+
+
+def test_an_output_path_that_cannot_be_a_folder_is_refused_before_any_work(reference, tmp_path):
+    from sim.campaign.runner import run_campaign
+    from sim.errors import InputError
+
+    cfg, _, _ = reference
+    a_file = tmp_path / "a_file"
+    a_file.write_text("x")
+    for out, pattern in [(a_file, "is an existing file"), (a_file / "sub", "a_file is an existing file")]:
+        with pytest.raises(InputError, match=pattern):
+            run_campaign(cfg, out, progress=False)
+    assert a_file.read_text() == "x"
+    (tmp_path / "o" / ds.SHARD_DIR).parent.mkdir()
+    (tmp_path / "o" / ds.SHARD_DIR).write_text("x")
+    with pytest.raises(InputError, match="is a file where the folder of shard files goes"):
+        run_campaign(cfg, tmp_path / "o", resume=True, progress=False)
+    r = run_cli("simulate", cfg.source, "--out", a_file / "sub")
+    assert r.returncode == 2 and r.stderr.count("\n") == 1 and "a_file is an existing file" in r.stderr, r.stderr
+    for bad in (0, 1000, True):
+        with pytest.raises(InputError, match=r"--workers must be an integer in \[1, 256\]"):
+            run_campaign(cfg, tmp_path / "w", workers=bad, progress=False)
+    assert not (tmp_path / "w").exists()
+
+
+OUT_OF_VIEW = {
+    "offset": ('[poses]\ntx = { dist = "uniform", low = 1500.0, high = 2000.0 }\n', "",
+               [r"pose 0 \(phi [-\d.]+, theta [-\d.]+, psi [-\d.]+ deg, tx 1[5-9]\d\d",
+                r"\(6 of the subject's 6 poses show nothing\)",
+                r"derived from the CT"]),
+    "behind the source": ('[poses]\ntz = { dist = "fixed", value = -2000.0 }\n', "",
+                          [r"tz -2000 mm", r"behind the source"]),
+    "centre": ("", "center = [3000.0, 0.0, 0.0]", [r"cts\[0\]\.center = \[3000\.0, 0\.0, 0\.0\] mm"]),
+}
+
+
+@pytest.mark.parametrize("case", list(OUT_OF_VIEW), ids=list(OUT_OF_VIEW))
+def test_a_ct_out_of_view_is_refused_before_any_work(small_cts, tmp_path, case):
+    """Poses or a centre that put the CT out of the picture would render blank images: refused at once."""
+    from sim.campaign.runner import CampaignError, run_campaign
+
+    poses, center, patterns = OUT_OF_VIEW[case]
+    text = CAMPAIGN.format(name="t", n=6, shard=2, ct0=small_cts[0], ct1=small_cts[1], vp=1)
+    text = text.replace('[[cts]]\npath = "%s"\n' % small_cts[0], '[[cts]]\npath = "%s"\n%s\n' % (small_cts[0], center))
+    path = tmp_path / "far.toml"
+    path.write_text(text + poses)
+    cfg = load(path)
+    t0 = time.monotonic()
+    with pytest.raises(CampaignError) as info:
+        run_campaign(cfg, tmp_path / "out", progress=False)
+    assert time.monotonic() - t0 < 5  # nothing loaded or rendered
+    msg = str(info.value)
+    assert msg.startswith(f"{path}: cts[0] ({small_cts[0]}), subject ct000_phantom1: pose 0 ("), msg
+    for pat in patterns:
+        assert re.search(pat, msg), (pat, msg)
+    assert not (tmp_path / "out").exists()
+
+
+def test_view_check_matches_the_renderer(small_cts):
+    """visible_poses says 'nothing' exactly where a render is all zero (for these poses), and
+    the header box equals the loaded CT's box."""
+    from sim.campaign.runner import ct_box_from_header, visible_poses
+    from sim.ct_io import load_ct
+    from sim.geometry import pose_from_params
+    from sim.render import DRRRenderer, RenderSettings
+
+    from sim.phantom import make_pelvis_phantom
+
+    np.testing.assert_allclose(ct_box_from_header("phantom:3"), make_pelvis_phantom(3).corners_lps(), atol=1e-9)
+    assert ct_box_from_header("/data/ct_series_folder") is None  # DICOM: checked by the worker once loaded
+    vol = load_ct(small_cts[0])
+    np.testing.assert_allclose(ct_box_from_header(str(small_cts[0])), vol.corners_lps(), atol=1e-6)
+    r = DRRRenderer(vol, RenderSettings(size=(48, 48)), center_lps=vol.center_of_box_lps())
+    params = np.array([[0, 0, 0, 0, 0, 0], [0, 0, 0, 200, 0, 0], [0, 0, 0, 2000, 0, 0], [30, 0, 0, 0, -2500, 0],
+                       [0, 0, 0, 0, 0, -900], [0, 0, 0, 0, 0, 3000], [0, 0, 0, 0, 0, -560], [0, 0, 0, 400, 0, 0]],
+                      dtype=float)  # centre, box edge in view, far aside, behind the source, beyond the
+    # detector (rays go on), box straddling the source plane, box just out of view
+    seen = visible_poses(vol.corners_lps() - vol.center_of_box_lps(), params, r.geometry)
+    blank = [not r.render(pose_from_params(p, r.geometry.sod_mm))[0].any() for p in params]
+    assert seen.tolist() == [True, True, False, False, False, True, True, False]
+    assert [not s for s in seen] == blank
+
+
+def test_the_worker_checks_the_view_of_a_ct_it_loads(reference, tmp_path, monkeypatch):
+    """A CT whose box the parent cannot read from a header (a DICOM folder) is checked when loaded."""
+    from sim.campaign import runner
+
+    cfg, _, _ = reference
+    far = cfg.poses.__class__.from_dict({"ty": {"dist": "fixed", "value": 3000.0}})
+    monkeypatch.setattr(runner, "ct_box_from_header", lambda path: None)
+    import dataclasses
+
+    cfg_far = dataclasses.replace(cfg, poses=far)
+    with pytest.raises(runner.CampaignError, match=r"subject ct000_phantom1: pose 0 \(.*ty 3000, tz"):
+        runner.run_campaign(cfg_far, tmp_path / "out", progress=False)
+    assert not list((tmp_path / "out" / ds.SHARD_DIR).glob("*.h5"))
+
+
+def test_a_shard_of_blank_images_is_refused(reference, tmp_path, monkeypatch):
+    """The last guard: images that are all zero are never written as a dataset."""
+    import dataclasses
+
+    from sim.campaign import runner
+
+    cfg, _, _ = reference
+    cfg_far = dataclasses.replace(cfg, poses=cfg.poses.__class__.from_dict({"tx": {"dist": "fixed", "value": 3000.0}}))
+    monkeypatch.setattr(runner, "check_view", lambda cfg, subjects: None)
+    monkeypatch.setattr(runner, "visible_poses", lambda box, params, geometry: np.ones(len(params), bool))
+    with pytest.raises(runner.CampaignError, match=r"all 2 images of shard s0000_00000\.h5 .* are zero"):
+        runner.run_campaign(cfg_far, tmp_path / "out", progress=False)
+    assert not list((tmp_path / "out" / ds.SHARD_DIR).glob("*.h5"))
+
+
+def test_a_second_run_into_a_busy_folder_is_refused(reference, small_cts, tmp_path):
+    """A run of the whole campaign locks its folder; parts share it with each other only."""
+    import fcntl
+
+    from sim.campaign.runner import LOCK_FILE, CampaignError, run_campaign
+
+    _, ref_out, _ = reference
+    out = _copy(ref_out, tmp_path / "out")
+    cfg = load(write_campaign(tmp_path, small_cts))
+    with open(out / LOCK_FILE, "w") as f:
+        fcntl.flock(f, fcntl.LOCK_SH)  # a part is running
+        with pytest.raises(CampaignError, match="another `ctxreg simulate` is writing into this folder"):
+            run_campaign(cfg, out, resume=True, progress=False)
+        assert run_campaign(cfg, out, resume=True, shard=(1, 3), progress=False)["counts"]["shards"] == 9
+        fcntl.flock(f, fcntl.LOCK_EX)  # a whole run is running
+        with pytest.raises(CampaignError, match="another `ctxreg simulate`"):
+            run_campaign(cfg, out, resume=True, shard=(1, 3), progress=False)
+    assert run_campaign(cfg, out, resume=True, progress=False)["complete"]
+
+
+def test_the_workers_option_declares_the_runner_limit():
+    from dataclasses import fields
+
+    from sim.campaign.runner import MAX_WORKERS
+    from sim.cli import SimulateCommand
+
+    bounds = {f.name: f for f in fields(SimulateCommand)}["workers"].metadata["bounds"]
+    assert (bounds.lo, bounds.hi) == (1, MAX_WORKERS)
+
+
+def test_the_pose_histogram_of_a_huge_campaign_draws_the_first_poses_of_each_subject(reference, monkeypatch):
+    from sim.campaign import poses, runner
+
+    cfg, _, _ = reference
+    seen = {}
+    monkeypatch.setattr(poses, "pose_histogram", lambda params, dist, path: seen.setdefault("params", params))
+    runner._pose_histogram(cfg, Path("unused"))  # small: every pose
+    np.testing.assert_array_equal(seen.pop("params"),
+                                  np.concatenate([runner.subject_poses(cfg, s.index) for s in cfg.subjects()]))
+    monkeypatch.setattr(runner, "HISTOGRAM_POSES", 7)  # 3 subjects: the first 2 poses of each
+    runner._pose_histogram(cfg, Path("unused"))
+    np.testing.assert_array_equal(seen["params"],
+                                  np.concatenate([runner.subject_poses(cfg, s.index)[:2] for s in cfg.subjects()]))
+
+
+def test_a_corrupt_manifest_says_how_to_rebuild_it(reference, small_cts, tmp_path):
+    from sim.campaign.runner import run_campaign
+
+    _, ref_out, _ = reference
+    out = _copy(ref_out, tmp_path / "out")
+    (out / ds.MANIFEST).write_text('{"format": "ctxreg-campaign", ')
+    with pytest.raises(ds.DatasetError, match=r"corrupt JSON .* delete it and run `ctxreg simulate .* --resume`"):
+        ds.open_dataset(out)
+    (out / ds.MANIFEST).unlink()  # as the message says
+    assert run_campaign(load(write_campaign(tmp_path, small_cts)), out, resume=True, progress=False)["complete"]
+    assert checksums(out) == checksums(ref_out)
