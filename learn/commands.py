@@ -18,21 +18,27 @@ class TrainCommand:
         "continue from the output folder's checkpoint (same config)", group="run"))
 
 
+#: What ``ctxreg train`` writes into the config's ``out`` folder, and ``ctxreg accuracy`` into ``--out``.
+TRAIN_FILES = ("checkpoint.pt", "log.csv", "loss.png")
+ACCURACY_FILES = ("accuracy.md", "accuracy.json", "accuracy.png")
+
+
 def run_train(cmd: TrainCommand) -> list[Path]:
     from learn.train import load_train_config, train
 
+    from sim.outputs import check_output_dir
+
     cfg = load_train_config(cmd.config)
+    out = check_output_dir(cfg.out, TRAIN_FILES, flag=f"{cmd.config}: [train] out")
     train(cfg, resume=cmd.resume)
-    out = Path(cfg.out)
-    return [out / "checkpoint.pt", out / "log.csv", out / "loss.png"]
+    return [out / name for name in TRAIN_FILES]
 
 
 @dataclass(frozen=True)
 class AccuracyCommand:
     """Defaults of ``ctxreg accuracy``."""
 
-    model: str = field(metadata=opt("trained network checkpoint (ctxreg train)", group="input", positional=True,
-                                    metavar="CKPT"))
+    model: str = field(metadata=opt("trained network checkpoint (ctxreg train)", group="input", metavar="CKPT"))
     ct: str | None = field(default=None, metadata=opt(
         "CT to evaluate on (NIfTI, DICOM folder or phantom[:SEED]); or use --campaign", group="input",
         metavar="PATH|phantom"))
@@ -41,12 +47,12 @@ class AccuracyCommand:
         metavar="FILE.toml"))
     split: str = field(default="val", metadata=opt("split of --campaign", group="input",
                                                    choices=("train", "val", "test")))
-    physics: str | None = field(default=None, metadata=opt(
-        "[[physics]] entry of --campaign for the target images (default: its first)", group="input",
-        metavar="NAME"))
-    current_physics: str | None = field(default=None, metadata=opt(
-        "[[physics]] entry of --campaign for the current images, e.g. noise-free poly beside full targets "
-        "(default: as --physics)", group="input", metavar="NAME"))
+    entry: str | None = field(default=None, metadata=opt(
+        "name of the [[physics]] entry of --campaign that renders the target images (default: its first)",
+        group="input", metavar="NAME"))
+    current_entry: str | None = field(default=None, metadata=opt(
+        "name of the [[physics]] entry of --campaign that renders the current images, e.g. noise-free poly "
+        "beside full targets (default: as --entry)", group="input", metavar="NAME"))
     kind: tuple[str, ...] = field(default=("far", "ap", "near"), metadata=opt(
         "pair kinds: far (independent poses), ap (current at AP), near (current close to the target)",
         group="protocol", nargs="+", choices=("far", "ap", "near")))
@@ -60,11 +66,14 @@ class AccuracyCommand:
 def run_accuracy(cmd: AccuracyCommand) -> list[Path]:
     import numpy as np
 
-    from learn.evaluate import (AccuracyError, accuracy_figure, format_accuracy_table, merge_errors,
+    from learn.evaluate import (AccuracyError, accuracy_figure, finite_or_none, format_accuracy_table, merge_errors,
                                 prediction_errors, sample_eval_pairs, summarize_errors)
-    from register.contextual import NetworkPredictor
+    from learn.predict import NetworkPredictor
     from sim.atomic import atomic_path, write_json
 
+    from sim.outputs import check_output_dir
+
+    out = check_output_dir(cmd.out, ACCURACY_FILES)
     if (cmd.ct is None) == (cmd.campaign is None):
         raise AccuracyError("give exactly one of --ct and --campaign")
     if cmd.pairs < 1:
@@ -73,9 +82,11 @@ def run_accuracy(cmd: AccuracyCommand) -> list[Path]:
     if predictor.size is None:
         raise AccuracyError(f"{cmd.model} does not record its image size (trained before it was stored)")
     renderers, names, current_settings = _accuracy_renderers(cmd, predictor.size)
-    note = predictor.physics_mismatch(current_settings)
+    note = predictor.physics_mismatch(current_settings, advice="pick a matching --current-entry")
     if note:
         print(f"note: {note}")
+    from sim.seeds import KIND_ACCURACY_PAIRS, rng_for
+
     errors, results = {}, {}
     for ki, kind in enumerate(cmd.kind):
         parts = []
@@ -83,12 +94,11 @@ def run_accuracy(cmd: AccuracyCommand) -> list[Path]:
         for si, ((target, current), n) in enumerate(zip(renderers, counts)):
             if n == 0:
                 continue
-            rng = np.random.Generator(np.random.PCG64(np.random.SeedSequence(cmd.seed, spawn_key=(30, ki, si))))
+            rng = rng_for(cmd.seed, KIND_ACCURACY_PAIRS, ki, si)
             T_a, T_b = sample_eval_pairs(kind, rng, int(n), target.geometry.sod_mm)
             parts.append(prediction_errors(predictor, target, T_a, T_b, current_renderer=current))
         errors[kind] = merge_errors(parts)
         results[kind] = summarize_errors(errors[kind])
-    out = Path(cmd.out)
     out.mkdir(parents=True, exist_ok=True)
     source = cmd.ct or f"{cmd.campaign} [{cmd.split}]"
     images = f"targets {names[0]}, current images {names[1]}"
@@ -97,11 +107,12 @@ def run_accuracy(cmd: AccuracyCommand) -> list[Path]:
     with atomic_path(out / "accuracy.md") as tmp:
         tmp.write_text(f"Model: `{cmd.model}`; subjects: `{source}` ({len(renderers)}); {images}; "
                        f"{cmd.pairs} pairs per kind, seed {cmd.seed}.\n\n{table}")
-    write_json(out / "accuracy.json", {"model": cmd.model, "source": source, "subjects": len(renderers),
-                                       "physics": names[0], "current_physics": names[1], "note": note,
-                                       "pairs": cmd.pairs, "seed": cmd.seed, "results": results})
+    # JSON keys "physics" / "current_physics": the entry names (as train.physics in a config)
+    write_json(out / "accuracy.json", finite_or_none({
+        "model": cmd.model, "source": source, "subjects": len(renderers), "physics": names[0],
+        "current_physics": names[1], "note": note, "pairs": cmd.pairs, "seed": cmd.seed, "results": results}))
     accuracy_figure(errors, out / "accuracy.png", title=f"single-prediction errors: {Path(source).name}")
-    return [out / "accuracy.md", out / "accuracy.json", out / "accuracy.png"]
+    return [out / name for name in ACCURACY_FILES]
 
 
 def _accuracy_renderers(cmd: AccuracyCommand, size) -> tuple[list, tuple[str, str], object]:
@@ -114,8 +125,8 @@ def _accuracy_renderers(cmd: AccuracyCommand, size) -> tuple[list, tuple[str, st
         from sim.anatomy import anatomy_center
         from sim.ct_io import load_ct_spec
 
-        if cmd.physics is not None or cmd.current_physics is not None:
-            raise AccuracyError("--physics and --current-physics name [[physics]] entries of --campaign; "
+        if cmd.entry is not None or cmd.current_entry is not None:
+            raise AccuracyError("--entry and --current-entry name [[physics]] entries of --campaign; "
                                 "with --ct both images are line DRRs")
         volume = load_ct_spec(cmd.ct)
         drr = DRRRenderer(volume, RenderSettings(size=tuple(size)), center_lps=anatomy_center(volume))
@@ -131,12 +142,12 @@ def _accuracy_renderers(cmd: AccuracyCommand, size) -> tuple[list, tuple[str, st
     if not subjects:
         raise AccuracyError(f"{cmd.campaign} has no subject in split {cmd.split!r}")
     entries = {p.name: p for p in campaign.physics}
-    for option, name in (("--physics", cmd.physics), ("--current-physics", cmd.current_physics)):
+    for option, name in (("--entry", cmd.entry), ("--current-entry", cmd.current_entry)):
         if name is not None and name not in entries:
             raise AccuracyError(f"{option} {name!r} is not a [[physics]] entry of {cmd.campaign} "
                                 f"(it has {list(entries)})")
-    target = cmd.physics if cmd.physics is not None else campaign.physics[0].name
-    current = cmd.current_physics if cmd.current_physics is not None else target
+    target = cmd.entry if cmd.entry is not None else campaign.physics[0].name
+    current = cmd.current_entry if cmd.current_entry is not None else target
     contexts = [SubjectContext(campaign, s) for s in subjects]
     entry = entries[current]
     settings = entry.settings() if entry.level in ("poly", "full") else None

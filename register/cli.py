@@ -35,8 +35,15 @@ COMMANDS = {
 }
 
 
+class _Parser(argparse.ArgumentParser):
+    """An argument parser whose errors are one line, like every other ctxreg error."""
+
+    def error(self, message: str):
+        self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = _Parser(
         prog="ctxreg", formatter_class=HelpFormatter,
         description="ctxreg: X-ray simulation from CT and 2D/3D registration. "
                     "Units: mm, degrees, 1/mm. Conventions: docs/conventions.md.")

@@ -15,12 +15,12 @@ inside a box around the start. Everything is seeded.
 
 from __future__ import annotations
 
-from sim.errors import InputError
-
 import time
 from dataclasses import dataclass, field
 
 import numpy as np
+
+from sim.errors import InputError
 
 PARAM_NAMES = ("phi", "theta", "psi", "tx", "ty", "tz")
 

@@ -1,4 +1,8 @@
-"""``ctxreg evaluate`` and ``ctxreg register``: defaults (one dataclass each) and their runs."""
+"""``ctxreg evaluate`` and ``ctxreg register``: defaults (one dataclass each) and their runs.
+
+Both check their options and output folder before any work; ``register`` is a thin layer over
+:func:`register.api.register_xray`, and both build their methods with :mod:`register.methods`.
+"""
 
 from __future__ import annotations
 
@@ -7,18 +11,19 @@ from pathlib import Path
 
 import numpy as np
 
+from register.api import REGISTER_RESTARTS, REGISTER_SCATTER_PHOTONS, parse_init
 from register.cmaes import CMAESSettings
+from register.evaluate import LOCAL_ROT_DEG, LOCAL_TRANS_MM
+from register.methods import METHOD_NAMES
 from sim.cli import CT_HELP
-from sim.cliargs import opt
+from sim.cliargs import IMAGE_SIDE_PX, Range, opt
 from sim.physics.options import level_field, physics_option
 
-#: Monte Carlo histories per moving image with --physics full: a registration renders thousands
-#: of images, and the smoothed scatter of 10^5 histories differs from that of 10^6 by a few %.
-REGISTER_SCATTER_PHOTONS = 100_000
+__all__ = ["EvaluateCommand", "RegisterCommand", "run_evaluate", "run_register", "REGISTER_RESTARTS",
+           "REGISTER_SCATTER_PHOTONS"]
 
-#: CMA-ES restarts of ``ctxreg register`` (IPOP, see :class:`register.cmaes.CMAESSettings`): a
-#: user's X-ray is registered once, so spending up to 4x the time on a lost search is worth it.
-REGISTER_RESTARTS = 3
+#: Outputs of ``ctxreg evaluate`` (trajectories.json for the contextual methods only).
+EVALUATE_FILES = ("cases.csv", "summary.json", "table.md", "violins.png", "trajectories.json")
 
 
 @dataclass(frozen=True)
@@ -30,10 +35,10 @@ class EvaluateCommand:
         "label map on the CT's grid: its centroid is the anatomy centre", group="input", metavar="PATH"))
     center: tuple[float, float, float] | None = field(default=None, metadata=opt(
         "anatomy centre c in LPS", group="input", unit="mm", nargs=3, metavar=("X", "Y", "Z")))
-    cases: int = field(default=20, metadata=opt("number of target poses", group="protocol", metavar="N"))
+    cases: int = field(default=20, metadata=opt("number of target poses", group="protocol", metavar="N",
+                                                bounds=Range(1)))
     method: tuple[str, ...] = field(default=("cmaes",), metadata=opt(
-        "registration methods to compare", group="protocol", nargs="+",
-        choices=("cmaes", "contextual", "contextual+cmaes")))
+        "registration methods to compare", group="protocol", nargs="+", choices=METHOD_NAMES))
     model: str | None = field(default=None, metadata=opt(
         "trained network checkpoint (ctxreg train) for the contextual methods", group="protocol",
         metavar="CKPT"))
@@ -41,13 +46,15 @@ class EvaluateCommand:
         "start every case at AP, or near the truth (--local-rot / --local-trans)", group="protocol",
         choices=("ap", "local")))
     local_rot: float = field(default=5.0, metadata=opt(
-        "largest start offset in rotation for --start local", group="protocol", unit="deg"))
+        "largest start offset in rotation for --start local", group="protocol", unit="deg", bounds=LOCAL_ROT_DEG))
     local_trans: float = field(default=10.0, metadata=opt(
-        "largest start offset in translation for --start local", group="protocol", unit="mm"))
-    seed: int = field(default=0, metadata=opt("seed of the target poses and starts", group="protocol"))
+        "largest start offset in translation for --start local", group="protocol", unit="mm",
+        bounds=LOCAL_TRANS_MM))
+    seed: int = field(default=0, metadata=opt("seed of the target poses and starts", group="protocol",
+                                              bounds=Range(0)))
     size: tuple[int, int] = field(default=(128, 128), metadata=opt(
         "image rows and columns of targets and DRRs", group="protocol", unit="pixels", nargs=2,
-        metavar=("H", "W")))
+        metavar=("H", "W"), bounds=IMAGE_SIDE_PX))
     scene: str = field(default="cios_fusion", metadata=opt("C-arm scene", group="protocol"))
     target_ray_model: str = field(default="siddon", metadata=opt(
         "ray model of the target images (the methods render with siddon): trilinear makes the "
@@ -57,7 +64,8 @@ class EvaluateCommand:
         "materials, CsI detector, quantum noise: -log(I/I0)) or full (poly + Monte Carlo scatter, "
         "10^6 histories per target): a simulated domain gap", group="protocol", choices=("line", "poly", "full")))
     target_mas: float = field(default=2.5, metadata=opt(
-        "exposure of poly and full targets (less mAs, more noise)", group="protocol", unit="mAs"))
+        "exposure of poly and full targets (less mAs, more noise)", group="protocol", unit="mAs",
+        bounds=Range(0, lo_open=True)))
     physics: str = level_field(group="protocol", help=(
         "physics of the methods' moving images: line (line-integral DRRs) or poly / full "
         "(noise-free -log(I/I0) at 120 kVp, full with 10^5 scatter histories per image)"))
@@ -66,20 +74,37 @@ class EvaluateCommand:
 
 
 def run_evaluate(cmd: EvaluateCommand) -> list[Path]:
+    """Check the options and the output folder, then run the protocol (:func:`register.evaluate.evaluate`)."""
+    import sys
     from dataclasses import asdict
 
-    from register.evaluate import METHODS, EvaluationError, EvaluationSettings, evaluate
+    from register.evaluate import EvaluationError, EvaluationSettings, evaluate
+    from register.methods import build_method, load_predictor, needs_model
     from sim.anatomy import anatomy_center
+    from sim.cliargs import refuse_unused, refuse_unused_label_map
     from sim.ct_io import load_ct_spec
+    from sim.outputs import check_output_dir
     from sim.physics.imaging import LogImageRenderer, PhysicsSettings
     from sim.render import DRRRenderer, RenderSettings
 
-    settings = EvaluationSettings(cases=cmd.cases, seed=cmd.seed, size=tuple(cmd.size), start=cmd.start,
-                                  local_rot_deg=cmd.local_rot, local_trans_mm=cmd.local_trans)
-    volume = load_ct_spec(cmd.ct, label_map=cmd.label_map)
-    center = np.asarray(cmd.center, float) if cmd.center is not None else anatomy_center(volume)
+    contextual = [m for m in cmd.method if needs_model(m)]
+    if len(set(cmd.method)) < len(cmd.method):
+        raise EvaluationError(f"--method {' '.join(cmd.method)}: a method is listed twice")
+    if contextual and cmd.model is None:
+        raise EvaluationError(f"--method {contextual[0]} needs a trained model: --model CHECKPOINT")
+    refuse_unused(cmd, ("model",), applies=bool(contextual),
+                  why="meaningful with the contextual methods only; this run compares " + " ".join(cmd.method))
+    refuse_unused(cmd, ("local_rot", "local_trans"), applies=cmd.start == "local",
+                  why=f"meaningful with --start local only; this run is --start {cmd.start}")
+    refuse_unused_label_map(cmd)
     if cmd.target_physics == "line" and cmd.target_mas != 2.5:
         raise EvaluationError("--target-mas only applies with --target-physics poly or full")
+    settings = EvaluationSettings(cases=cmd.cases, seed=cmd.seed, size=tuple(cmd.size), start=cmd.start,
+                                  local_rot_deg=cmd.local_rot, local_trans_mm=cmd.local_trans)
+    out = check_output_dir(cmd.out, EVALUATE_FILES)
+    predictor = load_predictor(cmd.model) if contextual else None
+    volume = load_ct_spec(cmd.ct, label_map=cmd.label_map)
+    center = np.asarray(cmd.center, float) if cmd.center is not None else anatomy_center(volume)
     if cmd.target_physics in ("poly", "full"):
         physics = PhysicsSettings(level=cmd.target_physics, mas=cmd.target_mas, seed=cmd.seed)
         target_renderer = LogImageRenderer(volume, physics,
@@ -90,14 +115,19 @@ def run_evaluate(cmd: EvaluateCommand) -> list[Path]:
                                                              ray_model=cmd.target_ray_model), center_lps=center)
     moving = None if cmd.physics == "line" else PhysicsSettings(
         level=cmd.physics, noise=False, scatter_photons=REGISTER_SCATTER_PHOTONS)
-    methods = {name: METHODS[name](volume, center, tuple(cmd.size), model=cmd.model, physics=moving)
+
+    def note(text: str) -> None:
+        print(f"ctxreg evaluate: note: {text}", file=sys.stderr)
+
+    methods = {name: build_method(name, volume, center_lps=center, size=tuple(cmd.size), scene=cmd.scene,
+                                  model=predictor if needs_model(name) else None, physics=moving, note=note)
                for name in cmd.method}
     physics_record = {"target_physics": cmd.target_physics if cmd.target_physics == "line" else asdict(physics),
                       "moving_physics": "line" if moving is None else asdict(moving)}
-    result = evaluate(volume, methods, settings, Path(cmd.out), center_lps=center,
+    result = evaluate(volume, methods, settings, out, center_lps=center,
                       geometry=target_renderer.geometry, target_renderer=target_renderer, record=physics_record)
     print(result["table"])
-    return [Path(cmd.out) / name for name in ("cases.csv", "summary.json", "table.md", "violins.png")]
+    return [out / name for name in ("cases.csv", "summary.json", "table.md", "violins.png")]
 
 
 @dataclass(frozen=True)
@@ -114,35 +144,41 @@ class RegisterCommand:
     init: tuple[str, ...] = field(default=("ap",), metadata=opt(
         "start pose: 'ap' or six numbers PHI THETA PSI TX TY TZ", group="pose", nargs="+",
         unit="deg deg deg mm mm mm", metavar="ap|P"))
-    method: str = field(default="cmaes", metadata=opt(
-        "registration method", group="pose", choices=("cmaes", "contextual", "contextual+cmaes")))
+    method: str = field(default="cmaes", metadata=opt("registration method", group="pose", choices=METHOD_NAMES))
     model: str | None = field(default=None, metadata=opt(
         "trained network checkpoint (ctxreg train) for the contextual methods", group="pose", metavar="CKPT"))
     restarts: int = field(default=REGISTER_RESTARTS, metadata=opt(
         "CMA-ES restarts (new seed, twice the population) while the final gradient NCC is below "
-        f"{CMAESSettings.restart_below}: a search lost far from the start tries again", group="pose", metavar="N"))
+        f"{CMAESSettings.restart_below}: a search lost far from the start tries again (--method cmaes)",
+        group="pose", metavar="N", bounds=Range(0, 10)))
     scene: str = field(default="cios_fusion", metadata=opt(
         "C-arm scene: the geometry where the image does not give it", group="geometry"))
     sdd: float | None = field(default=None, metadata=opt(
-        "source-to-detector distance (overrides DICOM and scene)", group="geometry", unit="mm"))
+        "source-to-detector distance (overrides DICOM and scene)", group="geometry", unit="mm",
+        bounds=Range(0, lo_open=True)))
     sod: float | None = field(default=None, metadata=opt(
-        "source-to-isocentre distance (overrides DICOM and scene)", group="geometry", unit="mm"))
+        "source-to-isocentre distance (overrides DICOM and scene)", group="geometry", unit="mm",
+        bounds=Range(0, lo_open=True)))
     pixel_spacing: float | None = field(default=None, metadata=opt(
-        "detector pixel spacing (overrides DICOM and scene)", group="geometry", unit="mm"))
-    size: int = field(default=128, metadata=opt(
-        "longer side of the image the optimiser works on", group="geometry", unit="pixels"))
+        "detector pixel spacing (overrides DICOM and scene)", group="geometry", unit="mm",
+        bounds=Range(0, lo_open=True)))
+    size: tuple[int, int] = field(default=(128, 128), metadata=opt(
+        "the image the optimiser works on: the X-ray, cropped to its field, scaled (aspect kept) to the "
+        "largest size inside H x W with sides multiples of 4 (128 128: the longer side 128 px; a 2:1 "
+        "X-ray becomes 128 x 64)", group="geometry", unit="pixels", nargs=2, metavar=("H", "W"),
+        bounds=IMAGE_SIDE_PX))
     physics: str = level_field(help=(
         "physics of the moving images: line (line-integral DRRs), poly (noise-free -log(I/I0) with "
         "the tube spectrum, 7 materials, CsI detector: beam hardening like the X-ray's) or full "
         "(poly + Monte Carlo scatter, same seed at every pose)"))
     kvp: float = physics_option("kvp")
-    filter: tuple[str, ...] = physics_option("filter")
-    anode_angle: float = physics_option("anode_angle")
+    filters: tuple[str, ...] = physics_option("filters")
+    anode_angle_deg: float = physics_option("anode_angle_deg")
     bins: int = physics_option("bins")
     detector_mm: float = physics_option("detector_mm")
     detector_mode: str = physics_option("detector_mode")
     scatter_photons: int = physics_option("scatter_photons", default=REGISTER_SCATTER_PHOTONS)
-    scatter_voxel: float = physics_option("scatter_voxel")
+    scatter_voxel_mm: float = physics_option("scatter_voxel_mm")
     grid_ratio: float = physics_option("grid_ratio")
     label_material: tuple[str, ...] = physics_option("label_material")
     preprocess: tuple[str, ...] = field(default=("field", "median", "intensity", "normalize", "crop"), metadata=opt(
@@ -164,123 +200,34 @@ class RegisterCommand:
         "contextual methods)", group="output", metavar="DIR"))
 
 
-def _parse_init(values: tuple[str, ...]) -> np.ndarray:
-    from register.cmaes import RegistrationError
-
-    if len(values) == 1 and values[0] == "ap":
-        return np.zeros(6)
-    try:
-        x = np.array([float(v) for v in values])
-    except ValueError:
-        x = np.zeros(0)
-    if x.shape != (6,) or not np.all(np.isfinite(x)):
-        raise RegistrationError(f"--init {' '.join(values)}: give 'ap' or six finite numbers")
-    return x
-
-
 def run_register(cmd: RegisterCommand) -> list[Path]:
+    """Check the options and the output folder, register (:func:`register.api.register_xray`: it
+    checks the method, model, start, CT, X-ray and geometry before the work) and write the outputs."""
     import sys
-    from dataclasses import asdict
 
-    from register.cmaes import CMAESRegistration, CMAESSettings, RegistrationError
-    from register.plots import checkerboard_png, convergence_plot, overlay_png
-    from register.prepare import confirm_polarity, prepare_xray
-    from register.xray_io import load_xray
-    from sim.anatomy import anatomy_center
-    from sim.atomic import write_json
-    from sim.ct_io import load_ct_spec
+    from register.api import OUTPUT_FILES, register_xray
+    from sim.cliargs import refuse_unused, refuse_unused_label_map
+    from sim.outputs import check_output_dir
     from sim.physics.options import check_level_options, label_materials, physics_settings
-    from sim.render import DRRRenderer, RenderSettings
 
-    init = _parse_init(cmd.init)
+    parse_init(cmd.init)
+    refuse_unused_label_map(cmd)
+    refuse_unused(cmd, ("restarts",), applies=cmd.method == "cmaes",
+                  why=f"meaningful with --method cmaes only; this run is --method {cmd.method}")
+    steps = [str(n).strip().lower() for n in cmd.preprocess]
+    refuse_unused(cmd, ("intensity", "polarity"), applies="intensity" in steps,
+                  why="meaningful with the 'intensity' step of --preprocess only; this run's steps are "
+                      + (" ".join(steps) or "none"))
     check_level_options(cmd)
     physics = physics_settings(cmd, noise=False)
     materials = label_materials(cmd)
-    steps = [str(n).strip().lower() for n in cmd.preprocess]
-    if cmd.method != "cmaes" and cmd.model is None:
-        raise RegistrationError(f"--method {cmd.method} needs a trained model: --model CHECKPOINT")
-    volume = load_ct_spec(cmd.ct, label_map=cmd.label_map)
-    center = np.asarray(cmd.center, float) if cmd.center is not None else anatomy_center(volume)
-    xray = load_xray(cmd.xray)
-    if not xray.attenuation_bright and not {"intensity", "log", "invert"} & set(steps):
-        raise RegistrationError(f"{xray.source}: raw detector data (bone dark): add 'intensity' or 'log' to --preprocess")
-    prepared = prepare_xray(xray, volume=volume, center_lps=center, init_params=init, scene=cmd.scene, steps=steps,
-                            scale=cmd.intensity, polarity=cmd.polarity, size=cmd.size, sdd_mm=cmd.sdd,
-                            sod_mm=cmd.sod, pixel_spacing_mm=cmd.pixel_spacing)
-    prepared = confirm_polarity(prepared, volume, center, init, physics=physics, label_materials=materials)
-    print(prepared.sources.line())
-    for line in _input_lines(prepared):
-        print(line)
-    image, mask, geometry = prepared.image, prepared.mask, prepared.geometry
-    size = (geometry.height, geometry.width)
-    if cmd.method == "cmaes":
-        engine = CMAESRegistration(volume, CMAESSettings(size=size, restarts=cmd.restarts), scene=cmd.scene,
-                                   geometry=geometry, center_lps=center, physics=physics, label_materials=materials)
-        result = engine.register(image, init, mask=mask)
-    else:
-        from dataclasses import replace
-
-        from register.contextual import REFINE_SETTINGS, ContextualRegistration, ContextualSettings, NetworkPredictor
-
-        refine = replace(REFINE_SETTINGS, size=size) if cmd.method == "contextual+cmaes" else None
-        predictor = NetworkPredictor(cmd.model)
-        mismatch = predictor.physics_mismatch(physics)
-        if mismatch:
-            print(f"ctxreg register: note: {mismatch}", file=sys.stderr)
-        engine = ContextualRegistration(volume, predictor, ContextualSettings(keep_drrs=True),
-                                        size=size, scene=cmd.scene, geometry=geometry, center_lps=center,
-                                        refine=refine, physics=physics, label_materials=materials)
-        result = engine.register(image, init, mask=mask)
-    out = Path(cmd.out)
-    written = []
-    if result.trajectory is not None:
-        from register.plots import trajectory_figure
-        from sim.atomic import atomic_path
-
-        with atomic_path(out / "trajectory.npz") as tmp:
-            with open(tmp, "wb") as f:
-                np.savez_compressed(f, params_deg_mm=result.trajectory["params"], g_rad_mm=result.trajectory["g"],
-                                    drrs=result.trajectory["drrs"].astype(np.float32), xray=image.astype(np.float32))
-        trajectory_figure(image, result.trajectory["drrs"], result.trajectory["params"], out / "trajectory.png")
-        written = [out / "trajectory.npz", out / "trajectory.png"]
-    # figures at the X-ray's own resolution: a line DRR with the X-ray's full geometry (its edges
-    # are those of any physics level)
-    full = prepared.full_geometry
-    full_drr = DRRRenderer(volume, RenderSettings(size=(full.height, full.width)), center_lps=center,
-                           geometry=full).render(result.pose)[0]
-    overlay_png(xray.pixels, full_drr, out / "overlay.png", mask=prepared.full_mask)
-    checkerboard_png(prepared.full_image, full_drr, out / "checkerboard.png", mask=prepared.full_mask)
-    convergence_plot(result.history, out / "convergence.png")
-    write_json(out / "result.json", {
-        **result.to_dict(), "method": cmd.method, "ct": volume.source, "xray": xray.source, "init_params": init.tolist(),
-        "anatomy_center_lps_mm": center.tolist(), "xray_input": prepared.summary(), "preprocessing": prepared.record,
-        "moving_physics": {**asdict(physics), "label_materials": {str(k): v for k, v in (materials or {}).items()}},
-        "geometry": {"sdd_mm": geometry.sdd_mm, "sod_mm": geometry.sod_mm, "height": geometry.height,
-                     "width": geometry.width, "pixel_spacing_mm": geometry.pixel_spacing_mm,
-                     "principal_point_uv": list(geometry.principal_point), "K": geometry.intrinsics().tolist()},
-    })
-    print(f"similarity {result.similarity:.4f} after {result.renders} renders; pose: "
-          + " ".join(f"{v:.2f}" for v in result.params))
-    return [out / "result.json", out / "overlay.png", out / "checkerboard.png", out / "convergence.png", *written]
-
-
-def _input_lines(prepared) -> list[str]:
-    """One line each for the field and the intensity decision (what a user should check first)."""
-    lines = []
-    fld = prepared.step("field")
-    if fld is not None:
-        kind = fld.get("kind")
-        outside = f", {fld.get('outside')} outside" if fld.get("outside") else ""
-        lines.append(f"field: {kind}{outside}; {100 * fld.get('valid_fraction', 0):.0f} % of the pixels valid")
-    dec = prepared.step("intensity")
-    if dec is not None:
-        steps = " + ".join(dec["steps"]) or "nothing"
-        lines.append(f"intensity: {dec['scale']} ({dec['scale_source']}), {dec['polarity']} "
-                     f"({dec['polarity_source']}): {steps}")
-    check = prepared.step("polarity_check")
-    if check is not None:
-        verdict = {"inverted": "inverted the image", "confirmed": "confirmed",
-                   "inconclusive": "inconclusive, the decision stands"}[check["verdict"]]
-        lines.append(f"polarity check by registration: {verdict} (similarity {check['similarity_as_decided']:.3f} "
-                     f"as decided, {check['similarity_inverted']:.3f} inverted): {check['polarity']}")
-    return lines
+    out = check_output_dir(cmd.out, OUTPUT_FILES)
+    outcome = register_xray(
+        cmd.ct, cmd.xray, method=cmd.method, model=cmd.model, init=cmd.init, center=cmd.center,
+        label_map=cmd.label_map, scene=cmd.scene, sdd_mm=cmd.sdd, sod_mm=cmd.sod, pixel_spacing_mm=cmd.pixel_spacing,
+        size=tuple(cmd.size), physics=physics, label_materials=materials, preprocess=steps, intensity=cmd.intensity,
+        polarity=cmd.polarity, restarts=cmd.restarts if cmd.method == "cmaes" else None, log=print,
+        note=lambda text: print(f"ctxreg register: note: {text}", file=sys.stderr))
+    written = outcome.write(out)
+    print(outcome.summary())
+    return written

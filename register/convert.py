@@ -33,13 +33,12 @@ Every matrix here is a ``(4, 4)`` or ``(3, 4)``/``(3, 3)`` float64 array acting 
 
 from __future__ import annotations
 
-from sim.errors import InputError
-
 import math
 from typing import Literal
 
 import numpy as np
 
+from sim.errors import InputError
 from sim.geometry import CArmGeometry, GeometryError, extrinsic_lps_to_camera
 
 __all__ = [

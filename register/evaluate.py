@@ -13,25 +13,29 @@ Errors per case:
 * mPD: mean distance between their projections on the detector (mm at the detector plane);
 * success: mTRE < ``success_mtre_mm`` and rotation error < ``success_rot_deg``.
 
-Methods are plug-ins (:class:`RegistrationMethod`): anything with ``name`` and
+Methods are plug-ins (:class:`register.methods.RegistrationMethod`, built by
+:func:`register.methods.build_method`): anything with ``name`` and
 ``register(fixed (H, W), init_params (6,)) -> RegistrationResult``.
 """
 
 from __future__ import annotations
 
-from sim.errors import InputError
-
 import csv
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Protocol
 
 import numpy as np
 
-from register.cmaes import CMAESRegistration, CMAESSettings, RegistrationResult
+from register.methods import RegistrationMethod
+from sim.cliargs import Range
+from sim.errors import InputError
 
 START_MODES = ("ap", "local")
+#: The largest start offsets of ``start="local"`` a protocol may ask for: rotation (deg) and
+#: translation (mm). Beyond them "local" means nothing (the original capture range is 40 deg, 75 mm).
+LOCAL_ROT_DEG = Range(0.0, 90.0, lo_open=True)
+LOCAL_TRANS_MM = Range(0.0, 500.0, lo_open=True)
 ERROR_COLUMNS = ("rot_err_deg", "trans_err_mm", "mtre_mm", "mpd_mm")
 
 
@@ -39,61 +43,10 @@ class EvaluationError(InputError):
     """Bad evaluation settings; the message names the setting."""
 
 
-class RegistrationMethod(Protocol):
-    name: str
-
-    def register(self, fixed: np.ndarray, init_params: np.ndarray) -> RegistrationResult: ...
-
-
-class CMAESMethod:
-    """CMA-ES intensity-based registration as an evaluation plug-in."""
-
-    name = "cmaes"
-
-    def __init__(self, volume, center_lps, size, settings: CMAESSettings | None = None, model=None, physics=None):
-        settings = settings or CMAESSettings(size=tuple(size))
-        self.engine = CMAESRegistration(volume, settings, center_lps=center_lps, physics=physics)
-
-    def register(self, fixed, init_params):
-        return self.engine.register(fixed, init_params)
-
-
-class ContextualMethod:
-    """The contextual iteration (a trained network), optionally refined by CMA-ES."""
-
-    name = "contextual"
-
-    def __init__(self, volume, center_lps, size, settings=None, model=None, refine: bool = False, physics=None):
-        from dataclasses import replace
-
-        from register.contextual import REFINE_SETTINGS, ContextualRegistration, NetworkPredictor
-
-        if model is None:
-            raise EvaluationError("the contextual method needs a trained model: --model CHECKPOINT")
-        refine_settings = replace(REFINE_SETTINGS, size=tuple(size)) if refine else None
-        predictor = NetworkPredictor(model)
-        mismatch = predictor.physics_mismatch(physics)
-        if mismatch:
-            import sys
-
-            print(f"ctxreg evaluate: note: {mismatch}", file=sys.stderr)
-        self.engine = ContextualRegistration(volume, predictor, size=size, center_lps=center_lps,
-                                             refine=refine_settings, physics=physics)
-
-    def register(self, fixed, init_params):
-        return self.engine.register(fixed, init_params)
-
-
-def _contextual_cmaes(volume, center_lps, size, settings=None, model=None, physics=None):
-    return ContextualMethod(volume, center_lps, size, model=model, refine=True, physics=physics)
-
-
-METHODS = {"cmaes": CMAESMethod, "contextual": ContextualMethod, "contextual+cmaes": _contextual_cmaes}
-
-
 @dataclass(frozen=True)
 class EvaluationSettings:
-    """Units: degrees, mm."""
+    """Units: degrees, mm. ``local_rot_deg`` in :data:`LOCAL_ROT_DEG`, ``local_trans_mm`` in
+    :data:`LOCAL_TRANS_MM`."""
 
     cases: int = 20
     seed: int = 0
@@ -110,9 +63,14 @@ class EvaluationSettings:
             raise EvaluationError(f"cases must be >= 1, got {self.cases}")
         if self.start not in START_MODES:
             raise EvaluationError(f"start must be one of {START_MODES}, got {self.start!r}")
-        for name in ("local_rot_deg", "local_trans_mm", "success_mtre_mm", "success_rot_deg"):
-            if not getattr(self, name) > 0:
+        for name, bounds in (("local_rot_deg", LOCAL_ROT_DEG), ("local_trans_mm", LOCAL_TRANS_MM)):
+            if not (np.isfinite(getattr(self, name)) and getattr(self, name) in bounds):
+                raise EvaluationError(f"{name} must be {bounds}, got {getattr(self, name)}")
+        for name in ("success_mtre_mm", "success_rot_deg"):
+            if not (np.isfinite(getattr(self, name)) and getattr(self, name) > 0):
                 raise EvaluationError(f"{name} must be positive, got {getattr(self, name)}")
+        if self.seed < 0:
+            raise EvaluationError(f"seed must be >= 0, got {self.seed}")
 
 
 def sample_cases(settings: EvaluationSettings, distribution=None) -> tuple[np.ndarray, np.ndarray]:
@@ -120,7 +78,9 @@ def sample_cases(settings: EvaluationSettings, distribution=None) -> tuple[np.nd
     from sim.campaign.poses import ORIGINAL_PROTOCOL
 
     dist = distribution or ORIGINAL_PROTOCOL
-    rng = np.random.Generator(np.random.PCG64(np.random.SeedSequence(settings.seed, spawn_key=(10,))))
+    from sim.seeds import KIND_EVALUATE_CASES, rng_for
+
+    rng = rng_for(settings.seed, KIND_EVALUATE_CASES)
     targets = dist.sample(rng, settings.cases)
     if settings.start == "ap":
         starts = np.zeros_like(targets)
@@ -223,13 +183,13 @@ def violin_plot(rows: list[dict], path: Path) -> None:
 def evaluate(volume, methods: dict[str, RegistrationMethod], settings: EvaluationSettings, out: Path,
              *, center_lps, geometry, target_renderer, log=print, record: dict | None = None) -> dict:
     """Run the protocol; writes ``cases.csv``, ``summary.json``, ``table.md``, ``violins.png`` and,
-    for the contextual methods, ``trajectories.json`` (every case's poses per iteration).
-    ``record`` (e.g. the targets' and the methods' physics) is stored in ``summary.json``."""
+    for the contextual methods, ``trajectories.json`` (every case's poses per iteration), all
+    after the last case (a run that fails leaves nothing). ``record`` (e.g. the targets' and the
+    methods' physics) is stored in ``summary.json``."""
     from sim.atomic import atomic_path, write_json
     from sim.geometry import pose_from_params, projection_matrix
 
     out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
     targets, starts = sample_cases(settings)
     points = bone_points(volume, settings.max_points, settings.seed)
     target_images = target_renderer.render(pose_from_params(targets, geometry.sod_mm))

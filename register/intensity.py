@@ -42,13 +42,13 @@ decided, so that ``result.json`` can say why an image was log-corrected or inver
 
 from __future__ import annotations
 
-from sim.errors import InputError
-
 from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 from scipy import ndimage
+
+from sim.errors import InputError
 
 __all__ = [
     "SCALES",

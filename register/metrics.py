@@ -27,13 +27,13 @@ defined correlation with anything.
 
 from __future__ import annotations
 
-from sim.errors import InputError
-
 from collections.abc import Callable
 from typing import Any
 
 import numpy as np
 from scipy import ndimage
+
+from sim.errors import InputError
 
 __all__ = [
     "METRICS",

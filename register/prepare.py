@@ -9,7 +9,9 @@ before an optimiser sees it:
    median, intensity decision, normalisation over the mask, crop to the field), with DRRs of the
    CT around the start pose as the polarity reference (:class:`register.intensity.PolarityReference`);
 3. the crop's geometry (each pixel keeps its ray) and the resampling to the optimiser's size,
-   where the mask follows the image (:func:`fit_to_size`).
+   where the mask follows the image (:func:`fit_to_size`): the image is scaled, its aspect kept,
+   to the largest size that fits inside ``size = (H, W)`` with each side a multiple of 4 (the
+   default 128 x 128 makes the longer side 128 px; a 2:1 X-ray becomes 128 x 64).
 
 The result keeps the full-resolution image and mask too, for figures a person can judge.
 """
@@ -22,7 +24,7 @@ from typing import Any
 import numpy as np
 from scipy import ndimage
 
-__all__ = ["PreparedXRay", "prepare_xray", "confirm_polarity", "fit_to_size", "masked_fill", "reference_drrs",
+__all__ = ["PreparedXRay", "prepare_xray", "confirm_polarity", "fit_to_size", "fit_box", "masked_fill", "reference_drrs",
            "REFERENCE_POSES", "REFERENCE_SIZE", "POLARITY_CHECK"]
 
 #: Number of DRRs (poses around the start) of the polarity reference, and their longer side (px).
@@ -30,12 +32,29 @@ REFERENCE_POSES = 96
 REFERENCE_SIZE = 48
 
 
-def _fit_plan(shape: tuple[int, int], geometry, longer: int):
+def fit_box(size) -> tuple[int, int]:
+    """``(H, W)`` of the box an image is fitted into: ``size`` is ``(H, W)``, or one number for a
+    square box (the longer side). Raises :class:`register.preprocess.PreprocessError` for sides
+    outside :data:`sim.cliargs.IMAGE_SIDE_PX`."""
+    from register.preprocess import PreprocessError
+    from sim.cliargs import IMAGE_SIDE_PX
+
+    try:
+        box = (int(size), int(size)) if np.ndim(size) == 0 else tuple(int(v) for v in size)
+    except (TypeError, ValueError):
+        box = ()
+    if len(box) != 2 or not all(v in IMAGE_SIDE_PX for v in box):
+        raise PreprocessError(f"size {size!r}: give the optimiser's image as (H, W), each side {IMAGE_SIDE_PX} pixels")
+    return box
+
+
+def _fit_plan(shape: tuple[int, int], geometry, size):
     """Sampling of :func:`fit_to_size`: ``(rows, cols, f, geometry)``."""
     from dataclasses import replace
 
     h, w = shape
-    f = max(h, w) / float(longer)  # old pixels per new pixel
+    box_h, box_w = (size, size) if np.ndim(size) == 0 else size
+    f = max(h / float(box_h), w / float(box_w))  # old pixels per new pixel
     H = max(4, int(round(h / f / 4)) * 4)
     W = max(4, int(round(w / f / 4)) * 4)
     f = min(h / H, w / W)
@@ -48,8 +67,9 @@ def _fit_plan(shape: tuple[int, int], geometry, longer: int):
     return rows, cols, f, geom
 
 
-def fit_to_size(image: np.ndarray, mask: np.ndarray | None, geometry, longer: int):
-    """Centre-crop and resample ``image`` ``(h, w)`` so its longer side is ``longer`` px (a multiple of 4).
+def fit_to_size(image: np.ndarray, mask: np.ndarray | None, geometry, size):
+    """Centre-crop and resample ``image`` ``(h, w)`` to the largest size, aspect kept, that fits
+    inside ``size`` (``(H, W)``, or one number: the longer side), each side a multiple of 4.
 
     Pixels stay square: the crop removes the fraction of a pixel that keeps both sides an exact
     multiple of the new spacing. The anti-aliasing blur (Gaussian, sigma ``f / 2 - 0.5`` old
@@ -59,7 +79,7 @@ def fit_to_size(image: np.ndarray, mask: np.ndarray | None, geometry, longer: in
     geometry's spacing and principal point moved accordingly.
     """
     h, w = image.shape
-    rows, cols, f, geom = _fit_plan((h, w), geometry, longer)
+    rows, cols, f, geom = _fit_plan((h, w), geometry, size)
     sigma = max(f / 2.0 - 0.5, 0.0)
     rr, cc = np.meshgrid(rows, cols, indexing="ij")
     img = np.asarray(image, np.float64)
@@ -93,7 +113,9 @@ def reference_drrs(volume, center_lps, geometry, init_params, *, poses: int = RE
     from sim.render import DRRRenderer, RenderSettings
 
     _, _, _, small = _fit_plan((geometry.height, geometry.width), geometry, longer)
-    rng = np.random.Generator(np.random.PCG64(np.random.SeedSequence(seed, spawn_key=(13,))))
+    from sim.seeds import KIND_POLARITY_POSES, rng_for
+
+    rng = rng_for(seed, KIND_POLARITY_POSES)
     x0 = np.asarray(init_params, float).reshape(1, 6)
     params = np.concatenate([x0, x0 + ORIGINAL_PROTOCOL.sample(rng, poses - 1)])
     renderer = DRRRenderer(volume, RenderSettings(size=(small.height, small.width)), center_lps=center_lps,
@@ -151,7 +173,7 @@ class PreparedXRay:
 
 
 def prepare_xray(xray, *, volume=None, center_lps=None, init_params=None, scene: str = "cios_fusion",
-                 steps=None, scale: str = "auto", polarity: str = "auto", size: int = 128,
+                 steps=None, scale: str = "auto", polarity: str = "auto", size=(128, 128),
                  sdd_mm: float | None = None, sod_mm: float | None = None,
                  pixel_spacing_mm: float | None = None) -> PreparedXRay:
     """Prepare ``xray`` (a path or :class:`register.xray_io.XRayImage`) for registration.
@@ -164,12 +186,14 @@ def prepare_xray(xray, *, volume=None, center_lps=None, init_params=None, scene:
         steps: preprocessing step names (default :data:`register.preprocess.DEFAULT_STEPS`).
         scale / polarity: ``"auto"`` or an override (:data:`register.intensity.SCALES`,
             :data:`register.intensity.POLARITIES`).
-        size: the longer side (px) of the optimiser's image.
+        size: ``(H, W)`` px the optimiser's image fits inside (aspect kept, sides multiples of 4;
+            :func:`fit_to_size`), each side in [8, 4096]; one number is a square box.
         sdd_mm, sod_mm, pixel_spacing_mm: explicit geometry (override tags and scene).
     """
     from register.preprocess import DEFAULT_STEPS, Pipeline, PreprocessError, cropped_geometry, crop_box
     from register.xray_io import XRayImage, load_xray, resolve_geometry
 
+    box = fit_box(size)
     if not isinstance(xray, XRayImage):
         xray = load_xray(xray)
     full_geometry, sources = resolve_geometry(xray, scene, sdd_mm=sdd_mm, sod_mm=sod_mm,
@@ -197,9 +221,10 @@ def prepare_xray(xray, *, volume=None, center_lps=None, init_params=None, scene:
     geometry = cropped_geometry(full_geometry, record)  # a crop moves the principal point
     if mask is not None and mask.mean() < 0.02:
         raise PreprocessError(f"{xray.source}: only {mask.sum()} valid pixels are left after preprocessing")
-    small, small_mask, geometry = fit_to_size(image, mask, geometry, int(size))
+    small, small_mask, geometry = fit_to_size(image, mask, geometry, box)
     if small_mask is not None and not small_mask.any():
-        raise PreprocessError(f"{xray.source}: no valid pixel is left at the optimiser's {size} px")
+        raise PreprocessError(f"{xray.source}: no valid pixel is left at the optimiser's {small.shape[0]} x "
+                              f"{small.shape[1]} px")
     return PreparedXRay(xray=xray, image=small, mask=small_mask, geometry=geometry, full_geometry=full_geometry,
                         full_image=full_image, full_mask=full_mask, record=record, sources=sources)
 

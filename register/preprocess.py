@@ -30,8 +30,6 @@ Percentiles and statistics use the valid (mask) pixels only. Images leave the pi
 
 from __future__ import annotations
 
-from sim.errors import InputError
-
 import dataclasses
 import math
 from dataclasses import dataclass
@@ -40,6 +38,7 @@ from typing import Any, ClassVar, Iterable, Sequence
 import numpy as np
 from scipy import ndimage
 
+from sim.errors import InputError
 from sim.geometry import CArmGeometry
 
 __all__ = [

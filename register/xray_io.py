@@ -22,9 +22,12 @@ pitch comes from the first of: an explicit argument (the CLI flags ``--sdd``, ``
 ``--pixel-spacing``) > the DICOM tags > the scene (assumed). :func:`resolve_geometry` also says where
 each value came from (:class:`GeometrySources`) and refuses tags that contradict each other.
 
-DICOM tags read for the geometry (all lengths in mm; an empty tag counts as absent, a non-positive
-or non-finite one too, with its name in ``meta["ignored_tags"]``; the values are kept in
-``meta["geometry_tags"]``):
+DICOM tags read for the geometry (all lengths in mm; an empty tag counts as absent; the values are
+kept in ``meta["geometry_tags"]``). A tag that is present but invalid (non-positive, non-finite,
+malformed) is not used: its name is in ``meta["ignored_tags"]`` and its text in
+``meta["invalid_tags"]``, and :func:`resolve_geometry` refuses the image naming the tag unless
+the value it would give is given explicitly (``--sdd``, ``--sod``, ``--pixel-spacing``): a
+broken tag is not silently replaced by the scene's value.
 
 * ``DistanceSourceToDetector`` (0018,1110), SID/SDD: focal spot to the detector surface.
 * ``DistanceSourceToPatient`` (0018,1111), SOD: focal spot to the patient (the isocentre, the
@@ -60,8 +63,6 @@ A MONOCHROME2 image with ``PresentationLUTShape`` INVERSE is shown inverted, so 
 
 from __future__ import annotations
 
-from sim.errors import InputError
-
 import math
 import os
 from dataclasses import dataclass, field
@@ -71,6 +72,7 @@ from typing import Any
 import numpy as np
 
 from sim.atomic import atomic_path
+from sim.errors import InputError
 from sim.geometry import CArmGeometry
 
 __all__ = [
@@ -90,6 +92,16 @@ _SQUARE_RTOL = 1e-4
 #: of the image's value range (1 grey level of 8 bits ~ 0.4 %; lossy codecs may add +-1).
 _GREY_RTOL = 0.01
 
+#: SOP classes of CT, MR and PET images: a slice of a volume, never a projection X-ray.
+_VOLUME_SOP_CLASSES = {
+    "1.2.840.10008.5.1.4.1.1.2": "CT", "1.2.840.10008.5.1.4.1.1.2.1": "CT", "1.2.840.10008.5.1.4.1.1.2.2": "CT",
+    "1.2.840.10008.5.1.4.1.1.4": "MR", "1.2.840.10008.5.1.4.1.1.4.1": "MR", "1.2.840.10008.5.1.4.1.1.128": "PET",
+    "1.2.840.10008.5.1.4.1.1.130": "PET",
+}
+#: Modalities of volume slices (DICOM Modality).
+_VOLUME_MODALITIES = {"CT": "CT", "MR": "MR", "PT": "PET", "NM": "NM"}
+#: Modalities of projection X-rays: such a file is never taken for a slice, whatever else it holds.
+_XRAY_MODALITIES = {"DX", "CR", "RF", "XA", "MG", "PX", "IO", "RG"}
 _DX_PRESENTATION_UID = "1.2.840.10008.5.1.4.1.1.1.1"  # Digital X-Ray Image Storage - For Presentation
 _DX_PROCESSING_UID = "1.2.840.10008.5.1.4.1.1.1.1.1"  # Digital X-Ray Image Storage - For Processing
 _SC_UID = "1.2.840.10008.5.1.4.1.1.7"  # Secondary Capture Image Storage (any modality)
@@ -142,7 +154,8 @@ class XRayImage:
             ``inverted`` and ``inverted_by`` ("MONOCHROME1", "PresentationLUTShape INVERSE" or
             ``None``), ``rgb_to_grey``, ``intensity_tags`` (``None`` unless DICOM); DICOM also
             ``geometry_tags`` (the geometry tags in mm, ``None`` when absent), ``ignored_tags``
-            (tags with non-positive / non-finite / malformed values), ``bits_stored``, ...
+            (tags with non-positive / non-finite / malformed values) and ``invalid_tags`` (their
+            text), ``bits_stored``, ...
     """
 
     pixels: np.ndarray
@@ -223,8 +236,12 @@ def load_xray(path: str | os.PathLike) -> XRayImage:
     src = str(p)
     if not p.exists():
         raise XRayInputError(f"{src}: file not found")
+    if p.is_dir():
+        raise XRayInputError(f"{src}: a folder, not an X-ray file (a CT's DICOM series folder goes to --ct)")
     if not p.is_file():
         raise XRayInputError(f"{src}: not a file")
+    if p.name.lower().endswith((".nii", ".nii.gz")):
+        raise XRayInputError(f"{src}: a NIfTI volume (a CT?), not an X-ray image; give the CT as --ct")
     suffix = p.suffix.lower()
     if suffix == ".npy":
         return _load_npy(p)
@@ -307,9 +324,9 @@ def _tag_values(ds: Any, keyword: str) -> list[Any] | None:
     return vals or None
 
 
-def _tag_numbers(ds: Any, keyword: str, count: int, ignored: list[str]) -> list[float] | None:
+def _tag_numbers(ds: Any, keyword: str, count: int, ignored: dict[str, str]) -> list[float] | None:
     """``count`` positive finite numbers from a DS tag; absent / empty -> ``None``; a value that is
-    not ``count`` positive finite numbers -> ``None`` with ``keyword`` added to ``ignored``."""
+    not ``count`` positive finite numbers -> ``None`` with ``keyword: its text`` added to ``ignored``."""
     vals = _tag_values(ds, keyword)
     if vals is None:
         return None
@@ -318,7 +335,7 @@ def _tag_numbers(ds: Any, keyword: str, count: int, ignored: list[str]) -> list[
     except (TypeError, ValueError):
         nums = []
     if len(nums) != count or not all(math.isfinite(x) and x > 0 for x in nums):
-        ignored.append(keyword)
+        ignored[keyword] = "\\".join(str(v) for v in vals)
         return None
     return nums
 
@@ -376,7 +393,7 @@ def _intensity_tags(ds: Any) -> dict[str, Any]:
     return out
 
 
-def _geometry_tags(ds: Any, ignored: list[str]) -> dict[str, Any]:
+def _geometry_tags(ds: Any, ignored: dict[str, str]) -> dict[str, Any]:
     """``meta["geometry_tags"]``: the geometry tags (mm; pairs as ``[row, col]``), ``None`` when absent."""
     sdd = _tag_numbers(ds, "DistanceSourceToDetector", 1, ignored)
     sod = _tag_numbers(ds, "DistanceSourceToPatient", 1, ignored)
@@ -414,6 +431,7 @@ def _load_dicom(p: Path) -> XRayImage:
         if forced:
             raise XRayInputError(f"{src}: not a readable DICOM file (no DICOM header and no pixel data)")
         raise XRayInputError(f"{src}: not a DICOM image (no pixel data)")
+    _refuse_volume_slice(ds, src)
     frames = int(ds.get("NumberOfFrames", 1) or 1)
     if frames > 1:
         raise XRayInputError(f"{src}: multi-frame DICOM ({frames} frames); a single X-ray image is needed")
@@ -464,7 +482,7 @@ def _load_dicom(p: Path) -> XRayImage:
             values = (finite.max() + finite.min()) - values
     pixels = _check_pixels(values, src)
 
-    ignored: list[str] = []
+    ignored: dict[str, str] = {}
     gtags = _geometry_tags(ds, ignored)
     spacing, spacing_tag, spacing_rc = None, None, None
     for tag in ("ImagerPixelSpacing", "PixelSpacing"):
@@ -497,10 +515,31 @@ def _load_dicom(p: Path) -> XRayImage:
         "stored_dtype": stored_dtype,
         "bits_stored": intensity["BitsStored"],
         "geometry_tags": gtags,
-        "ignored_tags": ignored,
+        "ignored_tags": list(ignored),
+        "invalid_tags": ignored,
         "intensity_tags": intensity,
     }
     return XRayImage(pixels, intent != "FOR PROCESSING", spacing, sdd, sod, src, meta)
+
+
+def _refuse_volume_slice(ds: Any, src: str) -> None:
+    """Raise :class:`XRayInputError` for a slice of a CT (MR, PET) volume: its Modality, its SOP
+    class, or (without an X-ray modality) the position tags of a slice in a volume."""
+    modality = (_tag_str(ds, "Modality") or "").upper()
+    if modality in _XRAY_MODALITIES:
+        return
+    sop = _tag_str(ds, "SOPClassUID") or str(getattr(getattr(ds, "file_meta", None), "MediaStorageSOPClassUID", ""))
+    kind = _VOLUME_MODALITIES.get(modality) or _VOLUME_SOP_CLASSES.get(sop)
+    why = f"Modality {modality}" if modality in _VOLUME_MODALITIES else f"SOP class {sop}" if kind else None
+    if kind is None:
+        slice_tags = [k for k in ("ImagePositionPatient", "ImageOrientationPatient", "SliceLocation", "SliceThickness")
+                      if _tag_values(ds, k) is not None]
+        if "ImagePositionPatient" in slice_tags and len(slice_tags) >= 2:
+            kind, why = "CT", f"{', '.join(slice_tags)}: the tags of a slice in a volume"
+    if kind is not None:
+        what = "a CT slice" if kind == "CT" else f"a slice of an {kind} volume" if kind == "MR" else f"a {kind} slice"
+        raise XRayInputError(f"{src}: {what} ({why}), not a projection X-ray; register a radiograph or fluoroscopy "
+                             f"frame (DX, CR, RF, XA), and give the CT series as --ct")
 
 
 # --------------------------------------------------------------------------------------------
@@ -605,6 +644,28 @@ def _check_binning(src: str, imager: list[float], element: list[float]) -> None:
             )
 
 
+#: The flag that gives the value of each geometry tag instead (:func:`resolve_geometry`'s argument).
+_TAG_FLAGS = {"DistanceSourceToDetector": "sdd_mm", "DistanceSourceToPatient": "sod_mm", _ERMF: "sod_mm",
+              "ImagerPixelSpacing": "pixel_spacing_mm", "DetectorElementSpacing": "pixel_spacing_mm",
+              "PixelSpacing": "pixel_spacing_mm"}
+
+
+def _refuse_invalid_tags(src: str, meta: dict, **explicit: float | None) -> None:
+    """Raise :class:`XRayInputError` naming the geometry tags that are present but invalid (see the
+    module docstring), unless the value each would give is ``explicit`` (a flag)."""
+    invalid = meta.get("invalid_tags")
+    if not isinstance(invalid, dict):
+        invalid = {k: None for k in meta.get("ignored_tags") or ()}
+    bad = [(tag, text) for tag, text in invalid.items() if explicit.get(_TAG_FLAGS.get(tag, "")) is None]
+    if bad:
+        items = ", ".join(f"{tag} = {text}" if text is not None else tag for tag, text in bad)
+        flags = " / ".join(dict.fromkeys(_FLAGS[_TAG_FLAGS[tag]] for tag, _ in bad if tag in _TAG_FLAGS))
+        raise XRayInputError(
+            f"{src}: invalid DICOM geometry tag{'s' if len(bad) > 1 else ''} {items} (a positive number of mm, "
+            f"or a pair for a spacing, is needed); give the value{'s' if len(bad) > 1 else ''} with {flags}"
+        )
+
+
 def resolve_geometry(
     xray: XRayImage,
     scene: str | os.PathLike | None = "cios_fusion",
@@ -639,8 +700,9 @@ def resolve_geometry(
     The detector has the image's ``H x W`` pixels and the default principal point (the centre).
 
     Raises:
-        XRayInputError (one line, naming both tags / values) when a value is missing and there is
-        no fallback; the chosen spacing tag is anisotropic; the final SOD >= SDD (from any sources);
+        XRayInputError (one line, naming both tags / values) when a geometry tag is present but
+        invalid (``meta["invalid_tags"]``) and its value is not given explicitly; a value is missing
+        and there is no fallback; the chosen spacing tag is anisotropic; the final SOD >= SDD (from any sources);
         ``DistanceSourceToDetector / DistanceSourceToPatient`` and ERMF differ by more than 2 %
         (neither distance given as a flag); an ERMF < 1 is used; ``ImagerPixelSpacing`` is more than
         1 % below ``DetectorElementSpacing`` or more than 2 % from an integer multiple of it (no
@@ -660,6 +722,7 @@ def resolve_geometry(
     meta = xray.meta if isinstance(xray.meta, dict) else {}
     tags = meta.get("geometry_tags") if isinstance(meta.get("geometry_tags"), dict) else None
     notes: list[str] = []
+    _refuse_invalid_tags(src, meta, sdd_mm=sdd_mm, sod_mm=sod_mm, pixel_spacing_mm=pixel_spacing_mm)
 
     def explicit(name: str, value: object) -> tuple[float, str] | None:
         if value is None:

@@ -8,13 +8,12 @@ volume's affine (exact, the affine being linear).
 
 from __future__ import annotations
 
-from sim.errors import InputError
-
 from typing import Sequence
 
 import numpy as np
 from scipy import ndimage
 
+from sim.errors import InputError
 from sim.volume import CTVolume
 
 #: HU above which a voxel counts as bone. Cancellous bone is about 200-400 HU and cortical bone

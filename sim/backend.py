@@ -7,11 +7,10 @@ build are available. The environment variable ``CTXREG_VARIANT`` overrides the c
 
 from __future__ import annotations
 
-from sim.errors import SetupError
-
 import os
 
 from sim import llvm
+from sim.errors import SetupError
 
 DEFAULT_CPU_VARIANT = "llvm_ad_mono"
 DEFAULT_GPU_VARIANT = "cuda_ad_mono"

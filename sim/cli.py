@@ -7,17 +7,15 @@ geometry (see :func:`geometry_record`).
 
 from __future__ import annotations
 
-from sim.errors import InputError
-
-import math
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
-from sim.cliargs import opt
+from sim.cliargs import IMAGE_SIDE_PX, Range, opt
+from sim.errors import InputError
 from sim.physics.options import level_field, physics_option
-from sim.render import QUANTITIES, RAY_MODELS, RenderSettings
+from sim.render import QUANTITIES, RAY_MODELS, STEP_FRACTION, RenderSettings
 
 _DEFAULTS = RenderSettings()  # the renderer's defaults are the command line's
 
@@ -43,7 +41,7 @@ class RenderCommand:
         "C-arm scene: a name from scenes/ or a scene XML path", group="geometry"))
     size: tuple[int, int] = field(default=_DEFAULTS.size, metadata=opt(
         "rendered image rows and columns (the detector is resampled, its extent kept)",
-        group="geometry", unit="pixels", nargs=2, metavar=("H", "W")))
+        group="geometry", unit="pixels", nargs=2, metavar=("H", "W"), bounds=IMAGE_SIDE_PX))
     pose: tuple[float, float, float, float, float, float] = field(default=(0.0,) * 6, metadata=opt(
         "pose parameters: rotations phi theta psi about the patient's S, L, P axes, then "
         "translations tx ty tz in the camera frame; all zero is the AP view", group="pose",
@@ -60,13 +58,14 @@ class RenderCommand:
         "siddon: exact voxel traversal; trilinear: sampled trilinear interpolant",
         group="physics", choices=RAY_MODELS))
     step_fraction: float = field(default=_DEFAULTS.step_fraction, metadata=opt(
-        "trilinear step as a fraction of the smallest voxel spacing", group="physics", metavar="F"))
+        "trilinear step as a fraction of the smallest voxel spacing (--ray-model trilinear, --physics line)",
+        group="physics", metavar="F", bounds=STEP_FRACTION))
     physics: str = level_field(help=(
         "line: line integrals of mu (DRR); poly: tube spectrum, 7 materials with NIST cross "
         "sections, CsI detector, noise; full: poly + Monte Carlo scatter"))
     kvp: float = physics_option("kvp")
-    filter: tuple[str, ...] = physics_option("filter")
-    anode_angle: float = physics_option("anode_angle")
+    filters: tuple[str, ...] = physics_option("filters")
+    anode_angle_deg: float = physics_option("anode_angle_deg")
     mas: float = physics_option("mas")
     bins: int = physics_option("bins")
     detector_mm: float = physics_option("detector_mm")
@@ -76,7 +75,7 @@ class RenderCommand:
     electronic_noise: float = physics_option("electronic_noise")
     seed: int = physics_option("seed")
     scatter_photons: int = physics_option("scatter_photons")
-    scatter_voxel: float = physics_option("scatter_voxel")
+    scatter_voxel_mm: float = physics_option("scatter_voxel_mm")
     grid_ratio: float = physics_option("grid_ratio")
     label_material: tuple[str, ...] = physics_option("label_material")
     primary: bool = field(default=False, metadata=opt(
@@ -94,9 +93,10 @@ class DemoCommand:
 
     out: str = field(default="out/demo", metadata=opt(
         "folder for the PNGs and their JSON sidecars", group="output", metavar="DIR"))
-    seed: int = field(default=0, metadata=opt("phantom seed", group="input"))
+    seed: int = field(default=0, metadata=opt("phantom seed", group="input", bounds=Range(0)))
     size: tuple[int, int] = field(default=(384, 384), metadata=opt(
-        "image rows and columns", group="geometry", unit="pixels", nargs=2, metavar=("H", "W")))
+        "image rows and columns", group="geometry", unit="pixels", nargs=2, metavar=("H", "W"),
+        bounds=IMAGE_SIDE_PX))
 
 
 #: The demo's poses: name -> (phi, theta, psi deg, tx, ty, tz mm). The pelvis sits 250 mm
@@ -185,92 +185,91 @@ def write_image(path: str | Path, values: np.ndarray, record: dict, quantity: st
 
 
 def run_render(cmd: RenderCommand) -> Path | list[Path]:
-    from sim.render import DRRRenderer, RenderSettings
+    """Check every option and the output names, then load the CT, render (:func:`sim.render.render_view`:
+    refuses a pose at which the CT is out of view) and write the image and its sidecar."""
+    from sim.outputs import check_output_file
+    from sim.render import render_view
 
     out = Path(cmd.out)
     if out.suffix not in (".npy", ".png"):
         raise CommandError(f"--out {cmd.out}: the file must end in .npy or .png")
-    if not all(math.isfinite(v) for v in cmd.pose):
-        raise CommandError(f"--pose {cmd.pose}: values must be finite numbers")
-    from sim.ct_io import load_ct_spec
-
     _check_physics_options(cmd)
-    volume = load_ct_spec(cmd.ct, label_map=cmd.label_map)
     if cmd.pose_matrix is not None and any(cmd.pose):
         raise CommandError("give either --pose or --pose-matrix, not both")
-    if cmd.physics != "line":
-        return _render_physics(cmd, volume, out)
+    extra = [] if cmd.physics == "line" else ["raw", *(("primary", "scatter") if cmd.primary else ())]
+    check_output_file(out, beside=[out.with_suffix(".json"), *(out.with_name(f"{out.stem}_{n}.npy") for n in extra)])
+    pose = load_pose_matrix(cmd.pose_matrix) if cmd.pose_matrix is not None else np.array(cmd.pose, np.float64)
+    from sim.ct_io import load_ct_spec
+    from sim.physics.options import label_materials, physics_settings
+
+    volume = load_ct_spec(cmd.ct, label_map=cmd.label_map)
+    line = cmd.physics == "line"
     settings = RenderSettings(scene=cmd.scene, size=tuple(cmd.size), ray_model=cmd.ray_model,
-                              step_fraction=cmd.step_fraction, quantity=cmd.quantity,
-                              mu_water_per_mm=cmd.mu_water)
-    renderer = DRRRenderer(volume, settings, center_lps=cmd.center)
-    pose = _pose(cmd, renderer.geometry.sod_mm)
-    image = renderer.render(pose)[0]
-    write_image(out, image, geometry_record(renderer, pose, cmd.quantity), cmd.quantity)
-    return out
+                              **(dict(step_fraction=cmd.step_fraction, quantity=cmd.quantity,
+                                      mu_water_per_mm=cmd.mu_water) if line else {}))
+    view = render_view(volume, pose, settings=settings, physics=None if line else physics_settings(cmd),
+                       center_lps=cmd.center, label_materials=None if line else label_materials(cmd),
+                       what="--pose / --pose-matrix with this --center")
+    if line:
+        write_image(out, view.image, geometry_record(view.renderer, view.pose, cmd.quantity), cmd.quantity)
+        return out
+    return _write_physics(cmd, view, out)
 
 
 #: Options of ``render`` itself that only mean something at some physics levels (the shared
 #: physics options know their levels: :mod:`sim.physics.options`).
-_LEVEL_BOUND = {"quantity": ("line",), "mu_water": ("line",), "primary": ("poly", "full")}
+_LEVEL_BOUND = {"quantity": ("line",), "mu_water": ("line",), "step_fraction": ("line",),
+                "primary": ("poly", "full")}
 
 
 def _check_physics_options(cmd: RenderCommand) -> None:
-    """Refuse options of another physics level instead of ignoring them silently."""
+    """Refuse options that this run would ignore (another physics level's, or the trilinear step
+    with the Siddon ray model) instead of ignoring them silently."""
+    from sim.cliargs import refuse_unused, refuse_unused_label_map
     from sim.physics.options import check_level_options
 
     check_level_options(cmd, extra=_LEVEL_BOUND)
+    refuse_unused_label_map(cmd)
+    refuse_unused(cmd, ("step_fraction",), applies=cmd.ray_model == "trilinear",
+                  why=f"meaningful with --ray-model trilinear only; this run is --ray-model {cmd.ray_model}")
 
 
-def _pose(cmd: RenderCommand, sod_mm: float) -> np.ndarray:
-    from sim.geometry import pose_from_params
-
-    if cmd.pose_matrix is not None:
-        return load_pose_matrix(cmd.pose_matrix)
-    return pose_from_params(np.array(cmd.pose, dtype=np.float64), sod_mm)
-
-
-def _render_physics(cmd: RenderCommand, volume, out: Path) -> list[Path]:
+def _write_physics(cmd: RenderCommand, view, out: Path) -> list[Path]:
     from sim.atomic import atomic_path
-    from sim.physics.imaging import XRayImager
-    from sim.physics.options import label_materials, physics_settings
 
-    physics = physics_settings(cmd)
-    imager = XRayImager(volume, physics, scene=cmd.scene, size=tuple(cmd.size), ray_model=cmd.ray_model,
-                        center_lps=cmd.center, label_materials=label_materials(cmd))
-    pose = _pose(cmd, imager.geometry.sod_mm)
-    images = imager.render(pose)
-    record = {**geometry_record(imager.renderer, pose, "line-integral"), "quantity": "-log(I/I0)",
-              "units": "-log(I / I0), dimensionless", "physics": imager.record()}
-    write_image(out, images["log"][0], record, "line-integral")
+    record = {**geometry_record(view.renderer, view.pose, "line-integral"), "quantity": "-log(I/I0)",
+              "units": "-log(I / I0), dimensionless", "physics": view.physics}
+    write_image(out, view.image, record, "line-integral")
     written = [out]
     names = ("raw", "primary", "scatter") if cmd.primary else ("raw",)
-    for name in (n for n in names if n in images):
+    for name in (n for n in names if n in view.images):
         path = out.with_name(f"{out.stem}_{name}.npy")
         with atomic_path(path) as tmp:
-            np.save(tmp, images[name][0], allow_pickle=False)
+            np.save(tmp, view.images[name], allow_pickle=False)
         written.append(path)
     return written
 
 
 def run_demo(cmd: DemoCommand) -> list[Path]:
     from sim.geometry import pose_from_params
+    from sim.outputs import check_output_dir
     from sim.phantom import make_pelvis_phantom
     from sim.render import DRRRenderer, RenderSettings
 
+    check_output_dir(cmd.out, [f"phantom{cmd.seed}_{name}{ext}" for name in DEMO_POSES for ext in (".png", ".json")])
     volume = make_pelvis_phantom(cmd.seed)
     # trilinear: the phantom's 2 mm voxels would show as steps on thin cortical shells
     renderer = DRRRenderer(volume, RenderSettings(size=tuple(cmd.size), ray_model="trilinear"))
     params = np.array(list(DEMO_POSES.values()), dtype=np.float64)
     poses = pose_from_params(params, renderer.geometry.sod_mm)
     images = renderer.render(poses)  # all poses in one kernel launch
+    if not np.all(np.isfinite(images)) or images.max() <= 0:
+        raise RuntimeError("demo: the phantom rendered empty or non-finite images")  # a bug, not an input
     written = []
     for name, pose, image in zip(DEMO_POSES, poses, images):
         path = Path(cmd.out) / f"phantom{cmd.seed}_{name}.png"
         write_image(path, image, geometry_record(renderer, pose, "line-integral"), "line-integral")
         written.append(path)
-    if not np.all(np.isfinite(images)) or images.max() <= 0:
-        raise RuntimeError("demo: the phantom rendered empty or non-finite images")
     return written
 
 
@@ -283,12 +282,14 @@ class SimulateCommand:
     out: str | None = field(default=None, metadata=opt(
         "output folder (default: out/<campaign name>)", group="output", metavar="DIR"))
     workers: int = field(default=1, metadata=opt(
-        "worker processes (each renders whole shards)", group="run", metavar="N"))
+        "worker processes (each renders whole shards; they end with the run)", group="run", metavar="N",
+        bounds=Range(1, 256)))  # sim.campaign.runner.MAX_WORKERS
     resume: bool = field(default=False, metadata=opt(
-        "continue an interrupted run in --out: keep finished shards, render the rest", group="run"))
+        "continue an interrupted run in --out: keep finished shards, render the rest (and any corrupt "
+        "or truncated shard again)", group="run"))
     shard: str | None = field(default=None, metadata=opt(
-        "run only part K of N of the work (for batch schedulers); merge with a later --resume",
-        group="run", metavar="K/N"))
+        "run only part K of N of the work (for batch schedulers; with --resume when other parts share "
+        "--out); merge with a later --resume", group="run", metavar="K/N"))
 
 
 def run_simulate(cmd: SimulateCommand) -> list[Path]:

@@ -142,6 +142,7 @@ def ct_from_array(hu: np.ndarray, affine_lps: np.ndarray, source: str = "<array>
     _check_finite(arr, source)
     check_hu_plausible(arr, source)
     lab = None if labels is None else _as_int_labels(np.asarray(labels), f"{source} (labels)")
+    _check_affine(affine_lps, source)
     return CTVolume(hu=arr, affine=np.asarray(affine_lps, dtype=np.float64), source=source, labels=lab)
 
 
@@ -283,7 +284,23 @@ def _load_any(path: str | os.PathLike, *, series_uid: str | None) -> tuple[np.nd
             "DICOM series (pass the folder, not one of its files)"
         )
     _check_finite(data, source)
+    _check_affine(affine, source)
     return data, affine, source
+
+
+def _check_affine(affine: np.ndarray, source: str) -> None:
+    """One line for an affine a :class:`CTVolume` cannot use (non-finite, not homogeneous, singular)."""
+    a = np.asarray(affine, dtype=np.float64)
+    if a.shape != (4, 4) or not np.all(np.isfinite(a)):
+        raise CTInputError(f"{source}: the voxel-to-patient affine has NaN or infinite entries (a broken header)")
+    if not np.allclose(a[3], (0, 0, 0, 1)):
+        raise CTInputError(f"{source}: the voxel-to-patient affine's last row is {a[3].tolist()}, not 0 0 0 1")
+    det = float(np.linalg.det(a[:3, :3]))
+    if abs(det) < 1e-9:
+        spacing = ", ".join(f"{v:.3g}" for v in np.linalg.norm(a[:3, :3], axis=0))
+        raise CTInputError(f"{source}: the voxel-to-patient affine is singular (voxel spacing along i, j, k "
+                           f"{spacing} mm, determinant {det:.3g} mm^3): the header's sform/qform or slice "
+                           f"positions are broken")
 
 
 def _check_finite(arr: np.ndarray, source: str) -> None:
@@ -302,9 +319,11 @@ def _load_labels(path: str | os.PathLike, shape: tuple[int, ...], affine: np.nda
         raise CTInputError(f"{source}: label map shape {data.shape} differs from the CT's shape {tuple(shape)}")
     err = float(np.max(np.abs(lab_affine - affine)))
     if err > AFFINE_TOLERANCE_MM:
+        fmt = lambda m: "[" + "; ".join(" ".join(f"{v:.6g}" for v in row) for row in m[:3]) + "]"  # noqa: E731
         raise CTInputError(
             f"{source}: label map affine differs from the CT's by up to {err:.4g} mm "
-            f"(tolerance {AFFINE_TOLERANCE_MM:g} mm); label map affine (LPS):\n{lab_affine}\nCT affine (LPS):\n{affine}"
+            f"(tolerance {AFFINE_TOLERANCE_MM:g} mm); label map affine (LPS, rows 1-3) {fmt(lab_affine)}, "
+            f"CT affine {fmt(affine)}"
         )
     return _as_int_labels(data, source)
 

@@ -16,14 +16,13 @@ Conventions (full text with a worked example in ``docs/conventions.md``):
 
 from __future__ import annotations
 
-from sim.errors import InputError
-
 import math
 from dataclasses import dataclass
 
 import numpy as np
 
 from sim import se3
+from sim.errors import InputError
 
 __all__ = [
     "GeometryError",

@@ -16,14 +16,14 @@ Search order:
 
 from __future__ import annotations
 
-from sim.errors import SetupError
-
 import glob
 import os
 import platform
 import re
 from dataclasses import dataclass
 from pathlib import Path
+
+from sim.errors import SetupError
 
 MIN_LLVM_MAJOR = 16
 ENV_VAR = "DRJIT_LIBLLVM_PATH"

@@ -10,13 +10,12 @@ loads the file at a chosen render size (a downsampled detector keeps the physica
 
 from __future__ import annotations
 
-from sim.errors import InputError
-
 import math
 import xml.etree.ElementTree as ET
 from dataclasses import dataclass
 from pathlib import Path
 
+from sim.errors import InputError
 from sim.geometry import CArmGeometry
 
 DEFAULT_SCENE = "cios_fusion"

@@ -24,13 +24,13 @@ check reads one boolean back from the device for torch tensors.)
 
 from __future__ import annotations
 
-from sim.errors import InputError
-
 import math
 import numbers
 from typing import Any
 
 import numpy as np
+
+from sim.errors import InputError
 
 __all__ = [
     "DEFAULT_MM_PER_RAD",

@@ -2,11 +2,11 @@
 
 from __future__ import annotations
 
-from sim.errors import InputError
-
 from dataclasses import dataclass, field
 
 import numpy as np
+
+from sim.errors import InputError
 
 #: HU values outside this range are not plausible for a CT (air is -1000, dense metal about
 #: +3000 to +4000 on a 12-bit scale, extended-range scanners reach +30000). Loaders reject
@@ -53,9 +53,12 @@ class CTVolume:
         if affine.shape != (4, 4):
             raise CTInputError(f"{self.source}: affine must be 4 x 4, got shape {affine.shape}")
         if not np.all(np.isfinite(affine)) or not np.allclose(affine[3], (0, 0, 0, 1)):
-            raise CTInputError(f"{self.source}: affine is not a finite homogeneous transform:\n{affine}")
+            raise CTInputError(f"{self.source}: affine is not a finite homogeneous transform "
+                               f"({_one_line(affine)})")
         if abs(np.linalg.det(affine[:3, :3])) < 1e-9:
-            raise CTInputError(f"{self.source}: affine is singular (zero voxel spacing?):\n{affine}")
+            raise CTInputError(f"{self.source}: affine is singular: voxel spacing "
+                               f"{np.round(np.linalg.norm(affine[:3, :3], axis=0), 6).tolist()} mm "
+                               f"(a zero spacing?) ({_one_line(affine)})")
         if self.labels is not None:
             labels = np.asarray(self.labels)
             if labels.shape != hu.shape:
@@ -95,3 +98,8 @@ class CTVolume:
     def center_of_box_lps(self) -> np.ndarray:
         """``(3,)`` LPS mm centre of the voxel grid."""
         return self.voxel_to_lps((np.array(self.shape, dtype=np.float64) - 1.0)[None] / 2.0)[0]
+
+
+def _one_line(m: np.ndarray) -> str:
+    """A matrix as one line: rows separated by ``;``."""
+    return "; ".join(" ".join(f"{v:.6g}" for v in row) for row in np.asarray(m))

@@ -87,7 +87,9 @@ def test_the_written_files_are_listed_and_the_options_reach_the_runner(render_ra
 
 
 @pytest.mark.parametrize("argv", [[], ["no-such-command"], ["render"]])
-def test_a_missing_command_or_option_is_an_argparse_error(argv, capsys):
+def test_a_missing_command_or_option_is_one_line_pointing_to_the_help(argv, capsys):
     with pytest.raises(SystemExit) as raised:
         cli.main(argv)
-    assert raised.value.code == 2 and "usage: ctxreg" in capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert raised.value.code == 2 and err.count("\n") == 1 and err.startswith("ctxreg")
+    assert ": error: " in err and "--help)" in err

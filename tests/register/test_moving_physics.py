@@ -133,7 +133,7 @@ def test_register_with_poly_moving_images(poly_case, tmp_path):
     ct, xray, truth, center = poly_case
     start = truth + np.array([4.0, 3.0, -3.0, -8.0, 6.0, 15.0])
     out = tmp_path / "out"
-    r = run_cli("register", "--ct", ct, "--xray", xray, "--init", *start, "--size", 96, "--center", *center,
+    r = run_cli("register", "--ct", ct, "--xray", xray, "--init", *start, "--size", 96, 96, "--center", *center,
                 "--physics", "poly", "--out", out)
     assert r.returncode == 0, r.stderr
     result = json.loads((out / "result.json").read_text())
@@ -187,8 +187,8 @@ def test_physics_options_are_declared_once_for_every_command():
     render = {f.name: f for f in fields(RenderCommand)}
     register = {f.name: f for f in fields(RegisterCommand)}
     shared = sorted(set(render) & set(register) - {"ct", "label_map", "center", "scene", "size", "out", "physics"})
-    assert shared == ["anode_angle", "bins", "detector_mm", "detector_mode", "filter", "grid_ratio", "kvp",
-                      "label_material", "scatter_photons", "scatter_voxel"]
+    assert shared == ["anode_angle_deg", "bins", "detector_mm", "detector_mode", "filters", "grid_ratio", "kvp",
+                      "label_material", "scatter_photons", "scatter_voxel_mm"]
     for name in shared:
         assert render[name].metadata == register[name].metadata, name
         assert "(poly or full)" in render[name].metadata["help"] or "(full)" in render[name].metadata["help"]

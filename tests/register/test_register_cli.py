@@ -56,7 +56,7 @@ def test_register_recovers_the_pose_of_a_synthetic_dicom(synthetic_case, tmp_pat
     ct, xray, truth, center = synthetic_case
     start = truth + np.array([4.0, 3.0, -3.0, -8.0, 6.0, 15.0])
     out = tmp_path / "out"
-    r = run_cli("register", "--ct", ct, "--xray", xray, "--init", *start, "--size", 96,
+    r = run_cli("register", "--ct", ct, "--xray", xray, "--init", *start, "--size", 96, 96,
                 "--center", *center, "--out", out)
     assert r.returncode == 0, r.stderr
     # geometry from the DICOM tags, image resampled 192 -> 96 px; the DRRs match the target up
@@ -97,7 +97,7 @@ def test_register_handles_a_collimated_fluoroscopy_frame_by_default(fluoro_case,
     ct, xray, truth, center, field = fluoro_case
     start = truth + np.array([3.0, -2.0, 2.0, 6.0, -5.0, 10.0])
     out = tmp_path / "out"
-    r = run_cli("register", "--ct", ct, "--xray", xray, "--init", *start, "--size", 96,
+    r = run_cli("register", "--ct", ct, "--xray", xray, "--init", *start, "--size", 96, 96,
                 "--center", *center, "--out", out)
     assert r.returncode == 0, r.stderr
     result = _assert_recovered(out, truth)
@@ -117,7 +117,7 @@ def test_register_says_which_geometry_it_assumed(synthetic_case, tmp_path):
     png = tmp_path / "plain.png"
     px = load_xray(xray).pixels
     Image.fromarray((255 * (px - px.min()) / np.ptp(px)).astype(np.uint8)).save(png)
-    r = run_cli("register", "--ct", ct, "--xray", png, "--init", *truth, "--size", 64, "--center", *center,
+    r = run_cli("register", "--ct", ct, "--xray", png, "--init", *truth, "--size", 64, 64, "--center", *center,
                 "--sdd", 1000, "--out", tmp_path / "o")
     assert r.returncode == 0, r.stderr
     line = [ln for ln in r.stdout.splitlines() if ln.startswith("geometry:")]
@@ -177,7 +177,7 @@ def test_contextual_register_saves_a_consistent_trajectory(synthetic_case, tmp_p
     ct, xray, truth, center = synthetic_case
     start = np.array([1.0, 2.0, -1.0, 5.0, -5.0, 10.0])
     out = tmp_path / "ctx"
-    r = run_cli("register", "--ct", ct, "--xray", xray, "--init", *start, "--size", 64, "--center", *center,
+    r = run_cli("register", "--ct", ct, "--xray", xray, "--init", *start, "--size", 64, 64, "--center", *center,
                 "--method", "contextual", "--model", ckpt, "--out", out)
     assert r.returncode == 0, r.stderr
     t = np.load(out / "trajectory.npz")
@@ -190,3 +190,31 @@ def test_contextual_register_saves_a_consistent_trajectory(synthetic_case, tmp_p
         expect = apply_update(pose_from_params(params[i], sod), g[i], 0.15)
         np.testing.assert_allclose(pose_from_params(params[i + 1], sod), expect, atol=1e-6)
     assert (out / "trajectory.png").read_bytes()[:4] == b"\x89PNG"
+
+
+@pytest.mark.parametrize("size, expect", [((128, 128), (64, 128)), ((64, 64), (32, 64)), ((128, 32), (16, 32)),
+                                          ((40, 200), (40, 80)), (96, (48, 96))])
+def test_size_is_the_box_the_optimisers_image_fits_inside(size, expect):
+    """``--size H W`` (and ``size=`` of prepare_xray / register_xray): a 100 x 200 X-ray keeps its
+    aspect and becomes the largest image inside H x W with sides multiples of 4; the detector's
+    extent is kept (spacing x width). The default 128 x 128 is the former longer side 128."""
+    from register.prepare import prepare_xray
+    from register.xray_io import XRayImage
+
+    pixels = np.random.default_rng(0).random((100, 200)).astype(np.float32)
+    x = XRayImage(pixels, pixel_spacing_mm=0.3, sdd_mm=1000.0, sod_mm=600.0, source="wide")
+    p = prepare_xray(x, steps=["normalize"], size=size)
+    assert p.image.shape == expect and (p.geometry.height, p.geometry.width) == expect
+    assert p.geometry.pixel_spacing_mm * p.geometry.width == pytest.approx(0.3 * 200, rel=0.02)
+    assert p.summary()["optimiser_size"] == list(expect)
+
+
+@pytest.mark.parametrize("size", [(0, 0), (4, 128), (128, 5000), (1, 2, 3)])
+def test_sizes_outside_the_declared_range_are_refused(size):
+    from register.prepare import prepare_xray
+    from register.preprocess import PreprocessError
+    from register.xray_io import XRayImage
+
+    x = XRayImage(np.ones((16, 16), np.float32), pixel_spacing_mm=0.3, sdd_mm=1000.0, sod_mm=600.0, source="x")
+    with pytest.raises(PreprocessError, match=r"\[8, 4096\]"):
+        prepare_xray(x, steps=["normalize"], size=size)

@@ -476,7 +476,9 @@ def test_empty_geometry_tags_are_absent_and_everything_comes_from_the_scene(tmp_
     assert g.pixel_spacing_mm == pytest.approx(CIOS.detector_size_mm[1] / 8, rel=1e-12)
 
 
-def test_non_positive_and_non_finite_tags_are_ignored_and_named(tmp_path):
+def test_invalid_tags_are_refused_by_name_unless_a_flag_gives_the_value(tmp_path):
+    """A tag that is present but non-positive / non-finite is not replaced by the scene's value
+    silently: the geometry is refused naming each tag and its flag, and the flags settle it."""
     path = _dcm(tmp_path, "neg.dcm", sdd_mm=1000.0, sod_mm=600.0, magnification_factor=1.5)
     _edit(path, DistanceSourceToDetector="-5", EstimatedRadiographicMagnificationFactor="0",
           ImagerPixelSpacing=["0", "0.3"])
@@ -485,8 +487,60 @@ def test_non_positive_and_non_finite_tags_are_ignored_and_named(tmp_path):
     x = load_xray(path)
     assert sorted(x.meta["ignored_tags"]) == sorted(
         ["DistanceSourceToDetector", "DistanceSourceToPatient", ERMF, "ImagerPixelSpacing"])
-    _, src = resolve_geometry(x)
-    assert src.assumed == ["sdd_mm", "sod_mm", "pixel_spacing_mm"]
+    assert x.meta["invalid_tags"]["DistanceSourceToDetector"] == "-5"
+    assert x.meta["invalid_tags"]["ImagerPixelSpacing"] == "0\\0.3"
+    with pytest.raises(XRayInputError) as e:
+        resolve_geometry(x)
+    msg = str(e.value)
+    assert "\n" not in msg and "neg.dcm" in msg
+    for piece in ("DistanceSourceToDetector = -5", "DistanceSourceToPatient", ERMF, "ImagerPixelSpacing = 0\\0.3",
+                  "--sdd / --sod / --pixel-spacing"):
+        assert piece in msg, piece
+    with pytest.raises(XRayInputError, match="ImagerPixelSpacing") as e:  # one flag short
+        resolve_geometry(x, sdd_mm=1000.0, sod_mm=600.0)
+    assert "DistanceSourceTo" not in str(e.value)
+    g, src = resolve_geometry(x, sdd_mm=1000.0, sod_mm=600.0, pixel_spacing_mm=0.3)
+    assert (g.sdd_mm, g.sod_mm, g.pixel_spacing_mm) == (1000.0, 600.0, 0.3) and src.assumed == []
+
+
+def test_an_image_built_by_hand_with_ignored_tags_is_refused_too():
+    x = XRayImage(np.ones((8, 8), np.float32), source="hand", meta={"ignored_tags": ["PixelSpacing"]})
+    with pytest.raises(XRayInputError, match="hand: invalid DICOM geometry tag PixelSpacing .*--pixel-spacing"):
+        resolve_geometry(x)
+    assert resolve_geometry(x, pixel_spacing_mm=0.2)[0].pixel_spacing_mm == 0.2
+
+
+@pytest.mark.parametrize("tags, words", [
+    (dict(Modality="CT", SOPClassUID="1.2.840.10008.5.1.4.1.1.2"), "a CT slice (Modality CT)"),
+    (dict(Modality="OT", SOPClassUID="1.2.840.10008.5.1.4.1.1.2"), "a CT slice (SOP class 1.2.840.10008.5.1.4.1.1.2)"),
+    (dict(Modality="MR"), "a slice of an MR volume"),
+    (dict(Modality="OT", ImagePositionPatient=[0, 0, 0], SliceThickness="1.5"), "ImagePositionPatient, SliceThickness"),
+])
+def test_a_slice_of_a_volume_is_refused_as_an_x_ray(tmp_path, tags, words):
+    path = _edit(_dcm(tmp_path, "slice.dcm"), **tags)
+    with pytest.raises(XRayInputError) as e:
+        load_xray(path)
+    assert words in str(e.value) and "not a projection X-ray" in str(e.value) and "--ct" in str(e.value)
+
+
+def test_an_x_ray_modality_with_position_tags_is_still_an_x_ray(tmp_path):
+    path = _edit(_dcm(tmp_path, "dx.dcm"), ImagePositionPatient=[0, 0, 0], SliceThickness="1.5")
+    assert load_xray(path).shape == (8, 8)  # Modality DX: a radiograph, whatever else it holds
+
+
+def test_a_real_ct_slice_is_refused():
+    series = shared_file("ct/abdomen_dicom_series")
+    first = sorted(p for p in series.rglob("*") if p.is_file())[0]
+    with pytest.raises(XRayInputError, match="a CT slice"):
+        load_xray(first)
+
+
+def test_a_nifti_volume_or_a_folder_is_not_taken_for_an_x_ray(tmp_path):
+    (tmp_path / "ct.nii.gz").write_bytes(b"")
+    with pytest.raises(XRayInputError, match="NIfTI volume .* --ct"):
+        load_xray(tmp_path / "ct.nii.gz")
+    with pytest.raises(XRayInputError, match="a folder"):
+        load_xray(tmp_path)
 
 
 # ------------------------------------------------------------------------------ intensity tags

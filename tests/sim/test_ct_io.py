@@ -410,8 +410,9 @@ def test_label_map_checks(tmp_path):
     moved = affine_ras.copy()
     moved[0, 3] += 0.01  # 10 micrometres > 1e-3 mm tolerance
     nib.save(nib.Nifti1Image(lab, moved), tmp_path / "moved.nii.gz")
-    with raises_ct_error("moved.nii.gz", "affine"):
+    with raises_ct_error("moved.nii.gz", "affine") as e:
         load_ct(tmp_path / "ct.nii.gz", label_map=tmp_path / "moved.nii.gz")
+    assert "\n" not in str(e.value)  # both affines on the one line
     nib.save(nib.Nifti1Image(lab.astype(np.float32) + 0.5, affine_ras), tmp_path / "frac.nii.gz")
     with raises_ct_error("frac.nii.gz", "integer"):
         load_ct(tmp_path / "ct.nii.gz", label_map=tmp_path / "frac.nii.gz")
@@ -482,3 +483,25 @@ def test_load_ct_resamples_ct_and_labels(tmp_path):
     np.testing.assert_allclose(v.hu[::3, ::3, ::3], hu, atol=1e-3)
     with raises_ct_error("resample_mm", "positive"):
         load_ct(tmp_path / "c.nii.gz", resample_mm=(1.0, -1.0, 1.0))
+
+
+@pytest.mark.parametrize("kind", ["tiny spacing", "flat axis", "nan"])
+def test_a_broken_affine_is_one_line_naming_the_file(tmp_path, kind):
+    """A singular (or non-finite) voxel-to-patient affine is refused in one line, with the spacing
+    it implies, from a file and from an array."""
+    affine = {"tiny spacing": np.diag([1e-4, 1e-4, 1e-4, 1.0]), "flat axis": np.diag([1.0, 1.0, 0.0, 1.0]),
+              "nan": np.diag([1.0, np.nan, 1.0, 1.0])}[kind]
+    hu = ct_like((8, 9, 10))
+    words = ("nan or infinite",) if kind == "nan" else ("singular", "spacing along i, j, k")
+    if kind != "nan":  # nibabel refuses to write a NaN affine
+        path = tmp_path / "broken.nii.gz"
+        img = nib.Nifti1Image(hu, np.eye(4))
+        img.set_sform(affine, code=2)  # the header nibabel reads the affine from
+        img.set_qform(None, code=0)
+        nib.save(img, path)
+        with raises_ct_error("broken.nii.gz", *words) as e:
+            load_ct(path)
+        assert "\n" not in str(e.value)
+    with raises_ct_error("arr", *words) as e:
+        ct_from_array(hu, affine, source="arr")
+    assert "\n" not in str(e.value)

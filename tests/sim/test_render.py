@@ -428,3 +428,66 @@ def test_plugin_renders_through_plain_mitsuba_api(box):
     img = np.array(mi.render(scene))  # (B, H, W, C)
     assert img.shape == (2, 40, 40, 1)
     np.testing.assert_allclose(img[..., 0], expected, rtol=1e-5, atol=1e-6)
+
+
+def test_render_function_is_the_renderer_at_one_pose(box):
+    """``sim.render`` (the module, callable) gives the renderer's image for six parameters or a 4 x 4
+    pose, bit for bit."""
+    import sim
+    from sim import render
+
+    vol, *_ = box
+    assert render is sim.render and callable(render)
+    r = DRRRenderer(vol, RenderSettings(size=(24, 24), ray_model="trilinear", step_fraction=0.25), center_lps=[0, 0, 0])
+    expected = r.render_params(POSES[1])[0]
+    kw = dict(size=(24, 24), center=[0, 0, 0], ray_model="trilinear", step_fraction=0.25)
+    image = render(vol, POSES[1], **kw)
+    assert image.dtype == np.float32 and image.shape == (24, 24)
+    np.testing.assert_array_equal(image, expected)
+    np.testing.assert_array_equal(render(vol, pose_from_params(POSES[1], r.geometry.sod_mm), **kw), expected)
+    with pytest.raises(RenderError, match="each side must be in \\[8, 4096\\]"):
+        render(vol, size=(4, 4))
+    with pytest.raises(RenderError, match="six parameters"):
+        render(vol, pose=np.zeros(5))
+
+
+def test_step_fraction_has_a_lower_bound():
+    from sim.render import STEP_FRACTION
+
+    assert RenderSettings(step_fraction=STEP_FRACTION.lo).step_fraction == 0.05
+    for bad in (0.049, 1e-9, 0.0, 1.5, float("nan")):
+        with pytest.raises(RenderError, match="step_fraction must be in \\[0.05, 1\\]"):
+            RenderSettings(step_fraction=bad)
+
+
+def test_check_in_view_agrees_with_dense_ray_box_chords(box):
+    """The view check (a 33 x 33 ray grid and the box corners) against 161 x 161 analytic rays
+    spanning the detector: a pose whose rays all miss the CT's box is refused; one whose rays hit
+    it for more than 1 % is accepted (in between, a sliver, either verdict is right)."""
+    from sim.render import check_in_view
+
+    vol, *_ = box
+    r = DRRRenderer(vol, RenderSettings(size=(16, 16)), center_lps=[0, 0, 0])
+    g = r.geometry
+    lo, hi = vol.corners_lps().min(0), vol.corners_lps().max(0)  # the grid is axis-aligned
+    u = np.linspace(-0.5, g.width - 0.5, 161)
+    uu, vv = np.meshgrid(u, u)
+    (cx, cy), s = g.principal_point, g.pixel_spacing_mm
+    d_cam = np.stack([(uu - cx) * s, (vv - cy) * s, np.full_like(uu, g.sdd_mm)], -1)
+    d_cam /= np.linalg.norm(d_cam, axis=-1, keepdims=True)
+    refused = accepted = 0
+    params = [[0, 0, 0, tx, 0, 0] for tx in range(0, 260, 8)] + [[0, 0, 0, 0, ty, tz] for ty in (0, 150)
+                                                                  for tz in (-900, -760, -700, -600, 0)]
+    params += [[40, 30, 20, tx, -tx, 0] for tx in range(100, 200, 10)]
+    for p in params:
+        T = pose_from_params(np.array(p, float), g.sod_mm)
+        origin = T[:3, :3].T @ (-T[:3, 3])  # the source in LPS (centre 0)
+        hit = (box_chords(origin, d_cam @ T[:3, :3], lo, hi) > 0).mean()
+        if hit == 0:
+            with pytest.raises(RenderError, match="not in the view"):
+                check_in_view(vol, g, T, [0, 0, 0])
+            refused += 1
+        elif hit > 0.01:
+            check_in_view(vol, g, T, [0, 0, 0])
+            accepted += 1
+    assert refused >= 10 and accepted >= 10, (refused, accepted)

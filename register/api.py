@@ -1,0 +1,306 @@
+"""Registering an X-ray to a CT from Python: what ``ctxreg register`` does, as one call.
+
+Example (README "Python API")::
+
+    from sim import load_ct
+    from register import register_xray
+
+    ct = load_ct("pelvis.nii.gz")
+    result = register_xray(ct, "xray.dcm", method="cmaes")
+    print(result.params)              # {"phi": ..., "theta": ..., ..., "tz": ...} deg and mm
+    result.pose                       # (4, 4) T: X_cam = R (X_lps - c) + t
+    result.write("out/reg")           # result.json, overlay.png, checkerboard.png, convergence.png
+
+:func:`register_xray` checks every input before the work starts (the method and its model,
+the start pose, the preprocessing steps, the size; then the CT and the X-ray, its geometry, and
+that the CT is in the view at the start pose), prepares the X-ray
+(:func:`register.prepare.prepare_xray`: geometry with its sources, field mask, intensity, size),
+checks the polarity by registration (:func:`register.prepare.confirm_polarity`), builds the
+method (:func:`register.methods.build_method`) and registers. ``ctxreg register``
+(:func:`register.commands.run_register`) is this call plus :meth:`XRayRegistration.write`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable
+
+import numpy as np
+
+__all__ = ["register_xray", "XRayRegistration", "parse_init", "REGISTER_RESTARTS", "REGISTER_SCATTER_PHOTONS",
+           "OUTPUT_FILES"]
+
+#: Monte Carlo histories per moving image with physics full: a registration renders thousands
+#: of images, and the smoothed scatter of 10^5 histories differs from that of 10^6 by a few %.
+REGISTER_SCATTER_PHOTONS = 100_000
+
+#: CMA-ES restarts of a registration (IPOP, see :class:`register.cmaes.CMAESSettings`): a user's
+#: X-ray is registered once, so spending up to 4x the time on a lost search is worth it.
+REGISTER_RESTARTS = 3
+
+#: The files :meth:`XRayRegistration.write` writes (the trajectory files for the contextual methods only).
+OUTPUT_FILES = ("result.json", "overlay.png", "checkerboard.png", "convergence.png", "trajectory.npz", "trajectory.png")
+
+
+def parse_init(init) -> np.ndarray:
+    """The start pose ``(6,)`` (deg, mm) from ``"ap"`` (zeros), six numbers, or their strings
+    (``--init``). Raises :class:`register.cmaes.RegistrationError`."""
+    from register.cmaes import RegistrationError
+
+    values = [init] if isinstance(init, str) else list(np.ravel(np.asarray(init, dtype=object)))
+    if len(values) == 1 and str(values[0]) == "ap":
+        return np.zeros(6)
+    try:
+        x = np.array([float(v) for v in values])
+    except (TypeError, ValueError):
+        x = np.zeros(0)
+    if x.shape != (6,) or not np.all(np.isfinite(x)):
+        raise RegistrationError(f"--init {' '.join(map(str, values))}: give 'ap' or six finite numbers")
+    return x
+
+
+@dataclass
+class XRayRegistration:
+    """The outcome of :func:`register_xray`.
+
+    Attributes:
+        method: the registration method's name.
+        params: ``{"phi", "theta", "psi"}`` in degrees and ``{"tx", "ty", "tz"}`` in mm: the pose
+            parameters (``docs/conventions.md``).
+        pose: ``(4, 4)`` the pose T (``X_cam = R (X_lps - c) + t``, c = ``center_lps``).
+        similarity: the final gradient NCC at the optimiser's size (1 = identical edges).
+        result: the method's :class:`register.cmaes.RegistrationResult` (projection, renders,
+            stage times, history, trajectory).
+        prepared: the :class:`register.prepare.PreparedXRay` (geometry and its sources, field,
+            intensity decision and its check, images at full and at the optimiser's size).
+        volume: the CT; center_lps: ``(3,)`` its anatomy centre (LPS mm).
+        init_params: ``(6,)`` the start pose (deg, mm).
+        physics: the :class:`sim.physics.imaging.PhysicsSettings` of the moving images.
+        label_materials: ``{label: material}`` overrides of the CT's label map, or None.
+    """
+
+    method: str
+    result: Any
+    prepared: Any
+    volume: Any
+    center_lps: np.ndarray
+    init_params: np.ndarray
+    physics: Any
+    label_materials: dict | None = None
+    notes: list[str] = field(default_factory=list)
+
+    @property
+    def params(self) -> dict[str, float]:
+        from register.cmaes import PARAM_NAMES
+
+        return dict(zip(PARAM_NAMES, map(float, self.result.params)))
+
+    @property
+    def pose(self) -> np.ndarray:
+        return self.result.pose
+
+    @property
+    def similarity(self) -> float:
+        return float(self.result.similarity)
+
+    @property
+    def xray_input(self) -> dict:
+        """The prepared X-ray's summary (``result.json``'s ``xray_input``): where each geometry value
+        came from, the field, the intensity decision and its check by registration, the sizes."""
+        return self.prepared.summary()
+
+    @property
+    def geometry(self):
+        """:class:`sim.geometry.CArmGeometry` of the optimiser's image (the pose's projection)."""
+        return self.prepared.geometry
+
+    def summary(self) -> str:
+        """One line: similarity, renders and the pose (deg, mm)."""
+        r = self.result
+        return (f"similarity {r.similarity:.4f} after {r.renders} renders; pose: "
+                + " ".join(f"{v:.2f}" for v in r.params))
+
+    def to_dict(self) -> dict:
+        """``result.json``: the pose, its projection, the similarity, the method, the inputs (CT,
+        X-ray, start, anatomy centre), the prepared X-ray's summary and preprocessing record, the
+        moving physics and the optimiser's geometry."""
+        from dataclasses import asdict
+
+        g = self.geometry
+        return {
+            **self.result.to_dict(), "method": self.method, "ct": self.volume.source,
+            "xray": self.prepared.xray.source, "init_params": self.init_params.tolist(),
+            "anatomy_center_lps_mm": self.center_lps.tolist(), "xray_input": self.xray_input,
+            "preprocessing": self.prepared.record,
+            "moving_physics": {**asdict(self.physics),
+                               "label_materials": {str(k): v for k, v in (self.label_materials or {}).items()}},
+            "geometry": {"sdd_mm": g.sdd_mm, "sod_mm": g.sod_mm, "height": g.height, "width": g.width,
+                         "pixel_spacing_mm": g.pixel_spacing_mm, "principal_point_uv": list(g.principal_point),
+                         "K": g.intrinsics().tolist()},
+        }
+
+    def write(self, out: str | Path) -> list[Path]:
+        """Write into the folder ``out`` (checked first: :func:`sim.outputs.check_output_dir`):
+        ``trajectory.npz`` and ``trajectory.png`` (contextual methods), ``overlay.png`` (DRR edges
+        and the field outline over the X-ray at its full resolution), ``checkerboard.png``,
+        ``convergence.png`` and ``result.json`` (:meth:`to_dict`), each atomically. Returns the paths."""
+        from register.plots import checkerboard_png, convergence_plot, overlay_png
+        from sim.atomic import atomic_path, write_json
+        from sim.outputs import check_output_dir
+        from sim.render import DRRRenderer, RenderSettings
+
+        out = check_output_dir(out, OUTPUT_FILES)
+        result, prepared = self.result, self.prepared
+        image = prepared.image
+        written = []
+        if result.trajectory is not None:
+            from register.plots import trajectory_figure
+
+            with atomic_path(out / "trajectory.npz") as tmp:
+                with open(tmp, "wb") as f:
+                    np.savez_compressed(f, params_deg_mm=result.trajectory["params"], g_rad_mm=result.trajectory["g"],
+                                        drrs=result.trajectory["drrs"].astype(np.float32),
+                                        xray=image.astype(np.float32))
+            trajectory_figure(image, result.trajectory["drrs"], result.trajectory["params"], out / "trajectory.png")
+            written = [out / "trajectory.npz", out / "trajectory.png"]
+        # figures at the X-ray's own resolution: a line DRR with the X-ray's full geometry (its
+        # edges are those of any physics level)
+        full = prepared.full_geometry
+        full_drr = DRRRenderer(self.volume, RenderSettings(size=(full.height, full.width)), center_lps=self.center_lps,
+                               geometry=full).render(result.pose)[0]
+        overlay_png(prepared.xray.pixels, full_drr, out / "overlay.png", mask=prepared.full_mask)
+        checkerboard_png(prepared.full_image, full_drr, out / "checkerboard.png", mask=prepared.full_mask)
+        convergence_plot(result.history, out / "convergence.png")
+        write_json(out / "result.json", self.to_dict())
+        return [out / "result.json", out / "overlay.png", out / "checkerboard.png", out / "convergence.png", *written]
+
+
+def _moving_physics(physics):
+    """The :class:`PhysicsSettings` of the moving images: a level name gets the defaults of a
+    registration (noise-free, :data:`REGISTER_SCATTER_PHOTONS`)."""
+    from register.cmaes import RegistrationError
+    from sim.physics.imaging import LEVELS, PhysicsSettings
+
+    if isinstance(physics, PhysicsSettings):
+        return physics
+    if physics not in LEVELS:
+        raise RegistrationError(f"physics must be one of {LEVELS} or a PhysicsSettings, got {physics!r}")
+    return PhysicsSettings(level=physics, noise=False, scatter_photons=REGISTER_SCATTER_PHOTONS)
+
+
+def register_xray(ct, xray, *, method: str = "cmaes", model=None, init="ap", center=None, label_map=None,
+                  scene: str = "cios_fusion", sdd_mm: float | None = None, sod_mm: float | None = None,
+                  pixel_spacing_mm: float | None = None, size=(128, 128), physics="line",
+                  label_materials: dict[int, str] | None = None, preprocess=None, intensity: str = "auto",
+                  polarity: str = "auto", restarts: int | None = None,
+                  log: Callable[[str], None] | None = None, note: Callable[[str], None] | None = None
+                  ) -> XRayRegistration:
+    """Register the X-ray ``xray`` to the CT ``ct``: its pose, as ``ctxreg register`` finds it.
+
+    Args:
+        ct: a :class:`sim.volume.CTVolume` (:func:`sim.load_ct`) or what :func:`sim.load_ct` takes
+            (a NIfTI file, a DICOM series folder, ``"phantom"``).
+        xray: a file (DICOM: geometry from its tags where present; PNG / TIFF / JPEG / ``.npy``) or
+            a :class:`register.xray_io.XRayImage`.
+        method: ``"cmaes"``, ``"contextual"`` or ``"contextual+cmaes"`` (:mod:`register.methods`).
+        model: the ``ctxreg train`` checkpoint (path or loaded predictor) of the contextual methods.
+        init: the start pose: ``"ap"`` or six numbers (phi theta psi deg, tx ty tz mm).
+        center: ``(3,)`` anatomy centre c in LPS mm; None = the label map's or the bone centroid.
+        label_map: a label map for ``ct`` given as a path (with ``label_materials``: implants).
+        scene: the C-arm for the geometry values the image does not give.
+        sdd_mm, sod_mm, pixel_spacing_mm: explicit geometry (override the DICOM tags and the scene).
+        size: ``(H, W)``: the optimiser's image is the X-ray (cropped to its field) scaled, aspect
+            kept, to the largest size that fits inside ``H x W`` with sides multiples of 4 (the
+            default 128 x 128: the longer side 128 px). Each side in [8, 4096].
+        physics: the moving images: ``"line"`` DRRs, ``"poly"`` / ``"full"`` (noise-free
+            ``-log(I/I0)``), or a :class:`sim.physics.imaging.PhysicsSettings`.
+        preprocess: the preprocessing step names (default
+            :data:`register.preprocess.DEFAULT_STEPS`); intensity / polarity: ``"auto"`` or the
+            override of the intensity step (only with ``"intensity"`` among the steps).
+        restarts: CMA-ES restarts for ``method="cmaes"`` (default :data:`REGISTER_RESTARTS`).
+        log: called with each line a user should check (geometry sources, field, intensity);
+            note: with remarks (a network trained on other physics). Both default to silence.
+
+    Returns an :class:`XRayRegistration`; :meth:`XRayRegistration.write` writes the figures and
+    ``result.json``. Raises :class:`sim.errors.InputError` subclasses naming the bad input, before
+    the work where the input allows it (everything but the image's contents).
+    """
+    from sim import load_ct
+    from register.cmaes import RegistrationError
+    from register.methods import build_method, check_method, load_predictor, needs_model
+    from register.prepare import confirm_polarity, fit_box, prepare_xray
+    from register.preprocess import DEFAULT_STEPS, Pipeline
+    from register.xray_io import XRayImage, load_xray, resolve_geometry
+    from sim.anatomy import anatomy_center
+    from sim.geometry import pose_from_params
+    from sim.render import check_in_view
+
+    log = log or (lambda line: None)
+    notes: list[str] = []
+
+    def remark(text: str) -> None:
+        notes.append(text)
+        if note is not None:
+            note(text)
+
+    # -- the inputs that need no file: checked before any work
+    x0 = parse_init(init)
+    check_method(method, model)
+    if restarts is not None and method != "cmaes":
+        raise RegistrationError(f"--restarts: meaningful with --method cmaes only; this run is --method {method}")
+    restarts = REGISTER_RESTARTS if restarts is None else restarts
+    steps = [str(n).strip().lower() for n in (DEFAULT_STEPS if preprocess is None else preprocess)]
+    Pipeline.from_names(steps, {"intensity": {"scale": intensity, "polarity": polarity}})  # names and choices
+    if "intensity" not in steps and (intensity, polarity) != ("auto", "auto"):
+        raise RegistrationError("--intensity / --polarity: meaningful with the 'intensity' preprocessing step only; "
+                                f"this run's steps are {' '.join(steps) or 'none'}")
+    box = fit_box(size)
+    moving = _moving_physics(physics)
+    predictor = load_predictor(model) if needs_model(method) else None
+    # -- the CT, the X-ray and its geometry, the view at the start
+    volume = load_ct(ct, label_map=label_map)
+    c = np.asarray(center, float) if center is not None else anatomy_center(volume)
+    xr = xray if isinstance(xray, XRayImage) else load_xray(xray)
+    if not xr.attenuation_bright and not {"intensity", "log", "invert"} & set(steps):
+        raise RegistrationError(f"{xr.source}: raw detector data (bone dark): add 'intensity' or 'log' to --preprocess")
+    full_geometry, _ = resolve_geometry(xr, scene, sdd_mm=sdd_mm, sod_mm=sod_mm, pixel_spacing_mm=pixel_spacing_mm)
+    check_in_view(volume, full_geometry, pose_from_params(x0, full_geometry.sod_mm), c,
+                  what="the start pose (--init, with the anatomy centre --center)")
+    # -- the work
+    prepared = prepare_xray(xr, volume=volume, center_lps=c, init_params=x0, scene=scene, steps=steps,
+                            scale=intensity, polarity=polarity, size=box, sdd_mm=sdd_mm, sod_mm=sod_mm,
+                            pixel_spacing_mm=pixel_spacing_mm)
+    prepared = confirm_polarity(prepared, volume, c, x0, physics=moving, label_materials=label_materials)
+    log(prepared.sources.line())
+    for line in _input_lines(prepared):
+        log(line)
+    geometry = prepared.geometry
+    engine = build_method(method, volume, center_lps=c, size=(geometry.height, geometry.width), geometry=geometry,
+                          scene=scene, model=predictor, physics=moving, label_materials=label_materials,
+                          restarts=restarts, keep_drrs=True, note=remark)
+    result = engine.register(prepared.image, x0, mask=prepared.mask)
+    return XRayRegistration(method=method, result=result, prepared=prepared, volume=volume, center_lps=c,
+                            init_params=x0, physics=moving, label_materials=label_materials, notes=notes)
+
+
+def _input_lines(prepared) -> list[str]:
+    """One line each for the field and the intensity decision (what a user should check first)."""
+    lines = []
+    fld = prepared.step("field")
+    if fld is not None:
+        kind = fld.get("kind")
+        outside = f", {fld.get('outside')} outside" if fld.get("outside") else ""
+        lines.append(f"field: {kind}{outside}; {100 * fld.get('valid_fraction', 0):.0f} % of the pixels valid")
+    dec = prepared.step("intensity")
+    if dec is not None:
+        steps = " + ".join(dec["steps"]) or "nothing"
+        lines.append(f"intensity: {dec['scale']} ({dec['scale_source']}), {dec['polarity']} "
+                     f"({dec['polarity_source']}): {steps}")
+    check = prepared.step("polarity_check")
+    if check is not None:
+        verdict = {"inverted": "inverted the image", "confirmed": "confirmed",
+                   "inconclusive": "inconclusive, the decision stands"}[check["verdict"]]
+        lines.append(f"polarity check by registration: {verdict} (similarity {check['similarity_as_decided']:.3f} "
+                     f"as decided, {check['similarity_inverted']:.3f} inverted): {check['polarity']}")
+    return lines

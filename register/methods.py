@@ -1,0 +1,114 @@
+"""The registration methods, chosen and built in one place for ``ctxreg register``, ``ctxreg
+evaluate`` and the Python API (:func:`register.api.register_xray`).
+
+``cmaes``
+    Multi-resolution CMA-ES from the start pose (:class:`register.cmaes.CMAESRegistration`).
+``contextual``
+    The trained pose-update network's iteration (:class:`register.contextual.ContextualRegistration`).
+``contextual+cmaes``
+    The contextual iteration, then CMA-ES in a narrowed box (:data:`register.contextual.REFINE_SETTINGS`).
+
+:func:`check_method` validates a method name with its model before any work;
+:func:`build_method` returns a :class:`RegistrationMethod`: anything with ``name`` and
+``register(fixed (H, W), init_params (6,), mask=None) -> RegistrationResult``.
+"""
+
+from __future__ import annotations
+
+from typing import Callable, Protocol
+
+import numpy as np
+
+from register.cmaes import RegistrationError, RegistrationResult
+
+__all__ = ["METHOD_NAMES", "RegistrationMethod", "check_method", "load_predictor", "build_method"]
+
+#: The registration methods, in the order the help lists them.
+METHOD_NAMES = ("cmaes", "contextual", "contextual+cmaes")
+
+
+class RegistrationMethod(Protocol):
+    name: str
+
+    def register(self, fixed: np.ndarray, init_params: np.ndarray, *, mask: np.ndarray | None = None
+                 ) -> RegistrationResult: ...
+
+
+def needs_model(method: str) -> bool:
+    """Whether ``method`` runs the trained network."""
+    return method.startswith("contextual")
+
+
+def check_method(method: str, model) -> None:
+    """Raise :class:`RegistrationError` for an unknown ``method``, a contextual method without a
+    ``model`` (a checkpoint path or a loaded predictor), or a model given to ``cmaes`` (it would be
+    ignored)."""
+    if method not in METHOD_NAMES:
+        raise RegistrationError(f"--method {method}: unknown; choose one of {', '.join(METHOD_NAMES)}")
+    if needs_model(method) and model is None:
+        raise RegistrationError(f"--method {method} needs a trained model: --model CHECKPOINT")
+    if not needs_model(method) and model is not None:
+        raise RegistrationError(f"--model: meaningful with the contextual methods only; this run is --method {method}")
+
+
+def load_predictor(model):
+    """The network predictor of ``model``: a ``ctxreg train`` checkpoint path (read and checked now,
+    before any other work) or an already loaded predictor (returned as it is)."""
+    if model is None or callable(model):
+        return model
+    from learn.predict import NetworkPredictor
+
+    return NetworkPredictor(model)
+
+
+class _Method:
+    """A built method: ``name`` and the engine's ``register``."""
+
+    def __init__(self, name: str, engine):
+        self.name = name
+        self.engine = engine
+
+    def register(self, fixed, init_params, *, mask=None) -> RegistrationResult:
+        return self.engine.register(fixed, init_params, mask=mask)
+
+
+def build_method(method: str, volume, *, center_lps, size: tuple[int, int], geometry=None,
+                 scene: str = "cios_fusion", model=None, physics=None, label_materials: dict[int, str] | None = None,
+                 restarts: int = 0, keep_drrs: bool = False, note: Callable[[str], None] | None = None
+                 ) -> RegistrationMethod:
+    """Build the registration method ``method`` on ``volume``.
+
+    Args:
+        method: one of :data:`METHOD_NAMES`.
+        volume: the CT; center_lps: ``(3,)`` its anatomy centre (LPS mm).
+        size: ``(H, W)`` of the images the method registers (the X-ray after preparation).
+        geometry: the :class:`sim.geometry.CArmGeometry` of those images (an X-ray's own); None =
+            the ``scene``'s detector at ``size``.
+        model: a checkpoint path or a loaded predictor (:func:`load_predictor`) for the contextual methods.
+        physics: :class:`sim.physics.imaging.PhysicsSettings` of the moving images (None = line DRRs);
+            label_materials: ``{label: material}`` overrides for poly / full.
+        restarts: CMA-ES restarts (``cmaes`` only; :class:`register.cmaes.CMAESSettings`).
+        keep_drrs: keep the contextual iteration's DRRs in the result's trajectory (for figures).
+        note: called with a sentence when the network's training physics differ from ``physics``.
+    """
+    from register.cmaes import CMAESRegistration, CMAESSettings
+
+    check_method(method, model)
+    size = (int(size[0]), int(size[1]))
+    if method == "cmaes":
+        engine = CMAESRegistration(volume, CMAESSettings(size=size, restarts=restarts), scene=scene, geometry=geometry,
+                                   center_lps=center_lps, physics=physics, label_materials=label_materials)
+        return _Method(method, engine)
+    from dataclasses import replace
+
+    from register.contextual import REFINE_SETTINGS, ContextualRegistration, ContextualSettings
+
+    predictor = load_predictor(model)
+    mismatch = getattr(predictor, "physics_mismatch", lambda _: None)(physics)
+    if mismatch and note is not None:
+        note(mismatch)
+    refine = replace(REFINE_SETTINGS, size=size) if method == "contextual+cmaes" else None
+    engine = ContextualRegistration(volume, predictor, ContextualSettings(keep_drrs=keep_drrs), size=size,
+                                    scene=scene, geometry=geometry, center_lps=center_lps, refine=refine,
+                                    physics=physics, label_materials=label_materials)
+    return _Method(method, engine)
