@@ -36,6 +36,7 @@ __all__ = [
     "Median",
     "Sobel",
     "Gaussian",
+    "LocalContrast",
     "RandomConvolution",
     "HistogramMatch",
     "Compose",
@@ -274,6 +275,38 @@ class Gaussian(Step):
         return y.reshape(b, c, h, w)
 
 
+class LocalContrast(Step):
+    """Local contrast normalisation: ``(x - m) / sqrt(v + eps^2)`` with ``m`` and ``v`` the
+    Gaussian-weighted local mean and variance (window ``sigma_px`` pixels; Pinto et al. 2008,
+    the "LCN" of the original work's proposed remedies).
+
+    It removes slowly varying intensity (scatter's low-frequency veil, a heel effect, a display
+    window) and equalises local contrast, keeping edges: the output is invariant to
+    ``a x + b`` (``a > 0``) wherever the local standard deviation is well above ``eps``. ``eps`` is
+    relative: ``eps_rel`` times the image's global standard deviation (per image and channel),
+    so flat regions stay near 0 instead of amplifying noise. Output: ``(B, C, H, W)``,
+    dimensionless, roughly in [-3, 3]. Replicate padding, as :class:`Gaussian`.
+    """
+
+    name = "local_contrast"
+
+    def __init__(self, sigma_px: float = 8.0, eps_rel: float = 0.1) -> None:
+        super().__init__()
+        self.sigma_px = _positive(sigma_px, "sigma_px")
+        self.eps_rel = _positive(eps_rel, "eps_rel")
+
+    def params(self) -> dict[str, Any]:
+        return {"sigma_px": self.sigma_px, "eps_rel": self.eps_rel}
+
+    def _apply(self, x: torch.Tensor) -> torch.Tensor:
+        blur = Gaussian(self.sigma_px)
+        m = blur(x)
+        v = (blur(x * x) - m * m).clamp_min(0.0)
+        b, c = x.shape[:2]
+        eps = self.eps_rel * x.reshape(b, c, -1).std(dim=-1).reshape(b, c, 1, 1)
+        return (x - m) / torch.sqrt(v + eps * eps + _EPS)
+
+
 class RandomConvolution(Step):
     """Random convolutions (Xu et al., ICLR 2021), a training-time appearance randomisation.
 
@@ -431,7 +464,7 @@ class Compose(torch.nn.Module):
 #: Registry of step names for :func:`build`.
 STEPS: dict[str, type[Step]] = {
     cls.name: cls
-    for cls in (LogCorrect, Normalize, Median, Sobel, Gaussian, RandomConvolution, HistogramMatch)
+    for cls in (LogCorrect, Normalize, Median, Sobel, Gaussian, LocalContrast, RandomConvolution, HistogramMatch)
 }
 
 
@@ -439,7 +472,7 @@ def build(names_or_dicts: Iterable[str | dict[str, Any] | Step]) -> Compose:
     """A :class:`Compose` from step names (defaults), records ``{"name": ..., **params}`` or steps.
 
     Valid names: ``log_correct``, ``normalize``, ``median``, ``sobel``, ``gaussian``,
-    ``random_convolution``, ``histogram_match`` (the latter needs ``"reference"``: an array).
+    ``local_contrast``, ``random_convolution``, ``histogram_match`` (the latter needs ``"reference"``: an array).
     Unknown names or parameters raise :class:`LearnPreprocessError` listing the valid ones.
     """
     if isinstance(names_or_dicts, (str, dict)):

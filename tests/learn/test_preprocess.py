@@ -14,6 +14,7 @@ from learn.preprocess import (
     Gaussian,
     HistogramMatch,
     LearnPreprocessError,
+    LocalContrast,
     LogCorrect,
     Median,
     Normalize,
@@ -185,3 +186,29 @@ def test_errors_unknown_names_and_wrong_shapes():
         Gaussian(-1.0)
     with pytest.raises(LearnPreprocessError, match="kernel_sizes"):
         RandomConvolution(kernel_sizes=(2,))
+
+
+def test_local_contrast_removes_a_smooth_veil_and_a_gain_and_keeps_edges():
+    """A step edge under a smooth additive veil (scatter-like) and a display gain: after local
+    contrast normalisation the image equals that of the bare edge (away from the border, where the
+    veil is locally linear to within ~1e-3 of the edge height over the window), and is invariant to
+    a x + b exactly up to the eps term (which scales with a too)."""
+    h = w = 64
+    rows = torch.arange(h, dtype=torch.float64)[:, None].expand(h, w)
+    cols = torch.arange(w, dtype=torch.float64)[None, :].expand(h, w)
+    edge = (cols >= 32).to(torch.float64)
+    veil = 0.3 * torch.exp(-((rows - 20) ** 2 + (cols - 40) ** 2) / (2 * 60.0 ** 2))
+    lcn = LocalContrast(sigma_px=3.0, eps_rel=0.05)
+    bare = lcn(edge[None, None])
+    veiled = lcn((2.5 * (edge + veil) + 7.0)[None, None])
+    inner = (slice(None), slice(None), slice(12, -12), slice(12, -12))
+    torch.testing.assert_close(veiled[inner], bare[inner], atol=0.05, rtol=0)
+    # the edge survives: a strong positive / negative pair straddles column 32; flat far away: 0
+    assert bare[0, 0, 32, 32] > 0.5 and bare[0, 0, 32, 31] < -0.5
+    assert bare[0, 0, 32, 5].abs() < 1e-6 and bare[0, 0, 32, 60].abs() < 1e-6
+    # exact affine invariance (eps is relative to the global std)
+    x = torch.rand(2, 1, 32, 32, dtype=torch.float64)
+    torch.testing.assert_close(lcn(3.0 * x - 4.0), lcn(x), atol=1e-9, rtol=0)
+    assert build([{"name": "local_contrast", "sigma_px": 3.0, "eps_rel": 0.05}]).record() == [lcn.to_dict()]
+    with pytest.raises(LearnPreprocessError, match="sigma_px"):
+        LocalContrast(sigma_px=0.0)
