@@ -15,7 +15,7 @@ import sys
 
 from sim.cliargs import HelpFormatter, add_options, from_namespace
 from learn.commands import AccuracyCommand, TrainCommand
-from register.commands import EvaluateCommand, RegisterCommand
+from register.commands import EvaluateCommand, RegisterCommand, StudyCommand
 from sim.cli import DemoCommand, RenderCommand, SimulateCommand
 
 COMMANDS = {
@@ -30,6 +30,8 @@ COMMANDS = {
               "learn.commands:run_train"),
     "accuracy": (AccuracyCommand, "single-prediction accuracy of a trained network (per depth, vs zero)",
                  "learn.commands:run_accuracy"),
+    "study": (StudyCommand, "train network variants and evaluate each on several target domains (resumable)",
+              "register.commands:run_study"),
     "demo": (DemoCommand, "render the built-in pelvis phantom at a few poses (PNG + JSON)",
              "sim.cli:run_demo"),
 }

@@ -231,3 +231,27 @@ def run_register(cmd: RegisterCommand) -> list[Path]:
     written = outcome.write(out)
     print(outcome.summary())
     return written
+
+
+@dataclass(frozen=True)
+class StudyCommand:
+    """Defaults of ``ctxreg study``."""
+
+    study: str = field(metadata=opt(
+        "study file: [study] (evaluation CT, cases, start, methods), [[variant]] (name, [variant.train]) and "
+        "[[target]] (name, kind drr|xray, physics, collimator, display); see register/study.py",
+        group="input", metavar="STUDY.toml", positional=True))
+    out: str = field(default="out/study", metadata=opt(
+        "folder for variants/, results/, table.md, results.json, study.png, commands.sh; a run continues a "
+        "study already there", group="output", metavar="DIR"))
+
+
+def run_study(cmd: StudyCommand) -> list[Path]:
+    """Train every variant and evaluate it on every target domain (resumable: register/study.py)."""
+    from register.study import STUDY_FILES, load_study
+    from register.study import run_study as run
+
+    study = load_study(cmd.study)
+    run(study, cmd.out)
+    return [Path(cmd.out) / name for name in STUDY_FILES]
+

@@ -1,0 +1,504 @@
+"""``ctxreg study STUDY.toml``: train network variants and evaluate each on several target domains.
+
+The domain-gap study of issue 15: for each **variant** (a training domain x a preprocessing, as a
+``[train]`` table of :class:`learn.train.TrainConfig`), train or fine-tune the network, then
+register every **target domain** with the variant's network and score it, and write a table of
+variants x domains, a plot and the commands that reproduce it. A study file::
+
+    [study]
+    ct = "../shared/data/ct/pelvis_abdomen_3mm.nii.gz"   # the evaluation CT ("phantom" works)
+    cases = 20                 # target poses per domain (the evaluation protocol's, seeded)
+    start = "ap"               # or "local"
+    seed = 0
+    methods = ["contextual", "contextual+cmaes"]
+    size = [128, 128]          # the registration image (H, W), px
+
+    [[variant]]
+    name = "line-normalize"
+    [variant.train]            # a [train] table; `out` is set by the study
+    dataset = "../campaigns/pelvis_vp.toml"
+    preprocess = ["normalize"]
+    iterations = 2000
+
+    [[target]]
+    name = "line"              # line-integral DRRs (physics = { level = "line" })
+    [[target]]
+    name = "full-70kV-fluoro"
+    kind = "xray"              # a realistic frame registered as a user would (register_xray)
+    physics = { level = "full", kvp = 70, mas = 1.0, grid_ratio = 0 }
+    collimator = { shape = "circle", radius = 0.45, transmission = 0.02 }
+    display = { log = true, polarity = "bone-dark", gamma = 0.7, bits = 12, shutter = "black" }
+
+Target kinds:
+
+* ``"drr"`` (default): targets rendered with ``physics`` (a :class:`sim.physics.imaging.PhysicsSettings`
+  table; ``-log(I/I0)`` for poly / full) and registered directly
+  (:func:`register.evaluate.evaluate`), as ``ctxreg evaluate`` does;
+* ``"xray"``: full-physics detector signal, then a :class:`sim.physics.display.Collimator` and a
+  :class:`sim.physics.display.DisplayChain`, written as 12-bit DICOM with geometry tags and
+  registered through :func:`register.api.register_xray` with its default preprocessing, as
+  ``ctxreg register`` would.
+
+Outputs in ``--out``: ``variants/<name>/`` (the training run: ``train.toml``, ``checkpoint.pt``,
+``log.csv``), ``results/<variant>/<target>/summary.json`` (and ``cases.csv``), ``table.md``,
+``results.json``, ``study.png`` and ``commands.sh``. **Resumable**: a run continues where the
+last one stopped: finished trainings (their checkpoint reached ``iterations``) and finished
+evaluations (their ``summary.json``) are kept, an interrupted training resumes from its
+checkpoint (``ctxreg train --resume``). ``study.json`` records the study; a changed study file is
+refused, naming the keys that changed, unless the changes only add variants or targets.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import time
+import tomllib
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable
+
+import numpy as np
+
+from sim.errors import InputError
+
+__all__ = ["StudyError", "Variant", "Target", "Study", "load_study", "run_study", "format_study_table",
+           "STUDY_FILES"]
+
+#: Files ``ctxreg study`` writes at the top of its output folder.
+STUDY_FILES = ("study.json", "table.md", "results.json", "study.png", "commands.sh")
+TARGET_KINDS = ("drr", "xray")
+_NAME_CHARS = set("abcdefghijklmnopqrstuvwxyzABCDEFGHIJKLMNOPQRSTUVWXYZ0123456789-_.+")
+
+
+class StudyError(InputError):
+    """A study file or its output folder cannot be used; the message names the key."""
+
+
+@dataclass(frozen=True)
+class Variant:
+    """A network variant: ``name`` and its ``[train]`` table (``out`` is set by the study)."""
+
+    name: str
+    train: dict[str, Any]
+
+
+@dataclass(frozen=True)
+class Target:
+    """A target domain: ``kind`` (:data:`TARGET_KINDS`), the targets' ``physics`` (keyword
+    arguments of :class:`sim.physics.imaging.PhysicsSettings`, with ``level``), and for
+    ``kind = "xray"`` the ``collimator`` and ``display`` records (``None``: open field / the
+    fluoroscopy default)."""
+
+    name: str
+    kind: str = "drr"
+    physics: dict[str, Any] = field(default_factory=lambda: {"level": "line"})
+    collimator: dict[str, Any] | None = None
+    display: dict[str, Any] | None = None
+
+
+@dataclass(frozen=True)
+class Study:
+    """A parsed study file (:func:`load_study`). Units: px, deg, mm."""
+
+    ct: str
+    variants: tuple[Variant, ...]
+    targets: tuple[Target, ...]
+    cases: int = 20
+    start: str = "ap"
+    seed: int = 0
+    methods: tuple[str, ...] = ("contextual", "contextual+cmaes")
+    size: tuple[int, int] = (128, 128)
+    moving_physics: str = "line"
+    source: str = ""
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"ct": self.ct, "cases": self.cases, "start": self.start, "seed": self.seed,
+                "methods": list(self.methods), "size": list(self.size), "moving_physics": self.moving_physics,
+                "variants": {v.name: v.train for v in self.variants},
+                "targets": {t.name: {"kind": t.kind, "physics": t.physics, "collimator": t.collimator,
+                                     "display": t.display} for t in self.targets}}
+
+
+def _name(value: Any, key: str) -> str:
+    if not isinstance(value, str) or not value or not set(value) <= _NAME_CHARS:
+        raise StudyError(f"{key}: a name of letters, digits and - _ . + (it becomes a folder), got {value!r}")
+    return value
+
+
+def _int(table: dict, key: str, default: int, lo: int, hi: int, where: str) -> int:
+    v = table.get(key, default)
+    if isinstance(v, bool) or not isinstance(v, int) or not lo <= v <= hi:
+        raise StudyError(f"{where}.{key}: an integer in [{lo}, {hi}], got {v!r}")
+    return v
+
+
+def load_study(path: str | Path) -> Study:
+    """Read and check a study file; relative paths in it are relative to the file."""
+    from learn.train import TrainConfig
+    from register.evaluate import START_MODES
+    from register.methods import METHOD_NAMES, needs_model
+    from sim.cliargs import IMAGE_SIDE_PX
+    from sim.physics.display import Collimator, DisplayChain
+    from sim.physics.imaging import PhysicsSettings
+
+    path = Path(path)
+    if not path.is_file():
+        raise StudyError(f"study file {path} not found")
+    try:
+        data = tomllib.loads(path.read_text())
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as e:
+        raise StudyError(f"{path}: not valid TOML ({e})") from None
+    unknown = set(data) - {"study", "variant", "target"}
+    if unknown:
+        raise StudyError(f"{path}: unknown table(s) {sorted(unknown)}; expected [study], [[variant]], [[target]]")
+    head = data.get("study")
+    if not isinstance(head, dict):
+        raise StudyError(f"{path}: needs a [study] table (ct, cases, start, methods, ...)")
+    known = {"ct", "cases", "start", "seed", "methods", "size", "moving_physics"}
+    if set(head) - known:
+        raise StudyError(f"{path}: [study] has unknown key(s) {sorted(set(head) - known)}; known: {sorted(known)}")
+    base = path.resolve().parent
+
+    def resolve(v: str) -> str:
+        return v if v.startswith("phantom") or Path(v).is_absolute() else str((base / v).resolve())
+
+    ct = head.get("ct")
+    if not isinstance(ct, str) or not ct:
+        raise StudyError(f"{path}: study.ct: the evaluation CT (a NIfTI file, DICOM folder or 'phantom'), got {ct!r}")
+    start = head.get("start", "ap")
+    if start not in START_MODES:
+        raise StudyError(f"{path}: study.start: one of {', '.join(START_MODES)}, got {start!r}")
+    methods = head.get("methods", ["contextual", "contextual+cmaes"])
+    if (not isinstance(methods, list) or not methods or len(set(map(str, methods))) < len(methods)
+            or any(m not in METHOD_NAMES or not needs_model(m) for m in methods)):
+        raise StudyError(f"{path}: study.methods: distinct contextual methods from "
+                         f"{[m for m in METHOD_NAMES if needs_model(m)]}, got {methods!r}")
+    size = head.get("size", [128, 128])
+    if (not isinstance(size, list) or len(size) != 2
+            or any(isinstance(s, bool) or not isinstance(s, int) or s not in IMAGE_SIDE_PX for s in size)):
+        raise StudyError(f"{path}: study.size: [H, W] in {IMAGE_SIDE_PX} px, got {size!r}")
+    moving = head.get("moving_physics", "line")
+    if moving not in ("line", "poly"):
+        raise StudyError(f"{path}: study.moving_physics: 'line' or 'poly', got {moving!r}")
+    where = f"{path}: study"
+    study_kw = dict(ct=resolve(ct), cases=_int(head, "cases", 20, 1, 10000, where),
+                    seed=_int(head, "seed", 0, 0, 2**32 - 1, where), start=start, methods=tuple(methods),
+                    size=(size[0], size[1]), moving_physics=moving, source=str(path))
+
+    variants = []
+    rows = data.get("variant", [])
+    if not isinstance(rows, list) or not rows:
+        raise StudyError(f"{path}: needs at least one [[variant]] with a name and a [variant.train] table")
+    for i, row in enumerate(rows):
+        where = f"{path}: variant[{i}]"
+        if not isinstance(row, dict) or set(row) - {"name", "train"} or not isinstance(row.get("train"), dict):
+            raise StudyError(f"{where}: expected keys name and train (a [variant.train] table), got {row!r}")
+        name = _name(row.get("name"), f"{where}.name")
+        table = dict(row["train"])
+        if "out" in table:
+            raise StudyError(f"{where}.train.out: set by the study (<out>/variants/{name}); remove it")
+        for key in ("dataset", "weights_path", "init_from"):
+            if isinstance(table.get(key), str):
+                table[key] = resolve(table[key])
+        try:
+            TrainConfig(**table, out="-")  # every key's type and range, as ctxreg train checks them
+        except TypeError as e:
+            raise StudyError(f"{where}.train: {e}") from None
+        except InputError as e:
+            raise StudyError(f"{where}.train: {e}") from None
+        variants.append(Variant(name, table))
+
+    targets = []
+    rows = data.get("target", [])
+    if not isinstance(rows, list) or not rows:
+        raise StudyError(f"{path}: needs at least one [[target]] (name, kind, physics)")
+    for i, row in enumerate(rows):
+        where = f"{path}: target[{i}]"
+        if not isinstance(row, dict) or set(row) - {"name", "kind", "physics", "collimator", "display"}:
+            raise StudyError(f"{where}: keys are name, kind, physics, collimator, display; got {row!r}")
+        name = _name(row.get("name"), f"{where}.name")
+        kind = row.get("kind", "drr")
+        if kind not in TARGET_KINDS:
+            raise StudyError(f"{where}.kind: one of {', '.join(TARGET_KINDS)}, got {kind!r}")
+        physics = row.get("physics", {"level": "line"})
+        if not isinstance(physics, dict):
+            raise StudyError(f"{where}.physics: a table of physics settings (level, kvp, mas, ...), got {physics!r}")
+        physics = {"level": "line", **physics}
+        if kind == "xray" and physics["level"] != "full":
+            raise StudyError(f"{where}.physics.level: kind 'xray' renders a detector signal with scatter: 'full'")
+        try:
+            PhysicsSettings(**physics)
+        except TypeError as e:
+            raise StudyError(f"{where}.physics: {e}") from None
+        except InputError as e:
+            raise StudyError(f"{where}.physics: {e}") from None
+        coll, disp = row.get("collimator"), row.get("display")
+        if kind != "xray" and (coll is not None or disp is not None):
+            raise StudyError(f"{where}: collimator and display apply to kind 'xray' only")
+        for key, value, cls in (("collimator", coll, Collimator), ("display", disp, DisplayChain)):
+            if value is None:
+                continue
+            if not isinstance(value, dict):
+                raise StudyError(f"{where}.{key}: a table, got {value!r}")
+            try:
+                cls.from_dict(value)
+            except (TypeError, InputError) as e:
+                raise StudyError(f"{where}.{key}: {e}") from None
+        targets.append(Target(name, kind, physics, coll, disp))
+    for what, items in (("variant", variants), ("target", targets)):
+        names = [x.name for x in items]
+        if len(set(names)) < len(names):
+            raise StudyError(f"{path}: two {what}s are named alike: {sorted(n for n in names if names.count(n) > 1)}")
+    return Study(variants=tuple(variants), targets=tuple(targets), **study_kw)
+
+
+def _changes(old: dict, new: dict, prefix: str = "") -> list[str]:
+    out = []
+    for key in sorted(set(old) | set(new)):
+        a, b = old.get(key, "<absent>"), new.get(key, "<absent>")
+        if isinstance(a, dict) and isinstance(b, dict) and prefix.count(".") < 1:
+            if prefix in ("variants.", "targets.") or not prefix:
+                out += _changes(a, b, f"{prefix}{key}.")
+                continue
+        if a != b:
+            out.append(f"{prefix}{key}: {json.dumps(a)} -> {json.dumps(b)}")
+    return out
+
+
+def _check_record(out: Path, study: Study) -> None:
+    """Refuse to continue a study whose settings changed (added variants / targets are fine)."""
+    from sim.atomic import write_json
+
+    record = out / "study.json"
+    new = study.to_dict()
+    if record.is_file():
+        try:
+            old = json.loads(record.read_text())["study"]
+        except (json.JSONDecodeError, KeyError, TypeError):
+            raise StudyError(f"{record} is damaged: remove it to start the study afresh") from None
+        kept = {**old, "variants": {k: v for k, v in old["variants"].items() if k in new["variants"]},
+                "targets": {k: v for k, v in old["targets"].items() if k in new["targets"]}}
+        changed = _changes(kept, {**new, "variants": {k: v for k, v in new["variants"].items() if k in old["variants"]},
+                                  "targets": {k: v for k, v in new["targets"].items() if k in old["targets"]}})
+        if changed:
+            raise StudyError(f"{out} holds a study with other settings ({'; '.join(changed)}): use another "
+                             f"--out, or remove the changed parts from it")
+    write_json(record, {"study": new, "source": study.source})
+
+
+def _toml_value(v: Any) -> str:
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if isinstance(v, (int, float)):
+        return repr(v)
+    if isinstance(v, str):
+        return json.dumps(v)
+    if isinstance(v, (list, tuple)):
+        return "[" + ", ".join(_toml_value(x) for x in v) + "]"
+    if isinstance(v, dict):
+        return "{ " + ", ".join(f"{k} = {_toml_value(x)}" for k, x in v.items()) + " }"
+    raise StudyError(f"cannot write {v!r} as TOML")
+
+
+def _train_variant(variant: Variant, folder: Path, log) -> Path:
+    """Train (or resume) one variant; returns its checkpoint. A finished training is kept."""
+    from learn.checkpoint import load_checkpoint
+    from learn.train import load_train_config, train
+    from sim.atomic import atomic_path
+
+    folder.mkdir(parents=True, exist_ok=True)
+    config = folder / "train.toml"
+    text = "[train]\n" + "".join(f"{k} = {_toml_value(v)}\n" for k, v in {**variant.train, "out": str(folder.resolve())}.items())
+    if not config.is_file() or config.read_text() != text:
+        with atomic_path(config) as tmp:
+            tmp.write_text(text)
+    cfg = load_train_config(config)
+    ckpt = folder / "checkpoint.pt"
+    if ckpt.is_file():
+        done = load_checkpoint(ckpt).iteration or 0
+        if done >= cfg.iterations:
+            log(f"variant {variant.name}: trained ({done} iterations), kept")
+            return ckpt
+        log(f"variant {variant.name}: resuming at iteration {done} of {cfg.iterations}")
+    else:
+        log(f"variant {variant.name}: training {cfg.iterations} iterations")
+    train(cfg, resume=ckpt.is_file(), log=lambda s: log(f"  {variant.name}: {s}"))
+    return ckpt
+
+
+def _evaluate_drr(study: Study, target: Target, volume, center, predictor, folder: Path, log) -> dict:
+    from dataclasses import asdict
+
+    from register.evaluate import EvaluationSettings, evaluate
+    from register.methods import build_method
+    from sim.physics.imaging import LogImageRenderer, PhysicsSettings
+    from sim.render import DRRRenderer, RenderSettings
+
+    settings = EvaluationSettings(cases=study.cases, seed=study.seed, size=study.size, start=study.start)
+    physics = PhysicsSettings(**{**target.physics, "seed": study.seed})
+    if physics.level == "line":
+        renderer = DRRRenderer(volume, RenderSettings(size=study.size), center_lps=center)
+    else:
+        renderer = LogImageRenderer(volume, physics, size=study.size, center_lps=center)
+    moving = _moving(study)
+    methods = {m: build_method(m, volume, center_lps=center, size=study.size, model=predictor, physics=moving)
+               for m in study.methods}
+    result = evaluate(volume, methods, settings, folder, center_lps=center, geometry=renderer.geometry,
+                      target_renderer=renderer, log=lambda s: log(f"  {s}"),
+                      record={"target_physics": asdict(physics)})
+    return result["summary"]
+
+
+def _moving(study: Study):
+    from register.commands import REGISTER_SCATTER_PHOTONS
+    from sim.physics.imaging import PhysicsSettings
+
+    return None if study.moving_physics == "line" else PhysicsSettings(
+        level=study.moving_physics, noise=False, scatter_photons=REGISTER_SCATTER_PHOTONS)
+
+
+def _evaluate_xray(study: Study, target: Target, volume, center, predictor, folder: Path, log) -> dict:
+    """Realistic frames through :func:`register.api.register_xray`, scored like the evaluation."""
+    from register.api import register_xray
+    from register.evaluate import EvaluationSettings, bone_points, pose_errors, sample_cases, summarize
+    from register.xray_io import write_xray_dicom
+    from sim.atomic import atomic_path, write_json
+    from sim.geometry import pose_from_params
+    from sim.physics.display import Collimator, DisplayChain
+    from sim.physics.imaging import PhysicsSettings, XRayImager
+
+    settings = EvaluationSettings(cases=study.cases, seed=study.seed, size=study.size, start=study.start)
+    physics = PhysicsSettings(**{**target.physics, "noise": True, "seed": study.seed})
+    imager = XRayImager(volume, physics, size=study.size, center_lps=center)
+    g = imager.geometry
+    chain = DisplayChain.from_dict(target.display or {"log": True, "polarity": "bone-dark", "bits": 12,
+                                                      "shutter": "black"})
+    collimator = None if target.collimator is None else Collimator.from_dict(target.collimator)
+    targets, starts = sample_cases(settings)
+    points = bone_points(volume, settings.max_points, settings.seed)
+    rows = []
+    frames = folder / "frames"
+    for i, (target_params, start) in enumerate(zip(targets, starts)):
+        T_true = pose_from_params(target_params, g.sod_mm)
+        raw = imager.render(T_true, seed=study.seed * 100003 + i)["raw"][0].astype(np.float64)
+        fld = None if collimator is None else collimator.mask(*raw.shape)
+        pixels = chain.apply(raw if collimator is None else collimator.apply(raw), imager.flat, fld)
+        path = write_xray_dicom(frames / f"case_{i:03d}.dcm", pixels, pixel_spacing_mm=g.pixel_spacing_mm,
+                                sdd_mm=g.sdd_mm, sod_mm=g.sod_mm, bits_stored=min(16, max(8, chain.bits)),
+                                modality="RF")
+        P_true = imager.renderer.projection_matrix(T_true)
+        for method in study.methods:
+            t0 = time.perf_counter()
+            res = register_xray(volume, path, method=method, model=predictor, init=start, center=center,
+                                size=study.size, physics=_moving(study) or "line")
+            elapsed = time.perf_counter() - t0
+            err = pose_errors(res.pose, T_true, points, center, P_true, P_true, g.pixel_spacing_mm)
+            rows.append({"case": i, "method": method, "start": study.start, **err,
+                         "success": err["mtre_mm"] < settings.success_mtre_mm
+                         and err["rot_err_deg"] < settings.success_rot_deg,
+                         "time_s": elapsed, "similarity": res.similarity})
+            log(f"  case {i + 1}/{study.cases} {method}: rotation {err['rot_err_deg']:.2f} deg, mTRE "
+                f"{err['mtre_mm']:.1f} mm, {elapsed:.1f} s")
+    summary = summarize(rows, settings)
+    with atomic_path(folder / "cases.csv") as tmp:
+        with open(tmp, "w", newline="") as f:
+            w = csv.DictWriter(f, fieldnames=list(rows[0]))
+            w.writeheader()
+            w.writerows(rows)
+    write_json(folder / "summary.json", {"summary": summary, "target": target.name})
+    return summary
+
+
+def run_study(study: Study, out: str | Path, *, log: Callable[[str], None] = print) -> dict:
+    """Run (or continue) ``study`` into ``out``; returns ``{variant: {target: summary}}``."""
+    from learn.predict import NetworkPredictor
+    from sim.anatomy import anatomy_center
+    from sim.atomic import atomic_path, write_json
+    from sim.ct_io import load_ct_spec
+    from sim.outputs import check_output_dir
+
+    out = check_output_dir(out, STUDY_FILES)
+    out.mkdir(parents=True, exist_ok=True)
+    _check_record(out, study)
+    volume = load_ct_spec(study.ct)
+    center = anatomy_center(volume)
+    results: dict[str, dict[str, dict]] = {}
+    t_start = time.perf_counter()
+    parts = len(study.variants) * (1 + len(study.targets))
+    done = 0
+    for variant in study.variants:
+        ckpt = _train_variant(variant, out / "variants" / variant.name, log)
+        done += 1
+        predictor = None
+        results[variant.name] = {}
+        for target in study.targets:
+            folder = out / "results" / variant.name / target.name
+            summary_file = folder / "summary.json"
+            if summary_file.is_file():
+                results[variant.name][target.name] = json.loads(summary_file.read_text())["summary"]
+                log(f"{variant.name} on {target.name}: evaluated, kept")
+            else:
+                predictor = predictor or NetworkPredictor(ckpt)
+                log(f"{variant.name} on {target.name}: {study.cases} cases ({target.kind})")
+                evaluate = _evaluate_drr if target.kind == "drr" else _evaluate_xray
+                results[variant.name][target.name] = evaluate(study, target, volume, center, predictor, folder, log)
+            done += 1
+            rate = done / max(time.perf_counter() - t_start, 1e-9)
+            log(f"study: {done}/{parts} parts, ETA {(parts - done) / rate:.0f} s")
+    table = format_study_table(study, results)
+    with atomic_path(out / "table.md") as tmp:
+        tmp.write_text(table + "\n")
+    write_json(out / "results.json", {"study": study.to_dict(), "results": results})
+    _plot(study, results, out / "study.png")
+    commands = ["# reproduce this study (it resumes where it stopped)",
+                f"ctxreg study {study.source} --out {out}"]
+    commands += [f"# variant {v.name} alone:\nctxreg train {out / 'variants' / v.name / 'train.toml'}"
+                 for v in study.variants]
+    with atomic_path(out / "commands.sh") as tmp:
+        tmp.write_text("\n".join(commands) + "\n")
+    log(table)
+    return results
+
+
+def format_study_table(study: Study, results: dict) -> str:
+    """Markdown: one row per variant, target and method: success (mTRE < 10 mm and rotation < 1
+    deg), mean / median rotation (deg), translation (mm) and mTRE (mm), seconds per case."""
+    lines = ["| variant | target | method | success | mean rot (deg) | mean trans (mm) | median mTRE (mm) | "
+             "mean mTRE (mm) | s / case |", "|---|---|---|---|---|---|---|---|---|"]
+    for variant in study.variants:
+        for target in study.targets:
+            summary = results.get(variant.name, {}).get(target.name)
+            if summary is None:
+                continue
+            for method in study.methods:
+                s = summary[method]
+                lines.append(f"| {variant.name} | {target.name} | {method} | {100 * s['success']:.0f} % | "
+                             f"{s['rot_err_deg']['mean']:.2f} | {s['trans_err_mm']['mean']:.1f} | "
+                             f"{s['mtre_mm']['median']:.1f} | {s['mtre_mm']['mean']:.1f} | "
+                             f"{s['time_s']['median']:.1f} |")
+    return "\n".join(lines)
+
+
+def _plot(study: Study, results: dict, path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from sim.atomic import save_figure
+
+    fig, axes = plt.subplots(1, len(study.methods), figsize=(4 + 2.5 * len(study.targets), 3.8), squeeze=False)
+    width = 0.8 / max(len(study.variants), 1)
+    x = np.arange(len(study.targets))
+    for ax, method in zip(axes[0], study.methods):
+        for k, variant in enumerate(study.variants):
+            ys = [100 * results[variant.name][t.name][method]["success"] for t in study.targets]
+            ax.bar(x + (k - (len(study.variants) - 1) / 2) * width, ys, width, label=variant.name)
+        ax.set_xticks(x, [t.name for t in study.targets], rotation=20, ha="right")
+        ax.set_ylim(0, 100)
+        ax.set_ylabel("success (%)")
+        ax.set_title(method)
+    axes[0][0].legend(fontsize=7)
+    fig.tight_layout()
+    save_figure(fig, path)

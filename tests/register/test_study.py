@@ -1,0 +1,128 @@
+"""``ctxreg study``: a tiny study end to end (train, evaluate on a DRR and a realistic-frame domain,
+table, plot, commands), its resume after an interruption, and its bad study files."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+
+from register.study import StudyError, load_study
+
+ROOT = Path(__file__).resolve().parents[2]
+
+TINY = f'''
+[study]
+ct = "phantom"
+cases = 2
+methods = ["contextual"]
+size = [64, 64]
+
+[[variant]]
+name = "tiny"
+[variant.train]
+dataset = "{ROOT / 'campaigns' / 'smoke.toml'}"
+iterations = 2
+batch_size = 2
+val_pairs = 2
+val_every = 1
+checkpoint_every = 1
+pairs_per_epoch = 4
+head_channels = 8
+
+[[target]]
+name = "line"
+
+[[target]]
+name = "fluoro"
+kind = "xray"
+physics = {{ level = "full", kvp = 80, mas = 1.0, scatter_photons = 20000 }}
+collimator = {{ shape = "circle", radius = 0.45, transmission = 0.02 }}
+display = {{ log = true, polarity = "bone-dark", gamma = 0.8, bits = 12, shutter = "black" }}
+'''
+
+
+@pytest.mark.slow
+def test_a_tiny_study_runs_end_to_end_and_resumes(tmp_path, capsys):
+    from register.cli import main
+
+    study, out = tmp_path / "s.toml", tmp_path / "o"
+    study.write_text(TINY)
+    assert main(["study", str(study), "--out", str(out)]) == 0
+    for name in ("study.json", "table.md", "results.json", "study.png", "commands.sh",
+                 "variants/tiny/checkpoint.pt", "variants/tiny/train.toml",
+                 "results/tiny/line/summary.json", "results/tiny/fluoro/summary.json",
+                 "results/tiny/fluoro/frames/case_000.dcm"):
+        assert (out / name).is_file(), name
+    table = (out / "table.md").read_text()
+    assert "| tiny | line | contextual |" in table and "| tiny | fluoro | contextual |" in table
+    first = json.loads((out / "results.json").read_text())["results"]
+    assert first["tiny"]["line"]["contextual"]["cases"] == 2
+    assert f"ctxreg study {study}" in (out / "commands.sh").read_text()
+    capsys.readouterr()
+
+    # a second run keeps everything; an evaluation lost in an interruption is redone, identically
+    (out / "results" / "tiny" / "fluoro" / "summary.json").unlink()
+    assert main(["study", str(study), "--out", str(out)]) == 0
+    log = capsys.readouterr().out
+    assert "variant tiny: trained (2 iterations), kept" in log and "tiny on line: evaluated, kept" in log
+    assert "tiny on fluoro: 2 cases (xray)" in log
+    again = json.loads((out / "results.json").read_text())["results"]
+    for target in ("line", "fluoro"):
+        for err in ("rot_err_deg", "mtre_mm"):
+            assert again["tiny"][target]["contextual"][err]["mean"] == pytest.approx(
+                first["tiny"][target]["contextual"][err]["mean"], rel=1e-9)
+
+    # changed settings are refused, naming the key; an added target is welcome
+    study.write_text(TINY.replace("cases = 2", "cases = 3"))
+    assert main(["study", str(study), "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert "cases: 2 -> 3" in err and err.count("\n") == 1
+    study.write_text(TINY + '\n[[target]]\nname = "poly"\nphysics = { level = "poly", mas = 2.0 }\n')
+    assert main(["study", str(study), "--out", str(out)]) == 0
+    assert "| tiny | poly | contextual |" in (out / "table.md").read_text()
+
+
+BAD = {
+    "no study table": ("", "needs a [study] table"),
+    "unknown study key": ("[study]\nct = 'phantom'\nfoo = 1\n", "unknown key(s) ['foo']"),
+    "cmaes is not a network method": (TINY.replace('methods = ["contextual"]', 'methods = ["cmaes"]'),
+                                      "study.methods: distinct contextual methods"),
+    "size out of range": (TINY.replace("size = [64, 64]", "size = [64, 100000]"), "study.size"),
+    "cases zero": (TINY.replace("cases = 2", "cases = 0"), "study.cases: an integer in [1, 10000]"),
+    "bad variant name": (TINY.replace('name = "tiny"', 'name = "a/b"'), "variant[0].name"),
+    "out set by hand": (TINY.replace("iterations = 2", "iterations = 2\nout = 'x'"), "train.out: set by the study"),
+    "train key of a wrong type": (TINY.replace("batch_size = 2", 'batch_size = "2"'), "variant[0].train"),
+    "unknown train key": (TINY.replace("batch_size = 2", "batchsize = 2"), "variant[0].train"),
+    "kvp out of range": (TINY.replace("kvp = 80", "kvp = 400"), "target[1].physics"),
+    "xray without scatter": (TINY.replace('level = "full", kvp', 'level = "poly", kvp'),
+                             "target[1].physics.level: kind 'xray'"),
+    "unknown target kind": (TINY.replace('kind = "xray"', 'kind = "photo"'), "target[1].kind"),
+    "display on a drr target": (TINY + '\n[[target]]\nname = "p"\ndisplay = { bits = 8 }\n',
+                                "collimator and display apply to kind 'xray' only"),
+    "bad collimator": (TINY.replace("radius = 0.45", "radius = -1.0"), "target[1].collimator"),
+    "two targets alike": (TINY + '\n[[target]]\nname = "line"\n', "two targets are named alike"),
+    "not TOML": ("[study\n", "not valid TOML"),
+}
+
+
+@pytest.mark.parametrize("case", list(BAD))
+def test_bad_study_files_name_the_key(tmp_path, case):
+    text, words = BAD[case]
+    path = tmp_path / "s.toml"
+    path.write_text(text)
+    with pytest.raises(StudyError) as e:
+        load_study(path)
+    assert words in str(e.value) and "\n" not in str(e.value), str(e.value)
+
+
+def test_a_missing_study_file_is_named(tmp_path):
+    with pytest.raises(StudyError, match="not found"):
+        load_study(tmp_path / "none.toml")
+
+
+@pytest.mark.parametrize("path", sorted((ROOT / "studies").glob("*.toml")), ids=lambda p: p.name)
+def test_the_shipped_study_files_load(path):
+    study = load_study(path)
+    assert study.variants and study.targets
