@@ -139,7 +139,10 @@ class MaterialDecomposition:
 #: name -> xraylib NIST compound name, or ("element", Z). ``water`` is not in the HU
 #: decomposition; it serves phantoms and validation. Cancellous bone (spongiosa) is not in
 #: the NIST list: it is a mass mixture of ICRP cortical bone and soft tissue (see
-#: :data:`CANCELLOUS_CORTICAL_MASS_FRACTION`).
+#: :data:`CANCELLOUS_CORTICAL_MASS_FRACTION`). The tool and equipment materials of
+#: :mod:`sim.distractors`: ``stainless_steel`` is modelled as iron (Fe; a 316L-like Fe-Cr-Ni
+#: 70/19/11 mix attenuates 0.7-1.1 % less at 40-100 keV), ``carbon`` stands for carbon-fibre
+#: table tops (give their low effective density), ``pvc`` for cable insulation.
 MATERIALS: dict[str, str | tuple[str, int]] = {
     "air": "Air, Dry (near sea level)",
     "lung": "Lung (ICRP)",
@@ -149,6 +152,12 @@ MATERIALS: dict[str, str | tuple[str, int]] = {
     "cortical_bone": "Bone, Cortical (ICRP)",
     "titanium": ("element", 22),
     "water": "Water, Liquid",
+    # surgical tools and equipment in the field (sim.distractors), not in the HU decomposition
+    "stainless_steel": ("element", 26),
+    "aluminium": ("element", 13),
+    "copper": ("element", 29),
+    "carbon": ("element", 6),
+    "pvc": "Polyvinyl Chloride",
 }
 
 #: Cancellous bone = this mass fraction of ICRP cortical bone + the rest ICRP soft tissue
