@@ -29,6 +29,9 @@ name                                   kind  entropy                     purpose
 :data:`KIND_BATCH`                     40    training seed               an online batch's draws ``(batch)`` -- learn.online
 :data:`KIND_BATCH_NOISE`               41    training seed               noise / Monte Carlo of an online batch's images
                                                                          ``(batch, subject[, 1])`` -- learn.online
+:data:`KIND_RANDOMIZE`                 50    randomization seed          domain randomization of pair ``index``: its
+                                                                         settings ``(index, 0)``, its post-render noise
+                                                                         ``(index, 1)`` -- sim.randomize
 :data:`KIND_VP_FIELD`                  0     a virtual patient's seed    its deformation field ``()`` -- sim.augment
 :data:`KIND_VP_NOISE`                  1     a virtual patient's seed    its added CT noise ``()`` -- sim.augment
 =====================================  ====  ==========================  ================================================
@@ -83,6 +86,9 @@ KIND_ACCURACY_PAIRS = 30
 KIND_BATCH = 40
 #: Noise / Monte Carlo of an online batch's images: ``(KIND_BATCH_NOISE, batch, subject[, 1])``.
 KIND_BATCH_NOISE = 41
+#: Domain randomization of pair ``index``: settings ``(KIND_RANDOMIZE, index, 0)``, post-render
+#: noise ``(KIND_RANDOMIZE, index, 1)`` (:mod:`sim.randomize`).
+KIND_RANDOMIZE = 50
 #: A virtual patient's deformation field: ``(KIND_VP_FIELD,)`` under the virtual patient's seed.
 KIND_VP_FIELD = 0
 #: A virtual patient's added CT noise: ``(KIND_VP_NOISE,)`` under the virtual patient's seed.

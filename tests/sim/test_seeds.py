@@ -32,6 +32,7 @@ KEYED = {
     "KIND_ACCURACY_PAIRS": (30, (1, 2)),        # learn/commands.py: (30, ki, si)
     "KIND_BATCH": (40, (9,)),                   # learn/online.py
     "KIND_BATCH_NOISE": (41, (9, 2, 1)),        # learn/online.py
+    "KIND_RANDOMIZE": (50, (9, 0)),             # sim/randomize.py: (50, index, 0 settings / 1 noise)
     "KIND_VP_FIELD": (0, ()),                   # sim/augment.py: _STREAM_FIELD = 0
     "KIND_VP_NOISE": (1, ()),                   # sim/augment.py: _STREAM_NOISE = 1
 }
@@ -72,7 +73,7 @@ def test_keyed_streams_of_different_purposes_differ():
     """The campaign's kinds are distinct numbers, so no two purposes share a stream."""
     campaign = [seeds.KIND_POSES, seeds.KIND_VIRTUAL_PATIENT, seeds.KIND_SPLIT, seeds.KIND_NOISE,
                 seeds.KIND_EVALUATE_CASES, seeds.KIND_POLARITY_POSES, seeds.KIND_EPOCH_PAIRS,
-                seeds.KIND_ACCURACY_PAIRS, seeds.KIND_BATCH, seeds.KIND_BATCH_NOISE]
+                seeds.KIND_ACCURACY_PAIRS, seeds.KIND_BATCH, seeds.KIND_BATCH_NOISE, seeds.KIND_RANDOMIZE]
     assert len(set(campaign)) == len(campaign)
     assert not _same(seeds.rng_for(1, seeds.KIND_POSES, 0), seeds.rng_for(1, seeds.KIND_VIRTUAL_PATIENT, 0))
 
