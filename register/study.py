@@ -287,32 +287,17 @@ def _check_record(out: Path, study: Study) -> None:
     write_json(record, {"study": new, "source": study.source})
 
 
-def _toml_value(v: Any) -> str:
-    if isinstance(v, bool):
-        return "true" if v else "false"
-    if isinstance(v, (int, float)):
-        return repr(v)
-    if isinstance(v, str):
-        return json.dumps(v)
-    if isinstance(v, (list, tuple)):
-        return "[" + ", ".join(_toml_value(x) for x in v) + "]"
-    if isinstance(v, dict):
-        return "{ " + ", ".join(f"{k} = {_toml_value(x)}" for k, x in v.items()) + " }"
-    raise StudyError(f"cannot write {v!r} as TOML")
-
-
 def _train_variant(variant: Variant, folder: Path, log) -> Path:
     """Train (or resume) one variant; returns its checkpoint. A finished training is kept."""
     from learn.checkpoint import load_checkpoint
     from learn.train import load_train_config, train
-    from sim.atomic import atomic_path
+    from sim.atomic import toml_text, write_toml
 
     folder.mkdir(parents=True, exist_ok=True)
     config = folder / "train.toml"
-    text = "[train]\n" + "".join(f"{k} = {_toml_value(v)}\n" for k, v in {**variant.train, "out": str(folder.resolve())}.items())
-    if not config.is_file() or config.read_text() != text:
-        with atomic_path(config) as tmp:
-            tmp.write_text(text)
+    tables = {"train": {**variant.train, "out": str(folder.resolve())}}
+    if not config.is_file() or config.read_text() != toml_text(tables):
+        write_toml(config, tables)
     cfg = load_train_config(config)
     ckpt = folder / "checkpoint.pt"
     if ckpt.is_file():

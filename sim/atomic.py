@@ -132,6 +132,52 @@ def write_json(path: str | os.PathLike, obj) -> None:
         tmp.write_text(json.dumps(obj, indent=2) + "\n")
 
 
+def toml_value(v) -> str:
+    """A TOML value for plain data (bool, int, finite float, str, list, dict as an inline table)."""
+    import math
+
+    v = jsonable(v)
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if isinstance(v, int):
+        return str(v)
+    if isinstance(v, float):
+        if not math.isfinite(v):
+            raise ValueError(f"TOML has no value for {v!r}")
+        return repr(v)
+    if isinstance(v, str):
+        return json.dumps(v)  # a JSON string is a TOML basic string
+    if isinstance(v, list):
+        return "[" + ", ".join(toml_value(x) for x in v) + "]"
+    if isinstance(v, dict):
+        return "{ " + ", ".join(f"{_toml_key(k)} = {toml_value(x)}" for k, x in v.items()) + " }"
+    raise TypeError(f"cannot write {type(v).__name__} as TOML")
+
+
+def _toml_key(k) -> str:
+    k = str(k)
+    return k if k and all(c.isalnum() or c in "-_" for c in k) else json.dumps(k)
+
+
+def toml_text(tables: dict) -> str:
+    """TOML text of ``{table name: {key: value}}`` (one level of ``[table]`` headers; values by
+    :func:`toml_value`). ``tomllib.loads`` of the text gives the data back."""
+    parts = []
+    for name, table in tables.items():
+        if not isinstance(table, dict):
+            raise TypeError(f"TOML table {name!r} must be a dict, got {type(table).__name__}")
+        parts.append(f"[{_toml_key(name)}]\n" + "".join(f"{_toml_key(k)} = {toml_value(v)}\n"
+                                                          for k, v in table.items() if v is not None))
+    return "\n".join(parts)
+
+
+def write_toml(path: str | os.PathLike, tables: dict) -> None:
+    """Write :func:`toml_text` of ``tables`` atomically (``None`` values are left out)."""
+    text = toml_text(tables)
+    with atomic_path(path) as tmp:
+        tmp.write_text(text)
+
+
 def save_figure(fig, path: str | os.PathLike, *, dpi: int = 110) -> None:
     """Lay out a matplotlib figure, write it as PNG atomically, and close it."""
     import matplotlib.pyplot as plt

@@ -122,3 +122,19 @@ def test_a_write_killed_midway_leaves_a_temporary_that_the_next_write_removes(tm
         tmp.write_text("new")
     assert time.monotonic() - t0 < 5
     assert [q.name for q in tmp_path.iterdir()] == ["data.json"] and target.read_text() == "new"
+
+
+def test_toml_text_round_trips_through_tomllib(tmp_path):
+    import tomllib
+
+    from sim.atomic import toml_text, write_toml
+
+    data = {"model": {"name": "pelvis line", "size": [64, 64], "ok": True, "lr": 1e-3, "n": 3,
+                      "steps": ["normalize", {"name": "gaussian", "sigma_px": 1.5}], "quote": 'a "b"\\c'},
+            "accuracy": {"success": 0.94, "skipped": None}}
+    back = tomllib.loads(toml_text(data))
+    assert back == {"model": data["model"], "accuracy": {"success": 0.94}}  # None is left out
+    write_toml(tmp_path / "m.toml", data)
+    assert tomllib.loads((tmp_path / "m.toml").read_text()) == back
+    with pytest.raises(ValueError, match="nan"):
+        toml_text({"t": {"x": float("nan")}})

@@ -1,0 +1,106 @@
+"""Shipped models: weights only, with a model card, under ``models/<name>/``.
+
+A shipped model is a folder holding
+
+* ``model.pt``: a :mod:`learn.checkpoint` file without training state (no optimiser, scheduler
+  or random state: a few MB), read with ``weights_only=True`` like every checkpoint;
+* ``model.toml``: its card: ``[model]`` (name, description, file, sha256 of ``model.pt``,
+  backbone, head channels, image size (H, W) px, preprocessing, the physics entries of the
+  training images), ``[training]`` (the config, the command, the campaign, the iterations, the
+  duration and machine) and ``[accuracy]`` (what was measured, with the command that reproduces it).
+
+:func:`export_model` makes such a folder from a ``ctxreg train`` checkpoint; :func:`load_card`
+reads a card and checks it against its weights (the file's hash and what the checkpoint records);
+:func:`shipped_models` lists the folders of ``models/``.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import tomllib
+from dataclasses import replace
+from pathlib import Path
+from typing import Any
+
+from learn.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
+
+__all__ = ["MODELS_DIR", "export_model", "load_card", "shipped_models", "ModelCardError"]
+
+#: The repository's folder of shipped models.
+MODELS_DIR = Path(__file__).resolve().parents[1] / "models"
+CARD = "model.toml"
+WEIGHTS = "model.pt"
+
+
+class ModelCardError(CheckpointError):
+    """A model folder or its card cannot be used; the message names the file and the key."""
+
+
+def _sha256(path: Path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+def export_model(checkpoint: str | Path, folder: str | Path, *, name: str, description: str,
+                 training: dict[str, Any], accuracy: dict[str, Any]) -> Path:
+    """Write ``folder/model.pt`` (the checkpoint's weights and what they need: architecture,
+    image size, preprocessing, physics, config) and ``folder/model.toml`` (the card); returns the
+    card's path. ``training`` and ``accuracy`` are the card's tables (plain data: the command,
+    campaign, duration, what was measured and how)."""
+    from sim.atomic import write_toml
+
+    ckpt = load_checkpoint(checkpoint)
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    weights = folder / WEIGHTS
+    save_checkpoint(weights, replace(ckpt, optimizer=None, scheduler=None, rng=None, path=None))
+    card = {
+        "model": {"name": name, "description": description, "file": WEIGHTS, "sha256": _sha256(weights),
+                  "backbone": ckpt.backbone, "head_channels": ckpt.head_channels,
+                  "image_size": list(ckpt.image_size) if ckpt.image_size else None,
+                  "preprocess": list(ckpt.preprocess), "physics": ckpt.physics,
+                  "current_physics": ckpt.current_physics, "iterations": ckpt.iteration},
+        "training": training,
+        "accuracy": accuracy,
+    }
+    write_toml(folder / CARD, card)
+    return folder / CARD
+
+
+def load_card(folder: str | Path) -> dict[str, Any]:
+    """The card of the model in ``folder``, checked against its weights: the file exists, its
+    sha256 matches, and the architecture, image size and preprocessing the card states are those
+    the checkpoint records. Raises :class:`ModelCardError` naming the file and the key."""
+    folder = Path(folder)
+    path = folder / CARD
+    if not path.is_file():
+        raise ModelCardError(f"{folder}: no {CARD} (a shipped model is a folder with {WEIGHTS} and {CARD})")
+    try:
+        card = tomllib.loads(path.read_text())
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as e:
+        raise ModelCardError(f"{path}: not valid TOML ({e})") from None
+    model = card.get("model")
+    if not isinstance(model, dict) or not isinstance(model.get("file"), str):
+        raise ModelCardError(f"{path}: needs a [model] table with file, sha256, backbone, image_size, preprocess")
+    weights = folder / model["file"]
+    if not weights.is_file():
+        raise ModelCardError(f"{path}: model.file {model['file']!r} not found in {folder}")
+    if _sha256(weights) != model.get("sha256"):
+        raise ModelCardError(f"{path}: model.sha256 does not match {weights} (the weights changed after the card)")
+    ckpt = load_checkpoint(weights)
+    recorded = {"backbone": ckpt.backbone, "head_channels": ckpt.head_channels,
+                "image_size": list(ckpt.image_size) if ckpt.image_size else None,
+                "preprocess": list(ckpt.preprocess)}
+    for key, value in recorded.items():
+        if model.get(key) != value:
+            raise ModelCardError(f"{path}: model.{key} is {model.get(key)!r} but {weights} records {value!r}")
+    return card
+
+
+def shipped_models(root: str | Path = MODELS_DIR) -> dict[str, Path]:
+    """``{name: folder}`` of the model folders (with a card) under ``root``."""
+    root = Path(root)
+    return {p.parent.name: p.parent for p in sorted(root.glob(f"*/{CARD}"))} if root.is_dir() else {}

@@ -1,0 +1,60 @@
+"""Shipped models: weights-only export with a card, the card checked against its weights, and
+every model committed under models/ loads and matches its card."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from learn.checkpoint import Checkpoint, load_checkpoint, save_checkpoint
+from learn.models import ModelCardError, export_model, load_card, shipped_models
+
+
+def _trained(tmp_path):
+    from learn.model import pose_update_net
+
+    net = pose_update_net(backbone="tiny", head_channels=8)
+    ckpt = Checkpoint(model_state=net.state_dict(), backbone="tiny", head_channels=8, preprocess=("normalize",),
+                      config={"iterations": 3}, image_size=(32, 32), physics={"name": "line", "level": "line"},
+                      iteration=3, optimizer={"state": {}, "param_groups": []}, rng={"torch": torch.get_rng_state()})
+    path = tmp_path / "checkpoint.pt"
+    save_checkpoint(path, ckpt)
+    return path, net
+
+
+def test_export_keeps_the_weights_drops_the_training_state_and_writes_a_checked_card(tmp_path):
+    src, net = _trained(tmp_path)
+    card_path = export_model(src, tmp_path / "m", name="m", description="test",
+                             training={"command": "ctxreg train x.toml"}, accuracy={"success": 0.5})
+    card = load_card(tmp_path / "m")
+    assert card["model"]["image_size"] == [32, 32] and card["model"]["preprocess"] == ["normalize"]
+    assert card["training"]["command"] == "ctxreg train x.toml" and card["accuracy"]["success"] == 0.5
+    out = load_checkpoint(tmp_path / "m" / "model.pt")
+    assert out.optimizer is None and out.rng is None and out.iteration == 3
+    for k, v in net.state_dict().items():
+        assert torch.equal(out.model_state[k], v)
+    assert (tmp_path / "m" / "model.pt").stat().st_size < src.stat().st_size
+    # a card that says something its weights do not: refused, naming the key
+    text = card_path.read_text()
+    card_path.write_text(text.replace("image_size = [32, 32]", "image_size = [64, 64]"))
+    with pytest.raises(ModelCardError, match=r"model.image_size is \[64, 64\] but"):
+        load_card(tmp_path / "m")
+    card_path.write_text(text)
+    # weights changed after the card: refused
+    with open(tmp_path / "m" / "model.pt", "ab") as f:
+        f.write(b"\0")
+    with pytest.raises(ModelCardError, match="sha256 does not match"):
+        load_card(tmp_path / "m")
+    with pytest.raises(ModelCardError, match="no model.toml"):
+        load_card(tmp_path)
+
+
+@pytest.mark.parametrize("name", sorted(shipped_models()) or ["(none)"])
+def test_every_shipped_model_loads_and_matches_its_card(name):
+    if name == "(none)":
+        pytest.skip("no model under models/ yet")
+    folder = shipped_models()[name]
+    card = load_card(folder)
+    assert card["model"]["name"] == name
+    assert {"command", "config"} <= set(card["training"]) and "command" in card["accuracy"]
+    assert (folder / card["model"]["file"]).stat().st_size < 20 * 2**20  # weights only: a few MB
