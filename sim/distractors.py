@@ -562,15 +562,13 @@ class DistractorField:
             return
         import mitsuba as mi
 
-        from sim.render import _FLIP_XY
+        from sim.render import camera_from_sensor
         from sim.scene import load_mitsuba_scene, load_scene
 
         self._sensor_scene = load_mitsuba_scene(load_scene(self.scene_name), self.geometry)
         self._sensor = self._sensor_scene.sensors()[0]
         self._integrator = self._sensor_scene.integrator()
-        to_world = np.array(self._sensor.world_transform().matrix, dtype=np.float64).reshape(4, 4)
-        # the renderer's map (DRRRenderer._camera_from_world)
-        self._camera_from_world = _FLIP_XY @ np.linalg.inv(to_world)
+        self._camera_from_world = camera_from_sensor(self._sensor)  # the renderer's own map
         scenes = {}
         for frame in FRAMES:
             for ci, key in enumerate(self.channels):
@@ -586,7 +584,7 @@ class DistractorField:
         world frame: the ``ctxreg_drr`` integrator's own ray generation."""
         h, w = self.geometry.height, self.geometry.width
         self._integrator.set_world_to_index(frame_from_world)
-        return self._integrator._rays_in_index_space(self._sensor, w, h, len(frame_from_world) * h * w)
+        return self._integrator.rays_in_index_space(self._sensor, w, h, len(frame_from_world) * h * w)
 
     @staticmethod
     def _trace(scene, o, d):

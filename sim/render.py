@@ -53,6 +53,13 @@ MAX_RAYS_PER_LAUNCH = 1 << 23
 _FLIP_XY = np.diag([-1.0, -1.0, 1.0, 1.0])
 
 
+def camera_from_sensor(sensor) -> np.ndarray:
+    """``(4, 4)`` map from Mitsuba's world frame to ctxreg's camera frame for a scene's sensor
+    (Mitsuba's sensor-local x and y point against the image's columns and rows)."""
+    to_world = np.array(sensor.world_transform().matrix, dtype=np.float64).reshape(4, 4)
+    return _FLIP_XY @ np.linalg.inv(to_world)
+
+
 class RenderError(InputError):
     """Invalid render settings or poses; the message names the setting and the problem."""
 
@@ -159,9 +166,7 @@ class DRRRenderer:
         )
         self.integrator = self.scene.integrator()
         self.sensor = self.scene.sensors()[0]
-        to_world = np.array(self.sensor.world_transform().matrix, dtype=np.float64).reshape(4, 4)
-        # Mitsuba's sensor-local x and y point against the image's columns and rows.
-        self._camera_from_world = _FLIP_XY @ np.linalg.inv(to_world)
+        self._camera_from_world = camera_from_sensor(self.sensor)
         self._index_from_lps = np.linalg.inv(volume.affine)
         if self.settings.quantity == "density":
             channels = self.materials.partial_densities(volume.hu)

@@ -139,7 +139,10 @@ class DRRIntegrator(mi.SamplingIntegrator):
             dr.scatter(values, acc[c], idx * self.channels + c)
         return mi.TensorXf(values, shape=(self.n_poses, height, width, self.channels))
 
-    def _rays_in_index_space(self, sensor, width: int, height: int, n_rays: int):
+    def rays_in_index_space(self, sensor, width: int, height: int, n_rays: int):
+        """The pixel-centre rays of ``n_rays / (width * height)`` poses in the volume's index
+        space (``set_world_to_index``): origins and directions, pose-major then row-major, as the
+        renderer traces them (also used to trace tool meshes, :mod:`sim.distractors`)."""
         idx = dr.arange(mi.UInt32, n_rays)
         w = dr.opaque(mi.UInt32, width)
         hw = dr.opaque(mi.UInt32, width * height)
@@ -181,7 +184,7 @@ class DRRIntegrator(mi.SamplingIntegrator):
     def _line_integrals(self, sensor, width, height, n_rays):
         ni, nj, nk = self.shape
         c_count = self.channels
-        o, d = self._rays_in_index_space(sensor, width, height, n_rays)
+        o, d = self.rays_in_index_space(sensor, width, height, n_rays)
         n = mi.Vector3f(dr.opaque(mi.Float, ni), dr.opaque(mi.Float, nj), dr.opaque(mi.Float, nk))
         # Strides of index axes i, j, k in the padded, permuted array, in floats.
         si, sj, sk = (dr.opaque(mi.Int32, st) for st in self.strides)
