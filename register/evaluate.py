@@ -125,6 +125,17 @@ def bone_points(volume, max_points: int, seed: int = 0) -> np.ndarray:
     return volume.voxel_to_lps(ijk.astype(np.float64))
 
 
+def write_cases_csv(path: Path, rows: list[dict]) -> None:
+    """One row per case and method (the keys of the first row are the columns), atomically."""
+    from sim.atomic import atomic_path
+
+    with atomic_path(path) as tmp:
+        with open(tmp, "w", newline="") as f:
+            w = csv.DictWriter(f, fieldnames=list(rows[0]))
+            w.writeheader()
+            w.writerows(rows)
+
+
 def summarize(rows: list[dict], settings: EvaluationSettings) -> dict:
     """Per method: mean, std, median, min, max of each error, success rates, time."""
     out = {}
@@ -216,11 +227,7 @@ def evaluate(volume, methods: dict[str, RegistrationMethod], settings: Evaluatio
             log(f"case {i + 1}/{settings.cases} {name}: rotation {err['rot_err_deg']:.2f} deg, "
                 f"translation {err['trans_err_mm']:.1f} mm, mTRE {err['mtre_mm']:.1f} mm, {elapsed:.1f} s")
     summary = summarize(rows, settings)
-    with atomic_path(out / "cases.csv") as tmp:
-        with open(tmp, "w", newline="") as f:
-            w = csv.DictWriter(f, fieldnames=list(rows[0]))
-            w.writeheader()
-            w.writerows(rows)
+    write_cases_csv(out / "cases.csv", rows)
     write_json(out / "summary.json", {"settings": asdict(settings), **(record or {}), "summary": summary})
     table = format_table(summary, settings)
     with atomic_path(out / "table.md") as tmp:

@@ -50,7 +50,6 @@ refused, naming the keys that changed, unless the changes only add variants or t
 
 from __future__ import annotations
 
-import csv
 import json
 import time
 import tomllib
@@ -346,9 +345,10 @@ def _moving(study: Study):
 def _evaluate_xray(study: Study, target: Target, volume, center, predictor, folder: Path, log) -> dict:
     """Realistic frames through :func:`register.api.register_xray`, scored like the evaluation."""
     from register.api import register_xray
-    from register.evaluate import EvaluationSettings, bone_points, pose_errors, sample_cases, summarize
+    from register.evaluate import (EvaluationSettings, bone_points, pose_errors, sample_cases, summarize,
+                                   write_cases_csv)
     from register.xray_io import write_xray_dicom
-    from sim.atomic import atomic_path, write_json
+    from sim.atomic import write_json
     from sim.geometry import pose_from_params
     from sim.physics.display import Collimator, DisplayChain
     from sim.physics.imaging import PhysicsSettings, XRayImager
@@ -386,11 +386,7 @@ def _evaluate_xray(study: Study, target: Target, volume, center, predictor, fold
             log(f"  case {i + 1}/{study.cases} {method}: rotation {err['rot_err_deg']:.2f} deg, mTRE "
                 f"{err['mtre_mm']:.1f} mm, {elapsed:.1f} s")
     summary = summarize(rows, settings)
-    with atomic_path(folder / "cases.csv") as tmp:
-        with open(tmp, "w", newline="") as f:
-            w = csv.DictWriter(f, fieldnames=list(rows[0]))
-            w.writeheader()
-            w.writerows(rows)
+    write_cases_csv(folder / "cases.csv", rows)
     write_json(folder / "summary.json", {"summary": summary, "target": target.name})
     return summary
 
