@@ -17,12 +17,12 @@ reads a card and checks it against its weights (the file's hash and what the che
 from __future__ import annotations
 
 import hashlib
-import tomllib
 from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
 from learn.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
+from sim.atomic import read_toml
 
 __all__ = ["MODELS_DIR", "export_model", "load_card", "shipped_models", "ModelCardError"]
 
@@ -78,10 +78,7 @@ def load_card(folder: str | Path) -> dict[str, Any]:
     path = folder / CARD
     if not path.is_file():
         raise ModelCardError(f"{folder}: no {CARD} (a shipped model is a folder with {WEIGHTS} and {CARD})")
-    try:
-        card = tomllib.loads(path.read_text())
-    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as e:
-        raise ModelCardError(f"{path}: not valid TOML ({e})") from None
+    card = read_toml(path, ModelCardError, "model card")
     model = card.get("model")
     if not isinstance(model, dict) or not isinstance(model.get("file"), str):
         raise ModelCardError(f"{path}: needs a [model] table with file, sha256, backbone, image_size, preprocess")

@@ -26,7 +26,6 @@ import csv
 import math
 import os
 import time
-import tomllib
 import typing
 from dataclasses import MISSING, asdict, dataclass, fields
 from pathlib import Path
@@ -245,13 +244,10 @@ _FIELD_TYPES = typing.get_type_hints(TrainConfig)
 
 def load_train_config(path: str | os.PathLike) -> TrainConfig:
     """Read and validate a training config file."""
+    from sim.atomic import read_toml
+
     path = Path(path)
-    if not path.is_file():
-        raise TrainConfigError(f"training config {path} not found")
-    try:
-        data = tomllib.loads(path.read_text())
-    except tomllib.TOMLDecodeError as e:
-        raise TrainConfigError(f"{path}: not valid TOML ({e})") from None
+    data = read_toml(path, TrainConfigError, "training config")
     table = data.get("train")
     if not isinstance(table, dict) or set(data) - {"train"}:
         raise TrainConfigError(f"{path}: expected exactly one [train] table, got {sorted(data)}")
@@ -631,13 +627,9 @@ def _validate(model, source, cfg: TrainConfig) -> dict:
 
 
 def _write_log(path: Path, rows: list[dict]) -> None:
-    from sim.atomic import atomic_path
+    from sim.atomic import write_csv
 
-    with atomic_path(path) as tmp:
-        with open(tmp, "w", newline="") as f:
-            w = csv.DictWriter(f, fieldnames=list(rows[0]))
-            w.writeheader()
-            w.writerows(rows)
+    write_csv(path, rows)
 
 
 def _plot(rows: list[dict], path: Path) -> None:

@@ -180,7 +180,8 @@ def _moving_physics(physics):
     """The :class:`PhysicsSettings` of the moving images: a level name gets the defaults of a
     registration (noise-free, :data:`REGISTER_SCATTER_PHOTONS`)."""
     from register.cmaes import RegistrationError
-    from sim.physics.imaging import LEVELS, PhysicsSettings
+    from sim.physics.imaging import PhysicsSettings
+    from sim.physics.settings import LEVELS
 
     if isinstance(physics, PhysicsSettings):
         return physics

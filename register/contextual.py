@@ -20,7 +20,6 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from learn.predict import NetworkPredictor  # noqa: F401 - the network predictor, importable from here
 from register.cmaes import CMAESRegistration, CMAESSettings, RegistrationError, RegistrationResult
 
 

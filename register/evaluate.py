@@ -20,7 +20,6 @@ Methods are plug-ins (:class:`register.methods.RegistrationMethod`, built by
 
 from __future__ import annotations
 
-import csv
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -125,17 +124,6 @@ def bone_points(volume, max_points: int, seed: int = 0) -> np.ndarray:
     return volume.voxel_to_lps(ijk.astype(np.float64))
 
 
-def write_cases_csv(path: Path, rows: list[dict]) -> None:
-    """One row per case and method (the keys of the first row are the columns), atomically."""
-    from sim.atomic import atomic_path
-
-    with atomic_path(path) as tmp:
-        with open(tmp, "w", newline="") as f:
-            w = csv.DictWriter(f, fieldnames=list(rows[0]))
-            w.writeheader()
-            w.writerows(rows)
-
-
 def summarize(rows: list[dict], settings: EvaluationSettings) -> dict:
     """Per method: mean, std, median, min, max of each error, success rates, time."""
     out = {}
@@ -197,7 +185,7 @@ def evaluate(volume, methods: dict[str, RegistrationMethod], settings: Evaluatio
     for the contextual methods, ``trajectories.json`` (every case's poses per iteration), all
     after the last case (a run that fails leaves nothing). ``record`` (e.g. the targets' and the
     methods' physics) is stored in ``summary.json``."""
-    from sim.atomic import atomic_path, write_json
+    from sim.atomic import atomic_path, write_csv, write_json
     from sim.geometry import pose_from_params, projection_matrix
 
     out = Path(out)
@@ -227,7 +215,7 @@ def evaluate(volume, methods: dict[str, RegistrationMethod], settings: Evaluatio
             log(f"case {i + 1}/{settings.cases} {name}: rotation {err['rot_err_deg']:.2f} deg, "
                 f"translation {err['trans_err_mm']:.1f} mm, mTRE {err['mtre_mm']:.1f} mm, {elapsed:.1f} s")
     summary = summarize(rows, settings)
-    write_cases_csv(out / "cases.csv", rows)
+    write_csv(out / "cases.csv", rows)
     write_json(out / "summary.json", {"settings": asdict(settings), **(record or {}), "summary": summary})
     table = format_table(summary, settings)
     with atomic_path(out / "table.md") as tmp:

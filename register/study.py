@@ -52,7 +52,6 @@ from __future__ import annotations
 
 import json
 import time
-import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable
@@ -141,13 +140,10 @@ def load_study(path: str | Path) -> Study:
     from sim.physics.display import Collimator, DisplayChain
     from sim.physics.imaging import PhysicsSettings
 
+    from sim.atomic import read_toml
+
     path = Path(path)
-    if not path.is_file():
-        raise StudyError(f"study file {path} not found")
-    try:
-        data = tomllib.loads(path.read_text())
-    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as e:
-        raise StudyError(f"{path}: not valid TOML ({e})") from None
+    data = read_toml(path, StudyError, "study file")
     unknown = set(data) - {"study", "variant", "target"}
     if unknown:
         raise StudyError(f"{path}: unknown table(s) {sorted(unknown)}; expected [study], [[variant]], [[target]]")
@@ -200,12 +196,7 @@ def load_study(path: str | Path) -> Study:
         for key in ("dataset", "weights_path", "init_from"):
             if isinstance(table.get(key), str):
                 table[key] = resolve(table[key])
-        try:
-            TrainConfig(**table, out="-")  # every key's type and range, as ctxreg train checks them
-        except TypeError as e:
-            raise StudyError(f"{where}.train: {e}") from None
-        except InputError as e:
-            raise StudyError(f"{where}.train: {e}") from None
+        _checked(TrainConfig, {**table, "out": "-"}, f"{where}.train")  # as ctxreg train checks it
         variants.append(Variant(name, table))
 
     targets = []
@@ -226,12 +217,7 @@ def load_study(path: str | Path) -> Study:
         physics = {"level": "line", **physics}
         if kind == "xray" and physics["level"] != "full":
             raise StudyError(f"{where}.physics.level: kind 'xray' renders a detector signal with scatter: 'full'")
-        try:
-            PhysicsSettings(**physics)
-        except TypeError as e:
-            raise StudyError(f"{where}.physics: {e}") from None
-        except InputError as e:
-            raise StudyError(f"{where}.physics: {e}") from None
+        _checked(PhysicsSettings, physics, f"{where}.physics")
         coll, disp = row.get("collimator"), row.get("display")
         if kind != "xray" and (coll is not None or disp is not None):
             raise StudyError(f"{where}: collimator and display apply to kind 'xray' only")
@@ -240,10 +226,7 @@ def load_study(path: str | Path) -> Study:
                 continue
             if not isinstance(value, dict):
                 raise StudyError(f"{where}.{key}: a table, got {value!r}")
-            try:
-                cls.from_dict(value)
-            except (TypeError, InputError) as e:
-                raise StudyError(f"{where}.{key}: {e}") from None
+            _checked(cls.from_dict, value, f"{where}.{key}", unpack=False)
         targets.append(Target(name, kind, physics, coll, disp))
     for what, items in (("variant", variants), ("target", targets)):
         names = [x.name for x in items]
@@ -252,16 +235,23 @@ def load_study(path: str | Path) -> Study:
     return Study(variants=tuple(variants), targets=tuple(targets), **study_kw)
 
 
-def _changes(old: dict, new: dict, prefix: str = "") -> list[str]:
+def _checked(build, args: dict, where: str, *, unpack: bool = True):
+    """``build(**args)`` (or ``build(args)``), its refusal (a wrong key or value) as one StudyError
+    line naming ``where``."""
+    try:
+        return build(**args) if unpack else build(args)
+    except (TypeError, InputError) as e:
+        raise StudyError(f"{where}: {e}") from None
+
+
+def _changes(old: dict, new: dict) -> list[str]:
+    """``key: old -> new`` for each setting that differs; variants and targets compared by name."""
     out = []
     for key in sorted(set(old) | set(new)):
-        a, b = old.get(key, "<absent>"), new.get(key, "<absent>")
-        if isinstance(a, dict) and isinstance(b, dict) and prefix.count(".") < 1:
-            if prefix in ("variants.", "targets.") or not prefix:
-                out += _changes(a, b, f"{prefix}{key}.")
-                continue
-        if a != b:
-            out.append(f"{prefix}{key}: {json.dumps(a)} -> {json.dumps(b)}")
+        a, b = old.get(key), new.get(key)
+        pairs = ([(f"{key}.{k}", a.get(k), b.get(k)) for k in sorted(set(a) | set(b))]
+                 if key in ("variants", "targets") else [(key, a, b)])
+        out += [f"{name}: {json.dumps(x)} -> {json.dumps(y)}" for name, x, y in pairs if x != y]
     return out
 
 
@@ -345,10 +335,9 @@ def _moving(study: Study):
 def _evaluate_xray(study: Study, target: Target, volume, center, predictor, folder: Path, log) -> dict:
     """Realistic frames through :func:`register.api.register_xray`, scored like the evaluation."""
     from register.api import register_xray
-    from register.evaluate import (EvaluationSettings, bone_points, pose_errors, sample_cases, summarize,
-                                   write_cases_csv)
+    from register.evaluate import EvaluationSettings, bone_points, pose_errors, sample_cases, summarize
     from register.xray_io import write_xray_dicom
-    from sim.atomic import write_json
+    from sim.atomic import write_csv, write_json
     from sim.geometry import pose_from_params
     from sim.physics.display import Collimator, DisplayChain
     from sim.physics.imaging import PhysicsSettings, XRayImager
@@ -386,7 +375,7 @@ def _evaluate_xray(study: Study, target: Target, volume, center, predictor, fold
             log(f"  case {i + 1}/{study.cases} {method}: rotation {err['rot_err_deg']:.2f} deg, mTRE "
                 f"{err['mtre_mm']:.1f} mm, {elapsed:.1f} s")
     summary = summarize(rows, settings)
-    write_cases_csv(folder / "cases.csv", rows)
+    write_csv(folder / "cases.csv", rows)
     write_json(folder / "summary.json", {"summary": summary, "target": target.name})
     return summary
 

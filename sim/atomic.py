@@ -132,6 +132,31 @@ def write_json(path: str | os.PathLike, obj) -> None:
         tmp.write_text(json.dumps(obj, indent=2) + "\n")
 
 
+def read_toml(path: str | os.PathLike, error: type[Exception], what: str) -> dict:
+    """The data of the TOML file ``path``; a missing file, undecodable text or bad TOML raises
+    ``error`` in one line: ``"<what> <path> not found"`` / ``"<path>: not valid TOML (...)"``."""
+    import tomllib
+
+    path = Path(path)
+    if not path.is_file():
+        raise error(f"{what} {path} not found")
+    try:
+        return tomllib.loads(path.read_text())
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as e:
+        raise error(f"{path}: not valid TOML ({e})") from None
+
+
+def write_csv(path: str | os.PathLike, rows: list[dict]) -> None:
+    """``rows`` as CSV (the first row's keys are the columns), atomically."""
+    import csv
+
+    with atomic_path(path) as tmp:
+        with open(tmp, "w", newline="") as f:
+            w = csv.DictWriter(f, fieldnames=list(rows[0]))
+            w.writeheader()
+            w.writerows(rows)
+
+
 def toml_value(v) -> str:
     """A TOML value for plain data (bool, int, finite float, str, list, dict as an inline table)."""
     import math

@@ -62,8 +62,7 @@ from __future__ import annotations
 
 import math
 import numbers
-import tomllib
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any, Mapping
 
@@ -617,13 +616,10 @@ class DomainRandomization:
 def load_randomization(path: str | Path) -> DomainRandomization:
     """The :class:`DomainRandomization` of a TOML file's ``[randomize]`` table (the declaration
     where the file has none; other tables are left to their readers)."""
+    from sim.atomic import read_toml
+
     path = Path(path)
-    if not path.is_file():
-        raise RandomizeError(f"randomization config {path} not found")
-    try:
-        data = tomllib.loads(path.read_text())
-    except tomllib.TOMLDecodeError as e:
-        raise RandomizeError(f"{path}: not valid TOML ({e})") from None
+    data = read_toml(path, RandomizeError, "randomization config")
     try:
         return DomainRandomization.from_table(data.get("randomize"))
     except RandomizeError as e:

@@ -414,7 +414,8 @@ def _load(spec) -> CTVolume:
 
 def _physics(physics):
     """None for line, else a PhysicsSettings (a level name -> its defaults)."""
-    from sim.physics.imaging import LEVELS, PhysicsSettings
+    from sim.physics.imaging import PhysicsSettings
+    from sim.physics.settings import LEVELS
 
     if isinstance(physics, PhysicsSettings):
         return None if physics.level == "line" else physics

@@ -2,7 +2,7 @@
 
 :class:`XRayImager` wraps a :class:`sim.render.DRRRenderer` with ``quantity="density"`` over
 :data:`sim.materials.TISSUE_DECOMPOSITION`, and a :class:`sim.physics.poly.Polychromatic`
-model. Physics levels (:data:`LEVELS`):
+model. Physics levels (:data:`sim.physics.settings.LEVELS`):
 
 * ``line``: line integrals of mu at one effective energy (the plain DRR of :mod:`sim.render`);
 * ``poly``: spectral polychromatic attenuation, energy-integrating CsI detector, and optionally
@@ -25,7 +25,7 @@ from __future__ import annotations
 import numpy as np
 
 from sim.physics import PhysicsError
-from sim.physics.settings import LEVELS, PhysicsSettings  # noqa: F401  (declared in settings; used from here)
+from sim.physics.settings import PhysicsSettings  # noqa: F401  (declared in settings; imported from here too)
 from sim.seeds import image_noise_rng, pose_seed
 
 

@@ -37,11 +37,13 @@ def test_a_trained_checkpoint_drives_the_contextual_predictor(campaign, trained)
     assert not np.allclose(g, predictor(b, a))  # it knows which image is the target
 
 
-def test_registration_imports_the_same_predictor():
+def test_registration_uses_the_one_predictor():
+    """The methods load the network through learn.predict (one predictor, no second home)."""
     import register.contextual
-    from learn.predict import NetworkPredictor
+    import register.methods
 
-    assert register.contextual.NetworkPredictor is NetworkPredictor
+    assert not hasattr(register.contextual, "NetworkPredictor")
+    assert "NetworkPredictor" in register.methods.load_predictor.__code__.co_names
 
 
 def test_predictor_resamples_other_image_sizes_to_the_training_size(campaign, trained):

@@ -91,7 +91,7 @@ def test_a_checkpoint_reports_a_physics_mismatch(tmp_path):
     import torch
 
     from learn.model import pose_update_net
-    from register.contextual import NetworkPredictor
+    from learn.predict import NetworkPredictor
 
     base = {"model": pose_update_net(backbone="tiny").state_dict(), "image_size": [32, 32],
             "config": {"backbone": "tiny", "preprocess": ["normalize"], "head_channels": 64}}
