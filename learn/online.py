@@ -19,6 +19,13 @@ physics entry (or the named ones: targets and currents may differ), and pairs dr
 
 Every draw of batch ``k`` comes from ``SeedSequence(seed, spawn_key=(40, k))``: a batch is a
 function of the seed and its index only, so a resumed training run takes the same steps.
+
+**Realistic targets** (``randomization=``, :class:`RealisticTargets`): each pair's target is an
+X-ray as a C-arm would deliver it, drawn per pair by :mod:`sim.randomize` (tube, filtration,
+exposure, blur, kernel scatter, tools, collimator, display chain, bit depth), then made ready
+as registration makes a user's X-ray ready (:func:`prepare_like_registration`): bone bright,
+cropped to the collimated field (the current image with it, as registration renders its moving
+images for the cropped detector), normalised over the field, the outside filled neutrally.
 """
 
 from __future__ import annotations
@@ -32,6 +39,7 @@ import torch
 
 from learn.labels import LabelNormalizer, apply_update, geodesic_label
 from sim.errors import InputError
+from sim.randomize import DomainRandomization
 from sim.seeds import KIND_BATCH, KIND_BATCH_NOISE  # batch k: (KIND_BATCH, k); its noise: (KIND_BATCH_NOISE, k, u[, 1])
 
 
@@ -83,6 +91,164 @@ class NearPairs:
         return np.concatenate([rot, trans], axis=1)
 
 
+#: Tool materials given a (zero) density channel in every realistic target, so that one
+#: :class:`sim.physics.poly.Polychromatic` per spectrum serves images with and without tools.
+TOOL_MATERIALS = ("titanium", "stainless_steel", "carbon", "copper", "pvc")
+
+#: Pair ``i`` of batch ``k`` is randomization index ``k * MAX_BATCH + i``.
+MAX_BATCH = 1 << 16
+
+
+def _crop_resize(image: np.ndarray, box: tuple[int, int, int, int], shape: tuple[int, int], mode: str) -> np.ndarray:
+    """``image[r0:r1, c0:c1]`` resampled to ``shape`` (``bilinear`` or ``nearest``), float64."""
+    import torch.nn.functional as F
+
+    r0, r1, c0, c1 = box
+    if (r0, r1, c0, c1) == (0, shape[0], 0, shape[1]):
+        return np.asarray(image, np.float64)
+    x = torch.from_numpy(np.ascontiguousarray(image[r0:r1, c0:c1], np.float32))[None, None]
+    kw = {"align_corners": False} if mode == "bilinear" else {}
+    return F.interpolate(x, size=shape, mode=mode, **kw)[0, 0].double().numpy()
+
+
+def prepare_like_registration(display: np.ndarray, field: np.ndarray, current: np.ndarray, *, log_display: bool,
+                              bone_dark: bool, low_pct: float = 1.0, high_pct: float = 99.0,
+                              i0_pct: float = 99.5) -> tuple[np.ndarray, np.ndarray]:
+    """A displayed X-ray and the pair's current image as the network meets them in registration.
+
+    ``display`` ``(H, W)`` (the display chain's integers), ``field`` ``(H, W)`` bool (the
+    collimated field), ``current`` ``(H, W)`` (the moving image, line integrals), ``log_display``
+    and ``bone_dark`` (the display chain's log and polarity) -> ``(target, current)`` float32
+    ``(H, W)``. The steps are those of ``register.prepare.prepare_xray`` and
+    ``register.contextual`` with registration's decisions taken from the truth (the field, log or
+    linear, the polarity):
+
+    1. bone bright and line-integral-like: a log display shown bone dark is inverted (``max + min
+       - x`` over the field); a linear display is made intensity-like (inverted where shown bone
+       bright) and log-corrected, ``-ln(max(x, 1e-6 I0) / I0)`` with ``I0`` its ``i0_pct``
+       percentile over the field (``register.preprocess.LogCorrect``);
+    2. both images cropped to the field's bounding box and resampled to ``(H, W)`` (registration
+       crops the X-ray to its field and renders the moving images for the cropped detector; the
+       predictor resamples both to the network's size);
+    3. the target normalised: the ``low_pct`` / ``high_pct`` percentiles over the field to 0 / 1,
+       clipped (``register.preprocess.Normalize``);
+    4. both images' pixels outside the field set to the mean over the field
+       (``register.prepare.masked_fill``).
+    """
+    h, w = display.shape
+    x = np.asarray(display, np.float64)
+    m = np.asarray(field, bool)
+    if not m.any():
+        raise OnlinePairsError("prepare_like_registration: the field holds no pixel")
+    if log_display == bone_dark:  # a log image shown bone dark, a linear one shown bone bright
+        v = x[m]
+        x = (v.max() + v.min()) - x
+    if not log_display:
+        i0 = float(np.percentile(x[m], i0_pct))
+        i0 = i0 if i0 > 0 else 1.0
+        x = -np.log(np.maximum(x, 1e-6 * i0) / i0)
+    rows, cols = np.flatnonzero(m.any(axis=1)), np.flatnonzero(m.any(axis=0))
+    box = (int(rows[0]), int(rows[-1]) + 1, int(cols[0]), int(cols[-1]) + 1)
+    x = _crop_resize(x, box, (h, w), "bilinear")
+    cur = _crop_resize(current, box, (h, w), "bilinear")
+    m = _crop_resize(m.astype(np.float32), box, (h, w), "nearest") > 0.5
+    if not m.any():
+        m = np.ones((h, w), bool)
+    lo, hi = np.percentile(x[m], [low_pct, high_pct])
+    x = np.clip((x - lo) / (hi - lo), 0.0, 1.0) if hi > lo else np.zeros_like(x)
+    x = np.where(m, x, x[m].mean())
+    cur = np.where(m, cur, cur[m].mean())
+    return x.astype(np.float32), cur.astype(np.float32)
+
+
+def check_trainable(randomization) -> None:
+    """Refuse (:class:`OnlinePairsError`) what online training cannot draw per pair: anything but a
+    :class:`sim.randomize.DomainRandomization`, and a ``scatter`` that may be ``monte-carlo``."""
+    if not isinstance(randomization, DomainRandomization):
+        raise OnlinePairsError(f"randomization must be a DomainRandomization, got {type(randomization).__name__}")
+    sc = randomization.by_name["scatter"]
+    if dict(zip(sc.choices, sc.probs)).get("monte-carlo", 0.0) > 0:
+        raise OnlinePairsError("randomize.scatter: online training cannot run a Monte Carlo transport per pair; "
+                               "allow 'none' and 'kernel' only (scatter = [\"none\", \"kernel\"]): the kernel "
+                               "scatter stands in for it")
+
+
+class RealisticTargets:
+    """Realistic target images of online pairs: domain randomization per pair (module doc).
+
+    Args:
+        randomization: the :class:`sim.randomize.DomainRandomization` (its ``scatter`` may not
+            be ``monte-carlo``: a transport per pair is far too slow for training; the kernel
+            scatter stands in for it).
+        seed: the randomization seed (pair ``i`` of batch ``k`` is index ``k * MAX_BATCH + i``).
+        geometry: the :class:`sim.geometry.CArmGeometry` of the images; scene: its C-arm scene.
+
+    ``image(L, index)``: density integrals ``(M, H, W)`` g/cm^2 of one pose over
+    :data:`sim.materials.TISSUE_DECOMPOSITION` -> ``(display (H, W) uint16, field (H, W) bool,
+    draw)``: tools added where drawn (:class:`sim.randomize.ToolBank`), the drawn spectrum and
+    detector (quantum noise, blur) applied, then the post-render stages
+    (:func:`sim.randomize.apply_image`). spekpy runs once per kV (about 1 s each, 15 on the 5 kV
+    grid); each filtration is applied to it by Beer-Lambert
+    (:func:`sim.physics.spectrum.filtered_tube_spectrum`) and the model kept per (kV, filtration).
+    """
+
+    def __init__(self, randomization: DomainRandomization, seed: int, geometry, *, scene: str = "cios_fusion"):
+        from sim.materials import TISSUE_DECOMPOSITION
+        from sim.physics.settings import PhysicsSettings
+        from sim.randomize import ToolBank
+
+        check_trainable(randomization)
+        self.randomization = randomization
+        self.seed = int(seed)
+        self.geometry = geometry
+        self.base = PhysicsSettings(level="poly", noise=True)
+        self.names = tuple(TISSUE_DECOMPOSITION.names) + TOOL_MATERIALS
+        self.bank = ToolBank(self.seed, geometry, scene=scene)
+        self._models: dict[tuple, object] = {}
+
+    def _model(self, physics):
+        import copy
+
+        from sim.physics.poly import Detector, Polychromatic
+        from sim.physics.spectrum import filtered_tube_spectrum
+
+        key = (physics.kvp, tuple(physics.filters))
+        if key not in self._models:
+            spectrum = filtered_tube_spectrum(physics.kvp, anode_angle_deg=physics.anode_angle_deg, filters=physics.filters,
+                                     bins=physics.bins)
+            self._models[key] = Polychromatic(spectrum, Detector(physics.detector_mm, physics.detector_mode,
+                                                                 physics.electronic_noise, 0.0), self.names)
+        model = copy.copy(self._models[key])
+        model.detector = Detector(physics.detector_mm, physics.detector_mode, physics.electronic_noise,
+                                  physics.blur_mm)
+        return model
+
+    def image(self, L: np.ndarray, index: int):
+        from sim.distractors import add_to_density_integrals
+        from sim.randomize import apply_image, image_rng
+
+        draw = self.randomization.draw(self.seed, index)
+        physics = draw.physics_settings(self.base)
+        m = len(self.names) - len(TOOL_MATERIALS)
+        if L.ndim != 3 or L.shape[0] != m:
+            raise OnlinePairsError(f"density integrals must be (M={m}, H, W), got {L.shape}")
+        dens = np.zeros((1, len(self.names), *L.shape[1:]), np.float64)
+        dens[0, :m] = L
+        tools = self.bank.for_draw(draw)
+        if tools is not None:
+            chords, channels = tools
+            dens, names = add_to_density_integrals(dens, self.names, chords[None], channels)
+            if names != self.names:  # a tool material outside TOOL_MATERIALS: a bug of the bank
+                raise OnlinePairsError(f"tool materials {names[len(self.names):]} are not in TOOL_MATERIALS")
+        model = self._model(physics)
+        g = self.geometry
+        exposure = dict(mas=physics.mas, sdd_mm=g.sdd_mm, pixel_area_mm2=g.pixel_spacing_mm ** 2)
+        rng = image_rng(self.seed, index)
+        raw = model.noisy(dens, rng, pixel_spacing_mm=g.pixel_spacing_mm, **exposure)[0]
+        display, field = apply_image(raw, model.flat_field(**exposure), draw, rng)
+        return display, field, draw
+
+
 class OnlinePairs:
     """Batches of (target, current, label) rendered from a campaign's subjects of one split.
 
@@ -102,6 +268,10 @@ class OnlinePairs:
             among them) instead of a subject per pair (default None). Rendering costs a fixed
             amount per subject and batch, a lot for ``full`` images (one Monte Carlo run per
             subject): 4 subjects instead of ~16 makes a 32-pair batch about 3x cheaper.
+        randomization: a :class:`sim.randomize.DomainRandomization`: realistic targets
+            (:class:`RealisticTargets`, module doc) drawn under ``seed``; the target physics entry
+            is then unused (each pair draws its own), the currents are rendered with
+            ``current_physics`` (default: the first entry).
 
     ``batch(k, n)`` returns ``target (n, 1, H, W)``, ``current (n, 1, H, W)`` float32 and the
     normalised label ``(n, 6)`` float32. Subjects are loaded (and virtual patients built) on first
@@ -110,7 +280,8 @@ class OnlinePairs:
 
     def __init__(self, cfg, split: str, *, near: NearPairs | None = None, transform=None,
                  normalizer: LabelNormalizer | None = None, seed: int = 0, physics: str | None = None,
-                 current_physics: str | None = None, subjects_per_batch: int | None = None):
+                 current_physics: str | None = None, subjects_per_batch: int | None = None,
+                 randomization: DomainRandomization | None = None):
         self.cfg = cfg
         entries = {p.name: p for p in cfg.physics}
         for key, name in (("physics", physics), ("current_physics", current_physics)):
@@ -136,6 +307,14 @@ class OnlinePairs:
         self.normalizer = normalizer or LabelNormalizer()
         self.seed = int(seed)
         self._contexts: dict[int, object] = {}
+        self.realistic = None
+        self._density: dict[int, object] = {}
+        if randomization is not None:
+            from sim.scene import load_scene
+
+            h, w = cfg.scene.size
+            self.realistic = RealisticTargets(randomization, self.seed, load_scene(cfg.scene.name).geometry_at(h, w),
+                                              scene=cfg.scene.name)
 
     def context(self, k: int):
         """The :class:`sim.campaign.runner.SubjectContext` of this split's subject ``k`` (cached)."""
@@ -144,6 +323,19 @@ class OnlinePairs:
 
             self._contexts[k] = SubjectContext(self.cfg, self.subjects[k])
         return self._contexts[k]
+
+    def density_renderer(self, k: int):
+        """Density-integral renderer (:data:`sim.materials.TISSUE_DECOMPOSITION`) of subject ``k`` (cached)."""
+        if k not in self._density:
+            from sim.materials import TISSUE_DECOMPOSITION
+            from sim.render import DRRRenderer, RenderSettings
+
+            ctx = self.context(k)
+            self._density[k] = DRRRenderer(ctx.volume, RenderSettings(scene=self.cfg.scene.name,
+                                                                      size=tuple(self.cfg.scene.size),
+                                                                      quantity="density"),
+                                           center_lps=ctx.center, materials=TISSUE_DECOMPOSITION)
+        return self._density[k]
 
     def draw(self, k: int, n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Batch ``k``'s draws: subject per pair ``(n,)``, ``T_A`` and ``T_B`` ``(n, 4, 4)`` (mm)."""
@@ -183,7 +375,19 @@ class OnlinePairs:
                 return renderer.render(poses, seed=int(rng_for(self.seed, *key).integers(2**63)))
             return renderer.render(poses)
 
-        for u in np.unique(subject):
+        if self.realistic is not None:
+            if n > MAX_BATCH:
+                raise OnlinePairsError(f"batch size must be <= {MAX_BATCH} with realistic targets, got {n}")
+            for u in np.unique(subject):
+                rows = np.flatnonzero(subject == u)
+                L = self.density_renderer(int(u)).render(T_a[rows])
+                current = render(self.current_entry, u, T_b[rows], (1,))
+                for j, i in enumerate(rows):
+                    display, field, draw = self.realistic.image(L[j], int(k) * MAX_BATCH + int(i))
+                    images[0, i], images[1, i] = prepare_like_registration(
+                        display, field, current[j], log_display=bool(draw["log"]),
+                        bone_dark=draw["polarity"] == "bone-dark")
+        for u in () if self.realistic is not None else np.unique(subject):
             rows = np.flatnonzero(subject == u)
             if self.current_entry is self.target_entry:  # one launch for both images of the pairs
                 out = render(self.target_entry, u, np.concatenate([T_a[rows], T_b[rows]]), ())

@@ -84,6 +84,11 @@ class TrainConfig:
             Needs ``freeze_backbone = true``, a campaign folder as ``dataset`` (not a ``.toml``
             file: online pairs are new images every batch) and no ``random_convolution`` step.
         seed: every random draw (weights init, pairs, batches).
+        randomize: online only: draw every pair's target as a realistic X-ray with domain
+            randomization (:class:`learn.online.RealisticTargets`) and prepare it as registration
+            prepares a user's X-ray; the table holds overrides of :mod:`sim.randomize`'s declared
+            ranges (``[train.randomize]``; an empty table: the declared ranges). Its ``scatter``
+            must leave out ``monte-carlo``. The currents stay the ``current_physics`` entry's.
         init_from: a ``ctxreg train`` checkpoint whose model weights start this run instead of a
             random initialisation (fine-tuning, e.g. a network trained on line DRRs continued on
             ``poly`` images); its backbone and head channels must be this config's. The
@@ -118,6 +123,7 @@ class TrainConfig:
     cache_features: bool = False
     seed: int = 0
     init_from: str | None = None
+    randomize: dict | None = None
 
     @property
     def online(self) -> bool:
@@ -133,6 +139,22 @@ class TrainConfig:
                              tuple(self.near_rot_deg), tuple(self.near_trans_mm))
         except OnlinePairsError as e:
             raise TrainConfigError(f"train.near_*: {e}") from None
+
+    def randomization(self):
+        """The :class:`sim.randomize.DomainRandomization` of ``randomize`` (None without it)."""
+        if self.randomize is None:
+            return None
+        from sim.randomize import DomainRandomization, RandomizeError
+
+        from learn.online import OnlinePairsError, check_trainable
+
+        try:
+            randomization = DomainRandomization.from_table(self.randomize, "train.randomize")
+            check_trainable(randomization)
+        except (RandomizeError, OnlinePairsError) as e:
+            raise TrainConfigError(str(e).replace("randomize.scatter", "train.randomize.scatter", 1)
+                                   if "train.randomize" not in str(e) else str(e)) from None
+        return randomization
 
     def __post_init__(self) -> None:
         for f in fields(self):
@@ -170,6 +192,11 @@ class TrainConfig:
             if "random_convolution" in steps:
                 raise TrainConfigError("train.cache_features cannot be used with the random step "
                                        "'random_convolution' in train.preprocess (a new draw per pair)")
+        if self.randomize is not None:
+            if not self.online:
+                raise TrainConfigError("train.randomize needs pairs rendered on the fly: set train.dataset to a "
+                                       "campaign .toml file")
+            self.randomization()
         if self.online:
             self.near()
         elif self.near_fraction is not None:
@@ -223,6 +250,8 @@ def _type_problem(key: str, value) -> str | None:
         ok = isinstance(value, (list, tuple)) and all(
             isinstance(v, str) or isinstance(v, dict) and isinstance(v.get("name"), str) for v in value)
         want = 'a list of step names or tables with a name (e.g. ["normalize"])'
+    elif base is dict:  # a sub-table, checked by its own reader
+        ok, want = isinstance(value, dict), "a table"
     elif origin is tuple:  # (low, high) number pairs
         ok = isinstance(value, (list, tuple)) and len(value) == 2 and all(map(_is_number, value))
         want = "a list of two finite numbers [low, high]"
@@ -579,7 +608,8 @@ class _OnlineSource:
         splits = {s.split for s in campaign.subjects()}
         val_split = "val" if "val" in splits else "test"
         try:
-            kw = {"near": cfg.near(), "transform": transform, "physics": target.name, "current_physics": current.name}
+            kw = {"near": cfg.near(), "transform": transform, "physics": target.name, "current_physics": current.name,
+                  "randomization": cfg.randomization()}
             self.train = OnlinePairs(campaign, "train", seed=cfg.seed, subjects_per_batch=cfg.subjects_per_batch, **kw)
             self.val = OnlinePairs(campaign, val_split, seed=cfg.seed + 1, **kw)  # all subjects, every batch
         except OnlinePairsError as e:
@@ -587,6 +617,9 @@ class _OnlineSource:
         self._val = None
         self.size = tuple(campaign.scene.size)  # (H, W) pixels
         self.physics = target.to_dict()  # the physics entries of the target and current images
+        if cfg.randomize is not None:  # each target draws its own: the record is the randomization
+            self.physics = {"name": "randomized", "level": "randomized",
+                            "randomize": cfg.randomization().to_dict()}
         self.current_physics = current.to_dict()
 
     forward = staticmethod(_CampaignSource.forward)

@@ -14,6 +14,10 @@ variants x domains, a plot and the commands that reproduce it. A study file::
     size = [128, 128]          # the registration image (H, W), px
 
     [[variant]]
+    name = "base"              # an existing network, evaluated as it is
+    model = "../models/pelvis_line/model.pt"
+
+    [[variant]]
     name = "line-normalize"
     [variant.train]            # a [train] table; `out` is set by the study
     dataset = "../campaigns/pelvis_vp.toml"
@@ -75,10 +79,16 @@ class StudyError(InputError):
 
 @dataclass(frozen=True)
 class Variant:
-    """A network variant: ``name`` and its ``[train]`` table (``out`` is set by the study)."""
+    """A network variant: ``name`` and either its ``[train]`` table (``out`` is set by the study)
+    or ``model``, an existing checkpoint or shipped ``model.pt`` evaluated as it is (a
+    reference, e.g. the network the others are fine-tuned from)."""
 
     name: str
-    train: dict[str, Any]
+    train: dict[str, Any] | None = None
+    model: str | None = None
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"model": self.model} if self.model is not None else dict(self.train)
 
 
 @dataclass(frozen=True)
@@ -113,7 +123,7 @@ class Study:
     def to_dict(self) -> dict[str, Any]:
         return {"ct": self.ct, "cases": self.cases, "start": self.start, "seed": self.seed,
                 "methods": list(self.methods), "size": list(self.size), "moving_physics": self.moving_physics,
-                "variants": {v.name: v.train for v in self.variants},
+                "variants": {v.name: v.to_dict() for v in self.variants},
                 "targets": {t.name: {"kind": t.kind, "physics": t.physics, "collimator": t.collimator,
                                      "display": t.display} for t in self.targets}}
 
@@ -187,9 +197,19 @@ def load_study(path: str | Path) -> Study:
         raise StudyError(f"{path}: needs at least one [[variant]] with a name and a [variant.train] table")
     for i, row in enumerate(rows):
         where = f"{path}: variant[{i}]"
-        if not isinstance(row, dict) or set(row) - {"name", "train"} or not isinstance(row.get("train"), dict):
-            raise StudyError(f"{where}: expected keys name and train (a [variant.train] table), got {row!r}")
+        if not isinstance(row, dict) or set(row) - {"name", "train", "model"} \
+                or ("model" in row) == ("train" in row):
+            raise StudyError(f"{where}: expected keys name and either train (a [variant.train] table) or model "
+                             f"(a checkpoint to evaluate as it is), got {row!r}")
         name = _name(row.get("name"), f"{where}.name")
+        if "model" in row:
+            model = row["model"]
+            if not isinstance(model, str) or not Path(resolve(model)).is_file():
+                raise StudyError(f"{where}.model: an existing checkpoint file, got {model!r}")
+            variants.append(Variant(name, model=resolve(model)))
+            continue
+        if not isinstance(row.get("train"), dict):
+            raise StudyError(f"{where}.train: a [variant.train] table, got {row.get('train')!r}")
         table = dict(row["train"])
         if "out" in table:
             raise StudyError(f"{where}.train.out: set by the study (<out>/variants/{name}); remove it")
@@ -276,10 +296,9 @@ def _check_record(out: Path, study: Study) -> None:
     write_json(record, {"study": new, "source": study.source})
 
 
-def _train_variant(variant: Variant, folder: Path, log) -> Path:
-    """Train (or resume) one variant; returns its checkpoint. A finished training is kept."""
-    from learn.checkpoint import load_checkpoint
-    from learn.train import load_train_config, train
+def variant_config(variant: Variant, folder: Path) -> Path:
+    """Write (if changed) and return the ``train.toml`` of a variant trained in ``folder``: the
+    file ``ctxreg train`` runs alone (for a variant trained in another process)."""
     from sim.atomic import toml_text, write_toml
 
     folder.mkdir(parents=True, exist_ok=True)
@@ -287,7 +306,20 @@ def _train_variant(variant: Variant, folder: Path, log) -> Path:
     tables = {"train": {**variant.train, "out": str(folder.resolve())}}
     if not config.is_file() or config.read_text() != toml_text(tables):
         write_toml(config, tables)
-    cfg = load_train_config(config)
+    return config
+
+
+def _train_variant(variant: Variant, folder: Path, log) -> Path:
+    """Train (or resume) one variant; returns its checkpoint. A finished training is kept; a
+    ``model`` variant is its model."""
+    from learn.checkpoint import load_checkpoint
+    from learn.train import load_train_config, train
+
+    if variant.model is not None:
+        log(f"variant {variant.name}: the model {variant.model}, as it is")
+        return Path(variant.model)
+    folder.mkdir(parents=True, exist_ok=True)
+    cfg = load_train_config(variant_config(variant, folder))
     ckpt = folder / "checkpoint.pt"
     if ckpt.is_file():
         done = load_checkpoint(ckpt).iteration or 0
@@ -424,7 +456,7 @@ def run_study(study: Study, out: str | Path, *, log: Callable[[str], None] = pri
     commands = ["# reproduce this study (it resumes where it stopped)",
                 f"ctxreg study {study.source} --out {out}"]
     commands += [f"# variant {v.name} alone:\nctxreg train {out / 'variants' / v.name / 'train.toml'}"
-                 for v in study.variants]
+                 for v in study.variants if v.model is None]
     with atomic_path(out / "commands.sh") as tmp:
         tmp.write_text("\n".join(commands) + "\n")
     log(table)

@@ -73,6 +73,7 @@ from sim.materials import MATERIALS, mu_linear, nominal_density
 
 __all__ = [
     "DistractorError",
+    "random_tools",
     "ToolMesh",
     "Distractor",
     "DistractorField",
@@ -311,8 +312,11 @@ def screw(length_mm: float = 40.0, diameter_mm: float = 6.5, *, head_diameter_mm
     if hd <= d:
         raise DistractorError(f"screw head_diameter_mm: must exceed diameter_mm ({d:g}), got {hd:g}")
     n = _sides(sides)
-    v, f = _boolean("union", _frustum(0.0, d / 2, 0.0, tip, n),
-                    [_frustum(d / 2, d / 2, tip, length, n), _frustum(hd / 2, hd / 2, length, length + hh, n)])
+    # the parts overlap (the cone's rim inside the shaft, the shaft into the head): a union of
+    # coincident faces or rims is not a manifold for every size
+    v, f = _boolean("union", _frustum(0.0, 0.97 * d / 2, 0.0, tip, n),
+                    [_frustum(d / 2, d / 2, 0.6 * tip, length, n),
+                     _frustum(hd / 2, hd / 2, length - 0.1 * hh, length + hh, n)])
     return _tool("screw", v, f, material, density_g_cm3)
 
 
@@ -499,6 +503,85 @@ class Distractor:
     def vertices(self) -> np.ndarray:
         """``(N, 3)`` vertices in ``frame`` (mm)."""
         return self.mesh.vertices @ self.pose[:3, :3].T + self.pose[:3, 3]
+
+
+def _random_rotation(rng: np.random.Generator) -> np.ndarray:
+    """A uniformly random rotation ``(3, 3)`` (a normalised Gaussian quaternion)."""
+    q = rng.standard_normal(4)
+    w, x, y, z = q / np.linalg.norm(q)
+    return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+                     [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+                     [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
+
+
+#: The tool kinds :func:`random_tools` draws from (a table and a cable are drawn separately).
+RANDOM_TOOL_KINDS = ("screw", "k_wire", "plate", "retractor")
+
+
+def random_tools(rng: np.random.Generator, geometry, *, tools: tuple[int, int] = (1, 4),
+                 table_probability: float = 0.5, cable_probability: float = 0.3) -> list[Distractor]:
+    """A random arrangement of tools in the field of view of ``geometry``, in the camera frame.
+
+    For training images a tool's appearance is what matters, not its anatomical plausibility:
+    ``tools`` (``(low, high)``, inclusive) screws, K-wires, plates and retractors of random
+    sizes, each at a uniformly random orientation with its centre at a depth of ``SOD +- 80``
+    mm and anywhere in the view cone at that depth (so it may be cut by the field's edge);
+    with ``table_probability`` a carbon table top 60-120 mm nearer the detector than the
+    isocentre, and with ``cable_probability`` a cable crossing the view. Sizes (mm): screws
+    25-80 long, 4.5-7.5 wide; K-wires 80-200 long, 1.6-2.5 wide; plates 40-140 long with 2-10
+    holes; retractors 20-40 wide with blades of 40-80. Returns :class:`Distractor` s with
+    ``frame="camera"``: the same image whatever the volume pose.
+    """
+    if not (isinstance(rng, np.random.Generator)):
+        raise DistractorError(f"random_tools needs a numpy Generator, got {type(rng).__name__}")
+    lo, hi = (int(v) for v in tools)
+    if not 0 <= lo <= hi:
+        raise DistractorError(f"random_tools: tools must be (low, high) with 0 <= low <= high, got {tools!r}")
+    g = geometry
+    half = 0.5 * np.array([g.width, g.height]) * g.pixel_spacing_mm  # detector half extent (mm)
+    out = []
+
+    def place(depth_mm: float, rot: np.ndarray) -> np.ndarray:
+        pose = np.eye(4)
+        pose[:3, :3] = rot
+        xy = rng.uniform(-1.0, 1.0, 2) * half * depth_mm / g.sdd_mm
+        pose[:3, 3] = [xy[0], xy[1], depth_mm]
+        return pose
+
+    for _ in range(int(rng.integers(lo, hi + 1))):
+        kind = RANDOM_TOOL_KINDS[int(rng.integers(len(RANDOM_TOOL_KINDS)))]
+        if kind == "screw":
+            mesh = screw(rng.uniform(25, 80), rng.uniform(4.5, 7.5))
+        elif kind == "k_wire":
+            mesh = k_wire(rng.uniform(80, 200), rng.uniform(1.6, 2.5), sides=12)
+        elif kind == "plate":
+            mesh = plate(rng.uniform(40, 140), rng.uniform(10, 16), rng.uniform(2.0, 4.0),
+                         holes=int(rng.integers(2, 11)), hole_diameter_mm=4.0, sides=12)
+        else:
+            mesh = retractor(rng.uniform(40, 80), rng.uniform(80, 160), rng.uniform(20, 40), rng.uniform(1.0, 2.5),
+                             bend_deg=rng.uniform(45, 110))
+        out.append(Distractor(mesh, place(g.sod_mm + rng.uniform(-80, 80), _random_rotation(rng)), frame="camera"))
+    if rng.random() < table_probability:
+        a = np.radians(rng.uniform(-20, 20))  # table top tilted a little against the detector plane
+        rot = np.array([[1, 0, 0], [0, np.cos(a), -np.sin(a)], [0, np.sin(a), np.cos(a)]])
+        pose = np.eye(4)
+        pose[:3, :3] = rot
+        pose[:3, 3] = [0.0, 0.0, g.sod_mm + rng.uniform(60, 120)]
+        out.append(Distractor(table(), pose, frame="camera"))
+    if rng.random() < cable_probability:
+        depth = g.sod_mm + rng.uniform(-60, 150)
+        reach = 1.5 * half * depth / g.sdd_mm
+        ends = rng.uniform(-1, 1, (2, 2)) * reach
+        ends[1] = -ends[0] + rng.normal(0, 0.3, 2) * reach  # across the view
+        if np.linalg.norm(ends[1] - ends[0]) < 0.5 * reach.min():
+            ends[1] = ends[0] + [reach[0], 0.0]
+        t = np.linspace(0, 1, 8)[:, None]
+        along = (ends[1] - ends[0]) / np.linalg.norm(ends[1] - ends[0])
+        sag = np.sin(np.pi * t) * rng.normal(0, 0.2) * reach.mean() * np.array([-along[1], along[0]])
+        path = np.concatenate([ends[0] + t * (ends[1] - ends[0]) + sag, np.full((8, 1), depth)], axis=1)
+        for part in cable(path, sides=8):
+            out.append(Distractor(part, np.eye(4), frame="camera"))
+    return out
 
 
 def _mitsuba_mesh(name: str, vertices: np.ndarray, faces: np.ndarray):

@@ -72,7 +72,7 @@ from sim.errors import InputError
 from sim.seeds import KIND_RANDOMIZE, rng_for
 
 __all__ = ["RandomizeError", "Randomized", "DECLARATION", "STAGES", "DISTRIBUTIONS", "DomainRandomization",
-           "Draw", "apply_image", "image_rng", "load_randomization", "doc_table_rows"]
+           "Draw", "ToolBank", "TOOL_BANK_SIZE", "apply_image", "image_rng", "load_randomization", "doc_table_rows"]
 
 
 class RandomizeError(InputError):
@@ -427,6 +427,12 @@ DECLARATION: tuple[Randomized, ...] = (
     _u("unsharp_amount", "display", 0.2, 1.5, "unsharp mask amount: x + amount (x - G(x))",
        limits=(0.0, 10.0), when=("unsharp", (True,))),
     _c("bits", "display", (8, 10, 12, 16), (0.25, 0.25, 0.25, 0.25), "output bit depth (quantisation)", "bits"),
+    # -- appended (a setting's position is its place in the stream) -------------------------------
+    _b("tools", "physics", 0.3, "metal tools (screws, K-wires, plates, retractors), a table and cables in the "
+                                "field: one arrangement of the tool bank (ToolBank), attenuating in the density "
+                                "integrals"),
+    _u("tools_pick", "physics", 0.0, 1.0, "which arrangement of the tool bank, and its flip / transpose",
+       "fraction of the bank", limits=(0.0, 1.0), when=("tools", (True,))),
 )
 
 _DECLARED: dict[str, Randomized] = {r.name: r for r in DECLARATION}
@@ -611,6 +617,63 @@ class DomainRandomization:
         seed, index = _check_index("seed", seed), _check_index("index", index)
         u = rng_for(seed, KIND_RANDOMIZE, index, 0).random(len(self.settings))
         return Draw(seed, index, tuple((r.name, r.value(float(x))) for r, x in zip(self.settings, u)))
+
+
+#: Arrangements in a :class:`ToolBank`; with the 8 flips / transposes of a square image, 128 looks.
+TOOL_BANK_SIZE = 16
+
+
+class ToolBank:
+    """The tool arrangements that the ``tools`` setting picks from, for one image geometry.
+
+    Arrangement ``j`` (``0 <= j <`` :data:`TOOL_BANK_SIZE`) is :func:`sim.distractors.random_tools`
+    drawn from the stream ``(KIND_RANDOMIZE, j, 2)`` under ``seed``: tools in the camera frame, so
+    its chords (mm, per material channel) are one image whatever the pose, traced once by
+    Mitsuba and kept. A draw's ``tools_pick`` chooses the arrangement and one of the 8 flips and
+    transposes of the image (transposes on square images only) -- a target image's tools need
+    no anatomical meaning, only a realistic look, and a bank costs a few seconds once instead
+    of a trace per pair.
+
+    Args:
+        seed: the randomization seed (integer >= 0).
+        geometry: the :class:`sim.geometry.CArmGeometry` of the images.
+        scene: the C-arm scene whose sensor makes the rays.
+    """
+
+    def __init__(self, seed: int, geometry, *, scene: str = "cios_fusion"):
+        self.seed = _check_index("seed", seed)
+        self.geometry = geometry
+        self.scene = scene
+        self._cache: dict[int, tuple[np.ndarray, tuple]] = {}
+
+    def arrangement(self, j: int):
+        """``(chords (C, H, W) float32 mm, channels ((material, g/cm^3), ...))`` of arrangement ``j``."""
+        j = _check_index("arrangement", j)
+        if j >= TOOL_BANK_SIZE:
+            raise RandomizeError(f"tool bank arrangement must be < {TOOL_BANK_SIZE}, got {j}")
+        if j not in self._cache:
+            from sim.distractors import DistractorField, random_tools
+
+            tools = random_tools(rng_for(self.seed, KIND_RANDOMIZE, j, 2), self.geometry)
+            field = DistractorField(tools, self.geometry, np.zeros(3), scene=self.scene)
+            self._cache[j] = (field.chords(np.eye(4))[0], field.channels)
+        return self._cache[j]
+
+    def for_draw(self, draw: "Draw"):
+        """The chords and channels of ``draw`` (its arrangement, flipped / transposed), or None
+        when the draw has no tools."""
+        if not draw["tools"]:
+            return None
+        pick = min(float(draw["tools_pick"]), 1.0 - 1e-12) * TOOL_BANK_SIZE * 8
+        j, look = int(pick) // 8, int(pick) % 8
+        chords, channels = self.arrangement(j)
+        if look & 1:
+            chords = chords[:, ::-1]
+        if look & 2:
+            chords = chords[:, :, ::-1]
+        if look & 4 and chords.shape[1] == chords.shape[2]:
+            chords = chords.transpose(0, 2, 1)
+        return np.ascontiguousarray(chords), channels
 
 
 def load_randomization(path: str | Path) -> DomainRandomization:

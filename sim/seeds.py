@@ -31,7 +31,8 @@ name                                   kind  entropy                     purpose
                                                                          ``(batch, subject[, 1])`` -- learn.online
 :data:`KIND_RANDOMIZE`                 50    randomization seed          domain randomization of pair ``index``: its
                                                                          settings ``(index, 0)``, its post-render noise
-                                                                         ``(index, 1)`` -- sim.randomize
+                                                                         ``(index, 1)``, tool bank arrangement ``(j, 2)``
+                                                                         -- sim.randomize
 :data:`KIND_VP_FIELD`                  0     a virtual patient's seed    its deformation field ``()`` -- sim.augment
 :data:`KIND_VP_NOISE`                  1     a virtual patient's seed    its added CT noise ``()`` -- sim.augment
 =====================================  ====  ==========================  ================================================
@@ -87,7 +88,7 @@ KIND_BATCH = 40
 #: Noise / Monte Carlo of an online batch's images: ``(KIND_BATCH_NOISE, batch, subject[, 1])``.
 KIND_BATCH_NOISE = 41
 #: Domain randomization of pair ``index``: settings ``(KIND_RANDOMIZE, index, 0)``, post-render
-#: noise ``(KIND_RANDOMIZE, index, 1)`` (:mod:`sim.randomize`).
+#: noise ``(KIND_RANDOMIZE, index, 1)``, tool bank arrangement ``(KIND_RANDOMIZE, j, 2)`` (:mod:`sim.randomize`).
 KIND_RANDOMIZE = 50
 #: A virtual patient's deformation field: ``(KIND_VP_FIELD,)`` under the virtual patient's seed.
 KIND_VP_FIELD = 0

@@ -328,6 +328,7 @@ class SubjectContext:
             volume = make_virtual_patient(volume, self.vp_params, center_lps=center)
         self.subject = subject
         self.center = center
+        self.volume = volume  # the subject's CT (a virtual patient's deformed copy): for further renderers
         self.source = volume.source
         self.renderers = {}
         for p in cfg.physics:

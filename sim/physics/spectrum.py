@@ -129,14 +129,61 @@ def tube_spectrum(kvp: float = SETTINGS["kvp"].default, *, anode_angle_deg: floa
         raise PhysicsError(f"e_min_keV must be in [1, kvp), got {e_min_keV}")
     filters = tuple((str(s), float(t)) for s, t in filters)
     k, phi = _spek(float(kvp), float(anode_angle_deg), filters)  # keV bin centres (dk = 0.25), photons / cm^2 / mAs / keV at 100 cm
-    fine = phi * 0.25 / 100.0  # photons / mm^2 / mAs per fine bin
+    return _binned(k, phi * 0.25 / 100.0, float(kvp), filters, float(anode_angle_deg), bins, e_min_keV)
+
+
+def filter_transmission(energies_keV, filters) -> np.ndarray:
+    """Beer-Lambert transmission ``exp(-sum mu_Z(E) t_Z)`` of element filters ``((symbol, mm), ...)``
+    at ``energies_keV`` (xraylib total cross sections, elemental densities)."""
+    import xraylib as xr
+
+    e = np.asarray(energies_keV, np.float64)
+    out = np.ones_like(e)
+    for sym, mm in parse_filters(filters):
+        if mm > 0:
+            z = xr.SymbolToAtomicNumber(sym)
+            mu_per_cm = np.array([xr.CS_Total(z, float(x)) for x in np.clip(e, 1.0, None)]) * xr.ElementDensity(z)
+            out *= np.exp(-mu_per_cm * mm / 10.0)
+    return out
+
+
+@functools.lru_cache(maxsize=256)
+def _filtered_fine(kvp: float, anode_angle_deg: float, filters: tuple[tuple[str, float], ...]):
+    k, phi = _spek(kvp, anode_angle_deg, ())
+    return k, phi * filter_transmission(k, filters)
+
+
+def filtered_tube_spectrum(kvp: float = SETTINGS["kvp"].default, *,
+                           anode_angle_deg: float = SETTINGS["anode_angle_deg"].default,
+                           filters=SETTINGS["filters"].default, bins: int = DEFAULT_BINS,
+                           e_min_keV: float = 10.0) -> Spectrum:
+    """:func:`tube_spectrum` with the filtration applied by Beer-Lambert (:func:`filter_transmission`,
+    xraylib) to spekpy's unfiltered spectrum: one spekpy run per kV and anode angle serves every
+    filtration (domain randomization draws hundreds of (kV, filter) pairs; spekpy takes about a
+    second for each). spekpy filters with its own attenuation data; over 60-130 kV with 2-4 mm Al
+    and 0-0.9 mm Cu the two agree within 1 % in total fluence (0.54 % measured) and 0.1 keV in
+    mean energy (0.05 keV measured); single low-energy bins differ by up to 7 %
+    (``tests/sim/test_spectrum_filters.py``)."""
+    SETTINGS["kvp"].check(kvp)
+    SETTINGS["anode_angle_deg"].check(anode_angle_deg)
+    SETTINGS["bins"].check(bins)
+    if not 1.0 <= e_min_keV < kvp:
+        raise PhysicsError(f"e_min_keV must be in [1, kvp), got {e_min_keV}")
+    filters = tuple((str(s), float(t)) for s, t in filters)
+    k, phi = _filtered_fine(float(kvp), float(anode_angle_deg), filters)
+    return _binned(k, phi * 0.25 / 100.0, float(kvp), filters, float(anode_angle_deg), bins, e_min_keV)
+
+
+def _binned(k, fine, kvp: float, filters, anode_angle_deg: float, bins: int, e_min_keV: float) -> Spectrum:
+    """A :class:`Spectrum` of ``bins`` equal bins from ``e_min_keV`` to ``kvp`` of the fine spectrum
+    ``(k keV, fine photons / mm^2 / mAs per 0.25 keV)``."""
     edges = np.linspace(e_min_keV, kvp, bins + 1)
     idx = np.digitize(k, edges) - 1
     keep = (idx >= 0) & (idx < bins)
     flu = np.bincount(idx[keep], weights=fine[keep], minlength=bins)
     mean = np.bincount(idx[keep], weights=(fine * k)[keep], minlength=bins)
     energies = np.where(flu > 0, mean / np.where(flu > 0, flu, 1.0), 0.5 * (edges[:-1] + edges[1:]))
-    return Spectrum(energies, edges, flu, float(kvp), filters, float(anode_angle_deg))
+    return Spectrum(energies, edges, flu, float(kvp), tuple(filters), float(anode_angle_deg))
 
 
 def fine_spectrum(kvp: float = SETTINGS["kvp"].default, *, anode_angle_deg: float = SETTINGS["anode_angle_deg"].default,

@@ -31,6 +31,19 @@ checkpoint_every = 1
 pairs_per_epoch = 4
 head_channels = 8
 
+[[variant]]
+name = "tiny-realistic"          # realistic randomized targets (learn.online.RealisticTargets)
+[variant.train]
+dataset = "{ROOT / 'campaigns' / 'smoke.toml'}"
+iterations = 2
+batch_size = 2
+val_pairs = 2
+val_every = 1
+checkpoint_every = 1
+head_channels = 8
+[variant.train.randomize]
+scatter = ["none", "kernel"]
+
 [[target]]
 name = "line"
 
@@ -51,7 +64,7 @@ def test_a_tiny_study_runs_end_to_end_and_resumes(tmp_path, capsys):
     study.write_text(TINY)
     assert main(["study", str(study), "--out", str(out)]) == 0
     for name in ("study.json", "table.md", "results.json", "study.png", "commands.sh",
-                 "variants/tiny/checkpoint.pt", "variants/tiny/train.toml",
+                 "variants/tiny/checkpoint.pt", "variants/tiny/train.toml", "variants/tiny-realistic/checkpoint.pt",
                  "results/tiny/line/summary.json", "results/tiny/fluoro/summary.json",
                  "results/tiny/fluoro/frames/case_000.dcm"):
         assert (out / name).is_file(), name
@@ -83,6 +96,17 @@ def test_a_tiny_study_runs_end_to_end_and_resumes(tmp_path, capsys):
     assert main(["study", str(study), "--out", str(out)]) == 0
     assert "| tiny | poly | contextual |" in (out / "table.md").read_text()
 
+    # an existing network as a variant: evaluated as it is, the same numbers as the variant it was
+    ckpt = out / "variants" / "tiny" / "checkpoint.pt"
+    study.write_text(TINY + '\n[[target]]\nname = "poly"\nphysics = { level = "poly", mas = 2.0 }\n'
+                     + f'\n[[variant]]\nname = "as-is"\nmodel = "{ckpt}"\n')
+    assert main(["study", str(study), "--out", str(out)]) == 0
+    assert "variant as-is: the model" in capsys.readouterr().out
+    res = json.loads((out / "results.json").read_text())["results"]
+    assert res["as-is"]["line"]["contextual"]["mtre_mm"]["mean"] == pytest.approx(
+        res["tiny"]["line"]["contextual"]["mtre_mm"]["mean"], rel=1e-9)
+    assert "as-is" not in (out / "commands.sh").read_text()  # nothing to train
+
 
 BAD = {
     "no study table": ("", "needs a [study] table"),
@@ -104,6 +128,14 @@ BAD = {
     "bad collimator": (TINY.replace("radius = 0.45", "radius = -1.0"), "target[1].collimator"),
     "two targets alike": (TINY + '\n[[target]]\nname = "line"\n', "two targets are named alike"),
     "not TOML": ("[study\n", "not valid TOML"),
+    "model and train": (TINY.replace('name = "tiny"\n', 'name = "tiny"\nmodel = "x.pt"\n', 1),
+                        "either train (a [variant.train] table) or model"),
+    "missing model": (TINY + '\n[[variant]]\nname = "m"\nmodel = "no/such.pt"\n',
+                      "variant[2].model: an existing checkpoint file"),
+    "unknown randomize key": (TINY.replace('scatter = ["none", "kernel"]', 'kvpp = 3'),
+                              "unknown key(s) train.randomize.kvpp"),
+    "monte-carlo in training": (TINY.replace('scatter = ["none", "kernel"]', 'kvp = [70, 90]'),
+                                "randomize.scatter: online training cannot run a Monte Carlo"),
 }
 
 

@@ -159,7 +159,9 @@ def test_meshes_are_closed_outward_and_of_the_right_volume():
         (table(400.0, 1000.0, 20.0), 400 * 1000 * 20.0),
         (retractor(50.0, 100.0, 20.0, 2.0, bend_deg=90.0), (100 + 1) * 20 * 2 + (50 + 1) * 20 * 2 - 2 * 2 * 20),
         (screw(30.0, 4.0, head_diameter_mm=7.0, head_height_mm=2.0, tip_mm=2.0, sides=n),
-         polygon * (4.0 * 2.0 / 3 + 4.0 * 28.0 + 12.25 * 2.0)),
+         # exposed tip: the cone (rim 0.97 r at z = tip) below the shaft's start at 0.6 tip; the
+         # shaft to the head's overlap 0.1 x head height below z = length; the head
+         polygon * ((0.97 * 2.0 * 0.6) ** 2 * 1.2 / 3 + 4.0 * (30.0 - 1.2 - 0.2) + 12.25 * 2.2)),
         (core, None),
         (sheath, None),
     ]
@@ -289,3 +291,32 @@ def test_bad_tools_are_refused_in_one_line():
         with pytest.raises(DistractorError, match=message) as e:
             make()
         assert "\n" not in str(e.value)
+
+
+def test_random_tools_are_reproducible_closed_and_in_view():
+    from sim.distractors import random_tools
+
+    geom = CArmGeometry(sdd_mm=1020.0, sod_mm=700.0, height=32, width=32, pixel_spacing_mm=9.3)
+    kinds = set()
+    for seed in range(12):
+        tools = random_tools(np.random.default_rng(seed), geom)
+        again = random_tools(np.random.default_rng(seed), geom)
+        assert [t.mesh.kind for t in tools] == [t.mesh.kind for t in again]
+        for t, u in zip(tools, again):
+            np.testing.assert_array_equal(t.pose, u.pose)
+            topo = topology(t.mesh.vertices, t.mesh.faces)
+            assert t.frame == "camera" and topo["boundary_edges"] == 0 and topo["non_two_manifold_edges"] == 0
+        kinds |= {t.mesh.kind for t in tools}
+        # something of each arrangement is in the view: its chords are not all zero
+        c = DistractorField(tools, geom, CENTER).chords(np.eye(4))
+        assert c.max() > 0
+    assert {"screw", "k_wire", "plate", "retractor", "table"} <= kinds
+    with pytest.raises(DistractorError, match="random_tools needs a numpy Generator"):
+        random_tools(0, geom)
+
+
+@pytest.mark.parametrize("length, diameter", [(25.0, 4.5), (31.7, 6.1), (57.3, 7.4), (80.0, 5.2)])
+def test_screws_of_any_size_are_closed_manifolds(length, diameter):
+    # the parts of a screw overlap: coincident rims made some sizes non-manifold before
+    topo = topology(*(lambda m: (m.vertices, m.faces))(screw(length, diameter)))
+    assert topo["boundary_edges"] == 0 and topo["non_two_manifold_edges"] == 0

@@ -400,3 +400,27 @@ def test_the_docs_table_is_the_declaration():
     example = re.search(r"```toml\n(.*?)```", text, flags=re.S).group(1)
     dr = DomainRandomization.from_table(tomllib.loads(example)["randomize"])
     assert dr.by_name["kvp"].low == 70 and dr.by_name["bits"].probs == (0.25, 0.0, 0.75, 0.0)
+
+
+def test_the_tool_bank_is_reproducible_and_picks_by_the_draw():
+    from sim.geometry import CArmGeometry
+    from sim.randomize import TOOL_BANK_SIZE, ToolBank
+
+    geom = CArmGeometry(sdd_mm=1020.0, sod_mm=700.0, height=24, width=24, pixel_spacing_mm=12.0)
+    bank, again = ToolBank(4, geom), ToolBank(4, geom)
+    r = DomainRandomization.from_table({"tools": True})
+    for index in range(3):
+        d = r.draw(4, index)
+        c1, ch1 = bank.for_draw(d)
+        c2, ch2 = again.for_draw(d)
+        np.testing.assert_array_equal(c1, c2)
+        assert ch1 == ch2 and c1.shape == (len(ch1), 24, 24) and c1.max() > 0
+    assert bank.for_draw(DomainRandomization.from_table({"tools": False}).draw(4, 0)) is None
+    # pick 0 is arrangement 0 as traced; the flips and transposes keep its values
+    c0, _ = bank.for_draw(DomainRandomization.from_table({"tools": True, "tools_pick": 0.0}).draw(4, 0))
+    np.testing.assert_array_equal(c0, bank.arrangement(0)[0])
+    c7, _ = bank.for_draw(DomainRandomization.from_table({"tools": True, "tools_pick": 7.5 / (8 * TOOL_BANK_SIZE)})
+                          .draw(4, 0))
+    np.testing.assert_array_equal(c7, bank.arrangement(0)[0][:, ::-1, ::-1].transpose(0, 2, 1))
+    with pytest.raises(RandomizeError, match="arrangement must be <"):
+        bank.arrangement(TOOL_BANK_SIZE)

@@ -1,0 +1,96 @@
+"""Training pairs per second: realistic randomized targets against line pairs (issue 15).
+
+Usage (from the repository root, after set-up)::
+
+    OMP_NUM_THREADS=1 .venv/bin/python benchmarks/training_pairs.py [--batches 6] [--batch-size 32]
+
+The CPU recipe's online pairs (``campaigns/pelvis_vp.toml``: the pelvis CT's 24 training
+virtual patients, 64 x 64 px, 4 subjects per batch) of three kinds, measured in the same run:
+
+* ``line``: target and current Siddon line-integral DRRs (the recipe of ``models/pelvis_line``);
+* ``realistic``: the target drawn with domain randomization and prepared as registration does
+  (``learn.online.RealisticTargets``: density integrals, tools, spectrum, noise, kernel scatter,
+  collimator, display chain, bits), the current a line DRR;
+* ``realistic, no tools``: the same with ``tools = false``.
+
+Columns: median seconds per batch of rendering (``OnlinePairs.batch``), of one optimiser step
+of the tiny network (forward, backward, Adam) and of both, pairs per second of both, and the
+ratio of the line rate to each. Batches are new draws each time (batch indices 1.. after an
+untimed batch 0, which loads the subjects, builds the renderers and runs spekpy once per kV
+the batch needs; the first batches of a training run pay for the remaining kVs and tool
+arrangements, a few seconds each, once). The pairs are the network's input after the training
+preprocessing (``normalize``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import sys
+import time
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def _source(kind: str):
+    from learn.online import NearPairs, OnlinePairs
+    from learn.preprocess import build
+    from sim.campaign.config import load_campaign
+    from sim.randomize import DomainRandomization
+
+    cfg = load_campaign(REPO / "campaigns" / "pelvis_vp.toml")
+    table = None if kind == "line" else {"scatter": ["none", "kernel"], **({"tools": False} if "no tools" in kind
+                                                                          else {})}
+    randomization = None if table is None else DomainRandomization.from_table(table)
+    return OnlinePairs(cfg, "train", near=NearPairs(), transform=build(["normalize"]), seed=0,
+                       subjects_per_batch=4, randomization=randomization)
+
+
+def main(argv=None) -> int:
+    import torch
+
+    from learn.model import pose_update_net
+
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--batches", type=int, default=6, help="timed batches per kind (default 6)")
+    ap.add_argument("--batch-size", type=int, default=32, help="pairs per batch (default 32, the recipe's)")
+    args = ap.parse_args(argv)
+    if args.batches < 1 or args.batch_size < 1:
+        ap.error("--batches and --batch-size must be >= 1")
+    torch.manual_seed(0)
+    model = pose_update_net(backbone="tiny")
+    opt = torch.optim.Adam(model.parameters(), lr=1e-4)
+    rows = []
+    for kind in ("line", "realistic", "realistic, no tools"):
+        source = _source(kind)
+        source.batch(0, args.batch_size)  # warm-up: subjects, renderers, spectra
+        render, step = [], []
+        for k in range(1, args.batches + 1):
+            t0 = time.perf_counter()
+            a, b, y = source.batch(k, args.batch_size)
+            t1 = time.perf_counter()
+            out = model(a, b)
+            loss = model.loss(out, y)
+            opt.zero_grad()
+            loss.backward()
+            opt.step()
+            t2 = time.perf_counter()
+            render.append(t1 - t0)
+            step.append(t2 - t1)
+        r, s = statistics.median(render), statistics.median(step)
+        rows.append((kind, r, s, r + s, args.batch_size / (r + s)))
+        print(f"  {kind}: {args.batch_size / (r + s):.0f} pairs/s", file=sys.stderr)
+    line_rate = rows[0][4]
+    print(f"\n{args.batch_size} pairs per batch, median of {args.batches} batches, "
+          f"torch threads {torch.get_num_threads()}\n")
+    print("| pairs | render s/batch | step s/batch | total s/batch | pairs/s | line / this |")
+    print("|---|---|---|---|---|---|")
+    for kind, r, s, t, rate in rows:
+        print(f"| {kind} | {r:.3f} | {s:.3f} | {t:.3f} | {rate:.0f} | {line_rate / rate:.1f}x |")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.path.insert(0, str(REPO))
+    raise SystemExit(main())
