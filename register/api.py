@@ -39,6 +39,10 @@ REGISTER_SCATTER_PHOTONS = 100_000
 #: X-ray is registered once, so spending up to 4x the time on a lost search is worth it.
 REGISTER_RESTARTS = 3
 
+#: The methods that take ``restarts``: CMA-ES's own, and contextual+cmaes's fallback (a refinement
+#: that ends lost, below the restart similarity, falls back to CMA-ES with restarts from the start).
+RESTART_METHODS = ("cmaes", "contextual+cmaes")
+
 #: The files :meth:`XRayRegistration.write` writes (the trajectory files for the contextual methods only).
 OUTPUT_FILES = ("result.json", "overlay.png", "checkerboard.png", "convergence.png", "trajectory.npz", "trajectory.png")
 
@@ -219,7 +223,9 @@ def register_xray(ct, xray, *, method: str = "cmaes", model=None, init="ap", cen
         preprocess: the preprocessing step names (default
             :data:`register.preprocess.DEFAULT_STEPS`); intensity / polarity: ``"auto"`` or the
             override of the intensity step (only with ``"intensity"`` among the steps).
-        restarts: CMA-ES restarts for ``method="cmaes"`` (default :data:`REGISTER_RESTARTS`).
+        restarts: CMA-ES restarts for ``method="cmaes"``, and for ``"contextual+cmaes"`` those of its
+            fallback search (:class:`register.contextual.ContextualRegistration`'s ``fallback``)
+            (default :data:`REGISTER_RESTARTS`).
         log: called with each line a user should check (geometry sources, field, intensity);
             note: with remarks (a network trained on other physics). Both default to silence.
 
@@ -248,8 +254,9 @@ def register_xray(ct, xray, *, method: str = "cmaes", model=None, init="ap", cen
     # -- the inputs that need no file: checked before any work
     x0 = parse_init(init)
     check_method(method, model)
-    if restarts is not None and method != "cmaes":
-        raise RegistrationError(f"--restarts: meaningful with --method cmaes only; this run is --method {method}")
+    if restarts is not None and method not in RESTART_METHODS:
+        raise RegistrationError(f"--restarts: meaningful with --method {' or '.join(RESTART_METHODS)} only; this run "
+                                f"is --method {method}")
     restarts = REGISTER_RESTARTS if restarts is None else restarts
     steps = [str(n).strip().lower() for n in (DEFAULT_STEPS if preprocess is None else preprocess)]
     Pipeline.from_names(steps, {"intensity": {"scale": intensity, "polarity": polarity}})  # names and choices

@@ -11,7 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
-from register.api import REGISTER_RESTARTS, REGISTER_SCATTER_PHOTONS, parse_init
+from register.api import REGISTER_RESTARTS, REGISTER_SCATTER_PHOTONS, RESTART_METHODS, parse_init
 from register.cmaes import CMAESSettings
 from register.evaluate import LOCAL_ROT_DEG, LOCAL_TRANS_MM
 from register.methods import METHOD_NAMES
@@ -149,7 +149,8 @@ class RegisterCommand:
         "trained network checkpoint (ctxreg train) for the contextual methods", group="pose", metavar="CKPT"))
     restarts: int = field(default=REGISTER_RESTARTS, metadata=opt(
         "CMA-ES restarts (new seed, twice the population) while the final gradient NCC is below "
-        f"{CMAESSettings.restart_below}: a search lost far from the start tries again (--method cmaes)",
+        f"{CMAESSettings.restart_below}: a search lost far from the start tries again (--method cmaes); with "
+        "--method contextual+cmaes, a refinement that ends lost falls back to that search from the start pose",
         group="pose", metavar="N", bounds=Range(0, 10)))
     scene: str = field(default="cios_fusion", metadata=opt(
         "C-arm scene: the geometry where the image does not give it", group="geometry"))
@@ -212,8 +213,8 @@ def run_register(cmd: RegisterCommand) -> list[Path]:
 
     parse_init(cmd.init)
     refuse_unused_label_map(cmd)
-    refuse_unused(cmd, ("restarts",), applies=cmd.method == "cmaes",
-                  why=f"meaningful with --method cmaes only; this run is --method {cmd.method}")
+    refuse_unused(cmd, ("restarts",), applies=cmd.method in RESTART_METHODS,
+                  why=f"meaningful with --method {' or '.join(RESTART_METHODS)} only; this run is --method {cmd.method}")
     steps = [str(n).strip().lower() for n in cmd.preprocess]
     refuse_unused(cmd, ("intensity", "polarity"), applies="intensity" in steps,
                   why="meaningful with the 'intensity' step of --preprocess only; this run's steps are "
@@ -226,7 +227,7 @@ def run_register(cmd: RegisterCommand) -> list[Path]:
         cmd.ct, cmd.xray, method=cmd.method, model=cmd.model, init=cmd.init, center=cmd.center,
         label_map=cmd.label_map, scene=cmd.scene, sdd_mm=cmd.sdd, sod_mm=cmd.sod, pixel_spacing_mm=cmd.pixel_spacing,
         size=tuple(cmd.size), physics=physics, label_materials=materials, preprocess=steps, intensity=cmd.intensity,
-        polarity=cmd.polarity, restarts=cmd.restarts if cmd.method == "cmaes" else None, log=print,
+        polarity=cmd.polarity, restarts=cmd.restarts if cmd.method in RESTART_METHODS else None, log=print,
         note=lambda text: print(f"ctxreg register: note: {text}", file=sys.stderr))
     written = outcome.write(out)
     print(outcome.summary())
@@ -244,6 +245,9 @@ class StudyCommand:
     out: str = field(default="out/study", metadata=opt(
         "folder for variants/, results/, table.md, results.json, study.png, commands.sh; a run continues a "
         "study already there", group="output", metavar="DIR"))
+    only: tuple[str, ...] | None = field(default=None, metadata=opt(
+        "train and evaluate only these variants (by name), e.g. one per process in parallel; the table keeps "
+        "the other variants' finished results", group="protocol", nargs="+", metavar="VARIANT"))
 
 
 def run_study(cmd: StudyCommand) -> list[Path]:
@@ -252,6 +256,6 @@ def run_study(cmd: StudyCommand) -> list[Path]:
     from register.study import run_study as run
 
     study = load_study(cmd.study)
-    run(study, cmd.out)
+    run(study, cmd.out, only=cmd.only)
     return [Path(cmd.out) / name for name in STUDY_FILES]
 

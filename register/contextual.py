@@ -44,11 +44,20 @@ class ContextualSettings:
 
 
 class ContextualRegistration:
-    """The contextual iteration (and its hand-over to CMA-ES) on one CT; see the module doc."""
+    """The contextual iteration (and its hand-over to CMA-ES) on one CT; see the module doc.
+
+    ``refine``: the CMA-ES settings of the hand-over (narrowed box around the network's pose), or
+    None for the contextual iteration alone. ``fallback`` (with ``refine`` only): CMA-ES settings
+    of a search from the *start* pose, run when the refined result's gradient NCC is below
+    ``fallback.restart_below`` (the network's pose was not near enough: the refinement is lost);
+    the result with the higher similarity is kept, and ``stage_seconds`` / ``history`` record the
+    fallback. The similarity, not the truth, decides, so a user's registration can take it: a
+    network that fails on an image outside its training domain costs time, not the registration.
+    """
 
     def __init__(self, volume, predictor, settings: ContextualSettings | None = None, *, size=(128, 128),
                  scene: str = "cios_fusion", geometry=None, center_lps=None, refine: CMAESSettings | None = None,
-                 physics=None, label_materials: dict[int, str] | None = None):
+                 fallback: CMAESSettings | None = None, physics=None, label_materials: dict[int, str] | None = None):
         from sim.anatomy import anatomy_center
         from sim.physics.imaging import moving_renderer
 
@@ -60,6 +69,13 @@ class ContextualRegistration:
                                         geometry=geometry, label_materials=label_materials)
         self.geometry = self.renderer.geometry
         self.refine = None
+        self.fallback = None
+        if fallback is not None and refine is None:
+            raise RegistrationError("fallback: a fallback search needs the refinement (refine settings)")
+        if fallback is not None:
+            self.fallback = CMAESRegistration(volume, fallback, scene=scene, geometry=geometry,
+                                              center_lps=self.center_lps, physics=physics,
+                                              label_materials=label_materials)
         if refine is not None:
             self.refine = CMAESRegistration(volume, refine, scene=scene, geometry=geometry,
                                             center_lps=self.center_lps, physics=physics,
@@ -117,6 +133,15 @@ class ContextualRegistration:
             res.history = history + res.history
             res.renders += renders
             res.trajectory = trajectory
+            if self.fallback is not None and res.similarity < self.fallback.settings.restart_below:
+                t1 = time.perf_counter()
+                alt = self.fallback.register(fixed, np.asarray(init_params, float).reshape(6), mask=mask)
+                res.stage_seconds["fallback"] = time.perf_counter() - t1
+                res.renders += alt.renders
+                res.history = res.history + [("fallback", h[1], h[2]) for h in alt.history]
+                if alt.similarity > res.similarity:
+                    res.params, res.pose, res.projection, res.similarity = (alt.params, alt.pose, alt.projection,
+                                                                            alt.similarity)
             return res
         from register.metrics import gradient_ncc
 

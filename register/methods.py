@@ -87,7 +87,9 @@ def build_method(method: str, volume, *, center_lps, size: tuple[int, int], geom
         model: a checkpoint path or a loaded predictor (:func:`load_predictor`) for the contextual methods.
         physics: :class:`sim.physics.imaging.PhysicsSettings` of the moving images (None = line DRRs);
             label_materials: ``{label: material}`` overrides for poly / full.
-        restarts: CMA-ES restarts (``cmaes`` only; :class:`register.cmaes.CMAESSettings`).
+        restarts: CMA-ES restarts (``cmaes``: :class:`register.cmaes.CMAESSettings`); for
+            ``contextual+cmaes``, > 0 adds the fallback search with these restarts
+            (:class:`register.contextual.ContextualRegistration`).
         keep_drrs: keep the contextual iteration's DRRs in the result's trajectory (for figures).
         note: called with a sentence when the network's training physics differ from ``physics``.
     """
@@ -108,7 +110,8 @@ def build_method(method: str, volume, *, center_lps, size: tuple[int, int], geom
     if mismatch and note is not None:
         note(mismatch)
     refine = replace(REFINE_SETTINGS, size=size) if method == "contextual+cmaes" else None
+    fallback = CMAESSettings(size=size, restarts=restarts) if refine is not None and restarts > 0 else None
     engine = ContextualRegistration(volume, predictor, ContextualSettings(keep_drrs=keep_drrs), size=size,
                                     scene=scene, geometry=geometry, center_lps=center_lps, refine=refine,
-                                    physics=physics, label_materials=label_materials)
+                                    fallback=fallback, physics=physics, label_materials=label_materials)
     return _Method(method, engine)

@@ -412,8 +412,13 @@ def _evaluate_xray(study: Study, target: Target, volume, center, predictor, fold
     return summary
 
 
-def run_study(study: Study, out: str | Path, *, log: Callable[[str], None] = print) -> dict:
-    """Run (or continue) ``study`` into ``out``; returns ``{variant: {target: summary}}``."""
+def run_study(study: Study, out: str | Path, *, log: Callable[[str], None] = print,
+              only: tuple[str, ...] | None = None) -> dict:
+    """Run (or continue) ``study`` into ``out``; returns ``{variant: {target: summary}}``.
+
+    ``only``: variant names to train and evaluate (default all); the others contribute the
+    evaluations they have finished (a summary on disk) and are not trained or evaluated, so
+    processes with disjoint ``only`` can share one output folder."""
     from learn.predict import NetworkPredictor
     from sim.anatomy import anatomy_center
     from sim.atomic import atomic_path, write_json
@@ -423,13 +428,24 @@ def run_study(study: Study, out: str | Path, *, log: Callable[[str], None] = pri
     out = check_output_dir(out, STUDY_FILES)
     out.mkdir(parents=True, exist_ok=True)
     _check_record(out, study)
+    names = [v.name for v in study.variants]
+    unknown = sorted(set(only or ()) - set(names))
+    if unknown:
+        raise StudyError(f"--only {' '.join(unknown)}: not a variant of the study (it has {', '.join(names)})")
     volume = load_ct_spec(study.ct)
     center = anatomy_center(volume)
     results: dict[str, dict[str, dict]] = {}
     t_start = time.perf_counter()
-    parts = len(study.variants) * (1 + len(study.targets))
+    chosen = [v for v in study.variants if only is None or v.name in only]
+    parts = len(chosen) * (1 + len(study.targets))
     done = 0
     for variant in study.variants:
+        if variant not in chosen:  # another process's: its finished evaluations only
+            for target in study.targets:
+                summary_file = out / "results" / variant.name / target.name / "summary.json"
+                if summary_file.is_file():
+                    results.setdefault(variant.name, {})[target.name] = json.loads(summary_file.read_text())["summary"]
+            continue
         ckpt = _train_variant(variant, out / "variants" / variant.name, log)
         done += 1
         predictor = None
@@ -495,7 +511,8 @@ def _plot(study: Study, results: dict, path: Path) -> None:
     x = np.arange(len(study.targets))
     for ax, method in zip(axes[0], study.methods):
         for k, variant in enumerate(study.variants):
-            ys = [100 * results[variant.name][t.name][method]["success"] for t in study.targets]
+            ys = [100 * results[variant.name][t.name][method]["success"] if t.name in results.get(variant.name, {})
+                  else np.nan for t in study.targets]  # another process's evaluation not finished yet
             ax.bar(x + (k - (len(study.variants) - 1) / 2) * width, ys, width, label=variant.name)
         ax.set_xticks(x, [t.name for t in study.targets], rotation=20, ha="right")
         ax.set_ylim(0, 100)
