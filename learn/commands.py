@@ -38,7 +38,8 @@ def run_train(cmd: TrainCommand) -> list[Path]:
 class AccuracyCommand:
     """Defaults of ``ctxreg accuracy``."""
 
-    model: str = field(metadata=opt("trained network checkpoint (ctxreg train)", group="input", metavar="CKPT"))
+    model: str = field(metadata=opt("the network: a shipped model's name (ctxreg models) or a ctxreg train checkpoint",
+                                    group="input", metavar="NAME|CKPT"))
     ct: str | None = field(default=None, metadata=opt(
         "CT to evaluate on (NIfTI, DICOM folder or phantom[:SEED]); or use --campaign", group="input",
         metavar="PATH|phantom"))
@@ -152,3 +153,16 @@ def _accuracy_renderers(cmd: AccuracyCommand, size) -> tuple[list, tuple[str, st
     entry = entries[current]
     settings = entry.settings() if entry.level in ("poly", "full") else None
     return [(c.renderers[target], c.renderers[current]) for c in contexts], (target, current), settings
+
+
+@dataclass(frozen=True)
+class ModelsCommand:
+    """``ctxreg models``: no options."""
+
+
+def run_models(cmd: ModelsCommand) -> list[Path]:
+    """Print the shipped models (``models/<name>/``, each checked against its card)."""
+    from learn.models import describe_models
+
+    print(describe_models())
+    return []

@@ -24,12 +24,15 @@ from typing import Any
 from learn.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
 from sim.atomic import read_toml
 
-__all__ = ["MODELS_DIR", "export_model", "load_card", "shipped_models", "ModelCardError"]
+__all__ = ["MODELS_DIR", "DEFAULT_MODEL", "export_model", "load_card", "shipped_models", "resolve_model",
+           "describe_models", "ModelCardError"]
 
 #: The repository's folder of shipped models.
 MODELS_DIR = Path(__file__).resolve().parents[1] / "models"
 CARD = "model.toml"
 WEIGHTS = "model.pt"
+#: The shipped model the contextual methods use when no ``--model`` is given.
+DEFAULT_MODEL = "pelvis_line"
 
 
 class ModelCardError(CheckpointError):
@@ -101,3 +104,44 @@ def shipped_models(root: str | Path = MODELS_DIR) -> dict[str, Path]:
     """``{name: folder}`` of the model folders (with a card) under ``root``."""
     root = Path(root)
     return {p.parent.name: p.parent for p in sorted(root.glob(f"*/{CARD}"))} if root.is_dir() else {}
+
+
+def resolve_model(value: str | Path | None = None, root: str | Path = MODELS_DIR) -> Path:
+    """The checkpoint file of ``--model VALUE``: an existing file as it is, or the name of a
+    shipped model (its ``model.pt``, after its card is checked against it, :func:`load_card`);
+    None: the default shipped model (:data:`DEFAULT_MODEL`). Raises :class:`ModelCardError`
+    naming the value and the shipped names otherwise."""
+    shipped = shipped_models(root)
+    name = DEFAULT_MODEL if value is None else str(value)
+    if value is not None and (Path(name).is_file() or name not in shipped and ("/" in name or "\\" in name
+                                                                             or name.endswith(".pt"))):
+        return Path(name)  # a path: load_checkpoint names a missing or damaged file
+    if name in shipped:
+        card = load_card(shipped[name])
+        return shipped[name] / card["model"]["file"]
+    names = ", ".join(shipped) or "none"
+    if value is None:
+        raise ModelCardError(f"no --model given and the default model {DEFAULT_MODEL!r} is not in {root} "
+                             f"(shipped: {names})")
+    raise ModelCardError(f"--model {name}: neither a checkpoint file nor a shipped model (shipped: {names}; "
+                         f"`ctxreg models` lists them)")
+
+
+def describe_models(root: str | Path = MODELS_DIR) -> str:
+    """A table of the shipped models for ``ctxreg models``: name (``*`` the default), image size,
+    preprocessing, training images, measured accuracy and description."""
+    rows = ["| model | image (H x W px) | preprocess | trained on | accuracy | description |",
+            "|---|---|---|---|---|---|"]
+    for name, folder in shipped_models(root).items():
+        card = load_card(folder)
+        m, acc = card["model"], card.get("accuracy", {})
+        trained = card.get("training", {}).get("images") or (m.get("physics") or {}).get("name", "?")
+        summary = "; ".join(f"{k} = {v:g}" if isinstance(v, float) else f"{k} = {v}"
+                            for k, v in acc.items() if k.endswith("success"))
+        size = " x ".join(str(v) for v in m.get("image_size") or ["?"])
+        pre = " ".join(p if isinstance(p, str) else str(p.get("name")) for p in m.get("preprocess", []))
+        rows.append(f"| {name}{' *' if name == DEFAULT_MODEL else ''} | {size} | {pre} | {trained} | "
+                    f"{summary or '-'} | {m.get('description', '')} |")
+    if len(rows) == 2:
+        return f"no shipped models in {root}"
+    return "\n".join(rows) + f"\n\n* the default of --model (the contextual methods); models folder: {root}"

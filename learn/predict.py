@@ -28,7 +28,8 @@ class Prediction(NamedTuple):
 class NetworkPredictor:
     """A trained pose-update network (``ctxreg train`` checkpoint) as a predictor of g (rad, mm).
 
-    ``NetworkPredictor(path)`` reads the checkpoint (:func:`learn.checkpoint.load_checkpoint`:
+    ``NetworkPredictor(path)`` reads the checkpoint (``path``: a file, or the name of a shipped
+    model, :func:`learn.models.resolve_model`) (:func:`learn.checkpoint.load_checkpoint`:
     refused in one line if it is missing, damaged, foreign, pickles objects or holds NaN
     weights). ``predictor(fixed, drr)``: one pair ``(H, W)`` each -> ``g`` ``(6,)``;
     :meth:`predict`: ``(N, H, W)`` each -> :class:`Prediction`, in batches of :attr:`batch_size`
@@ -55,6 +56,10 @@ class NetworkPredictor:
         from learn.labels import LabelNormalizer
         from learn.preprocess import build
 
+        if not isinstance(checkpoint, Checkpoint):
+            from learn.models import resolve_model
+
+            checkpoint = resolve_model(checkpoint)  # a file, or a shipped model's name
         ckpt = checkpoint if isinstance(checkpoint, Checkpoint) else load_checkpoint(checkpoint)
         self.checkpoint = ckpt
         self.model = ckpt.build_model()

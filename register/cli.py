@@ -14,7 +14,7 @@ import os
 import sys
 
 from sim.cliargs import HelpFormatter, add_options, from_namespace
-from learn.commands import AccuracyCommand, TrainCommand
+from learn.commands import AccuracyCommand, ModelsCommand, TrainCommand
 from register.commands import EvaluateCommand, RegisterCommand, StudyCommand
 from sim.cli import DemoCommand, RenderCommand, SimulateCommand
 
@@ -30,6 +30,8 @@ COMMANDS = {
               "learn.commands:run_train"),
     "accuracy": (AccuracyCommand, "single-prediction accuracy of a trained network (per depth, vs zero)",
                  "learn.commands:run_accuracy"),
+    "models": (ModelsCommand, "list the shipped models (models/<name>: card, preprocessing, accuracy)",
+               "learn.commands:run_models"),
     "study": (StudyCommand, "train network variants and evaluate each on several target domains (resumable)",
               "register.commands:run_study"),
     "demo": (DemoCommand, "render the built-in pelvis phantom at a few poses (PNG + JSON)",

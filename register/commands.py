@@ -40,8 +40,8 @@ class EvaluateCommand:
     method: tuple[str, ...] = field(default=("cmaes",), metadata=opt(
         "registration methods to compare", group="protocol", nargs="+", choices=METHOD_NAMES))
     model: str | None = field(default=None, metadata=opt(
-        "trained network checkpoint (ctxreg train) for the contextual methods", group="protocol",
-        metavar="CKPT"))
+        "the contextual methods' network: a shipped model's name (ctxreg models) or a ctxreg train checkpoint "
+        "(default: the shipped default model)", group="protocol", metavar="NAME|CKPT"))
     start: str = field(default="ap", metadata=opt(
         "start every case at AP, or near the truth (--local-rot / --local-trans)", group="protocol",
         choices=("ap", "local")))
@@ -90,8 +90,6 @@ def run_evaluate(cmd: EvaluateCommand) -> list[Path]:
     contextual = [m for m in cmd.method if needs_model(m)]
     if len(set(cmd.method)) < len(cmd.method):
         raise EvaluationError(f"--method {' '.join(cmd.method)}: a method is listed twice")
-    if contextual and cmd.model is None:
-        raise EvaluationError(f"--method {contextual[0]} needs a trained model: --model CHECKPOINT")
     refuse_unused(cmd, ("model",), applies=bool(contextual),
                   why="meaningful with the contextual methods only; this run compares " + " ".join(cmd.method))
     refuse_unused(cmd, ("local_rot", "local_trans"), applies=cmd.start == "local",
@@ -146,7 +144,8 @@ class RegisterCommand:
         unit="deg deg deg mm mm mm", metavar="ap|P"))
     method: str = field(default="cmaes", metadata=opt("registration method", group="pose", choices=METHOD_NAMES))
     model: str | None = field(default=None, metadata=opt(
-        "trained network checkpoint (ctxreg train) for the contextual methods", group="pose", metavar="CKPT"))
+        "the contextual methods' network: a shipped model's name (ctxreg models) or a ctxreg train checkpoint "
+        "(default: the shipped default model)", group="pose", metavar="NAME|CKPT"))
     restarts: int = field(default=REGISTER_RESTARTS, metadata=opt(
         "CMA-ES restarts (new seed, twice the population) while the final gradient NCC is below "
         f"{CMAESSettings.restart_below}: a search lost far from the start tries again (--method cmaes); with "

@@ -40,21 +40,20 @@ def needs_model(method: str) -> bool:
 
 
 def check_method(method: str, model) -> None:
-    """Raise :class:`RegistrationError` for an unknown ``method``, a contextual method without a
-    ``model`` (a checkpoint path or a loaded predictor), or a model given to ``cmaes`` (it would be
-    ignored)."""
+    """Raise :class:`RegistrationError` for an unknown ``method`` or a model given to ``cmaes`` (it
+    would be ignored). A contextual method without a ``model`` uses the default shipped model
+    (:data:`learn.models.DEFAULT_MODEL`)."""
     if method not in METHOD_NAMES:
         raise RegistrationError(f"--method {method}: unknown; choose one of {', '.join(METHOD_NAMES)}")
-    if needs_model(method) and model is None:
-        raise RegistrationError(f"--method {method} needs a trained model: --model CHECKPOINT")
     if not needs_model(method) and model is not None:
         raise RegistrationError(f"--model: meaningful with the contextual methods only; this run is --method {method}")
 
 
 def load_predictor(model):
-    """The network predictor of ``model``: a ``ctxreg train`` checkpoint path (read and checked now,
-    before any other work) or an already loaded predictor (returned as it is)."""
-    if model is None or callable(model):
+    """The network predictor of ``model``: a ``ctxreg train`` checkpoint path or a shipped model's
+    name (read and checked now, before any other work; None: the default shipped model,
+    :func:`learn.models.resolve_model`) or an already loaded predictor (returned as it is)."""
+    if callable(model):
         return model
     from learn.predict import NetworkPredictor
 

@@ -15,7 +15,7 @@ variants x domains, a plot and the commands that reproduce it. A study file::
 
     [[variant]]
     name = "base"              # an existing network, evaluated as it is
-    model = "../models/pelvis_line/model.pt"
+    model = "pelvis_line"      # a shipped model's name (ctxreg models), or a checkpoint file
 
     [[variant]]
     name = "line-normalize"
@@ -203,10 +203,20 @@ def load_study(path: str | Path) -> Study:
                              f"(a checkpoint to evaluate as it is), got {row!r}")
         name = _name(row.get("name"), f"{where}.name")
         if "model" in row:
+            from learn.models import ModelCardError, resolve_model, shipped_models
+
             model = row["model"]
-            if not isinstance(model, str) or not Path(resolve(model)).is_file():
-                raise StudyError(f"{where}.model: an existing checkpoint file, got {model!r}")
-            variants.append(Variant(name, model=resolve(model)))
+            if isinstance(model, str) and model in shipped_models():
+                try:
+                    model = str(resolve_model(model))
+                except ModelCardError as e:
+                    raise StudyError(f"{where}.model: {e}") from None
+            elif isinstance(model, str):
+                model = resolve(model)
+            if not isinstance(model, str) or not Path(model).is_file():
+                raise StudyError(f"{where}.model: an existing checkpoint file or a shipped model's name, got "
+                                 f"{row['model']!r}")
+            variants.append(Variant(name, model=model))
             continue
         if not isinstance(row.get("train"), dict):
             raise StudyError(f"{where}.train: a [variant.train] table, got {row.get('train')!r}")

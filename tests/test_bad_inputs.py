@@ -61,8 +61,9 @@ BAD = {
     "register folder as X-ray": ("register --ct phantom --xray {dir_png} --out reg", ["a folder"]),
     "register model with cmaes": ("register --ct phantom --xray {xray} --model {tiny} --out reg",
                                   ["--model", "contextual methods only"]),
-    "register contextual without model": ("register --ct phantom --xray {xray} --method contextual --out reg",
-                                          ["--model CHECKPOINT"]),
+    "register unknown model name": ("register --ct phantom --xray {xray} --method contextual --model pelvis_nonexistent "
+                                    "--out reg", ["--model pelvis_nonexistent", "neither a checkpoint file nor a "
+                                                  "shipped model", "pelvis_line"]),
     "register missing model": ("register --ct phantom --xray {xray} --method contextual --model none.pt --out reg",
                                ["none.pt", "not found"]),
     "register restarts with contextual": ("register --ct phantom --xray {xray} --method contextual --model {tiny} "

@@ -58,3 +58,41 @@ def test_every_shipped_model_loads_and_matches_its_card(name):
     assert card["model"]["name"] == name
     assert {"command", "config"} <= set(card["training"]) and "command" in card["accuracy"]
     assert (folder / card["model"]["file"]).stat().st_size < 20 * 2**20  # weights only: a few MB
+
+
+def test_a_model_is_named_or_a_path_and_the_default_is_shipped(tmp_path):
+    from learn.models import DEFAULT_MODEL, describe_models, resolve_model
+    from learn.predict import NetworkPredictor
+
+    src, _ = _trained(tmp_path)
+    export_model(src, tmp_path / "models" / "mine", name="mine", description="a test model",
+                 training={"command": "c", "config": "x.toml", "images": "tiny"},
+                 accuracy={"command": "e", "contextual_success": 0.5})
+    root = tmp_path / "models"
+    assert resolve_model("mine", root) == root / "mine" / "model.pt"
+    assert resolve_model(str(src), root) == src  # a file is a file
+    with pytest.raises(ModelCardError, match=r"--model yours: neither a checkpoint file nor a shipped model "
+                                             r"\(shipped: mine"):
+        resolve_model("yours", root)
+    with pytest.raises(ModelCardError, match=f"the default model '{DEFAULT_MODEL}' is not in"):
+        resolve_model(None, root)
+    table = describe_models(root)
+    assert "| mine | 32 x 32 | normalize | tiny | contextual_success = 0.5 | a test model |" in table
+    # the repository's default model exists, and a predictor takes a name
+    assert DEFAULT_MODEL in shipped_models()
+    assert NetworkPredictor(DEFAULT_MODEL).size == tuple(load_card(shipped_models()[DEFAULT_MODEL])["model"]
+                                                         ["image_size"])
+    # a missing checkpoint path still gets the checkpoint's own message
+    from learn.checkpoint import CheckpointError
+
+    with pytest.raises(CheckpointError, match="not found|No such file|does not exist"):
+        NetworkPredictor(str(tmp_path / "none.pt"))
+
+
+def test_ctxreg_models_lists_the_shipped_models(capsys):
+    from register.cli import main
+
+    assert main(["models"]) == 0
+    out = capsys.readouterr().out
+    for name in shipped_models():
+        assert f"| {name}" in out
