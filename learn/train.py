@@ -437,6 +437,10 @@ def train(cfg: TrainConfig, *, resume: bool = False, log=print) -> dict:
     model.train()
     started = time.perf_counter()
     start_iteration = iteration
+    from sim.progress import Progress
+
+    bar = Progress(cfg.iterations, iteration, f"train {out.name}", "iterations", rate_unit="pairs/s",
+                   rate_scale=cfg.batch_size)
     while iteration < cfg.iterations:
         # batches are a function of (seed, iteration) alone, so a resumed run takes the same steps
         *inputs, label = source.train_batch(iteration)
@@ -447,6 +451,7 @@ def train(cfg: TrainConfig, *, resume: bool = False, log=print) -> dict:
         optimizer.step()
         scheduler.step()
         iteration += 1
+        bar.update(1)
         last = {"iteration": iteration, "train_loss": float(loss.item()), "lr": scheduler.get_last_lr()[0]}
         if iteration % cfg.val_every == 0 or iteration == cfg.iterations:
             last.update(_validate(model, source, cfg))

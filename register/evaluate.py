@@ -193,6 +193,9 @@ def evaluate(volume, methods: dict[str, RegistrationMethod], settings: Evaluatio
     points = bone_points(volume, settings.max_points, settings.seed)
     target_images = target_renderer.render(pose_from_params(targets, geometry.sod_mm))
     rows, trajectories = [], []
+    from sim.progress import Progress
+
+    bar = Progress(settings.cases * len(methods), 0, f"evaluate {out.name}", "registrations", rate_unit="reg/s")
     for i, (target, start, image) in enumerate(zip(targets, starts, target_images)):
         T_true = pose_from_params(target, geometry.sod_mm)
         P_true = projection_matrix(geometry, T_true, center_lps)
@@ -214,6 +217,7 @@ def evaluate(volume, methods: dict[str, RegistrationMethod], settings: Evaluatio
                                      "g_rad_mm": np.asarray(result.trajectory["g"]).tolist()})
             log(f"case {i + 1}/{settings.cases} {name}: rotation {err['rot_err_deg']:.2f} deg, "
                 f"translation {err['trans_err_mm']:.1f} mm, mTRE {err['mtre_mm']:.1f} mm, {elapsed:.1f} s")
+            bar.update(1)
     summary = summarize(rows, settings)
     write_csv(out / "cases.csv", rows)
     write_json(out / "summary.json", {"settings": asdict(settings), **(record or {}), "summary": summary})

@@ -395,6 +395,9 @@ def _evaluate_xray(study: Study, target: Target, volume, center, predictor, fold
     points = bone_points(volume, settings.max_points, settings.seed)
     rows = []
     frames = folder / "frames"
+    from sim.progress import Progress
+
+    bar = Progress(study.cases * len(study.methods), 0, f"{target.name}", "registrations", rate_unit="reg/s")
     for i, (target_params, start) in enumerate(zip(targets, starts)):
         T_true = pose_from_params(target_params, g.sod_mm)
         raw = imager.render(T_true, seed=study.seed * 100003 + i)["raw"][0].astype(np.float64)
@@ -416,6 +419,7 @@ def _evaluate_xray(study: Study, target: Target, volume, center, predictor, fold
                          "time_s": elapsed, "similarity": res.similarity})
             log(f"  case {i + 1}/{study.cases} {method}: rotation {err['rot_err_deg']:.2f} deg, mTRE "
                 f"{err['mtre_mm']:.1f} mm, {elapsed:.1f} s")
+            bar.update(1)
     summary = summarize(rows, settings)
     write_csv(folder / "cases.csv", rows)
     write_json(folder / "summary.json", {"summary": summary, "target": target.name})

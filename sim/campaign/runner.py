@@ -453,34 +453,7 @@ def _worker_unit(unit: Unit, out: str) -> dict:
 
 
 # ----------------------------------------------------------------------------- parent side
-class Progress:
-    """Images done, rate and ETA on stderr: in place on a terminal, else a line every 5 s."""
-
-    def __init__(self, total: int, done: int, label: str):
-        self.total, self.done, self.label = total, done, label
-        self.start_done, self.t0, self.last = done, time.monotonic(), 0.0
-        self.tty = sys.stderr.isatty()
-        self.show(force=True)
-
-    def update(self, n: int) -> None:
-        self.done += n
-        self.show(force=self.done >= self.total)
-
-    def show(self, force: bool = False) -> None:
-        now = time.monotonic()
-        if not force and now - self.last < (0.2 if self.tty else 5.0):
-            return
-        self.last = now
-        rate = (self.done - self.start_done) / max(now - self.t0, 1e-9)
-        eta = (self.total - self.done) / rate if rate > 0 else float("nan")
-        pct = 100.0 * self.done / max(self.total, 1)
-        eta_text = "--" if not math.isfinite(eta) else time.strftime("%H:%M:%S", time.gmtime(eta))
-        line = (f"{self.label}: {self.done}/{self.total} images ({pct:5.1f} %), "
-                f"{rate:6.1f} img/s, ETA {eta_text}")
-        print(("\r" + line) if self.tty else line, end="" if self.tty else "\n", file=sys.stderr,
-              flush=True)
-        if self.tty and self.done >= self.total:
-            print(file=sys.stderr)
+from sim.progress import Progress  # noqa: E402  (one progress line for every long command)
 
 
 def _base_manifest(cfg) -> dict:
@@ -584,7 +557,8 @@ def _run_locked(cfg, out: Path, manifest_path: Path, all_units: list[Unit], unit
 def _render_all(cfg, out: Path, todo: list[Unit], units: list[Unit], workers: int, record, progress: bool) -> None:
     """Render the units ``todo`` (of ``units``, this run's share), calling ``record`` with each result."""
     total = sum(u.stop - u.start for u in units)
-    bar = Progress(total, total - sum(u.stop - u.start for u in todo), cfg.name) if progress else None
+    bar = Progress(total, total - sum(u.stop - u.start for u in todo), cfg.name, "images",
+                   rate_unit="img/s") if progress else None
     if workers == 1 or len(todo) <= 1:
         for unit in todo:
             record(render_unit(cfg, unit, out))

@@ -1,0 +1,37 @@
+"""The progress line of long commands (sim.progress.Progress): counts, rate, ETA, and where it goes."""
+
+from __future__ import annotations
+
+import re
+
+from sim.progress import Progress
+
+
+def test_progress_line_counts_rate_and_eta(capsys, monkeypatch):
+    clock = [100.0]
+    monkeypatch.setattr("sim.progress.time.monotonic", lambda: clock[0])
+    bar = Progress(10, 2, "train x", "iterations", rate_unit="pairs/s", rate_scale=32)  # resumed at 2 of 10
+    first = capsys.readouterr().err
+    assert first.startswith("train x: 2/10 iterations ( 20.0 %)") and "ETA --" in first
+    clock[0] += 4.0
+    bar.update(4)  # 4 iterations in 4 s: 1 it/s = 32 pairs/s; 4 left: 4 s
+    assert capsys.readouterr().err == ""  # not a terminal: a line every 5 s at most
+    clock[0] += 1.0
+    bar.update(1)  # 5 in 5 s: 32 pairs/s, 3 left
+    line = capsys.readouterr().err.strip()
+    assert re.fullmatch(r"train x: 7/10 iterations \( 70\.0 %\),\s+32\.0 pairs/s, ETA 00:00:03", line), line
+    bar.update(3)  # the end is always shown
+    assert "10/10 iterations (100.0 %)" in capsys.readouterr().err
+
+
+def test_a_training_run_shows_its_progress_on_stderr(tmp_path, capsys):
+    from pathlib import Path
+
+    from learn.train import TrainConfig, train
+
+    root = Path(__file__).resolve().parents[1]
+    cfg = TrainConfig(dataset=str(root / "campaigns" / "smoke.toml"), out=str(tmp_path / "t"), iterations=2,
+                      batch_size=2, val_pairs=2, val_every=2, checkpoint_every=2, head_channels=8)
+    train(cfg, log=lambda s: None)
+    err = capsys.readouterr().err
+    assert "train t: 0/2 iterations" in err and "train t: 2/2 iterations (100.0 %)" in err and "pairs/s" in err
