@@ -44,7 +44,8 @@ REGISTER_RESTARTS = 3
 RESTART_METHODS = ("cmaes", "contextual+cmaes")
 
 #: The files :meth:`XRayRegistration.write` writes (the trajectory files for the contextual methods only).
-OUTPUT_FILES = ("result.json", "overlay.png", "checkerboard.png", "convergence.png", "trajectory.npz", "trajectory.png")
+OUTPUT_FILES = ("result.json", "overlay.png", "checkerboard.png", "convergence.png", "trajectory.npz", "trajectory.png",
+                "trajectory.gif")
 
 
 def parse_init(init) -> np.ndarray:
@@ -144,9 +145,11 @@ class XRayRegistration:
                          "K": g.intrinsics().tolist()},
         }
 
-    def write(self, out: str | Path) -> list[Path]:
+    def write(self, out: str | Path, *, trajectory_errors: list[str] | None = None) -> list[Path]:
         """Write into the folder ``out`` (checked first: :func:`sim.outputs.check_output_dir`):
-        ``trajectory.npz`` and ``trajectory.png`` (contextual methods), ``overlay.png`` (DRR edges
+        ``trajectory.npz``, ``trajectory.png`` and ``trajectory.gif`` (contextual methods: the
+        iteration's DRRs beside the X-ray; ``trajectory_errors``, one caption per iteration, e.g.
+        the error against a known truth), ``overlay.png`` (DRR edges
         and the field outline over the X-ray at its full resolution), ``checkerboard.png``,
         ``convergence.png`` and ``result.json`` (:meth:`to_dict`), each atomically. Returns the paths."""
         from register.plots import checkerboard_png, convergence_plot, overlay_png
@@ -159,7 +162,7 @@ class XRayRegistration:
         image = prepared.image
         written = []
         if result.trajectory is not None:
-            from register.plots import trajectory_figure
+            from register.plots import trajectory_figure, trajectory_gif
 
             with atomic_path(out / "trajectory.npz") as tmp:
                 with open(tmp, "wb") as f:
@@ -167,7 +170,9 @@ class XRayRegistration:
                                         drrs=result.trajectory["drrs"].astype(np.float32),
                                         xray=image.astype(np.float32))
             trajectory_figure(image, result.trajectory["drrs"], result.trajectory["params"], out / "trajectory.png")
-            written = [out / "trajectory.npz", out / "trajectory.png"]
+            trajectory_gif(image, result.trajectory["drrs"], result.trajectory["params"], out / "trajectory.gif",
+                           errors=trajectory_errors)
+            written = [out / "trajectory.npz", out / "trajectory.png", out / "trajectory.gif"]
         # figures at the X-ray's own resolution: a line DRR with the X-ray's full geometry (its
         # edges are those of any physics level)
         full = prepared.full_geometry

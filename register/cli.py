@@ -16,7 +16,8 @@ import sys
 from sim.cliargs import HelpFormatter, add_options, from_namespace
 from learn.commands import AccuracyCommand, ModelsCommand, TrainCommand
 from register.commands import EvaluateCommand, RegisterCommand, StudyCommand
-from sim.cli import DemoCommand, RenderCommand, SimulateCommand
+from register.demo import DemoCommand
+from sim.cli import RenderCommand, SimulateCommand
 
 COMMANDS = {
     "render": (RenderCommand, "render a DRR of a CT at one pose", "sim.cli:run_render"),
@@ -34,8 +35,8 @@ COMMANDS = {
                "learn.commands:run_models"),
     "study": (StudyCommand, "train network variants and evaluate each on several target domains (resumable)",
               "register.commands:run_study"),
-    "demo": (DemoCommand, "render the built-in pelvis phantom at a few poses (PNG + JSON)",
-             "sim.cli:run_demo"),
+    "demo": (DemoCommand, "simulate a realistic X-ray of the pelvis CT far from AP, register it from AP with the "
+                          "shipped model, and show the error against the truth", "register.demo:run_demo"),
 }
 
 

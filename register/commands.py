@@ -196,7 +196,7 @@ class RegisterCommand:
         choices=("auto", "bone-bright", "bone-dark")))
     out: str = field(default="out/register", metadata=opt(
         "folder for result.json, overlay.png (DRR edges and the field outline over the X-ray at its full "
-        "resolution), checkerboard.png, convergence.png (and trajectory.npz, trajectory.png for the "
+        "resolution), checkerboard.png, convergence.png (and trajectory.npz, trajectory.png, trajectory.gif for the "
         "contextual methods)", group="output", metavar="DIR"))
 
 

@@ -137,3 +137,44 @@ def trajectory_figure(xray: np.ndarray, drrs: np.ndarray, params: np.ndarray, pa
                      fontsize=7)
     fig.tight_layout()
     save_figure(fig, path)
+
+
+def trajectory_gif(xray: np.ndarray, drrs: np.ndarray, params: np.ndarray, path: str | Path, *,
+                   errors: list[str] | None = None, scale: int = 2, frame_ms: int = 250) -> None:
+    """An animated GIF of the contextual iteration: each frame the X-ray (left) beside the DRR of
+    that iteration (right), the DRR's strongest edges in red over the X-ray, and a caption with the
+    iteration, its pose and, when given, ``errors[i]`` (e.g. its error against the truth).
+
+    ``xray`` ``(H, W)``; ``drrs`` ``(K, H, W)``; ``params`` ``(>= K, 6)`` (deg, mm); ``scale``
+    pixels per image pixel; the last frame is held for 2 s. Written atomically (Pillow)."""
+    from PIL import Image, ImageDraw
+    from scipy import ndimage
+
+    from sim.atomic import atomic_path
+
+    grey = _window(np.asarray(xray, float))
+    h, w = grey.shape
+    caption = 30
+    frames = []
+    for i, drr in enumerate(np.asarray(drrs, float)):
+        mag = np.hypot(ndimage.sobel(drr, 0), ndimage.sobel(drr, 1))
+        left = np.stack([grey] * 3, -1)
+        left[mag > np.percentile(mag, 92)] = (1.0, 0.1, 0.1)
+        right = np.stack([_window(drr)] * 3, -1)
+        canvas = np.concatenate([left, np.ones((h, 2, 3)), right], axis=1)
+        img = Image.fromarray((np.clip(canvas, 0, 1) * 255).astype(np.uint8)).resize(
+            ((2 * w + 2) * scale, h * scale), Image.NEAREST)
+        frame = Image.new("RGB", (img.width, img.height + caption), "black")
+        frame.paste(img, (0, caption))
+        p = params[i]
+        text = f"iteration {i}: {p[0]:.0f} {p[1]:.0f} {p[2]:.0f} deg, {p[3]:.0f} {p[4]:.0f} {p[5]:.0f} mm"
+        draw = ImageDraw.Draw(frame)
+        draw.text((4, 2), text, fill="white")
+        if errors is not None and i < len(errors):
+            draw.text((4, 15), errors[i], fill=(255, 220, 120))
+        frames.append(frame.convert("P", palette=Image.ADAPTIVE))
+    if not frames:
+        raise ValueError("trajectory_gif: no DRRs to animate")  # a caller's bug: the iteration keeps one per step
+    durations = [frame_ms] * (len(frames) - 1) + [2000]
+    with atomic_path(Path(path)) as tmp:
+        frames[0].save(tmp, format="GIF", save_all=True, append_images=frames[1:], duration=durations, loop=0)

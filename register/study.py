@@ -7,7 +7,8 @@ variants x domains, a plot and the commands that reproduce it. A study file::
 
     [study]
     ct = "../shared/data/ct/pelvis_abdomen_3mm.nii.gz"   # the evaluation CT ("phantom" works)
-    cases = 20                 # target poses per domain (the evaluation protocol's, seeded)
+    cases = 20                 # target poses per domain (the evaluation protocol's, seeded; a
+                               # [[target]] may set its own cases)
     start = "ap"               # or "local"
     seed = 0
     methods = ["contextual", "contextual+cmaes"]
@@ -103,6 +104,7 @@ class Target:
     physics: dict[str, Any] = field(default_factory=lambda: {"level": "line"})
     collimator: dict[str, Any] | None = None
     display: dict[str, Any] | None = None
+    cases: int | None = None  #: this domain's case count (default the study's ``cases``)
 
 
 @dataclass(frozen=True)
@@ -125,7 +127,12 @@ class Study:
                 "methods": list(self.methods), "size": list(self.size), "moving_physics": self.moving_physics,
                 "variants": {v.name: v.to_dict() for v in self.variants},
                 "targets": {t.name: {"kind": t.kind, "physics": t.physics, "collimator": t.collimator,
-                                     "display": t.display} for t in self.targets}}
+                                     "display": t.display, **({"cases": t.cases} if t.cases else {})}
+                            for t in self.targets}}
+
+    def cases_of(self, target: "Target") -> int:
+        """The number of cases of ``target`` (its own ``cases``, else the study's)."""
+        return target.cases or self.cases
 
 
 def _name(value: Any, key: str) -> str:
@@ -235,8 +242,8 @@ def load_study(path: str | Path) -> Study:
         raise StudyError(f"{path}: needs at least one [[target]] (name, kind, physics)")
     for i, row in enumerate(rows):
         where = f"{path}: target[{i}]"
-        if not isinstance(row, dict) or set(row) - {"name", "kind", "physics", "collimator", "display"}:
-            raise StudyError(f"{where}: keys are name, kind, physics, collimator, display; got {row!r}")
+        if not isinstance(row, dict) or set(row) - {"name", "kind", "physics", "collimator", "display", "cases"}:
+            raise StudyError(f"{where}: keys are name, kind, physics, collimator, display, cases; got {row!r}")
         name = _name(row.get("name"), f"{where}.name")
         kind = row.get("kind", "drr")
         if kind not in TARGET_KINDS:
@@ -257,7 +264,8 @@ def load_study(path: str | Path) -> Study:
             if not isinstance(value, dict):
                 raise StudyError(f"{where}.{key}: a table, got {value!r}")
             _checked(cls.from_dict, value, f"{where}.{key}", unpack=False)
-        targets.append(Target(name, kind, physics, coll, disp))
+        cases = _int(row, "cases", 0, 1, 10000, where) if "cases" in row else None
+        targets.append(Target(name, kind, physics, coll, disp, cases))
     for what, items in (("variant", variants), ("target", targets)):
         names = [x.name for x in items]
         if len(set(names)) < len(names):
@@ -351,7 +359,7 @@ def _evaluate_drr(study: Study, target: Target, volume, center, predictor, folde
     from sim.physics.imaging import LogImageRenderer, PhysicsSettings
     from sim.render import DRRRenderer, RenderSettings
 
-    settings = EvaluationSettings(cases=study.cases, seed=study.seed, size=study.size, start=study.start)
+    settings = EvaluationSettings(cases=study.cases_of(target), seed=study.seed, size=study.size, start=study.start)
     physics = PhysicsSettings(**{**target.physics, "seed": study.seed})
     if physics.level == "line":
         renderer = DRRRenderer(volume, RenderSettings(size=study.size), center_lps=center)
@@ -384,7 +392,7 @@ def _evaluate_xray(study: Study, target: Target, volume, center, predictor, fold
     from sim.physics.display import Collimator, DisplayChain
     from sim.physics.imaging import PhysicsSettings, XRayImager
 
-    settings = EvaluationSettings(cases=study.cases, seed=study.seed, size=study.size, start=study.start)
+    settings = EvaluationSettings(cases=study.cases_of(target), seed=study.seed, size=study.size, start=study.start)
     physics = PhysicsSettings(**{**target.physics, "noise": True, "seed": study.seed})
     imager = XRayImager(volume, physics, size=study.size, center_lps=center)
     g = imager.geometry
@@ -397,7 +405,7 @@ def _evaluate_xray(study: Study, target: Target, volume, center, predictor, fold
     frames = folder / "frames"
     from sim.progress import Progress
 
-    bar = Progress(study.cases * len(study.methods), 0, f"{target.name}", "registrations", rate_unit="reg/s")
+    bar = Progress(settings.cases * len(study.methods), 0, f"{target.name}", "registrations", rate_unit="reg/s")
     for i, (target_params, start) in enumerate(zip(targets, starts)):
         T_true = pose_from_params(target_params, g.sod_mm)
         raw = imager.render(T_true, seed=study.seed * 100003 + i)["raw"][0].astype(np.float64)
@@ -417,7 +425,7 @@ def _evaluate_xray(study: Study, target: Target, volume, center, predictor, fold
                          "success": err["mtre_mm"] < settings.success_mtre_mm
                          and err["rot_err_deg"] < settings.success_rot_deg,
                          "time_s": elapsed, "similarity": res.similarity})
-            log(f"  case {i + 1}/{study.cases} {method}: rotation {err['rot_err_deg']:.2f} deg, mTRE "
+            log(f"  case {i + 1}/{settings.cases} {method}: rotation {err['rot_err_deg']:.2f} deg, mTRE "
                 f"{err['mtre_mm']:.1f} mm, {elapsed:.1f} s")
             bar.update(1)
     summary = summarize(rows, settings)
@@ -472,7 +480,7 @@ def run_study(study: Study, out: str | Path, *, log: Callable[[str], None] = pri
                 log(f"{variant.name} on {target.name}: evaluated, kept")
             else:
                 predictor = predictor or NetworkPredictor(ckpt)
-                log(f"{variant.name} on {target.name}: {study.cases} cases ({target.kind})")
+                log(f"{variant.name} on {target.name}: {study.cases_of(target)} cases ({target.kind})")
                 evaluate = _evaluate_drr if target.kind == "drr" else _evaluate_xray
                 results[variant.name][target.name] = evaluate(study, target, volume, center, predictor, folder, log)
             done += 1
@@ -496,8 +504,8 @@ def run_study(study: Study, out: str | Path, *, log: Callable[[str], None] = pri
 def format_study_table(study: Study, results: dict) -> str:
     """Markdown: one row per variant, target and method: success (mTRE < 10 mm and rotation < 1
     deg), mean / median rotation (deg), translation (mm) and mTRE (mm), seconds per case."""
-    lines = ["| variant | target | method | success | mean rot (deg) | mean trans (mm) | median mTRE (mm) | "
-             "mean mTRE (mm) | s / case |", "|---|---|---|---|---|---|---|---|---|"]
+    lines = ["| variant | target | method | cases | success | mean rot (deg) | mean trans (mm) | median mTRE (mm) | "
+             "mean mTRE (mm) | s / case |", "|---|---|---|---|---|---|---|---|---|---|"]
     for variant in study.variants:
         for target in study.targets:
             summary = results.get(variant.name, {}).get(target.name)
@@ -505,7 +513,7 @@ def format_study_table(study: Study, results: dict) -> str:
                 continue
             for method in study.methods:
                 s = summary[method]
-                lines.append(f"| {variant.name} | {target.name} | {method} | {100 * s['success']:.0f} % | "
+                lines.append(f"| {variant.name} | {target.name} | {method} | {s['cases']} | {100 * s['success']:.0f} % | "
                              f"{s['rot_err_deg']['mean']:.2f} | {s['trans_err_mm']['mean']:.1f} | "
                              f"{s['mtre_mm']['median']:.1f} | {s['mtre_mm']['mean']:.1f} | "
                              f"{s['time_s']['median']:.1f} |")

@@ -87,31 +87,6 @@ class RenderCommand:
         "raw detector signal goes to <out stem>_raw.npy", group="output", metavar="FILE"))
 
 
-@dataclass(frozen=True)
-class DemoCommand:
-    """Defaults of ``ctxreg demo``."""
-
-    out: str = field(default="out/demo", metadata=opt(
-        "folder for the PNGs and their JSON sidecars", group="output", metavar="DIR"))
-    seed: int = field(default=0, metadata=opt("phantom seed", group="input", bounds=Range(0)))
-    size: tuple[int, int] = field(default=(384, 384), metadata=opt(
-        "image rows and columns", group="geometry", unit="pixels", nargs=2, metavar=("H", "W"),
-        bounds=IMAGE_SIDE_PX))
-
-
-#: The demo's poses: name -> (phi, theta, psi deg, tx, ty, tz mm). The pelvis sits 250 mm
-#: beyond the isocentre (magnification 1.07 instead of 1.46) so the whole pelvis fits the
-#: 30 cm detector; "ap_iso" is the AP view at the isocentre, as in the registration protocol.
-DEMO_POSES = {
-    "ap": (0, 0, 0, 0, 0, 250),
-    "phi_p30": (30, 0, 0, 0, 0, 250),
-    "phi_m30": (-30, 0, 0, 0, 0, 250),
-    "theta_p15": (0, 15, 0, 0, 0, 250),
-    "oblique_shifted": (10, -25, 5, 20, -15, 250),
-    "ap_iso": (0, 0, 0, 0, 0, 0),
-}
-
-
 def load_pose_matrix(path: str) -> np.ndarray:
     """A ``(4, 4)`` pose from .npy, text, or a render's JSON sidecar (key ``pose_4x4``)."""
     p = Path(path)
@@ -246,29 +221,6 @@ def _write_physics(cmd: RenderCommand, view, out: Path) -> list[Path]:
         path = out.with_name(f"{out.stem}_{name}.npy")
         with atomic_path(path) as tmp:
             np.save(tmp, view.images[name], allow_pickle=False)
-        written.append(path)
-    return written
-
-
-def run_demo(cmd: DemoCommand) -> list[Path]:
-    from sim.geometry import pose_from_params
-    from sim.outputs import check_output_dir
-    from sim.phantom import make_pelvis_phantom
-    from sim.render import DRRRenderer, RenderSettings
-
-    check_output_dir(cmd.out, [f"phantom{cmd.seed}_{name}{ext}" for name in DEMO_POSES for ext in (".png", ".json")])
-    volume = make_pelvis_phantom(cmd.seed)
-    # trilinear: the phantom's 2 mm voxels would show as steps on thin cortical shells
-    renderer = DRRRenderer(volume, RenderSettings(size=tuple(cmd.size), ray_model="trilinear"))
-    params = np.array(list(DEMO_POSES.values()), dtype=np.float64)
-    poses = pose_from_params(params, renderer.geometry.sod_mm)
-    images = renderer.render(poses)  # all poses in one kernel launch
-    if not np.all(np.isfinite(images)) or images.max() <= 0:
-        raise RuntimeError("demo: the phantom rendered empty or non-finite images")  # a bug, not an input
-    written = []
-    for name, pose, image in zip(DEMO_POSES, poses, images):
-        path = Path(cmd.out) / f"phantom{cmd.seed}_{name}.png"
-        write_image(path, image, geometry_record(renderer, pose, "line-integral"), "line-integral")
         written.append(path)
     return written
 

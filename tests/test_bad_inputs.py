@@ -96,7 +96,9 @@ BAD = {
     "evaluate mas with line targets": ("evaluate --ct phantom --target-mas 5 --out ev", ["--target-mas"]),
     # ---------------------------------------------------------------- demo
     "demo out is a file": ("demo --out {file}", ["existing file"]),
-    "demo output name is a folder": ("demo --size 16 16 --out {demo_taken}", ["phantom0_ap.png", "existing folder"]),
+    "demo output name is a folder": ("demo --size 16 16 --out {demo_taken}", ["xray.dcm", "existing folder"]),
+    "demo unknown model": ("demo --ct phantom --model pelvis_nonesuch --out demo", ["--model pelvis_nonesuch",
+                                                                                   "shipped model"]),
     "demo size huge": ("demo --size 5000 16 --out demo", ["--size 5000 16"]),
     "demo seed negative": ("demo --seed -1 --out demo", ["--seed -1"]),
 }
@@ -106,7 +108,6 @@ GOOD = {
     "render trilinear at the smallest step": ("render --ct phantom --size 16 16 --ray-model trilinear "
                                               "--step-fraction 0.05 --out x.npy", ["x.npy", "x.json"]),
     "render replaces an existing file": ("render --ct phantom --size 16 16 --out old.npy", ["old.json"]),
-    "demo": ("demo --size 16 16 --out demo", ["demo/phantom0_ap.png", "demo/phantom0_ap.json"]),
     "register": ("register --ct phantom --xray {xray} --size 32 32 --restarts 0 --out reg",
                  ["reg/result.json", "reg/overlay.png"]),
 }
@@ -163,7 +164,7 @@ def _run(line: str, inputs: dict, work) -> tuple[int, set[str]]:
     (work / "folder.png").mkdir()
     (work / "sidecar.json").mkdir()
     (work / "taken" / "result.json").mkdir(parents=True)
-    (work / "demo_taken" / "phantom0_ap.png").mkdir(parents=True)
+    (work / "demo_taken" / "xray.dcm").mkdir(parents=True)
     paths = {**inputs, "file": str(work / "file"), "dir_png": str(work / "folder.png"),
              "sidecar": str(work / "sidecar"), "taken": str(work / "taken"), "demo_taken": str(work / "demo_taken")}
     argv = [a.format(**paths) for a in line.split()]

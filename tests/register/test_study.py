@@ -92,13 +92,13 @@ def test_a_tiny_study_runs_end_to_end_and_resumes(tmp_path, capsys):
     assert main(["study", str(study), "--out", str(out)]) == 2
     err = capsys.readouterr().err
     assert "cases: 2 -> 3" in err and err.count("\n") == 1
-    study.write_text(TINY + '\n[[target]]\nname = "poly"\nphysics = { level = "poly", mas = 2.0 }\n')
+    study.write_text(TINY + '\n[[target]]\nname = "poly"\ncases = 1\nphysics = { level = "poly", mas = 2.0 }\n')
     assert main(["study", str(study), "--out", str(out)]) == 0
-    assert "| tiny | poly | contextual |" in (out / "table.md").read_text()
+    assert "| tiny | poly | contextual | 1 |" in (out / "table.md").read_text()  # its own case count
 
     # an existing network as a variant: evaluated as it is, the same numbers as the variant it was
     ckpt = out / "variants" / "tiny" / "checkpoint.pt"
-    study.write_text(TINY + '\n[[target]]\nname = "poly"\nphysics = { level = "poly", mas = 2.0 }\n'
+    study.write_text(TINY + '\n[[target]]\nname = "poly"\ncases = 1\nphysics = { level = "poly", mas = 2.0 }\n'
                      + f'\n[[variant]]\nname = "as-is"\nmodel = "{ckpt}"\n')
     assert main(["study", str(study), "--out", str(out)]) == 0
     assert "variant as-is: the model" in capsys.readouterr().out
@@ -127,6 +127,7 @@ BAD = {
                                 "collimator and display apply to kind 'xray' only"),
     "bad collimator": (TINY.replace("radius = 0.45", "radius = -1.0"), "target[1].collimator"),
     "two targets alike": (TINY + '\n[[target]]\nname = "line"\n', "two targets are named alike"),
+    "target cases zero": (TINY.replace('kind = "xray"', 'kind = "xray"\ncases = 0'), "target[1].cases: an integer"),
     "not TOML": ("[study\n", "not valid TOML"),
     "model and train": (TINY.replace('name = "tiny"\n', 'name = "tiny"\nmodel = "x.pt"\n', 1),
                         "either train (a [variant.train] table) or model"),

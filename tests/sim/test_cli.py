@@ -118,13 +118,6 @@ def test_help_shows_units_and_defaults():
         assert piece in text, piece
 
 
-def test_demo_renders_the_phantom(tmp_path):
-    r = run_cli("demo", "--out", tmp_path / "demo", "--size", 96, 96)
-    assert r.returncode == 0, r.stderr
-    pngs = sorted((tmp_path / "demo").glob("*.png"))
-    assert len(pngs) == 6 and all(p.with_suffix(".json").is_file() for p in pngs)
-
-
 @pytest.mark.parametrize("kind, words", [
     ("2d", "2-D"),
     ("nan", "NaN"),
