@@ -15,11 +15,11 @@ virtual patients, 64 x 64 px, 4 subjects per batch) of three kinds, measured in 
 
 Columns: median seconds per batch of rendering (``OnlinePairs.batch``), of one optimiser step
 of the tiny network (forward, backward, Adam) and of both, pairs per second of both, and the
-ratio of the line rate to each. Batches are new draws each time (batch indices 1.. after an
-untimed batch 0, which loads the subjects, builds the renderers and runs spekpy once per kV
-the batch needs; the first batches of a training run pay for the remaining kVs and tool
-arrangements, a few seconds each, once). The pairs are the network's input after the training
-preprocessing (``normalize``).
+ratio of the line rate to each. Batches are new draws each time (batch indices 1..); every
+one-off cost is paid before the timing (each subject's CT, virtual patient and renderers, and for
+realistic pairs every spectrum model and tool arrangement: about a minute in all, which a
+training run pays once, spread over its first few hundred batches). The pairs are the network's
+input after the training preprocessing (``normalize``).
 """
 
 from __future__ import annotations
@@ -28,7 +28,10 @@ import argparse
 import statistics
 import sys
 import time
+from dataclasses import replace
 from pathlib import Path
+
+import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -45,6 +48,30 @@ def _source(kind: str):
     randomization = None if table is None else DomainRandomization.from_table(table)
     return OnlinePairs(cfg, "train", near=NearPairs(), transform=build(["normalize"]), seed=0,
                        subjects_per_batch=4, randomization=randomization)
+
+
+def _warm(source) -> None:
+    """Pay every one-off cost before timing: each subject's CT, virtual patient and renderers, and
+    for realistic pairs every spectrum model (kV x filtration) and tool arrangement."""
+    import itertools
+
+    from sim.randomize import TOOL_BANK_SIZE
+
+    for u in range(len(source.subjects)):
+        source.context(u)
+        if source.realistic is not None:
+            source.density_renderer(u)
+    rt = source.realistic
+    if rt is not None:
+        by = rt.randomization.by_name
+        kvs = np.arange(by["kvp"].low, by["kvp"].high + 1e-9, by["kvp"].step)
+        als = np.arange(by["al_mm"].low, by["al_mm"].high + 1e-9, by["al_mm"].step)
+        for kv, al, cu in itertools.product(kvs, als, by["cu_mm"].choices):
+            filters = (("Al", float(al)),) + ((("Cu", float(cu)),) if cu > 0 else ())
+            rt._model(replace(rt.base, kvp=float(kv), filters=filters))
+        for j in range(TOOL_BANK_SIZE):
+            rt.bank.arrangement(j)
+    source.batch(0, 4)
 
 
 def main(argv=None) -> int:
@@ -64,7 +91,7 @@ def main(argv=None) -> int:
     rows = []
     for kind in ("line", "realistic", "realistic, no tools"):
         source = _source(kind)
-        source.batch(0, args.batch_size)  # warm-up: subjects, renderers, spectra
+        _warm(source)
         render, step = [], []
         for k in range(1, args.batches + 1):
             t0 = time.perf_counter()

@@ -35,8 +35,8 @@ from sim.cliargs import IMAGE_SIDE_PX, Range, opt
 __all__ = ["DemoCommand", "run_demo", "DEMO_POSE", "DEMO_FILES", "default_ct"]
 
 #: The demo X-ray's pose (phi, theta, psi deg, tx, ty, tz mm; docs/conventions.md): an oblique
-#: view well outside the reach of an intensity-based search started at AP.
-DEMO_POSE = (24.0, -12.0, 8.0, 30.0, -25.0, 20.0)
+#: view 25 deg and 23 mm from AP that keeps the whole pelvis in the CT (and its screw) in view.
+DEMO_POSE = (-22.0, 10.0, -6.0, -15.0, 12.0, 15.0)
 
 #: What ``ctxreg demo`` writes besides the registration's own files.
 DEMO_FILES = ("xray.dcm", "demo.json")
@@ -154,7 +154,7 @@ def run_demo(cmd: DemoCommand) -> list[Path]:
     visited = [pose_from_params(p, g.sod_mm) for p in traj["params"]] if traj is not None else []
     captions = [f"error: {e['rot_err_deg']:.1f} deg, {e['trans_err_mm']:.0f} mm, mTRE {e['mtre_mm']:.0f} mm"
                 for e in map(err, visited)]
-    written = outcome.write(out, trajectory_errors=captions)
+    outcome.write(out, trajectory_errors=captions)
     rows = {"start (AP)": err(pose_from_params(np.zeros(6), g.sod_mm))}
     if visited:
         rows["after the network"] = err(visited[-1])
