@@ -112,8 +112,8 @@ def _crop_resize(image: np.ndarray, box: tuple[int, int, int, int], shape: tuple
 
 
 def prepare_like_registration(display: np.ndarray, field: np.ndarray, current: np.ndarray, *, log_display: bool,
-                              bone_dark: bool, low_pct: float = 1.0, high_pct: float = 99.0,
-                              i0_pct: float = 99.5) -> tuple[np.ndarray, np.ndarray]:
+                              bone_dark: bool, raw_intensity: bool = False, low_pct: float = 1.0,
+                              high_pct: float = 99.0, i0_pct: float = 99.5) -> tuple[np.ndarray, np.ndarray]:
     """A displayed X-ray and the pair's current image as the network meets them in registration.
 
     ``display`` ``(H, W)`` (the display chain's integers), ``field`` ``(H, W)`` bool (the
@@ -123,10 +123,14 @@ def prepare_like_registration(display: np.ndarray, field: np.ndarray, current: n
     ``register.contextual`` with registration's decisions taken from the truth (the field, log or
     linear, the polarity):
 
-    1. bone bright and line-integral-like: a log display shown bone dark is inverted (``max + min
-       - x`` over the field); a linear display is made intensity-like (inverted where shown bone
-       bright) and log-corrected, ``-ln(max(x, 1e-6 I0) / I0)`` with ``I0`` its ``i0_pct``
-       percentile over the field (``register.preprocess.LogCorrect``);
+    1. bone bright: a display shown bone dark is inverted (``max + min - x`` over the field), log
+       or linear alike. Registration's intensity step decides the same for display-processed
+       frames: it inverts a bone-dark frame and does not log-correct a windowed linear display
+       (measured on 12-bit DICOM frames of the pelvis, 110 kV, gamma 1.2: steps ``[]`` for
+       linear bone-bright, ``["invert"]`` for linear bone-dark). ``log_display`` is kept for the
+       record and for callers that log-correct raw intensity (``raw_intensity=True``:
+       ``-ln(max(x, 1e-6 I0) / I0)`` with ``I0`` the ``i0_pct`` percentile over the field, as
+       ``register.preprocess.LogCorrect``);
     2. both images cropped to the field's bounding box and resampled to ``(H, W)`` (registration
        crops the X-ray to its field and renders the moving images for the cropped detector; the
        predictor resamples both to the network's size);
@@ -140,13 +144,16 @@ def prepare_like_registration(display: np.ndarray, field: np.ndarray, current: n
     m = np.asarray(field, bool)
     if not m.any():
         raise OnlinePairsError("prepare_like_registration: the field holds no pixel")
-    if log_display == bone_dark:  # a log image shown bone dark, a linear one shown bone bright
-        v = x[m]
-        x = (v.max() + v.min()) - x
-    if not log_display:
+    if raw_intensity and not log_display:  # transmitted intensity (bone dark): log-correct, bone bright
+        if not bone_dark:
+            v = x[m]
+            x = (v.max() + v.min()) - x
         i0 = float(np.percentile(x[m], i0_pct))
         i0 = i0 if i0 > 0 else 1.0
         x = -np.log(np.maximum(x, 1e-6 * i0) / i0)
+    elif bone_dark:
+        v = x[m]
+        x = (v.max() + v.min()) - x
     rows, cols = np.flatnonzero(m.any(axis=1)), np.flatnonzero(m.any(axis=0))
     box = (int(rows[0]), int(rows[-1]) + 1, int(cols[0]), int(cols[-1]) + 1)
     x = _crop_resize(x, box, (h, w), "bilinear")
