@@ -50,6 +50,7 @@ TYPE_CASES = [
     ("cache_features", '"true"', "true or false, got the string 'true'"),
     ("seed", "true", "an integer, got true (a boolean)"),
     ("init_from", "false", "a string, got false (a boolean)"),
+    ("randomize", "3", "a table, got the integer 3"),
 ]
 
 
