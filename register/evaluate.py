@@ -138,6 +138,7 @@ def summarize(rows: list[dict], settings: EvaluationSettings) -> dict:
         stats["success_rot"] = float(np.mean([r["rot_err_deg"] < settings.success_rot_deg for r in sel]))
         stats["success"] = float(np.mean([r["success"] for r in sel]))
         stats["cases"] = len(sel)
+        stats["refused"] = sum(1 for r in sel if r.get("refused"))  # frames the registration refused (study)
         out[method] = stats
     return out
 

@@ -42,7 +42,9 @@ Target kinds:
 * ``"xray"``: full-physics detector signal, then a :class:`sim.physics.display.Collimator` and a
   :class:`sim.physics.display.DisplayChain`, written as 12-bit DICOM with geometry tags and
   registered through :func:`register.api.register_xray` with its default preprocessing, as
-  ``ctxreg register`` would.
+  ``ctxreg register`` would. A frame that registration refuses (its one-line input error, e.g.
+  no valid pixel left after the field detection) is a failed case, scored at its start pose,
+  with the message in ``cases.csv`` (column ``refused``).
 
 Outputs in ``--out``: ``variants/<name>/`` (the training run: ``train.toml``, ``checkpoint.pt``,
 ``log.csv``), ``results/<variant>/<target>/summary.json`` (and ``cases.csv``), ``table.md``,
@@ -417,16 +419,21 @@ def _evaluate_xray(study: Study, target: Target, volume, center, predictor, fold
         P_true = imager.renderer.projection_matrix(T_true)
         for method in study.methods:
             t0 = time.perf_counter()
-            res = register_xray(volume, path, method=method, model=predictor, init=start, center=center,
-                                size=study.size, physics=_moving(study) or "line")
+            try:
+                res = register_xray(volume, path, method=method, model=predictor, init=start, center=center,
+                                    size=study.size, physics=_moving(study) or "line")
+                pose, similarity, refused = res.pose, res.similarity, ""
+            except InputError as e:  # the frame itself refused (e.g. no valid pixel left): a failed case
+                pose = pose_from_params(np.asarray(start, float), g.sod_mm)  # the user keeps the start pose
+                similarity, refused = float("nan"), str(e)
             elapsed = time.perf_counter() - t0
-            err = pose_errors(res.pose, T_true, points, center, P_true, P_true, g.pixel_spacing_mm)
+            err = pose_errors(pose, T_true, points, center, P_true, P_true, g.pixel_spacing_mm)
             rows.append({"case": i, "method": method, "start": study.start, **err,
-                         "success": err["mtre_mm"] < settings.success_mtre_mm
+                         "success": not refused and err["mtre_mm"] < settings.success_mtre_mm
                          and err["rot_err_deg"] < settings.success_rot_deg,
-                         "time_s": elapsed, "similarity": res.similarity})
-            log(f"  case {i + 1}/{settings.cases} {method}: rotation {err['rot_err_deg']:.2f} deg, mTRE "
-                f"{err['mtre_mm']:.1f} mm, {elapsed:.1f} s")
+                         "time_s": elapsed, "similarity": similarity, "refused": refused})
+            log(f"  case {i + 1}/{settings.cases} {method}: " + (f"refused ({refused})" if refused else
+                f"rotation {err['rot_err_deg']:.2f} deg, mTRE {err['mtre_mm']:.1f} mm") + f", {elapsed:.1f} s")
             bar.update(1)
     summary = summarize(rows, settings)
     write_csv(folder / "cases.csv", rows)

@@ -57,7 +57,7 @@ display = {{ log = true, polarity = "bone-dark", gamma = 0.8, bits = 12, shutter
 
 
 @pytest.mark.slow
-def test_a_tiny_study_runs_end_to_end_and_resumes(tmp_path, capsys):
+def test_a_tiny_study_runs_end_to_end_and_resumes(tmp_path, capsys, monkeypatch):
     from register.cli import main
 
     study, out = tmp_path / "s.toml", tmp_path / "o"
@@ -86,6 +86,24 @@ def test_a_tiny_study_runs_end_to_end_and_resumes(tmp_path, capsys):
         for err in ("rot_err_deg", "mtre_mm"):
             assert again["tiny"][target]["contextual"][err]["mean"] == pytest.approx(
                 first["tiny"][target]["contextual"][err]["mean"], rel=1e-9)
+
+    # a frame the registration refuses (its one-line input error) is a failed case, not a failed study
+    import register.api
+    from sim.errors import InputError
+
+    def refuse(*args, **kwargs):
+        raise InputError("the valid pixels cover only 0.0 % of the image")
+
+    (out / "results" / "tiny" / "fluoro" / "summary.json").unlink()
+    monkeypatch.setattr(register.api, "register_xray", refuse)
+    assert main(["study", str(study), "--out", str(out), "--only", "tiny"]) == 0
+    refused = json.loads((out / "results" / "tiny" / "fluoro" / "summary.json").read_text())["summary"]["contextual"]
+    assert refused["refused"] == 2 and refused["success"] == 0.0
+    assert "refused (the valid pixels cover only" in capsys.readouterr().out
+    monkeypatch.undo()
+    (out / "results" / "tiny" / "fluoro" / "summary.json").unlink()
+    assert main(["study", str(study), "--out", str(out), "--only", "tiny"]) == 0
+    capsys.readouterr()
 
     # changed settings are refused, naming the key; an added target is welcome
     study.write_text(TINY.replace("cases = 2", "cases = 3"))
