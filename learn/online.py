@@ -25,7 +25,8 @@ X-ray as a C-arm would deliver it, drawn per pair by :mod:`sim.randomize` (tube,
 exposure, blur, kernel scatter, tools, collimator, display chain, bit depth), then made ready
 as registration makes a user's X-ray ready (:func:`prepare_like_registration`): bone bright,
 cropped to the collimated field (the current image with it, as registration renders its moving
-images for the cropped detector), normalised over the field, the outside filled neutrally.
+images for the cropped detector), normalised over the field, the outside filled neutrally. A
+draw with ``ideal`` true gets the plain line DRR of the current images' physics as its target.
 """
 
 from __future__ import annotations
@@ -389,8 +390,16 @@ class OnlinePairs:
                 rows = np.flatnonzero(subject == u)
                 L = self.density_renderer(int(u)).render(T_a[rows])
                 current = render(self.current_entry, u, T_b[rows], (1,))
+                ideal = None
                 for j, i in enumerate(rows):
-                    display, field, draw = self.realistic.image(L[j], int(k) * MAX_BATCH + int(i))
+                    index = int(k) * MAX_BATCH + int(i)
+                    if self.realistic.randomization.draw(self.seed, index)["ideal"]:
+                        if ideal is None:  # the current entry's line DRRs of these targets
+                            ideal = render(self.current_entry, u, T_a[rows], (2,))
+                        images[0, i], images[1, i] = prepare_like_registration(
+                            ideal[j], np.ones(ideal[j].shape, bool), current[j], log_display=True, bone_dark=False)
+                        continue
+                    display, field, draw = self.realistic.image(L[j], index)
                     images[0, i], images[1, i] = prepare_like_registration(
                         display, field, current[j], log_display=bool(draw["log"]),
                         bone_dark=draw["polarity"] == "bone-dark")
