@@ -54,7 +54,10 @@ def test_every_setting_is_drawn_inside_its_range_and_covers_it(rec, draws):
             assert abs(t.mean() - (lo + hi) / 2) < 5 * (hi - lo) / math.sqrt(12 * N_DRAWS)
     elif rec.dist == "bernoulli":
         assert all(isinstance(x, bool) for x in values)
-        assert abs(np.mean(values) - rec.p) < 5 * math.sqrt(rec.p * (1 - rec.p) / N_DRAWS)
+        if rec.p in (0.0, 1.0):  # a setting off (or on) by default: never drawn otherwise
+            assert all(x == bool(rec.p) for x in values)
+        else:
+            assert abs(np.mean(values) - rec.p) < 5 * math.sqrt(rec.p * (1 - rec.p) / N_DRAWS)
     else:
         assert set(values) <= set(rec.choices)
         for c, q in zip(rec.choices, rec.probs):
