@@ -148,8 +148,9 @@ class XRayRegistration:
     def write(self, out: str | Path, *, trajectory_errors: list[str] | None = None) -> list[Path]:
         """Write into the folder ``out`` (checked first: :func:`sim.outputs.check_output_dir`):
         ``trajectory.npz``, ``trajectory.png`` and ``trajectory.gif`` (contextual methods: the
-        iteration's DRRs beside the X-ray; ``trajectory_errors``, one caption per iteration, e.g.
-        the error against a known truth), ``overlay.png`` (DRR edges
+        iteration's DRRs beside the X-ray, then for contextual+cmaes the refined pose's;
+        ``trajectory_errors``, one caption per frame, e.g. the error against a known truth),
+        ``overlay.png`` (DRR edges
         and the field outline over the X-ray at its full resolution), ``checkerboard.png``,
         ``convergence.png`` and ``result.json`` (:meth:`to_dict`), each atomically. Returns the paths."""
         from register.plots import checkerboard_png, convergence_plot, overlay_png
@@ -170,8 +171,17 @@ class XRayRegistration:
                                         drrs=result.trajectory["drrs"].astype(np.float32),
                                         xray=image.astype(np.float32))
             trajectory_figure(image, result.trajectory["drrs"], result.trajectory["params"], out / "trajectory.png")
-            trajectory_gif(image, result.trajectory["drrs"], result.trajectory["params"], out / "trajectory.gif",
-                           errors=trajectory_errors)
+            drrs = list(result.trajectory["drrs"])
+            params = list(result.trajectory["params"][:len(drrs)])
+            labels = [f"iteration {i}" for i in range(len(drrs))]
+            if self.method == "contextual+cmaes":  # the refined pose as the last frame
+                g = self.geometry
+                drrs.append(DRRRenderer(self.volume, RenderSettings(size=(g.height, g.width)), center_lps=self.center_lps,
+                                        geometry=g).render(result.pose)[0])
+                params.append(result.params)
+                labels.append("final (CMA-ES)")
+            trajectory_gif(image, np.array(drrs), np.array(params), out / "trajectory.gif", errors=trajectory_errors,
+                           labels=labels)
             written = [out / "trajectory.npz", out / "trajectory.png", out / "trajectory.gif"]
         # figures at the X-ray's own resolution: a line DRR with the X-ray's full geometry (its
         # edges are those of any physics level)

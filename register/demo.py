@@ -152,8 +152,9 @@ def run_demo(cmd: DemoCommand) -> list[Path]:
 
     traj = outcome.result.trajectory
     visited = [pose_from_params(p, g.sod_mm) for p in traj["params"]] if traj is not None else []
+    frames = visited[:len(traj["drrs"])] + [outcome.pose] if traj is not None else []  # as the GIF's frames
     captions = [f"error: {e['rot_err_deg']:.1f} deg, {e['trans_err_mm']:.0f} mm, mTRE {e['mtre_mm']:.0f} mm"
-                for e in map(err, visited)]
+                for e in map(err, frames)]
     outcome.write(out, trajectory_errors=captions)
     rows = {"start (AP)": err(pose_from_params(np.zeros(6), g.sod_mm))}
     if visited:

@@ -140,10 +140,12 @@ def trajectory_figure(xray: np.ndarray, drrs: np.ndarray, params: np.ndarray, pa
 
 
 def trajectory_gif(xray: np.ndarray, drrs: np.ndarray, params: np.ndarray, path: str | Path, *,
-                   errors: list[str] | None = None, scale: int = 2, frame_ms: int = 250) -> None:
+                   errors: list[str] | None = None, labels: list[str] | None = None, scale: int = 2,
+                   frame_ms: int = 250) -> None:
     """An animated GIF of the contextual iteration: each frame the X-ray (left) beside the DRR of
     that iteration (right), the DRR's strongest edges in red over the X-ray, and a caption with the
-    iteration, its pose and, when given, ``errors[i]`` (e.g. its error against the truth).
+    iteration (or ``labels[i]``), its pose and, when given, ``errors[i]`` (e.g. its error against
+    the truth).
 
     ``xray`` ``(H, W)``; ``drrs`` ``(K, H, W)``; ``params`` ``(>= K, 6)`` (deg, mm); ``scale``
     pixels per image pixel; the last frame is held for 2 s. Written atomically (Pillow)."""
@@ -167,7 +169,8 @@ def trajectory_gif(xray: np.ndarray, drrs: np.ndarray, params: np.ndarray, path:
         frame = Image.new("RGB", (img.width, img.height + caption), "black")
         frame.paste(img, (0, caption))
         p = params[i]
-        text = f"iteration {i}: {p[0]:.0f} {p[1]:.0f} {p[2]:.0f} deg, {p[3]:.0f} {p[4]:.0f} {p[5]:.0f} mm"
+        name = labels[i] if labels is not None and i < len(labels) else f"iteration {i}"
+        text = f"{name}: {p[0]:.0f} {p[1]:.0f} {p[2]:.0f} deg, {p[3]:.0f} {p[4]:.0f} {p[5]:.0f} mm"
         draw = ImageDraw.Draw(frame)
         draw.text((4, 2), text, fill="white")
         if errors is not None and i < len(errors):
