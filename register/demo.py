@@ -175,7 +175,7 @@ def run_demo(cmd: DemoCommand) -> list[Path]:
         "success_mtre_mm": 10.0, "registered": final["mtre_mm"] < 10.0,
         "xray": {"physics": "full", "kvp": physics.kvp, "mas": physics.mas, "grid_ratio": physics.grid_ratio,
                  "collimator": "circle r 0.46", "display": "log, bone dark, gamma 0.8, unsharp, 12 bits"}})
-    print("\n".join(["", f"ctxreg demo: {verdict} (mTRE {final['mtre_mm']:.1f} mm; success < 10 mm)", "",
-                     *table, "", *times, "", f"outputs in {out}: overlay.png, checkerboard.png, trajectory.gif, "
-                     "convergence.png, result.json, demo.json"]))
+    print("\n".join(["", *times, "", f"outputs in {out}: xray.dcm, overlay.png, checkerboard.png, trajectory.gif, "
+                     "convergence.png, result.json, demo.json", "",
+                     f"ctxreg demo: {verdict} (mTRE {final['mtre_mm']:.1f} mm; success < 10 mm)", "", *table]))
     return []  # the outputs are listed above: the error table stays the last thing printed
