@@ -247,6 +247,9 @@ class StudyCommand:
     only: tuple[str, ...] | None = field(default=None, metadata=opt(
         "train and evaluate only these variants (by name), e.g. one per process in parallel; the table keeps "
         "the other variants' finished results", group="protocol", nargs="+", metavar="VARIANT"))
+    targets: tuple[str, ...] | None = field(default=None, metadata=opt(
+        "evaluate only these target domains (by name), e.g. one per process in parallel; the table keeps the "
+        "others' finished results", group="protocol", nargs="+", metavar="TARGET"))
 
 
 def run_study(cmd: StudyCommand) -> list[Path]:
@@ -255,6 +258,6 @@ def run_study(cmd: StudyCommand) -> list[Path]:
     from register.study import run_study as run
 
     study = load_study(cmd.study)
-    run(study, cmd.out, only=cmd.only)
+    run(study, cmd.out, only=cmd.only, targets=cmd.targets)
     return [Path(cmd.out) / name for name in STUDY_FILES]
 

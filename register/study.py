@@ -442,12 +442,13 @@ def _evaluate_xray(study: Study, target: Target, volume, center, predictor, fold
 
 
 def run_study(study: Study, out: str | Path, *, log: Callable[[str], None] = print,
-              only: tuple[str, ...] | None = None) -> dict:
+              only: tuple[str, ...] | None = None, targets: tuple[str, ...] | None = None) -> dict:
     """Run (or continue) ``study`` into ``out``; returns ``{variant: {target: summary}}``.
 
     ``only``: variant names to train and evaluate (default all); the others contribute the
     evaluations they have finished (a summary on disk) and are not trained or evaluated, so
-    processes with disjoint ``only`` can share one output folder."""
+    processes with disjoint ``only`` can share one output folder. ``targets``: the same for target
+    domains (the others' finished evaluations are kept, unfinished ones skipped)."""
     from learn.predict import NetworkPredictor
     from sim.anatomy import anatomy_center
     from sim.atomic import atomic_path, write_json
@@ -461,6 +462,10 @@ def run_study(study: Study, out: str | Path, *, log: Callable[[str], None] = pri
     unknown = sorted(set(only or ()) - set(names))
     if unknown:
         raise StudyError(f"--only {' '.join(unknown)}: not a variant of the study (it has {', '.join(names)})")
+    target_names = [t.name for t in study.targets]
+    unknown = sorted(set(targets or ()) - set(target_names))
+    if unknown:
+        raise StudyError(f"--targets {' '.join(unknown)}: not a target of the study (it has {', '.join(target_names)})")
     volume = load_ct_spec(study.ct)
     center = anatomy_center(volume)
     results: dict[str, dict[str, dict]] = {}
@@ -485,6 +490,8 @@ def run_study(study: Study, out: str | Path, *, log: Callable[[str], None] = pri
             if summary_file.is_file():
                 results[variant.name][target.name] = json.loads(summary_file.read_text())["summary"]
                 log(f"{variant.name} on {target.name}: evaluated, kept")
+            elif targets is not None and target.name not in targets:
+                log(f"{variant.name} on {target.name}: not in --targets, skipped")
             else:
                 predictor = predictor or NetworkPredictor(ckpt)
                 log(f"{variant.name} on {target.name}: {study.cases_of(target)} cases ({target.kind})")

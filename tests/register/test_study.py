@@ -177,3 +177,14 @@ def test_a_missing_study_file_is_named(tmp_path):
 def test_the_shipped_study_files_load(path):
     study = load_study(path)
     assert study.variants and study.targets
+
+
+@pytest.mark.parametrize("kw, words", [({"only": ("nope",)}, "--only nope: not a variant of the study"),
+                                       ({"targets": ("nope",)}, "--targets nope: not a target of the study")])
+def test_unknown_variant_or_target_filters_are_named(tmp_path, kw, words):
+    from register.study import run_study
+
+    path = tmp_path / "s.toml"
+    path.write_text(TINY)
+    with pytest.raises(StudyError, match=words):
+        run_study(load_study(path), tmp_path / "o", log=lambda s: None, **kw)
