@@ -31,15 +31,9 @@ def oracle(truth_T):
     return predict, state
 
 
-def test_oracle_iteration_reaches_the_truth_from_ap(phantom):
-    from sim.geometry import pose_from_params
-    from sim.se3 import rotation_error_deg, translation_error_mm
-
-    vol, c = phantom
-    truth = np.array([35.0, -15.0, 12.0, 60.0, -40.0, 50.0])
-    reg = ContextualRegistration(vol, None, ContextualSettings(), size=(32, 32), center_lps=c)
-    T_true = pose_from_params(truth, reg.geometry.sod_mm)
-    predict, state = oracle(T_true)
+def use_oracle(reg, truth_T) -> None:
+    """Give ``reg`` the oracle predictor of ``truth_T``: its renderer remembers the pose it renders."""
+    predict, state = oracle(truth_T)
     real_render = reg.renderer.render
 
     def render_and_remember(T):
@@ -48,6 +42,17 @@ def test_oracle_iteration_reaches_the_truth_from_ap(phantom):
 
     reg.renderer.render = render_and_remember
     reg.predictor = predict
+
+
+def test_oracle_iteration_reaches_the_truth_from_ap(phantom):
+    from sim.geometry import pose_from_params
+    from sim.se3 import rotation_error_deg, translation_error_mm
+
+    vol, c = phantom
+    truth = np.array([35.0, -15.0, 12.0, 60.0, -40.0, 50.0])
+    reg = ContextualRegistration(vol, None, ContextualSettings(), size=(32, 32), center_lps=c)
+    T_true = pose_from_params(truth, reg.geometry.sod_mm)
+    use_oracle(reg, T_true)
     result = reg.register(np.zeros((32, 32)), np.zeros(6))
     # g = -2 log, so a step of 0.15 g removes 30 % of the remaining log (0.7^n); the stop
     # thresholds on the predicted step (0.05 deg, 0.2 mm) bound the final error by them / 0.3
@@ -97,17 +102,9 @@ def test_a_lost_refinement_falls_back_to_cmaes_from_the_start(phantom):
                                    refine=refine).register(fixed, np.zeros(6))
     assert rotation_error_deg(alone.pose, T_true) > 5.0 and alone.similarity < res.similarity
     # a right network (the oracle) ends found: no fallback
-    predict, state = oracle(T_true)
     good = ContextualRegistration(vol, None, ContextualSettings(), size=size, center_lps=c, refine=refine,
                                   fallback=replace(fallback, restart_below=0.5))
-    real_render = good.renderer.render
-
-    def render_and_remember(T):
-        state["T"] = np.asarray(T).reshape(-1, 4, 4)[0]
-        return real_render(T)
-
-    good.renderer.render = render_and_remember
-    good.predictor = predict
+    use_oracle(good, T_true)
     assert "fallback" not in good.register(fixed, np.zeros(6)).stage_seconds
     with pytest.raises(RegistrationError, match="fallback search needs the refinement"):
         ContextualRegistration(vol, wrong, size=size, center_lps=c, fallback=fallback)
