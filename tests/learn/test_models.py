@@ -96,3 +96,30 @@ def test_ctxreg_models_lists_the_shipped_models(capsys):
     out = capsys.readouterr().out
     for name in shipped_models():
         assert f"| {name}" in out
+
+
+class _Payload:
+    """An object a model file could smuggle in: loading must not build it."""
+
+    def __reduce__(self):
+        return (print, ("this ran",))
+
+
+def test_a_model_folder_whose_weights_pickle_an_object_is_refused_by_name(tmp_path, capsys):
+    from learn.models import resolve_model
+    from learn.predict import NetworkPredictor
+
+    src, _ = _trained(tmp_path)
+    export_model(src, tmp_path / "models" / "bad", name="bad", description="x", training={"command": "c"},
+                 accuracy={"command": "e"})
+    weights = tmp_path / "models" / "bad" / "model.pt"
+    state = torch.load(weights, weights_only=True)
+    state["extra"] = _Payload()
+    torch.save(state, weights)
+    with pytest.raises(ModelCardError, match="sha256 does not match"):  # the card notices first
+        resolve_model("bad", tmp_path / "models")
+    from learn.checkpoint import CheckpointError
+
+    with pytest.raises(CheckpointError, match="contains objects other than tensors and plain data"):
+        NetworkPredictor(str(weights))  # the file itself, card or not
+    assert "this ran" not in capsys.readouterr().out
