@@ -35,8 +35,8 @@ COMMANDS = {
                "learn.commands:run_models"),
     "study": (StudyCommand, "train network variants and evaluate each on several target domains (resumable)",
               "register.commands:run_study"),
-    "demo": (DemoCommand, "simulate a realistic X-ray of the pelvis CT far from AP, register it from AP with the "
-                          "shipped model, and show the error against the truth", "register.demo:run_demo"),
+    "demo": (DemoCommand, "register a simulated realistic X-ray of the pelvis from AP; show the error",
+             "register.demo:run_demo"),
 }
 
 
