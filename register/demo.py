@@ -91,17 +91,11 @@ class _Stages:
               flush=True)
 
 
-def _errors(T, T_true, points, center, P, P_true, spacing) -> dict:
-    from register.evaluate import pose_errors
-
-    return pose_errors(T, T_true, points, center, P, P_true, spacing)
-
-
 def run_demo(cmd: DemoCommand) -> list[Path]:
     """Simulate, register, write and report (module doc)."""
     from learn.models import resolve_model
     from register.api import OUTPUT_FILES, register_xray
-    from register.evaluate import bone_points
+    from register.evaluate import bone_points, pose_errors
     from register.xray_io import write_xray_dicom
     from sim.anatomy import anatomy_center
     from sim.atomic import write_json
@@ -148,7 +142,7 @@ def run_demo(cmd: DemoCommand) -> list[Path]:
     P_true = imager.renderer.projection_matrix(T_true)
 
     def err(T) -> dict:
-        return _errors(T, T_true, points, center, imager.renderer.projection_matrix(T), P_true, g.pixel_spacing_mm)
+        return pose_errors(T, T_true, points, center, imager.renderer.projection_matrix(T), P_true, g.pixel_spacing_mm)
 
     traj = outcome.result.trajectory
     visited = [pose_from_params(p, g.sod_mm) for p in traj["params"]] if traj is not None else []

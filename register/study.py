@@ -42,8 +42,8 @@ Target kinds:
 * ``"xray"``: full-physics detector signal, then a :class:`sim.physics.display.Collimator` and a
   :class:`sim.physics.display.DisplayChain`, written as 12-bit DICOM with geometry tags and
   registered through :func:`register.api.register_xray` with its default preprocessing, as
-  ``ctxreg register`` would. A frame that registration refuses (its one-line input error, e.g.
-  no valid pixel left after the field detection) is a failed case, scored at its start pose,
+  ``ctxreg register`` would. A frame whose content registration refuses (a field, preprocessing
+  or intensity error, e.g. no valid pixel left after the field detection) is a failed case, scored at its start pose,
   with the message in ``cases.csv`` (column ``refused``).
 
 Outputs in ``--out``: ``variants/<name>/`` (the training run: ``train.toml``, ``checkpoint.pt``,
@@ -388,6 +388,13 @@ def _evaluate_xray(study: Study, target: Target, volume, center, predictor, fold
     """Realistic frames through :func:`register.api.register_xray`, scored like the evaluation."""
     from register.api import register_xray
     from register.evaluate import EvaluationSettings, bone_points, pose_errors, sample_cases, summarize
+    from register.field import FieldError
+    from register.intensity import IntensityError
+    from register.preprocess import PreprocessError
+
+    # what a frame's own content can make registration refuse; anything else (a bad setting, a bug)
+    # stops the study as it should
+    FRAME_REFUSALS = (FieldError, PreprocessError, IntensityError)
     from register.xray_io import write_xray_dicom
     from sim.atomic import write_csv, write_json
     from sim.geometry import pose_from_params
@@ -423,7 +430,7 @@ def _evaluate_xray(study: Study, target: Target, volume, center, predictor, fold
                 res = register_xray(volume, path, method=method, model=predictor, init=start, center=center,
                                     size=study.size, physics=_moving(study) or "line")
                 pose, similarity, refused = res.pose, res.similarity, ""
-            except InputError as e:  # the frame itself refused (e.g. no valid pixel left): a failed case
+            except FRAME_REFUSALS as e:  # the frame's content refused (e.g. no valid pixel left): a failed case
                 pose = pose_from_params(np.asarray(start, float), g.sod_mm)  # the user keeps the start pose
                 similarity, refused = float("nan"), str(e)
             elapsed = time.perf_counter() - t0

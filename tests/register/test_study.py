@@ -89,10 +89,11 @@ def test_a_tiny_study_runs_end_to_end_and_resumes(tmp_path, capsys, monkeypatch)
 
     # a frame the registration refuses (its one-line input error) is a failed case, not a failed study
     import register.api
+    from register.field import FieldError
     from sim.errors import InputError
 
     def refuse(*args, **kwargs):
-        raise InputError("the valid pixels cover only 0.0 % of the image")
+        raise FieldError("the valid pixels cover only 0.0 % of the image")
 
     (out / "results" / "tiny" / "fluoro" / "summary.json").unlink()
     monkeypatch.setattr(register.api, "register_xray", refuse)
@@ -100,8 +101,16 @@ def test_a_tiny_study_runs_end_to_end_and_resumes(tmp_path, capsys, monkeypatch)
     refused = json.loads((out / "results" / "tiny" / "fluoro" / "summary.json").read_text())["summary"]["contextual"]
     assert refused["refused"] == 2 and refused["success"] == 0.0
     assert "refused (the valid pixels cover only" in capsys.readouterr().out
-    monkeypatch.undo()
+    # any other error (a bad setting, not the frame) still stops the study with its one line
     (out / "results" / "tiny" / "fluoro" / "summary.json").unlink()
+
+    def bad_setting(*args, **kwargs):
+        raise InputError("--size: a bad setting")
+
+    monkeypatch.setattr(register.api, "register_xray", bad_setting)
+    assert main(["study", str(study), "--out", str(out), "--only", "tiny"]) == 2
+    assert "--size: a bad setting" in capsys.readouterr().err
+    monkeypatch.undo()
     assert main(["study", str(study), "--out", str(out), "--only", "tiny"]) == 0
     capsys.readouterr()
 
