@@ -99,6 +99,12 @@ TOOL_MATERIALS = ("titanium", "stainless_steel", "carbon", "copper", "pvc")
 #: Pair ``i`` of batch ``k`` is randomization index ``k * MAX_BATCH + i``.
 MAX_BATCH = 1 << 16
 
+#: What the network sees of a pair's current image outside the target's collimated field:
+#: ``"masked"`` (filled with the field's mean, as the target: the edge is the same in both images)
+#: or ``"open"`` (the whole current image: the anatomy around the field gives the context a
+#: partial view lacks). A checkpoint records it (``config.current_field``); registration follows it.
+CURRENT_FIELDS = ("masked", "open")
+
 
 def _crop_resize(image: np.ndarray, box: tuple[int, int, int, int], shape: tuple[int, int], mode: str) -> np.ndarray:
     """``image[r0:r1, c0:c1]`` resampled to ``shape`` (``bilinear`` or ``nearest``), float64."""
@@ -114,7 +120,8 @@ def _crop_resize(image: np.ndarray, box: tuple[int, int, int, int], shape: tuple
 
 def prepare_like_registration(display: np.ndarray, field: np.ndarray, current: np.ndarray, *, log_display: bool,
                               bone_dark: bool, raw_intensity: bool = False, low_pct: float = 1.0,
-                              high_pct: float = 99.0, i0_pct: float = 99.5) -> tuple[np.ndarray, np.ndarray]:
+                              high_pct: float = 99.0, i0_pct: float = 99.5, mask_current: bool = True
+                              ) -> tuple[np.ndarray, np.ndarray]:
     """A displayed X-ray and the pair's current image as the network meets them in registration.
 
     ``display`` ``(H, W)`` (the display chain's integers), ``field`` ``(H, W)`` bool (the
@@ -137,8 +144,10 @@ def prepare_like_registration(display: np.ndarray, field: np.ndarray, current: n
        predictor resamples both to the network's size);
     3. the target normalised: the ``low_pct`` / ``high_pct`` percentiles over the field to 0 / 1,
        clipped (``register.preprocess.Normalize``);
-    4. both images' pixels outside the field set to the mean over the field
-       (``register.prepare.masked_fill``).
+    4. the target's pixels outside the field set to the mean over the field
+       (``register.prepare.masked_fill``), and the current image's too unless ``mask_current`` is
+       False (a network trained with ``current_field = "open"`` sees the whole current image:
+       the anatomy around the target's field, :data:`CURRENT_FIELDS`).
     """
     h, w = display.shape
     x = np.asarray(display, np.float64)
@@ -165,7 +174,8 @@ def prepare_like_registration(display: np.ndarray, field: np.ndarray, current: n
     lo, hi = np.percentile(x[m], [low_pct, high_pct])
     x = np.clip((x - lo) / (hi - lo), 0.0, 1.0) if hi > lo else np.zeros_like(x)
     x = np.where(m, x, x[m].mean())
-    cur = np.where(m, cur, cur[m].mean())
+    if mask_current:
+        cur = np.where(m, cur, cur[m].mean())
     return x.astype(np.float32), cur.astype(np.float32)
 
 
@@ -279,7 +289,11 @@ class OnlinePairs:
         randomization: a :class:`sim.randomize.DomainRandomization`: realistic targets
             (:class:`RealisticTargets`, module doc) drawn under ``seed``; the target physics entry
             is then unused (each pair draws its own), the currents are rendered with
-            ``current_physics`` (default: the first entry).
+            ``current_physics`` (default: the first entry). ``ideal`` draws are line DRRs of the
+            target pose collimated as drawn (the field is geometry, not appearance).
+        current_field: with ``randomization``: ``"masked"`` (default) or ``"open"``
+            (:data:`CURRENT_FIELDS`): whether the current image is filled outside the target's
+            field as the target is.
 
     ``batch(k, n)`` returns ``target (n, 1, H, W)``, ``current (n, 1, H, W)`` float32 and the
     normalised label ``(n, 6)`` float32. Subjects are loaded (and virtual patients built) on first
@@ -289,7 +303,10 @@ class OnlinePairs:
     def __init__(self, cfg, split: str, *, near: NearPairs | None = None, transform=None,
                  normalizer: LabelNormalizer | None = None, seed: int = 0, physics: str | None = None,
                  current_physics: str | None = None, subjects_per_batch: int | None = None,
-                 randomization: DomainRandomization | None = None):
+                 randomization: DomainRandomization | None = None, current_field: str = "masked"):
+        if current_field not in CURRENT_FIELDS:
+            raise OnlinePairsError(f"current_field must be one of {CURRENT_FIELDS}, got {current_field!r}")
+        self.current_field = current_field
         self.cfg = cfg
         entries = {p.name: p for p in cfg.physics}
         for key, name in (("physics", physics), ("current_physics", current_physics)):
@@ -386,23 +403,28 @@ class OnlinePairs:
         if self.realistic is not None:
             if n > MAX_BATCH:
                 raise OnlinePairsError(f"batch size must be <= {MAX_BATCH} with realistic targets, got {n}")
+            mask_current = self.current_field == "masked"
             for u in np.unique(subject):
                 rows = np.flatnonzero(subject == u)
-                L = self.density_renderer(int(u)).render(T_a[rows])
+                draws = [self.realistic.randomization.draw(self.seed, int(k) * MAX_BATCH + int(i)) for i in rows]
+                real = [j for j, d in enumerate(draws) if not d["ideal"]]
+                # density integrals for the realistic targets, line DRRs for the ideal ones
+                L = self.density_renderer(int(u)).render(T_a[rows[real]]) if real else None
+                ideal_rows = [j for j, d in enumerate(draws) if d["ideal"]]
+                ideal = render(self.current_entry, u, T_a[rows[ideal_rows]], (2,)) if ideal_rows else None
                 current = render(self.current_entry, u, T_b[rows], (1,))
-                ideal = None
-                for j, i in enumerate(rows):
-                    index = int(k) * MAX_BATCH + int(i)
-                    if self.realistic.randomization.draw(self.seed, index)["ideal"]:
-                        if ideal is None:  # the current entry's line DRRs of these targets
-                            ideal = render(self.current_entry, u, T_a[rows], (2,))
+                for j, (i, draw) in enumerate(zip(rows, draws)):
+                    if draw["ideal"]:  # a line DRR, collimated as drawn: the field is geometry, not appearance
+                        col = draw.collimator(h, w)
+                        field = np.ones((h, w), bool) if col is None else col.mask(h, w)
                         images[0, i], images[1, i] = prepare_like_registration(
-                            ideal[j], np.ones(ideal[j].shape, bool), current[j], log_display=True, bone_dark=False)
+                            ideal[ideal_rows.index(j)], field, current[j], log_display=True, bone_dark=False,
+                            mask_current=mask_current)
                         continue
-                    display, field, draw = self.realistic.image(L[j], index)
+                    display, field, _ = self.realistic.image(L[real.index(j)], int(k) * MAX_BATCH + int(i))
                     images[0, i], images[1, i] = prepare_like_registration(
                         display, field, current[j], log_display=bool(draw["log"]),
-                        bone_dark=draw["polarity"] == "bone-dark")
+                        bone_dark=draw["polarity"] == "bone-dark", mask_current=mask_current)
         for u in () if self.realistic is not None else np.unique(subject):
             rows = np.flatnonzero(subject == u)
             if self.current_entry is self.target_entry:  # one launch for both images of the pairs

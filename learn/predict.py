@@ -45,6 +45,8 @@ class NetworkPredictor:
             "kvp", ...}``), or None when not recorded.
         current_physics: the entry of the training pairs' *current* images (the registration's
             moving images): ``physics`` unless the run set ``train.current_physics``.
+        current_field: ``"masked"`` or ``"open"``: whether the current image is filled outside the
+            X-ray's collimated field before it meets the network (``train.current_field``).
         checkpoint: the loaded :class:`learn.checkpoint.Checkpoint`.
     """
 
@@ -69,6 +71,16 @@ class NetworkPredictor:
         self.size = ckpt.image_size
         self.physics = ckpt.physics
         self.current_physics = ckpt.current_physics or ckpt.physics
+        from learn.online import CURRENT_FIELDS
+
+        field = (ckpt.config or {}).get("current_field", "masked")
+        if field not in CURRENT_FIELDS:
+            from learn.checkpoint import CheckpointError
+
+            raise CheckpointError(f"{ckpt.name}: config.current_field must be one of {CURRENT_FIELDS}, got {field!r}")
+        #: what the network sees of the current image outside the X-ray's field (``"masked"``:
+        #: filled as the X-ray, ``"open"``: all of it), as it was trained (:data:`learn.online.CURRENT_FIELDS`)
+        self.current_field = field
 
     def physics_mismatch(self, physics, *, advice: str = "set --physics to match") -> str | None:
         """A sentence when the moving images' :class:`~sim.physics.imaging.PhysicsSettings` (None =

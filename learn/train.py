@@ -124,6 +124,7 @@ class TrainConfig:
     seed: int = 0
     init_from: str | None = None
     randomize: dict | None = None
+    current_field: str = "masked"
 
     @property
     def online(self) -> bool:
@@ -192,6 +193,14 @@ class TrainConfig:
             if "random_convolution" in steps:
                 raise TrainConfigError("train.cache_features cannot be used with the random step "
                                        "'random_convolution' in train.preprocess (a new draw per pair)")
+        from learn.online import CURRENT_FIELDS
+
+        if self.current_field not in CURRENT_FIELDS:
+            raise TrainConfigError(f"train.current_field must be one of {', '.join(CURRENT_FIELDS)}, got "
+                                   f"{self.current_field!r}")
+        if self.current_field != "masked" and self.randomize is None:
+            raise TrainConfigError("train.current_field = 'open' needs train.randomize (a collimated field is drawn "
+                                   "with the realistic targets)")
         if self.randomize is not None:
             if not self.online:
                 raise TrainConfigError("train.randomize needs pairs rendered on the fly: set train.dataset to a "
@@ -614,7 +623,7 @@ class _OnlineSource:
         val_split = "val" if "val" in splits else "test"
         try:
             kw = {"near": cfg.near(), "transform": transform, "physics": target.name, "current_physics": current.name,
-                  "randomization": cfg.randomization()}
+                  "randomization": cfg.randomization(), "current_field": cfg.current_field}
             self.train = OnlinePairs(campaign, "train", seed=cfg.seed, subjects_per_batch=cfg.subjects_per_batch, **kw)
             self.val = OnlinePairs(campaign, val_split, seed=cfg.seed + 1, **kw)  # all subjects, every batch
         except OnlinePairsError as e:

@@ -85,10 +85,11 @@ class ContextualRegistration:
                  ) -> RegistrationResult:
         """Register ``fixed`` ``(H, W)`` (preprocessed like the DRRs: bone bright) from ``init_params``
         (deg, mm). ``mask`` ``(H, W)`` bool: the valid pixels (collimated field). The predictor then
-        sees both images with the pixels outside the mask filled by the valid pixels' mean
-        (:func:`register.prepare.masked_fill`: no contrast of its own, and the same field edge in
-        both images, so the edge says nothing about the pose); CMA-ES and the final similarity
-        use the valid pixels only."""
+        sees the X-ray with the pixels outside the mask filled by the valid pixels' mean
+        (:func:`register.prepare.masked_fill`: no contrast of its own), and the DRR filled the same
+        way (the same field edge in both images, so the edge says nothing about the pose) unless
+        the predictor's ``current_field`` is ``"open"`` (a network trained to see the anatomy
+        around the field); CMA-ES and the final similarity use the valid pixels only."""
         from learn.labels import apply_update
         from register.prepare import masked_fill
         from sim.geometry import params_from_pose, pose_from_params
@@ -101,6 +102,8 @@ class ContextualRegistration:
                 raise RegistrationError(f"mask: expected a non-empty bool array of shape {fixed.shape}, "
                                         f"got {mask.shape} with {int(mask.sum())} valid pixels")
         net_fixed = masked_fill(fixed, mask)
+        # a network trained on open current images sees the DRR's anatomy around the field too
+        open_current = getattr(self.predictor, "current_field", "masked") == "open"
         T = pose_from_params(np.asarray(init_params, float).reshape(6), self.geometry.sod_mm)
         history, drrs, visited, grads = [], [], [], []
         t0 = time.perf_counter()
@@ -110,7 +113,8 @@ class ContextualRegistration:
             renders += 1
             if s.keep_drrs:
                 drrs.append(drr)
-            g = np.asarray(self.predictor(net_fixed, masked_fill(drr, mask)), float).reshape(6)
+            g = np.asarray(self.predictor(net_fixed, drr if open_current else masked_fill(drr, mask)),
+                           float).reshape(6)
             if not np.all(np.isfinite(g)):
                 raise RegistrationError(f"the predictor returned a non-finite gradient {g.tolist()}")
             params_now = params_from_pose(T, self.geometry.sod_mm)

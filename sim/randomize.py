@@ -433,9 +433,9 @@ DECLARATION: tuple[Randomized, ...] = (
                                 "integrals"),
     _u("tools_pick", "physics", 0.0, 1.0, "which arrangement of the tool bank, and its flip / transpose",
        "fraction of the bank", limits=(0.0, 1.0), when=("tools", (True,))),
-    _b("ideal", "physics", 0.0, "the target is an ideal line-integral DRR instead (no other setting acts): a "
-                                "share of ideal targets keeps a network's accuracy on DRRs while it learns "
-                                "realistic ones"),
+    _b("ideal", "physics", 0.0, "the target is an ideal line-integral DRR instead, collimated as drawn (only the "
+                                "field settings act: the field is geometry, not appearance): a share of ideal "
+                                "targets keeps a network's accuracy on DRRs while it learns realistic ones"),
 )
 
 _DECLARED: dict[str, Randomized] = {r.name: r for r in DECLARATION}

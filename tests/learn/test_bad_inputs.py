@@ -51,6 +51,7 @@ TYPE_CASES = [
     ("seed", "true", "an integer, got true (a boolean)"),
     ("init_from", "false", "a string, got false (a boolean)"),
     ("randomize", "3", "a table, got the integer 3"),
+    ("current_field", "2", "a string, got the integer 2"),
 ]
 
 

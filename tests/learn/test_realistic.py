@@ -148,3 +148,52 @@ def test_train_config_checks_the_randomize_table(tmp_path):
         TrainConfig(dataset=str(tmp_path), randomize={"scatter": ["none"]})
     with pytest.raises(TrainConfigError, match="train.randomize must be a table"):
         TrainConfig(dataset=campaign, randomize=[1, 2])
+
+
+def test_an_open_current_keeps_the_anatomy_around_the_field():
+    L = _line_image(64, 64)
+    yy, xx = np.mgrid[0:64, 0:64]
+    disc = (yy - 32) ** 2 + (xx - 32) ** 2 < 20 ** 2  # bounding box 39 x 39: a crop of the whole disc
+    display = np.where(disc, np.round(L / L.max() * 4095), 0).astype(np.uint16)
+    t_m, c_m = prepare_like_registration(display, disc, L, log_display=True, bone_dark=False)
+    t_o, c_o = prepare_like_registration(display, disc, L, log_display=True, bone_dark=False, mask_current=False)
+    np.testing.assert_array_equal(t_m, t_o)  # the target is the same either way
+    corner = (slice(0, 3), slice(0, 3))
+    assert np.ptp(c_m[corner]) == 0 and np.ptp(c_o[corner]) > 0  # filled, against the anatomy kept
+    # the open current is the crop of L itself (bilinear): the same as the masked one inside the field
+    inside = t_m != t_m[0, 0]
+    np.testing.assert_allclose(c_o[inside], c_m[inside])
+
+
+def test_ideal_targets_are_collimated_as_drawn():
+    # ideal = 1: every target is a line DRR; its pixels outside the drawn field are filled (one value),
+    # inside they are the line DRR of the target pose (many values); open fields are left whole
+    from sim.campaign.config import load_campaign
+
+    cfg = load_campaign(ROOT / "campaigns" / "smoke.toml")
+    table = {"scatter": ["none"], "ideal": True, "field": ["circle"], "field_radius": [0.3, 0.35]}
+    pairs = OnlinePairs(cfg, "train", seed=4, randomization=DomainRandomization.from_table(table),
+                        subjects_per_batch=1, current_field="open")
+    target, current, _ = pairs.batch(0, 3)
+    for t, c in zip(target[:, 0].numpy(), current[:, 0].numpy()):
+        corner = t[:2, :2]
+        assert np.ptp(corner) == 0 and len(np.unique(t)) > 50
+        assert np.ptp(c[:2, :2]) > 0  # the open current keeps its corners
+    masked = OnlinePairs(cfg, "train", seed=4, randomization=DomainRandomization.from_table(table),
+                         subjects_per_batch=1)
+    t2, c2, _ = masked.batch(0, 3)
+    np.testing.assert_array_equal(t2.numpy(), target.numpy())
+    assert all(np.ptp(c[:2, :2]) == 0 for c in c2[:, 0].numpy())
+    with pytest.raises(OnlinePairsError, match="current_field must be one of"):
+        OnlinePairs(cfg, "train", randomization=DomainRandomization.from_table(table), current_field="half")
+
+
+def test_train_config_checks_the_current_field():
+    from learn.train import TrainConfig, TrainConfigError
+
+    campaign = str(ROOT / "campaigns" / "smoke.toml")
+    assert TrainConfig(dataset=campaign, randomize={"scatter": ["none"]}, current_field="open").current_field == "open"
+    with pytest.raises(TrainConfigError, match="train.current_field must be one of masked, open"):
+        TrainConfig(dataset=campaign, randomize={"scatter": ["none"]}, current_field="closed")
+    with pytest.raises(TrainConfigError, match="current_field = 'open' needs train.randomize"):
+        TrainConfig(dataset=campaign, current_field="open")

@@ -108,3 +108,29 @@ def test_a_lost_refinement_falls_back_to_cmaes_from_the_start(phantom):
     assert "fallback" not in good.register(fixed, np.zeros(6)).stage_seconds
     with pytest.raises(RegistrationError, match="fallback search needs the refinement"):
         ContextualRegistration(vol, wrong, size=size, center_lps=c, fallback=fallback)
+
+
+@pytest.mark.parametrize("current_field", ["masked", "open"])
+def test_the_network_sees_the_current_image_as_it_was_trained(phantom, current_field):
+    # a predictor trained on masked current images gets the DRR filled outside the X-ray's field, one
+    # trained on open ones (learn.online.CURRENT_FIELDS) the whole DRR; the X-ray is filled either way
+    vol, c = phantom
+    reg = ContextualRegistration(vol, None, ContextualSettings(max_iterations=1), size=(32, 32), center_lps=c)
+    seen = []
+
+    class Recorder:
+        def __call__(self, fixed, drr):
+            seen.append((fixed, drr))
+            return np.zeros(6)
+
+    rec = Recorder()
+    rec.current_field = current_field
+    reg.predictor = rec
+    mask = np.zeros((32, 32), bool)
+    mask[8:24, 8:24] = True
+    fixed = np.random.default_rng(0).random((32, 32))
+    reg.register(fixed, np.zeros(6), mask=mask)
+    net_fixed, net_drr = seen[0]
+    assert np.ptp(net_fixed[~mask]) == 0  # the X-ray is filled outside its field
+    outside_varies = np.ptp(net_drr[~mask]) > 0
+    assert outside_varies == (current_field == "open")
