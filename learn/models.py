@@ -65,7 +65,8 @@ def export_model(checkpoint: str | Path, folder: str | Path, *, name: str, descr
                   "backbone": ckpt.backbone, "head_channels": ckpt.head_channels,
                   "image_size": list(ckpt.image_size) if ckpt.image_size else None,
                   "preprocess": list(ckpt.preprocess), "physics": ckpt.physics,
-                  "current_physics": ckpt.current_physics, "iterations": ckpt.iteration},
+                  "current_physics": ckpt.current_physics,
+                  "current_field": (ckpt.config or {}).get("current_field", "masked"), "iterations": ckpt.iteration},
         "training": training,
         "accuracy": accuracy,
     }

@@ -28,6 +28,7 @@ def test_export_keeps_the_weights_drops_the_training_state_and_writes_a_checked_
                              training={"command": "ctxreg train x.toml"}, accuracy={"success": 0.5})
     card = load_card(tmp_path / "m")
     assert card["model"]["image_size"] == [32, 32] and card["model"]["preprocess"] == ["normalize"]
+    assert card["model"]["current_field"] == "masked"  # the default of a checkpoint that does not record it
     assert card["training"]["command"] == "ctxreg train x.toml" and card["accuracy"]["success"] == 0.5
     out = load_checkpoint(tmp_path / "m" / "model.pt")
     assert out.optimizer is None and out.rng is None and out.iteration == 3
@@ -123,3 +124,21 @@ def test_a_model_folder_whose_weights_pickle_an_object_is_refused_by_name(tmp_pa
     with pytest.raises(CheckpointError, match="contains objects other than tensors and plain data"):
         NetworkPredictor(str(weights))  # the file itself, card or not
     assert "this ran" not in capsys.readouterr().out
+
+
+@pytest.mark.parametrize("field", ["masked", "open", "half"])
+def test_the_predictor_follows_the_current_field_its_checkpoint_records(tmp_path, field):
+    from dataclasses import replace
+
+    from learn.checkpoint import CheckpointError
+    from learn.predict import NetworkPredictor
+
+    src, _ = _trained(tmp_path)
+    ckpt = load_checkpoint(src)
+    path = tmp_path / "field.pt"
+    save_checkpoint(path, replace(ckpt, config={**ckpt.config, "current_field": field}, path=None))
+    if field == "half":
+        with pytest.raises(CheckpointError, match=r"config.current_field must be one of \('masked', 'open'\)"):
+            NetworkPredictor(path)
+    else:
+        assert NetworkPredictor(path).current_field == field
