@@ -106,6 +106,11 @@ MAX_BATCH = 1 << 16
 CURRENT_FIELDS = ("masked", "open")
 
 
+def current_field_problem(value) -> str | None:
+    """What is wrong with a ``current_field`` value (None when it is one of :data:`CURRENT_FIELDS`)."""
+    return None if value in CURRENT_FIELDS else f"must be one of {', '.join(CURRENT_FIELDS)}, got {value!r}"
+
+
 def _crop_resize(image: np.ndarray, box: tuple[int, int, int, int], shape: tuple[int, int], mode: str) -> np.ndarray:
     """``image[r0:r1, c0:c1]`` resampled to ``shape`` (``bilinear`` or ``nearest``), float64."""
     import torch.nn.functional as F
@@ -304,8 +309,8 @@ class OnlinePairs:
                  normalizer: LabelNormalizer | None = None, seed: int = 0, physics: str | None = None,
                  current_physics: str | None = None, subjects_per_batch: int | None = None,
                  randomization: DomainRandomization | None = None, current_field: str = "masked"):
-        if current_field not in CURRENT_FIELDS:
-            raise OnlinePairsError(f"current_field must be one of {CURRENT_FIELDS}, got {current_field!r}")
+        if current_field_problem(current_field):
+            raise OnlinePairsError(f"current_field {current_field_problem(current_field)}")
         self.current_field = current_field
         self.cfg = cfg
         entries = {p.name: p for p in cfg.physics}
@@ -407,10 +412,12 @@ class OnlinePairs:
             for u in np.unique(subject):
                 rows = np.flatnonzero(subject == u)
                 draws = [self.realistic.randomization.draw(self.seed, int(k) * MAX_BATCH + int(i)) for i in rows]
+                # density integrals for the realistic targets, line DRRs for the ideal ones; at[j]: the
+                # row of pair j in its own stack
                 real = [j for j, d in enumerate(draws) if not d["ideal"]]
-                # density integrals for the realistic targets, line DRRs for the ideal ones
-                L = self.density_renderer(int(u)).render(T_a[rows[real]]) if real else None
                 ideal_rows = [j for j, d in enumerate(draws) if d["ideal"]]
+                at = {j: r for group in (real, ideal_rows) for r, j in enumerate(group)}
+                L = self.density_renderer(int(u)).render(T_a[rows[real]]) if real else None
                 ideal = render(self.current_entry, u, T_a[rows[ideal_rows]], (2,)) if ideal_rows else None
                 current = render(self.current_entry, u, T_b[rows], (1,))
                 for j, (i, draw) in enumerate(zip(rows, draws)):
@@ -418,10 +425,10 @@ class OnlinePairs:
                         col = draw.collimator(h, w)
                         field = np.ones((h, w), bool) if col is None else col.mask(h, w)
                         images[0, i], images[1, i] = prepare_like_registration(
-                            ideal[ideal_rows.index(j)], field, current[j], log_display=True, bone_dark=False,
+                            ideal[at[j]], field, current[j], log_display=True, bone_dark=False,
                             mask_current=mask_current)
                         continue
-                    display, field, _ = self.realistic.image(L[real.index(j)], int(k) * MAX_BATCH + int(i))
+                    display, field, _ = self.realistic.image(L[at[j]], int(k) * MAX_BATCH + int(i))
                     images[0, i], images[1, i] = prepare_like_registration(
                         display, field, current[j], log_display=bool(draw["log"]),
                         bone_dark=draw["polarity"] == "bone-dark", mask_current=mask_current)

@@ -71,13 +71,13 @@ class NetworkPredictor:
         self.size = ckpt.image_size
         self.physics = ckpt.physics
         self.current_physics = ckpt.current_physics or ckpt.physics
-        from learn.online import CURRENT_FIELDS
+        from learn.online import current_field_problem
 
         field = (ckpt.config or {}).get("current_field", "masked")
-        if field not in CURRENT_FIELDS:
+        if current_field_problem(field):
             from learn.checkpoint import CheckpointError
 
-            raise CheckpointError(f"{ckpt.name}: config.current_field must be one of {CURRENT_FIELDS}, got {field!r}")
+            raise CheckpointError(f"{ckpt.name}: config.current_field {current_field_problem(field)}")
         #: what the network sees of the current image outside the X-ray's field (``"masked"``:
         #: filled as the X-ray, ``"open"``: all of it), as it was trained (:data:`learn.online.CURRENT_FIELDS`)
         self.current_field = field

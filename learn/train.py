@@ -193,11 +193,10 @@ class TrainConfig:
             if "random_convolution" in steps:
                 raise TrainConfigError("train.cache_features cannot be used with the random step "
                                        "'random_convolution' in train.preprocess (a new draw per pair)")
-        from learn.online import CURRENT_FIELDS
+        from learn.online import current_field_problem
 
-        if self.current_field not in CURRENT_FIELDS:
-            raise TrainConfigError(f"train.current_field must be one of {', '.join(CURRENT_FIELDS)}, got "
-                                   f"{self.current_field!r}")
+        if current_field_problem(self.current_field):
+            raise TrainConfigError(f"train.current_field {current_field_problem(self.current_field)}")
         if self.current_field != "masked" and self.randomize is None:
             raise TrainConfigError("train.current_field = 'open' needs train.randomize (a collimated field is drawn "
                                    "with the realistic targets)")

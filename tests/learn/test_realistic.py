@@ -175,16 +175,25 @@ def test_ideal_targets_are_collimated_as_drawn():
     pairs = OnlinePairs(cfg, "train", seed=4, randomization=DomainRandomization.from_table(table),
                         subjects_per_batch=1, current_field="open")
     target, current, _ = pairs.batch(0, 3)
-    for t, c in zip(target[:, 0].numpy(), current[:, 0].numpy()):
-        corner = t[:2, :2]
-        assert np.ptp(corner) == 0 and len(np.unique(t)) > 50
-        assert np.ptp(c[:2, :2]) > 0  # the open current keeps its corners
+    h, w = cfg.scene.size
+    for i, (t, c) in enumerate(zip(target[:, 0].numpy(), current[:, 0].numpy())):
+        # the filled pixels are exactly those outside the drawn circle, cropped to its bounding box
+        # and resampled (nearest) as registration crops a frame: computed here from the draw alone
+        draw = pairs.realistic.randomization.draw(4, i)
+        disc = draw.collimator(h, w).mask(h, w)
+        rows, cols = np.flatnonzero(disc.any(axis=1)), np.flatnonzero(disc.any(axis=0))
+        # torch's "nearest": source index floor(i * n_in / n_out)
+        r = np.floor(np.arange(h) * (rows[-1] + 1 - rows[0]) / h).astype(int) + rows[0]
+        q = np.floor(np.arange(w) * (cols[-1] + 1 - cols[0]) / w).astype(int) + cols[0]
+        outside = ~disc[np.ix_(r, q)]
+        assert outside.any() and np.ptp(t[outside]) == 0 and len(np.unique(t[~outside])) > 50
+        assert np.ptp(c[outside]) > 0  # the open current keeps its anatomy there
     masked = OnlinePairs(cfg, "train", seed=4, randomization=DomainRandomization.from_table(table),
                          subjects_per_batch=1)
     t2, c2, _ = masked.batch(0, 3)
     np.testing.assert_array_equal(t2.numpy(), target.numpy())
     assert all(np.ptp(c[:2, :2]) == 0 for c in c2[:, 0].numpy())
-    with pytest.raises(OnlinePairsError, match="current_field must be one of"):
+    with pytest.raises(OnlinePairsError, match="current_field must be one of masked, open"):
         OnlinePairs(cfg, "train", randomization=DomainRandomization.from_table(table), current_field="half")
 
 
