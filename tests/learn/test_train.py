@@ -138,7 +138,8 @@ def test_init_from_starts_a_run_from_a_checkpoints_weights(campaign, tmp_path):
 
 def test_shipped_training_configs_load_and_chain_up():
     """Every file in configs/ is a valid training config; the campaign entries it names exist;
-    a fine-tuning config starts from the output of another shipped config (a typo in a path or
+    a fine-tuning config starts from the output of another shipped config or from a shipped
+    model's weights (a typo in a path or
     an entry name would otherwise surface only an hour into a recipe)."""
     from pathlib import Path
 
@@ -154,5 +155,8 @@ def test_shipped_training_configs_load_and_chain_up():
             entries = {p.name for p in load_campaign(cfg.dataset).physics}
             for key in ("physics", "current_physics"):
                 assert getattr(cfg, key) in entries | {None}, f"{name}: train.{key}"
-        if cfg.init_from is not None:
-            assert cfg.init_from in outs, f"{name}: init_from is no shipped config's output"
+        if cfg.init_from is not None:  # another config's output, or a shipped model's weights (in the repository)
+            from learn.models import resolve_model, shipped_models
+
+            models = {str(resolve_model(m)) for m in shipped_models()}
+            assert cfg.init_from in outs | models, f"{name}: init_from is no shipped config's output or model"
