@@ -39,9 +39,9 @@ REGISTER_SCATTER_PHOTONS = 100_000
 #: X-ray is registered once, so spending up to 4x the time on a lost search is worth it.
 REGISTER_RESTARTS = 3
 
-#: The methods that take ``restarts``: CMA-ES's own, and contextual+cmaes's fallback (a refinement
-#: that ends lost, below the restart similarity, falls back to CMA-ES with restarts from the start).
-RESTART_METHODS = ("cmaes", "contextual+cmaes")
+#: The methods that take ``restarts``: CMA-ES's own. contextual+cmaes runs the global search
+#: (:mod:`register.search`, default settings) where the network's pose is lost instead.
+RESTART_METHODS = ("cmaes",)
 
 #: The files :meth:`XRayRegistration.write` writes (the trajectory files for the contextual methods only).
 OUTPUT_FILES = ("result.json", "overlay.png", "checkerboard.png", "convergence.png", "trajectory.npz", "trajectory.png",
@@ -238,9 +238,9 @@ def register_xray(ct, xray, *, method: str = "cmaes", model=None, init="ap", cen
         preprocess: the preprocessing step names (default
             :data:`register.preprocess.DEFAULT_STEPS`); intensity / polarity: ``"auto"`` or the
             override of the intensity step (only with ``"intensity"`` among the steps).
-        restarts: CMA-ES restarts for ``method="cmaes"``, and for ``"contextual+cmaes"`` those of its
-            fallback search (:class:`register.contextual.ContextualRegistration`'s ``fallback``)
-            (default :data:`REGISTER_RESTARTS`).
+        restarts: CMA-ES restarts for ``method="cmaes"`` (default :data:`REGISTER_RESTARTS`);
+            ``"contextual+cmaes"`` runs the global search instead (:mod:`register.search`: a grid over
+            the prior box around ``init`` where the network's pose is lost).
         log: called with each line a user should check (geometry sources, field, intensity);
             note: with remarks (a network trained on other physics). Both default to silence.
 
@@ -299,9 +299,12 @@ def register_xray(ct, xray, *, method: str = "cmaes", model=None, init="ap", cen
     for line in _input_lines(prepared):
         log(line)
     geometry = prepared.geometry
+    from register.search import GlobalSearchSettings
+
     engine = build_method(method, volume, center_lps=c, size=(geometry.height, geometry.width), geometry=geometry,
                           scene=scene, model=predictor, physics=moving, label_materials=label_materials,
-                          restarts=restarts, keep_drrs=True, note=remark)
+                          restarts=restarts if method == "cmaes" else 0, keep_drrs=True, note=remark,
+                          search=GlobalSearchSettings() if method == "contextual+cmaes" else None)
     result = engine.register(prepared.image, x0, mask=prepared.mask)
     return XRayRegistration(method=method, result=result, prepared=prepared, volume=volume, center_lps=c,
                             init_params=x0, physics=moving, label_materials=label_materials, notes=notes)

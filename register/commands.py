@@ -148,8 +148,8 @@ class RegisterCommand:
         "(default: the shipped default model)", group="pose", metavar="NAME|CKPT"))
     restarts: int = field(default=REGISTER_RESTARTS, metadata=opt(
         "CMA-ES restarts (new seed, twice the population) while the final gradient NCC is below "
-        f"{CMAESSettings.restart_below}: a search lost far from the start tries again (--method cmaes); with "
-        "--method contextual+cmaes, a refinement that ends lost falls back to that search from the start pose",
+        f"{CMAESSettings.restart_below}: a search lost far from the start tries again (--method cmaes only; "
+        "contextual+cmaes runs a global search where the network's pose is lost)",
         group="pose", metavar="N", bounds=Range(0, 10)))
     scene: str = field(default="cios_fusion", metadata=opt(
         "C-arm scene: the geometry where the image does not give it", group="geometry"))

@@ -6,7 +6,8 @@ current pose T and the X-ray go to a predictor that returns ``g`` = -2 log_T(T_t
 ``T <- T o Exp(-step g)`` (:func:`learn.labels.apply_update`, rotation about the anatomy centre,
 so the anatomy stays in view). The iteration stops when the predicted step is below
 ``stop_rot_deg`` and ``stop_trans_mm``, or after ``max_iterations``. ``contextual+cmaes`` then
-hands the pose to CMA-ES in a narrowed box.
+hands the pose to CMA-ES in a narrowed box, after a global search (:mod:`register.search`) where
+the network's pose is lost.
 
 Predictors: :class:`learn.predict.NetworkPredictor` (a trained :class:`learn.model.PoseUpdateNet`
 checkpoint; importable from here too) or any callable ``(fixed (H, W), drr (H, W)) -> g (6,)``;
@@ -21,6 +22,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from register.cmaes import CMAESRegistration, CMAESSettings, RegistrationError, RegistrationResult
+from register.search import GlobalSearch, GlobalSearchSettings
 
 
 @dataclass(frozen=True)
@@ -47,17 +49,20 @@ class ContextualRegistration:
     """The contextual iteration (and its hand-over to CMA-ES) on one CT; see the module doc.
 
     ``refine``: the CMA-ES settings of the hand-over (narrowed box around the network's pose), or
-    None for the contextual iteration alone. ``fallback`` (with ``refine`` only): CMA-ES settings
-    of a search from the *start* pose, run when the refined result's gradient NCC is below
-    ``fallback.restart_below`` (the network's pose was not near enough: the refinement is lost);
-    the result with the higher similarity is kept, and ``stage_seconds`` / ``history`` record the
-    fallback. The similarity, not the truth, decides, so a user's registration can take it: a
-    network that fails on an image outside its training domain costs time, not the registration.
+    None for the contextual iteration alone. ``search`` (with ``refine`` only): the global search
+    (:class:`register.search.GlobalSearch`) between the iteration and the refinement: the
+    network's pose is searched locally first and kept when its similarity reaches
+    ``search.found_above``; otherwise a grid over the prior box supplies further starts, and the
+    refinement starts from the one of highest similarity (``stage_seconds`` and ``history``
+    record the search). The similarity, not the truth, decides, so a user's registration can take
+    it: a network that fails on an image outside its training domain costs time, not the
+    registration.
     """
 
     def __init__(self, volume, predictor, settings: ContextualSettings | None = None, *, size=(128, 128),
                  scene: str = "cios_fusion", geometry=None, center_lps=None, refine: CMAESSettings | None = None,
-                 fallback: CMAESSettings | None = None, physics=None, label_materials: dict[int, str] | None = None):
+                 search: GlobalSearchSettings | None = None, physics=None,
+                 label_materials: dict[int, str] | None = None):
         from sim.anatomy import anatomy_center
         from sim.physics.imaging import moving_renderer
 
@@ -69,13 +74,12 @@ class ContextualRegistration:
                                         geometry=geometry, label_materials=label_materials)
         self.geometry = self.renderer.geometry
         self.refine = None
-        self.fallback = None
-        if fallback is not None and refine is None:
-            raise RegistrationError("fallback: a fallback search needs the refinement (refine settings)")
-        if fallback is not None:
-            self.fallback = CMAESRegistration(volume, fallback, scene=scene, geometry=geometry,
-                                              center_lps=self.center_lps, physics=physics,
-                                              label_materials=label_materials)
+        self.search = None
+        if search is not None and refine is None:
+            raise RegistrationError("search: the global search needs the refinement (refine settings)")
+        if search is not None:
+            self.search = GlobalSearch(volume, search, size=size, scene=scene, geometry=geometry,
+                                       center_lps=self.center_lps, physics=physics, label_materials=label_materials)
         if refine is not None:
             self.refine = CMAESRegistration(volume, refine, scene=scene, geometry=geometry,
                                             center_lps=self.center_lps, physics=physics,
@@ -132,20 +136,16 @@ class ContextualRegistration:
         if s.keep_drrs:
             trajectory["drrs"] = np.array(drrs)
         if self.refine is not None:
-            res = self.refine.register(fixed, params, mask=mask)
+            start, found = params, None
+            if self.search is not None:
+                found = self.search.register(fixed, init_params, mask=mask, poses=[params])
+                start = found.params
+                stages.update(found.stage_seconds)
+            res = self.refine.register(fixed, start, mask=mask)
             res.stage_seconds = {**stages, **{f"cmaes_{k}": v for k, v in res.stage_seconds.items()}}
-            res.history = history + res.history
-            res.renders += renders
+            res.history = history + ([] if found is None else found.history) + res.history
+            res.renders += renders + (0 if found is None else found.renders)
             res.trajectory = trajectory
-            if self.fallback is not None and res.similarity < self.fallback.settings.restart_below:
-                t1 = time.perf_counter()
-                alt = self.fallback.register(fixed, np.asarray(init_params, float).reshape(6), mask=mask)
-                res.stage_seconds["fallback"] = time.perf_counter() - t1
-                res.renders += alt.renders
-                res.history = res.history + [("fallback", h[1], h[2]) for h in alt.history]
-                if alt.similarity > res.similarity:
-                    res.params, res.pose, res.projection, res.similarity = (alt.params, alt.pose, alt.projection,
-                                                                            alt.similarity)
             return res
         from register.metrics import gradient_ncc
 

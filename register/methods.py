@@ -6,7 +6,9 @@ evaluate`` and the Python API (:func:`register.api.register_xray`).
 ``contextual``
     The trained pose-update network's iteration (:class:`register.contextual.ContextualRegistration`).
 ``contextual+cmaes``
-    The contextual iteration, then CMA-ES in a narrowed box (:data:`register.contextual.REFINE_SETTINGS`).
+    The contextual iteration, then CMA-ES in a narrowed box (:data:`register.contextual.REFINE_SETTINGS`);
+    with ``search``, the global search (:mod:`register.search`) between the two where the network's
+    pose is lost.
 
 :func:`check_method` validates a method name with its model before any work;
 :func:`build_method` returns a :class:`RegistrationMethod`: anything with ``name`` and
@@ -73,8 +75,8 @@ class _Method:
 
 def build_method(method: str, volume, *, center_lps, size: tuple[int, int], geometry=None,
                  scene: str = "cios_fusion", model=None, physics=None, label_materials: dict[int, str] | None = None,
-                 restarts: int = 0, keep_drrs: bool = False, note: Callable[[str], None] | None = None
-                 ) -> RegistrationMethod:
+                 restarts: int = 0, search=None, keep_drrs: bool = False,
+                 note: Callable[[str], None] | None = None) -> RegistrationMethod:
     """Build the registration method ``method`` on ``volume``.
 
     Args:
@@ -86,9 +88,9 @@ def build_method(method: str, volume, *, center_lps, size: tuple[int, int], geom
         model: a checkpoint path or a loaded predictor (:func:`load_predictor`) for the contextual methods.
         physics: :class:`sim.physics.imaging.PhysicsSettings` of the moving images (None = line DRRs);
             label_materials: ``{label: material}`` overrides for poly / full.
-        restarts: CMA-ES restarts (``cmaes``: :class:`register.cmaes.CMAESSettings`); for
-            ``contextual+cmaes``, > 0 adds the fallback search with these restarts
-            (:class:`register.contextual.ContextualRegistration`).
+        restarts: CMA-ES restarts of ``cmaes`` (:class:`register.cmaes.CMAESSettings`).
+        search: :class:`register.search.GlobalSearchSettings` of ``contextual+cmaes``'s global
+            search (:class:`register.contextual.ContextualRegistration`); None = none.
         keep_drrs: keep the contextual iteration's DRRs in the result's trajectory (for figures).
         note: called with a sentence when the network's training physics differ from ``physics``.
     """
@@ -109,8 +111,9 @@ def build_method(method: str, volume, *, center_lps, size: tuple[int, int], geom
     if mismatch and note is not None:
         note(mismatch)
     refine = replace(REFINE_SETTINGS, size=size) if method == "contextual+cmaes" else None
-    fallback = CMAESSettings(size=size, restarts=restarts) if refine is not None and restarts > 0 else None
+    if search is not None and refine is None:
+        raise RegistrationError(f"the global search is part of contextual+cmaes; this method is {method}")
     engine = ContextualRegistration(volume, predictor, ContextualSettings(keep_drrs=keep_drrs), size=size,
                                     scene=scene, geometry=geometry, center_lps=center_lps, refine=refine,
-                                    fallback=fallback, physics=physics, label_materials=label_materials)
+                                    search=search, physics=physics, label_materials=label_materials)
     return _Method(method, engine)

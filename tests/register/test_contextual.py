@@ -73,41 +73,42 @@ def test_bad_settings_are_named():
         ContextualSettings(max_iterations=0)
 
 
-def test_a_lost_refinement_falls_back_to_cmaes_from_the_start(phantom):
+def test_a_lost_network_pose_goes_through_the_global_search(phantom):
     """A network that points the wrong way ends far off; its narrow refinement cannot recover and
-    scores low, so the fallback search from the start runs and, scoring higher, wins. A network
-    that is right needs no fallback."""
+    stays lost. With the global search between the two, the grid supplies a start the refinement
+    recovers from. A network that is right skips the grid."""
     from dataclasses import replace
 
-    from register.cmaes import CMAESSettings
     from register.contextual import REFINE_SETTINGS
+    from register.search import GlobalSearchSettings
     from sim.geometry import pose_from_params
     from sim.se3 import rotation_error_deg
 
     vol, c = phantom
-    size = (32, 32)
-    truth = np.array([8.0, -4.0, 3.0, 10.0, -6.0, 5.0])
-    refine = replace(REFINE_SETTINGS, size=size, generations=(10, 8))
-    fallback = CMAESSettings(size=size, generations=(40, 30), restarts=1, restart_below=0.95)
+    size = (64, 64)
+    truth = np.array([18.0, -9.0, 6.0, 20.0, -12.0, 15.0])
+    refine = replace(REFINE_SETTINGS, size=size, generations=(10, 8), polish_evals=60)
+    search = GlobalSearchSettings(candidates=3)
     wrong = lambda fixed, drr: np.array([0.0, 0.0, 0.6, 0.0, 0.0, 0.0])  # noqa: E731: a steady 45 deg drift
     reg = ContextualRegistration(vol, wrong, ContextualSettings(max_iterations=10), size=size, center_lps=c,
-                                 refine=refine, fallback=fallback)
+                                 refine=refine, search=search)
     fixed = reg.renderer.render(pose_from_params(truth, reg.geometry.sod_mm))[0]
     res = reg.register(fixed, np.zeros(6))
-    assert "fallback" in res.stage_seconds and any(h[0] == "fallback" for h in res.history)
+    assert "search_grid" in res.stage_seconds and any(h[0] == "search" for h in res.history)
     T_true = pose_from_params(truth, reg.geometry.sod_mm)
-    assert rotation_error_deg(res.pose, T_true) < 2.0, res.params  # the fallback found it
-    # without the fallback the same network stays lost
+    assert rotation_error_deg(res.pose, T_true) < 2.0, res.params  # the search found it
+    # without the search the same network stays lost
     alone = ContextualRegistration(vol, wrong, ContextualSettings(max_iterations=10), size=size, center_lps=c,
                                    refine=refine).register(fixed, np.zeros(6))
     assert rotation_error_deg(alone.pose, T_true) > 5.0 and alone.similarity < res.similarity
-    # a right network (the oracle) ends found: no fallback
+    # a right network (the oracle): its pose is kept, no grid
     good = ContextualRegistration(vol, None, ContextualSettings(), size=size, center_lps=c, refine=refine,
-                                  fallback=replace(fallback, restart_below=0.5))
+                                  search=search)
     use_oracle(good, T_true)
-    assert "fallback" not in good.register(fixed, np.zeros(6)).stage_seconds
-    with pytest.raises(RegistrationError, match="fallback search needs the refinement"):
-        ContextualRegistration(vol, wrong, size=size, center_lps=c, fallback=fallback)
+    found = good.register(fixed, np.zeros(6))
+    assert "search_grid" not in found.stage_seconds and rotation_error_deg(found.pose, T_true) < 1.0
+    with pytest.raises(RegistrationError, match="global search needs the refinement"):
+        ContextualRegistration(vol, wrong, size=size, center_lps=c, search=search)
 
 
 @pytest.mark.parametrize("current_field", ["masked", "open"])

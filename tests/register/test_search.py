@@ -1,0 +1,99 @@
+"""The global pose search (register/search.py): the FFT masked NCC against its definition, the grid's
+in-plane shift against a known translation, and the search against a known pose of the phantom."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from register.cmaes import RegistrationError
+from register.search import GlobalSearch, GlobalSearchSettings, masked_ncc_shifts
+
+
+@pytest.fixture(scope="module")
+def phantom():
+    from sim.anatomy import anatomy_center
+    from sim.phantom import make_pelvis_phantom
+
+    vol = make_pelvis_phantom(0, spacing_mm=4.0)
+    return vol, anatomy_center(vol)
+
+
+def test_masked_ncc_shifts_equals_the_direct_sum():
+    # the FFT route against the NCC written out per shift: equal to rounding (1e-9)
+    rng = np.random.default_rng(0)
+    t = rng.normal(size=(7, 9))
+    m = rng.random((7, 9)) > 0.3
+    imgs = rng.normal(size=(3, 12, 13))
+    out = masked_ncc_shifts(t, m, imgs)
+    assert out.shape == (3, 6, 5)
+    for b in range(3):
+        for u in range(6):
+            for v in range(5):
+                a, w = t[m], imgs[b, u:u + 7, v:v + 9][m]
+                ref = np.sum((a - a.mean()) * (w - w.mean())) / np.sqrt(np.sum((a - a.mean()) ** 2) * np.sum((w - w.mean()) ** 2))
+                assert out[b, u, v] == pytest.approx(ref, abs=1e-9)
+    # the template cut out of an image is found at its place with NCC 1, whatever the gain and offset
+    img = rng.normal(size=(1, 20, 20))
+    hit = masked_ncc_shifts(3.0 * img[0, 5:12, 8:17] + 2.0, m, img)[0]
+    assert np.unravel_index(hit.argmax(), hit.shape) == (5, 8) and hit.max() == pytest.approx(1.0, abs=1e-9)
+    # constant images under the mask score 0, not NaN
+    assert np.all(masked_ncc_shifts(t, m, np.ones((1, 12, 13))) == 0.0)
+    with pytest.raises(RegistrationError, match="masked_ncc_shifts"):
+        masked_ncc_shifts(t, m, imgs[:, :5])
+
+
+def test_settings_are_checked():
+    assert len(GlobalSearchSettings().grid_offsets()) == 9 * 5 * 5 * 5  # +-40/10, +-20/10 twice, 5 depths
+    for bad, match in [(dict(step_deg=0.0), "step_deg"), (dict(range_deg=(40, 20)), "range_deg"),
+                       (dict(candidates=0), "candidates"), (dict(depths=1.5), "depths"),
+                       (dict(found_above=2.0), "found_above"), (dict(factor=True), "factor")]:
+        with pytest.raises(RegistrationError, match=match):
+            GlobalSearchSettings(**bad)
+
+
+def test_the_grid_finds_the_in_plane_translation_of_a_grid_rotation(phantom):
+    """A pose on the grid's rotations and depths with an arbitrary in-plane translation: the best grid
+    pose is that rotation and depth, its translation within one search pixel (at the anatomy's depth)."""
+    from sim.geometry import pose_from_params
+
+    vol, c = phantom
+    s = GlobalSearchSettings(range_deg=(20.0, 10.0, 10.0), depths=3, range_mm=40.0)
+    search = GlobalSearch(vol, s, size=(128, 128), center_lps=c)
+    truth = np.array([10.0, -10.0, 0.0, 17.0, -11.0, 40.0])
+    fixed = search.local.render(truth, 1)[0]
+    params, scores = search.grid(fixed, np.zeros(6))
+    g = search.level_geometry
+    mm_per_px = (g.sod_mm + truth[5]) * g.pixel_spacing_mm / g.sdd_mm
+    assert np.allclose(params[0][[0, 1, 2, 5]], truth[[0, 1, 2, 5]]), params[0]
+    assert np.all(np.abs(params[0][3:5] - truth[3:5]) <= mm_per_px), (params[0], mm_per_px)
+    # whole-pixel shifts: up to half a search pixel off, which costs the gradient NCC about 0.1
+    assert scores[0] > 0.8 and scores[0] >= scores[1:].max()
+    # a field: only its pixels count, and the shift is still found
+    field = np.zeros((128, 128), bool)
+    field[16:112, 24:104] = True
+    params, _ = search.grid(np.where(field, fixed, 0.0), np.zeros(6), mask=field)
+    assert np.all(np.abs(params[0][3:5] - truth[3:5]) <= mm_per_px)
+    with pytest.raises(RegistrationError, match="too few"):
+        search.grid(fixed, np.zeros(6), mask=np.eye(128, dtype=bool))
+    assert pose_from_params(params[0], g.sod_mm).shape == (4, 4)
+
+
+def test_the_search_finds_a_far_pose_and_skips_the_grid_for_a_good_one(phantom):
+    from sim.geometry import pose_from_params
+    from sim.se3 import rotation_error_deg
+
+    vol, c = phantom
+    search = GlobalSearch(vol, GlobalSearchSettings(candidates=3), size=(64, 64), center_lps=c)
+    truth = np.array([27.0, 8.0, -6.0, 35.0, -20.0, 25.0])  # off the grid, far from AP
+    fixed = search.local.render(truth, 1)[0]
+    T = pose_from_params(truth, search.level_geometry.sod_mm)
+    wrong = np.array([-30.0, 0.0, 0.0, -40.0, 0.0, 0.0])  # a lost network's pose
+    res = search.register(fixed, np.zeros(6), poses=[wrong])
+    assert "search_grid" in res.stage_seconds and len(res.history) == 4  # the given pose, then 3 candidates
+    assert rotation_error_deg(res.pose, T) < 3.0 and np.linalg.norm(res.params[3:5] - truth[3:5]) < 8.0, res.params
+    good = search.register(fixed, np.zeros(6), poses=[truth + [2.0, -1.0, 1.0, 4.0, -3.0, 5.0]])
+    assert "search_grid" not in good.stage_seconds and good.similarity >= 0.7
+    assert rotation_error_deg(good.pose, T) < 3.0
+    with pytest.raises(RegistrationError, match="divisible"):
+        GlobalSearch(vol, size=(30, 30), center_lps=c)
