@@ -93,7 +93,7 @@ def test_the_search_finds_a_far_pose_and_skips_the_grid_for_a_good_one(phantom):
     assert "search_grid" in res.stage_seconds and len(res.history) == 4  # the given pose, then 3 candidates
     assert rotation_error_deg(res.pose, T) < 3.0 and np.linalg.norm(res.params[3:5] - truth[3:5]) < 8.0, res.params
     good = search.register(fixed, np.zeros(6), poses=[truth + [2.0, -1.0, 1.0, 4.0, -3.0, 5.0]])
-    assert "search_grid" not in good.stage_seconds and good.similarity >= 0.7
+    assert "search_grid" not in good.stage_seconds and good.similarity >= search.settings.found_above
     assert rotation_error_deg(good.pose, T) < 3.0
     with pytest.raises(RegistrationError, match="divisible"):
         GlobalSearch(vol, size=(30, 30), center_lps=c)
