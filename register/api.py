@@ -121,10 +121,15 @@ class XRayRegistration:
         return self.prepared.geometry
 
     def summary(self) -> str:
-        """One line: similarity, renders and the pose (deg, mm)."""
+        """Similarity, renders and the pose (deg, mm) in one line; with the global search a line
+        before it on what the search did (:func:`register.search.describe_search`)."""
+        from register.search import describe_search
+
         r = self.result
-        return (f"similarity {r.similarity:.4f} after {r.renders} renders; pose: "
+        line = (f"similarity {r.similarity:.4f} after {r.renders} renders; pose: "
                 + " ".join(f"{v:.2f}" for v in r.params))
+        search = getattr(r, "search", None)
+        return line if search is None else describe_search(search) + "\n" + line
 
     def to_dict(self) -> dict:
         """``result.json``: the pose, its projection, the similarity, the method, the inputs (CT,

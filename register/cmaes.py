@@ -112,6 +112,9 @@ class RegistrationResult:
             the pose before each prediction and then the pose it ended at; "g": (K, 6) rad/mm, the
             predicted gradients; "drrs": (K, H, W), each prediction's DRR, when kept}``; None for
             CMA-ES alone.
+        search: the global search's record (:meth:`register.search.GlobalSearch.register`,
+            contextual+cmaes with the search): the network's pose's local similarity, whether the
+            grid ran, where the refinement started; None without a search.
     """
 
     params: np.ndarray
@@ -122,9 +125,11 @@ class RegistrationResult:
     stage_seconds: dict[str, float]
     history: list[tuple[str, float, list[float]]] = field(default_factory=list)
     trajectory: dict | None = None
+    search: dict | None = None
 
     def to_dict(self) -> dict:
         return {
+            **({} if self.search is None else {"search": self.search}),
             "params": dict(zip(PARAM_NAMES, map(float, self.params))),
             "params_units": "phi theta psi in degrees, tx ty tz in mm (docs/conventions.md)",
             "pose_4x4": self.pose.tolist(),

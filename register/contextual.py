@@ -146,6 +146,7 @@ class ContextualRegistration:
             res.history = history + ([] if found is None else found.history) + res.history
             res.renders += renders + (0 if found is None else found.renders)
             res.trajectory = trajectory
+            res.search = None if found is None else found.search
             return res
         from register.metrics import gradient_ncc
 

@@ -33,7 +33,7 @@ import numpy as np
 
 from register.cmaes import CMAESRegistration, CMAESSettings, RegistrationError, RegistrationResult
 
-__all__ = ["GlobalSearchSettings", "GlobalSearch", "masked_ncc_shifts"]
+__all__ = ["GlobalSearchSettings", "GlobalSearch", "masked_ncc_shifts", "describe_search"]
 
 
 @dataclass(frozen=True)
@@ -243,7 +243,10 @@ class GlobalSearch:
         ``poses``: ``(K, 6)`` parameters searched locally first (the network's pose): when the best
         of them reaches ``found_above`` the grid is skipped. The result's similarity is the gradient
         NCC at the search's resolution; ``stage_seconds`` has ``search_local`` (and ``search_grid``
-        when the grid ran); ``history`` one row per local search (stage ``search``)."""
+        when the grid ran); ``history`` one row per local search (stage ``search``); ``search``
+        the record ``{"given_similarity": the best given pose's local similarity (None without
+        one), "found_above", "grid_poses": grid poses rendered (0: skipped), "candidates": grid
+        poses searched locally, "start": "given" or "grid", "similarity"}``."""
         s = self.settings
         fixed = np.asarray(fixed, np.float64)
         if mask is not None:
@@ -272,13 +275,18 @@ class GlobalSearch:
         given = np.asarray(poses, float).reshape(-1, 6)
         local(given)
         stages["search_local"] = time.perf_counter() - t0
+        given_best = best
+        grid_poses = candidates = 0
         if best is None or best.similarity < s.found_above:
             t0 = time.perf_counter()
             params, _ = self.grid(fixed, init_params, mask=mask)
-            renders += len(params)
+            grid_poses = len(params)
+            renders += grid_poses
             stages["search_grid"] = time.perf_counter() - t0
             t0 = time.perf_counter()
-            local(self._distinct(params))
+            starts = self._distinct(params)
+            candidates = len(starts)
+            local(starts)
             stages["search_local"] += time.perf_counter() - t0
         if best is None:
             raise RegistrationError("global search: no pose of the grid overlaps the X-ray (every DRR is empty); "
@@ -286,4 +294,19 @@ class GlobalSearch:
         best.stage_seconds = stages
         best.history = history
         best.renders = renders
+        best.search = {"given_similarity": None if given_best is None else float(given_best.similarity),
+                       "found_above": s.found_above, "grid_poses": grid_poses, "candidates": candidates,
+                       "start": "given" if best is given_best else "grid", "similarity": float(best.similarity)}
         return best
+
+
+def describe_search(record: dict) -> str:
+    """One line for a user from a :meth:`GlobalSearch.register` record (the network's pose as the
+    given one)."""
+    net = record["given_similarity"]
+    head = "global search: " + ("no network pose" if net is None else f"the network's pose scored {net:.2f}")
+    if not record["grid_poses"]:
+        return head + f" (>= {record['found_above']:g}): grid skipped, refined from it"
+    start = "the network's pose" if record["start"] == "given" else "a grid pose"
+    return (head + f" (< {record['found_above']:g}): {record['grid_poses']} grid poses, {record['candidates']} "
+            f"searched locally; refined from {start} (similarity {record['similarity']:.2f} at the search's resolution)")

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from register.cmaes import RegistrationError
-from register.search import GlobalSearch, GlobalSearchSettings, masked_ncc_shifts
+from register.search import GlobalSearch, GlobalSearchSettings, describe_search, masked_ncc_shifts
 
 
 @pytest.fixture(scope="module")
@@ -91,9 +91,15 @@ def test_the_search_finds_a_far_pose_and_skips_the_grid_for_a_good_one(phantom):
     wrong = np.array([-30.0, 0.0, 0.0, -40.0, 0.0, 0.0])  # a lost network's pose
     res = search.register(fixed, np.zeros(6), poses=[wrong])
     assert "search_grid" in res.stage_seconds and len(res.history) == 4  # the given pose, then 3 candidates
+    n_grid = len(search.settings.grid_offsets())
+    assert res.search == {"given_similarity": res.history[0][1], "found_above": 0.85, "grid_poses": n_grid,
+                          "candidates": 3, "start": "grid", "similarity": res.similarity}
+    assert f"{n_grid} grid poses, 3 searched locally; refined from a grid pose" in describe_search(res.search)
     assert rotation_error_deg(res.pose, T) < 3.0 and np.linalg.norm(res.params[3:5] - truth[3:5]) < 8.0, res.params
     good = search.register(fixed, np.zeros(6), poses=[truth + [2.0, -1.0, 1.0, 4.0, -3.0, 5.0]])
     assert "search_grid" not in good.stage_seconds and good.similarity >= search.settings.found_above
     assert rotation_error_deg(good.pose, T) < 3.0
+    assert good.search["grid_poses"] == 0 and good.search["start"] == "given"
+    assert "grid skipped" in describe_search(good.search)
     with pytest.raises(RegistrationError, match="divisible"):
         GlobalSearch(vol, size=(30, 30), center_lps=c)
