@@ -128,8 +128,7 @@ class XRayRegistration:
         r = self.result
         line = (f"similarity {r.similarity:.4f} after {r.renders} renders; pose: "
                 + " ".join(f"{v:.2f}" for v in r.params))
-        search = getattr(r, "search", None)
-        return line if search is None else describe_search(search) + "\n" + line
+        return line if r.search is None else describe_search(r.search) + "\n" + line
 
     def to_dict(self) -> dict:
         """``result.json``: the pose, its projection, the similarity, the method, the inputs (CT,
@@ -258,6 +257,7 @@ def register_xray(ct, xray, *, method: str = "cmaes", model=None, init="ap", cen
     from register.methods import build_method, check_method, load_predictor, needs_model
     from register.prepare import confirm_polarity, fit_box, prepare_xray
     from register.preprocess import DEFAULT_STEPS, Pipeline
+    from register.search import GlobalSearchSettings
     from register.xray_io import XRayImage, load_xray, resolve_geometry
     from sim.anatomy import anatomy_center
     from sim.geometry import pose_from_params
@@ -304,8 +304,6 @@ def register_xray(ct, xray, *, method: str = "cmaes", model=None, init="ap", cen
     for line in _input_lines(prepared):
         log(line)
     geometry = prepared.geometry
-    from register.search import GlobalSearchSettings
-
     engine = build_method(method, volume, center_lps=c, size=(geometry.height, geometry.width), geometry=geometry,
                           scene=scene, model=predictor, physics=moving, label_materials=label_materials,
                           restarts=restarts if method == "cmaes" else 0, keep_drrs=True, note=remark,

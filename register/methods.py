@@ -97,6 +97,8 @@ def build_method(method: str, volume, *, center_lps, size: tuple[int, int], geom
     from register.cmaes import CMAESRegistration, CMAESSettings
 
     check_method(method, model)
+    if search is not None and method != "contextual+cmaes":
+        raise RegistrationError(f"the global search is part of contextual+cmaes; this method is {method}")
     size = (int(size[0]), int(size[1]))
     if method == "cmaes":
         engine = CMAESRegistration(volume, CMAESSettings(size=size, restarts=restarts), scene=scene, geometry=geometry,
@@ -111,8 +113,6 @@ def build_method(method: str, volume, *, center_lps, size: tuple[int, int], geom
     if mismatch and note is not None:
         note(mismatch)
     refine = replace(REFINE_SETTINGS, size=size) if method == "contextual+cmaes" else None
-    if search is not None and refine is None:
-        raise RegistrationError(f"the global search is part of contextual+cmaes; this method is {method}")
     engine = ContextualRegistration(volume, predictor, ContextualSettings(keep_drrs=keep_drrs), size=size,
                                     scene=scene, geometry=geometry, center_lps=center_lps, refine=refine,
                                     search=search, physics=physics, label_materials=label_materials)

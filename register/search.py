@@ -153,7 +153,8 @@ class GlobalSearch:
         size: ``(H, W)`` of the X-rays it registers (divisible by ``settings.factor``).
         scene / geometry: the C-arm (an X-ray's own :class:`sim.geometry.CArmGeometry` at ``size``
             overrides the scene's detector); center_lps: ``(3,)`` anatomy centre (LPS mm).
-        physics / label_materials: the moving images' physics (as :class:`register.cmaes.CMAESRegistration`).
+        physics / label_materials: the moving images' physics of the local search (as
+            :class:`register.cmaes.CMAESRegistration`); the grid renders line DRRs whatever they are.
     """
 
     def __init__(self, volume, settings: GlobalSearchSettings | None = None, *, size=(128, 128),
@@ -184,8 +185,10 @@ class GlobalSearch:
         cx, cy = g.principal_point
         padded = CArmGeometry(g.sdd_mm, g.sod_mm, g.height + 2 * self.pad, g.width + 2 * self.pad, g.pixel_spacing_mm,
                               cx + self.pad, cy + self.pad)
-        self.padded = moving_renderer(volume, physics, scene=scene, size=(padded.height, padded.width),
-                                      center_lps=self.center_lps, geometry=padded, label_materials=label_materials)
+        # the grid ranks poses by their edges, which are the geometry's: line DRRs whatever the moving
+        # physics (1125 poly images would cost ~10 s, full ones minutes); the local search uses ``physics``
+        self.padded = moving_renderer(volume, None, scene=scene, size=(padded.height, padded.width),
+                                      center_lps=self.center_lps, geometry=padded)
 
     def grid(self, fixed: np.ndarray, init_params=np.zeros(6), *, mask: np.ndarray | None = None
              ) -> tuple[np.ndarray, np.ndarray]:

@@ -103,3 +103,13 @@ def test_the_search_finds_a_far_pose_and_skips_the_grid_for_a_good_one(phantom):
     assert "grid skipped" in describe_search(good.search)
     with pytest.raises(RegistrationError, match="divisible"):
         GlobalSearch(vol, size=(30, 30), center_lps=c)
+
+
+def test_only_contextual_cmaes_takes_the_search(phantom):
+    from register.methods import build_method
+
+    vol, c = phantom
+    for method in ("cmaes", "contextual"):
+        with pytest.raises(RegistrationError, match="global search is part of contextual\\+cmaes"):
+            build_method(method, vol, center_lps=c, size=(32, 32), search=GlobalSearchSettings(),
+                         model=None if method == "cmaes" else (lambda f, d: np.zeros(6)))
