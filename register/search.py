@@ -43,12 +43,14 @@ class GlobalSearchSettings:
     Attributes:
         range_deg: ``(phi, theta, psi)`` half-widths of the rotation grid around the start (deg);
             default the original protocol's (40, 20, 20).
-        step_deg: rotation grid step (deg), default 10.
+        step_deg: rotation grid step (deg), default 8 (11 x 6 x 6 rotations over the default
+            ranges; on the 15 of 50 ``fluoro-65kV`` frames that 10 deg steps and 8 candidates lost,
+            8 deg steps and 16 candidates found 7, 10 deg steps and 16 candidates 3).
         range_mm: half-width of the depth (tz) grid and the largest in-plane shift (tx, ty)
             searched (mm), default 75 (the protocol's translations).
         depths: depth (tz) grid values, evenly from ``-range_mm`` to ``+range_mm`` (default 5).
         factor: detector downsampling of the search (default 4: 32 x 32 px for a 128 px X-ray).
-        candidates: grid poses handed to the local search (default 8), best first, each apart from
+        candidates: grid poses handed to the local search (default 16), best first, each apart from
             those before it (more than one step in some angle, or one depth step, or 20 mm in-plane).
         local_sigma_deg / local_sigma_mm: the local CMA-ES's initial steps (3 deg, 8 mm).
         local_range_deg / local_range_mm: its box around each candidate (12 deg, 35 mm).
@@ -61,11 +63,11 @@ class GlobalSearchSettings:
     """
 
     range_deg: tuple[float, float, float] = (40.0, 20.0, 20.0)
-    step_deg: float = 10.0
+    step_deg: float = 8.0
     range_mm: float = 75.0
     depths: int = 5
     factor: int = 4
-    candidates: int = 8
+    candidates: int = 16
     local_sigma_deg: float = 3.0
     local_sigma_mm: float = 8.0
     local_range_deg: float = 12.0
@@ -186,14 +188,16 @@ class GlobalSearch:
         padded = CArmGeometry(g.sdd_mm, g.sod_mm, g.height + 2 * self.pad, g.width + 2 * self.pad, g.pixel_spacing_mm,
                               cx + self.pad, cy + self.pad)
         # the grid ranks poses by their edges, which are the geometry's: line DRRs whatever the moving
-        # physics (1125 poly images would cost ~10 s, full ones minutes); the local search uses ``physics``
+        # physics (~2000 poly images would cost ~20 s, full ones minutes); the local search uses ``physics``
         self.padded = moving_renderer(volume, None, scene=scene, size=(padded.height, padded.width),
                                       center_lps=self.center_lps, geometry=padded)
 
-    def grid(self, fixed: np.ndarray, init_params=np.zeros(6), *, mask: np.ndarray | None = None
-             ) -> tuple[np.ndarray, np.ndarray]:
+    def grid(self, fixed: np.ndarray, init_params=np.zeros(6), *, mask: np.ndarray | None = None,
+             times: dict | None = None) -> tuple[np.ndarray, np.ndarray]:
         """Every grid pose with its best in-plane shift: ``(params (N, 6) deg/mm, scores (N,))``,
-        best score first. ``fixed`` ``(H, W)`` at ``size``; ``mask`` ``(H, W)`` bool, the field."""
+        best score first. ``fixed`` ``(H, W)`` at ``size``; ``mask`` ``(H, W)`` bool, the field.
+        ``times``: a dict that gets the seconds of ``"render"`` (the padded DRRs) and ``"ncc"``
+        (the FFT NCC of every shift)."""
         from scipy import ndimage
 
         from register.metrics import downsample
@@ -210,7 +214,9 @@ class GlobalSearch:
                                     f"resolution; too few to search")
         x0 = np.asarray(init_params, float).reshape(6)
         params = x0 + s.grid_offsets()
+        t0 = time.perf_counter()
         drrs = self.padded.render(pose_from_params(params, g.sod_mm))
+        t1 = time.perf_counter()
         score = 0.0
         for axis in (-1, -2):  # Sobel x, then y: the mean of the two NCCs as gradient NCC
             score = score + 0.5 * masked_ncc_shifts(ndimage.sobel(f, axis=axis), m,
@@ -223,6 +229,8 @@ class GlobalSearch:
         params[:, 4] -= (du - self.pad) * mm_per_px
         best = flat.max(1)
         order = np.argsort(-best, kind="stable")
+        if times is not None:
+            times.update(render=t1 - t0, ncc=time.perf_counter() - t1)
         return params[order], best[order]
 
     def _distinct(self, params: np.ndarray) -> np.ndarray:
@@ -249,7 +257,8 @@ class GlobalSearch:
         when the grid ran); ``history`` one row per local search (stage ``search``); ``search``
         the record ``{"given_similarity": the best given pose's local similarity (None without
         one), "found_above", "grid_poses": grid poses rendered (0: skipped), "candidates": grid
-        poses searched locally, "start": "given" or "grid", "similarity"}``."""
+        poses searched locally, "start": "given" or "grid", "similarity", "grid_render_s" /
+        "grid_ncc_s": the grid's seconds rendering and correlating (0 when skipped)}``."""
         s = self.settings
         fixed = np.asarray(fixed, np.float64)
         if mask is not None:
@@ -280,9 +289,10 @@ class GlobalSearch:
         stages["search_local"] = time.perf_counter() - t0
         given_best = best
         grid_poses = candidates = 0
+        grid_times = {"render": 0.0, "ncc": 0.0}
         if best is None or best.similarity < s.found_above:
             t0 = time.perf_counter()
-            params, _ = self.grid(fixed, init_params, mask=mask)
+            params, _ = self.grid(fixed, init_params, mask=mask, times=grid_times)
             grid_poses = len(params)
             renders += grid_poses
             stages["search_grid"] = time.perf_counter() - t0
@@ -299,7 +309,8 @@ class GlobalSearch:
         best.renders = renders
         best.search = {"given_similarity": None if given_best is None else float(given_best.similarity),
                        "found_above": s.found_above, "grid_poses": grid_poses, "candidates": candidates,
-                       "start": "given" if best is given_best else "grid", "similarity": float(best.similarity)}
+                       "start": "given" if best is given_best else "grid", "similarity": float(best.similarity),
+                       "grid_render_s": grid_times["render"], "grid_ncc_s": grid_times["ncc"]}
         return best
 
 

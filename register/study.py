@@ -384,30 +384,60 @@ def _moving(study: Study):
         level=study.moving_physics, noise=False, scatter_photons=REGISTER_SCATTER_PHOTONS)
 
 
-def _evaluate_xray(study: Study, target: Target, volume, center, predictor, folder: Path, log) -> dict:
-    """Realistic frames through :func:`register.api.register_xray`, scored like the evaluation."""
-    from register.api import register_xray
-    from register.evaluate import EvaluationSettings, bone_points, pose_errors, sample_cases, summarize
+def frame_refusals() -> tuple[type, ...]:
+    """The errors a frame's own content can make registration raise (no valid pixel left, no
+    intensity decision): a failed case of a study, not a stop. Anything else (a bad setting, a bug)
+    stops the study as it should."""
     from register.field import FieldError
     from register.intensity import IntensityError
     from register.preprocess import PreprocessError
 
-    # what a frame's own content can make registration refuse; anything else (a bad setting, a bug)
-    # stops the study as it should
-    FRAME_REFUSALS = (FieldError, PreprocessError, IntensityError)
-    from register.xray_io import write_xray_dicom
+    return FieldError, PreprocessError, IntensityError
+
+
+class XRayFrames:
+    """The realistic frames of a study's ``xray`` target: full physics with noise (the target's
+    ``physics``), its collimator and display chain, written as DICOM (RF, the chain's bits).
+
+    ``write(path, T_true (4, 4), case) -> path``: frame ``case`` at the pose ``T_true``, its noise
+    and Monte Carlo drawn from the study's seed and the case. ``imager``: the
+    :class:`sim.physics.imaging.XRayImager` (its ``geometry`` is the frame's)."""
+
+    def __init__(self, study: Study, target: Target, volume, center):
+        from sim.physics.display import Collimator, DisplayChain
+        from sim.physics.imaging import PhysicsSettings, XRayImager
+
+        physics = PhysicsSettings(**{**target.physics, "noise": True, "seed": study.seed})
+        self.seed = study.seed
+        self.imager = XRayImager(volume, physics, size=study.size, center_lps=center)
+        self.chain = DisplayChain.from_dict(target.display or {"log": True, "polarity": "bone-dark", "bits": 12,
+                                                               "shutter": "black"})
+        self.collimator = None if target.collimator is None else Collimator.from_dict(target.collimator)
+
+    def write(self, path: Path, T_true: np.ndarray, case: int) -> Path:
+        from register.xray_io import write_xray_dicom
+
+        g = self.imager.geometry
+        raw = self.imager.render(T_true, seed=self.seed * 100003 + case)["raw"][0].astype(np.float64)
+        fld = None if self.collimator is None else self.collimator.mask(*raw.shape)
+        pixels = self.chain.apply(raw if self.collimator is None else self.collimator.apply(raw), self.imager.flat,
+                                  fld)
+        return write_xray_dicom(path, pixels, pixel_spacing_mm=g.pixel_spacing_mm, sdd_mm=g.sdd_mm, sod_mm=g.sod_mm,
+                                bits_stored=min(16, max(8, self.chain.bits)), modality="RF")
+
+
+def _evaluate_xray(study: Study, target: Target, volume, center, predictor, folder: Path, log) -> dict:
+    """Realistic frames through :func:`register.api.register_xray`, scored like the evaluation."""
+    from register.api import register_xray
+    from register.evaluate import EvaluationSettings, bone_points, pose_errors, sample_cases, summarize
+
+    FRAME_REFUSALS = frame_refusals()
     from sim.atomic import write_csv, write_json
     from sim.geometry import pose_from_params
-    from sim.physics.display import Collimator, DisplayChain
-    from sim.physics.imaging import PhysicsSettings, XRayImager
 
     settings = EvaluationSettings(cases=study.cases_of(target), seed=study.seed, size=study.size, start=study.start)
-    physics = PhysicsSettings(**{**target.physics, "noise": True, "seed": study.seed})
-    imager = XRayImager(volume, physics, size=study.size, center_lps=center)
-    g = imager.geometry
-    chain = DisplayChain.from_dict(target.display or {"log": True, "polarity": "bone-dark", "bits": 12,
-                                                      "shutter": "black"})
-    collimator = None if target.collimator is None else Collimator.from_dict(target.collimator)
+    frame = XRayFrames(study, target, volume, center)
+    g = frame.imager.geometry
     targets, starts = sample_cases(settings)
     points = bone_points(volume, settings.max_points, settings.seed)
     rows = []
@@ -417,13 +447,8 @@ def _evaluate_xray(study: Study, target: Target, volume, center, predictor, fold
     bar = Progress(settings.cases * len(study.methods), 0, f"{target.name}", "registrations", rate_unit="reg/s")
     for i, (target_params, start) in enumerate(zip(targets, starts)):
         T_true = pose_from_params(target_params, g.sod_mm)
-        raw = imager.render(T_true, seed=study.seed * 100003 + i)["raw"][0].astype(np.float64)
-        fld = None if collimator is None else collimator.mask(*raw.shape)
-        pixels = chain.apply(raw if collimator is None else collimator.apply(raw), imager.flat, fld)
-        path = write_xray_dicom(frames / f"case_{i:03d}.dcm", pixels, pixel_spacing_mm=g.pixel_spacing_mm,
-                                sdd_mm=g.sdd_mm, sod_mm=g.sod_mm, bits_stored=min(16, max(8, chain.bits)),
-                                modality="RF")
-        P_true = imager.renderer.projection_matrix(T_true)
+        path = frame.write(frames / f"case_{i:03d}.dcm", T_true, i)
+        P_true = frame.imager.renderer.projection_matrix(T_true)
         for method in study.methods:
             t0 = time.perf_counter()
             try:

@@ -28,17 +28,6 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 
-def _frame(path: Path, imager, chain, collimator, T_true, seed: int) -> None:
-    from register.xray_io import write_xray_dicom
-
-    g = imager.geometry
-    raw = imager.render(T_true, seed=seed)["raw"][0].astype(np.float64)
-    field = None if collimator is None else collimator.mask(*raw.shape)
-    pixels = chain.apply(raw if collimator is None else collimator.apply(raw), imager.flat, field)
-    write_xray_dicom(path, pixels, pixel_spacing_mm=g.pixel_spacing_mm, sdd_mm=g.sdd_mm, sod_mm=g.sod_mm,
-                     bits_stored=12, modality="RF")
-
-
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--model", nargs="+", default=["pelvis_line"], help="shipped model names or checkpoints")
@@ -54,13 +43,12 @@ def main(argv=None) -> int:
     from register.evaluate import EvaluationSettings, bone_points, pose_errors, sample_cases
     from register.methods import build_method, load_predictor
     from register.prepare import prepare_xray
-    from register.study import load_study
+    from register.study import XRayFrames, load_study
     from register.xray_io import load_xray
     from sim import load_ct
     from sim.anatomy import anatomy_center
     from sim.geometry import pose_from_params
-    from sim.physics.display import Collimator, DisplayChain
-    from sim.physics.imaging import PhysicsSettings, XRayImager, moving_renderer
+    from sim.physics.imaging import moving_renderer
 
     study = load_study(ROOT / "studies" / "domain_gap.toml")
     targets = {t.name: t for t in study.targets if t.kind == "xray"}
@@ -71,10 +59,8 @@ def main(argv=None) -> int:
     volume = load_ct(args.ct)
     center = anatomy_center(volume)
     poses, _ = sample_cases(EvaluationSettings(cases=args.cases, seed=0, size=(128, 128), start="ap"))
-    imager = XRayImager(volume, PhysicsSettings(**{**target.physics, "noise": True, "seed": 0}), size=(128, 128),
-                        center_lps=center)
-    chain = DisplayChain.from_dict(target.display)
-    collimator = None if target.collimator is None else Collimator.from_dict(target.collimator)
+    frames = XRayFrames(study, target, volume, center)  # the study's frames (its seed, 128 px)
+    imager = frames.imager
     folder = Path(args.frames) / args.target
     folder.mkdir(parents=True, exist_ok=True)
     points = bone_points(volume, 2000, 0)
@@ -83,7 +69,7 @@ def main(argv=None) -> int:
         T_true = pose_from_params(params, imager.geometry.sod_mm)
         path = folder / f"case_{i:03d}.dcm"
         if not path.exists():
-            _frame(path, imager, chain, collimator, T_true, seed=i)
+            frames.write(path, T_true, i)
         prep = prepare_xray(load_xray(path), volume=volume, center_lps=center, init_params=np.zeros(6),
                             size=(128, 128))
         g = prep.geometry

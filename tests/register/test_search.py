@@ -44,7 +44,9 @@ def test_masked_ncc_shifts_equals_the_direct_sum():
 
 
 def test_settings_are_checked():
-    assert len(GlobalSearchSettings().grid_offsets()) == 9 * 5 * 5 * 5  # +-40/10, +-20/10 twice, 5 depths
+    offsets = GlobalSearchSettings().grid_offsets()
+    assert len(offsets) == 11 * 6 * 6 * 5  # +-40 / 8 deg, +-20 / 8 deg twice (no 0), 5 depths
+    assert np.allclose(offsets.mean(0), 0) and np.allclose(np.abs(offsets).max(0), [40, 20, 20, 0, 0, 75])
     for bad, match in [(dict(step_deg=0.0), "step_deg"), (dict(range_deg=(40, 20)), "range_deg"),
                        (dict(candidates=0), "candidates"), (dict(depths=1.5), "depths"),
                        (dict(found_above=2.0), "found_above"), (dict(factor=True), "factor")]:
@@ -58,7 +60,7 @@ def test_the_grid_finds_the_in_plane_translation_of_a_grid_rotation(phantom):
     from sim.geometry import pose_from_params
 
     vol, c = phantom
-    s = GlobalSearchSettings(range_deg=(20.0, 10.0, 10.0), depths=3, range_mm=40.0)
+    s = GlobalSearchSettings(range_deg=(20.0, 10.0, 10.0), step_deg=10.0, depths=3, range_mm=40.0)
     search = GlobalSearch(vol, s, size=(128, 128), center_lps=c)
     truth = np.array([10.0, -10.0, 0.0, 17.0, -11.0, 40.0])
     fixed = search.local.render(truth, 1)[0]
@@ -92,8 +94,11 @@ def test_the_search_finds_a_far_pose_and_skips_the_grid_for_a_good_one(phantom):
     res = search.register(fixed, np.zeros(6), poses=[wrong])
     assert "search_grid" in res.stage_seconds and len(res.history) == 4  # the given pose, then 3 candidates
     n_grid = len(search.settings.grid_offsets())
-    assert res.search == {"given_similarity": res.history[0][1], "found_above": 0.85, "grid_poses": n_grid,
-                          "candidates": 3, "start": "grid", "similarity": res.similarity}
+    assert res.search["grid_render_s"] > 0 and res.search["grid_ncc_s"] > 0
+    assert res.search["grid_render_s"] + res.search["grid_ncc_s"] <= res.stage_seconds["search_grid"]
+    assert {k: v for k, v in res.search.items() if not k.endswith("_s")} == {
+        "given_similarity": res.history[0][1], "found_above": 0.85, "grid_poses": n_grid, "candidates": 3,
+        "start": "grid", "similarity": res.similarity}
     assert f"{n_grid} grid poses, 3 searched locally; refined from a grid pose" in describe_search(res.search)
     assert rotation_error_deg(res.pose, T) < 3.0 and np.linalg.norm(res.params[3:5] - truth[3:5]) < 8.0, res.params
     good = search.register(fixed, np.zeros(6), poses=[truth + [2.0, -1.0, 1.0, 4.0, -3.0, 5.0]])
