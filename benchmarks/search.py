@@ -11,8 +11,9 @@ study's own frames, cached in ``--out``), registered from AP through ``register_
   start): the global search and the refinement alone;
 * ``contextual+cmaes``: the same with the shipped default network.
 
-Prints one table: success (mTRE < 10 mm and rotation < 1 deg), median seconds per registration and
-the ratio to the peer, median seconds of the grid; and a second with the grid's split (rendering
+Prints one table: success (mTRE < 10 mm, the issue's bar; and with rotation < 1 deg too), median
+and slowest seconds per registration (the whole ``register_xray``: reading, field, polarity,
+registration) and the ratio to the peer, median seconds of the grid; and a second with the grid's split (rendering
 the padded DRRs of every grid pose against the FFT NCC of every shift), medians over the frames.
 
     .venv/bin/python benchmarks/search.py --cases 10
@@ -88,14 +89,14 @@ def main() -> int:
             try:
                 res = register_xray(volume, path, center=center, **kw)
             except frame_refusals() as exc:  # the frame's content refused: a failed case, as in the study
-                rows[name].append((False, time.perf_counter() - t0, np.nan))
+                rows[name].append((False, time.perf_counter() - t0, np.nan, False))
                 refused_frame = True
                 print(f"search: frame {i} {name}: refused ({exc})", file=sys.stderr, flush=True)
                 continue
             seconds = time.perf_counter() - t0
             e = pose_errors(res.pose, T_true, points, center, np.eye(3, 4), np.eye(3, 4), 1.0)
             ok = e["mtre_mm"] < 10 and e["rot_err_deg"] < 1
-            rows[name].append((ok, seconds, res.result.stage_seconds.get("search_grid", np.nan)))
+            rows[name].append((ok, seconds, res.result.stage_seconds.get("search_grid", np.nan), e["mtre_mm"] < 10))
             record = res.result.search
             if name.startswith("search") and record["grid_poses"]:  # the grid's two parts on this frame
                 split.append((record["grid_poses"], record["grid_render_s"], record["grid_ncc_s"]))
@@ -110,18 +111,24 @@ def main() -> int:
     peer = np.median([r[1] for r in rows["cmaes + restarts (peer)"]])
     print(f"\n{a.target}: {a.cases} frames from AP through register_xray ({refused} refused by their content, "
           f"counted as failures; {time.strftime('%Y-%m-%d %H:%M')}, 2-core CPU)\n")
-    print("| method | success | median s / registration | ratio to the peer | median s of the grid |")
-    print("|---|---|---|---|---|")
+    print("| method | mTRE < 10 mm | and rotation < 1 deg | median s / registration | slowest s | ratio to the peer "
+          "| median s of the grid |")
+    print("|---|---|---|---|---|---|---|")
     for name, r in rows.items():
         v = np.array(r, float)
         grid_s = np.nanmedian(v[:, 2]) if np.isfinite(v[:, 2]).any() else float("nan")
-        print(f"| {name} | {v[:, 0].mean():.0%} | {np.median(v[:, 1]):.1f} | {np.median(v[:, 1]) / peer:.2f}x | "
+        print(f"| {name} | {v[:, 3].mean():.0%} | {v[:, 0].mean():.0%} | {np.median(v[:, 1]):.1f} | "
+              f"{v[:, 1].max():.1f} | {np.median(v[:, 1]) / peer:.2f}x | "
               + ("-" if not np.isfinite(grid_s) else f"{grid_s:.2f}") + " |")
     if not split:
         return 0
     s = np.array([(x[1], x[2]) for x in split])
     n = split[0][0]
-    print(f"\n| grid ({n} poses, padded detector) | median ms | ms per pose |")
+    from register.search import GlobalSearchSettings
+
+    k = GlobalSearchSettings().rescore
+    print(f"\n| grid ({n} poses at 1/4 resolution) and rescoring ({k} at 1/2), padded detectors | median ms | "
+          f"ms per grid pose |")
     print("|---|---|---|")
     for label, col in (("render (line DRRs, one batch)", 0), ("FFT masked NCC, every shift, x and y", 1)):
         print(f"| {label} | {1e3 * np.median(s[:, col]):.0f} | {1e3 * np.median(s[:, col]) / n:.2f} |")

@@ -52,9 +52,12 @@ class ContextualRegistration:
     None for the contextual iteration alone. ``search`` (with ``refine`` only): the global search
     (:class:`register.search.GlobalSearch`) between the iteration and the refinement: the
     network's pose is searched locally first and kept when its similarity reaches
-    ``search.found_above``; otherwise a grid over the prior box supplies further starts, and the
-    refinement starts from the one of highest similarity (``stage_seconds`` and ``history``
-    record the search). The similarity, not the truth, decides, so a user's registration can take
+    ``search.found_above``; otherwise a grid over the prior box supplies further starts, the
+    refinement's CMA-ES runs from each of the search's finalists (its best distinct local results,
+    ``search.finalists``), the highest similarity at full resolution wins and only the winner is
+    polished (``stage_seconds``, summed over the refinements, and ``history`` record the search;
+    the result's ``search`` record adds ``"refined"``, each finalist's similarity before the
+    polish, and ``"chosen"``, the index of the winner). The similarity, not the truth, decides, so a user's registration can take
     it: a network that fails on an image outside its training domain costs time, not the
     registration.
     """
@@ -136,17 +139,39 @@ class ContextualRegistration:
         if s.keep_drrs:
             trajectory["drrs"] = np.array(drrs)
         if self.refine is not None:
-            start, found = params, None
+            starts, found = [params], None
             if self.search is not None:
                 found = self.search.register(fixed, init_params, mask=mask, poses=[params])
-                start = found.params
+                starts = [np.asarray(f["params"], float) for f in found.search["finalists"]]
                 stages.update(found.stage_seconds)
-            res = self.refine.register(fixed, start, mask=mask)
-            res.stage_seconds = {**stages, **{f"cmaes_{k}": v for k, v in res.stage_seconds.items()}}
-            res.history = history + ([] if found is None else found.history) + res.history
-            res.renders += renders + (0 if found is None else found.renders)
+                history += found.history
+                renders += found.renders
+            # each start refined (CMA-ES, no polish); the highest similarity at full resolution wins
+            # (ties: the earlier start) and only the winner is polished
+            res, finals, cmaes_s, won = None, [], {}, 0
+            several = len(starts) > 1
+            refined = (self.refine.register_many(fixed, starts, mask=mask, polish=False) if several
+                       else [self.refine.register(fixed, starts[0], mask=mask)])
+            for i, r in enumerate(refined):
+                finals.append(float(r.similarity))
+                for k, v in r.stage_seconds.items():
+                    cmaes_s[f"cmaes_{k}"] = cmaes_s.get(f"cmaes_{k}", 0.0) + v
+                history += [(stage if i == 0 else f"finalist{i}.{stage}", v, p) for stage, v, p in r.history]
+                renders += r.renders
+                if res is None or r.similarity > res.similarity:
+                    res, won = r, i
+            if several and self.refine.settings.polish:
+                polished = self.refine.polish(fixed, res.params, start=starts[won], mask=mask)
+                cmaes_s["cmaes_polish"] = polished.stage_seconds["polish"]
+                history += polished.history
+                renders += polished.renders
+                res = polished
+            res.stage_seconds = {**stages, **cmaes_s}
+            res.history = history
+            res.renders = renders
             res.trajectory = trajectory
-            res.search = None if found is None else found.search
+            if found is not None:
+                res.search = {**found.search, "refined": finals, "chosen": int(np.argmax(finals))}
             return res
         from register.metrics import gradient_ncc
 
@@ -156,5 +181,9 @@ class ContextualRegistration:
                                   history=history, trajectory=trajectory)
 
 
-#: The narrowed CMA-ES box after the contextual iteration (degrees, mm).
-REFINE_SETTINGS = CMAESSettings(sigma_deg=2.0, sigma_mm=5.0, range_deg=10.0, range_mm=30.0, generations=(30, 20))
+#: The narrowed CMA-ES box after the contextual iteration (degrees, mm): one level at 1/2 resolution,
+#: then the polish at full resolution. A first level at 1/4 resolution (as CMA-ES from afar uses)
+#: pulled right starts away on realistic frames, whose coarse gradients mislead (scatter, display
+#: chain): 5 of 7 lost ``fluoro-65kV`` frames were right before the refinement and kept with this one.
+REFINE_SETTINGS = CMAESSettings(levels=(2,), sigma_deg=3.0, sigma_mm=8.0, range_deg=10.0, range_mm=30.0,
+                                generations=(40,), metrics=("gncc",))

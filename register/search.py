@@ -1,18 +1,22 @@
 """Coarse global pose search: where to start a local registration when the network's pose is lost.
 
 The search covers the prior box of the poses around a start (by default the original protocol's:
-+-40 deg phi, +-20 deg theta and psi, +-75 mm), coarse to fine, at a downsampled detector:
++-40 deg phi, +-20 deg theta and psi, +-75 mm), coarse to fine, at downsampled detectors:
 
-1. **grid**: rotations ``(phi, theta, psi)`` on a regular grid (``step_deg``) and depths ``tz`` on
-   ``depths`` values, each rendered once on a detector padded by the largest in-plane shift; the
-   in-plane translation ``(tx, ty)`` of each grid pose is the shift that maximises the gradient
-   NCC (:func:`register.metrics.gradient_ncc`'s score, the X-ray's field only) against the padded
-   DRR, computed for every shift at once by FFT (masked normalized cross-correlation, Padfield,
-   IEEE TIP 2012). A shift of ``d`` pixels is a translation of ``d * s * z / SDD`` mm at the
-   anatomy centre's depth ``z`` (the anatomy-centred parameters, docs/conventions.md);
-2. **local**: a short CMA-ES (:class:`register.cmaes.CMAESRegistration`, one level, no polish) from
-   each of the ``candidates`` best grid poses that are apart from each other, and from any poses
-   given (the network's), the best similarity kept.
+1. **grid** (``factor``, 1/4 resolution): rotations ``(phi, theta, psi)`` on a regular grid
+   (``step_deg``) and depths ``tz`` on ``depths`` values, each rendered once on a detector padded
+   by the largest in-plane shift; the in-plane translation ``(tx, ty)`` of each grid pose is the
+   shift that maximises the gradient NCC (:func:`register.metrics.gradient_ncc`'s score, the
+   X-ray's field only) against the padded DRR, computed for every shift at once by FFT (masked
+   normalized cross-correlation, Padfield, IEEE TIP 2012). A shift of ``d`` pixels is a
+   translation of ``d * s * z / SDD`` mm at the anatomy centre's depth ``z`` (the anatomy-centred
+   parameters, docs/conventions.md);
+2. **rescoring** (``local_factor``, 1/2 resolution): the ``rescore`` best grid poses scored again,
+   their shifts refined, which ranks realistic frames more sharply;
+3. **local**: a short CMA-ES (:class:`register.cmaes.CMAESRegistration`, one level at
+   ``local_factor``, no polish) from ``candidates`` poses apart from each other, half the best of
+   the rescoring and the rest the best of the grid, and from any poses given (the network's);
+   the best distinct results are the ``finalists`` a refinement starts from.
 
 The network's pose is searched first: when its local similarity reaches ``found_above`` the grid
 is skipped (a clearly right network costs a short local search, not the grid).
@@ -44,21 +48,38 @@ class GlobalSearchSettings:
         range_deg: ``(phi, theta, psi)`` half-widths of the rotation grid around the start (deg);
             default the original protocol's (40, 20, 20).
         step_deg: rotation grid step (deg), default 8 (11 x 6 x 6 rotations over the default
-            ranges; on the 15 of 50 ``fluoro-65kV`` frames that 10 deg steps and 8 candidates lost,
-            8 deg steps and 16 candidates found 7, 10 deg steps and 16 candidates 3).
+            ranges).
         range_mm: half-width of the depth (tz) grid and the largest in-plane shift (tx, ty)
             searched (mm), default 75 (the protocol's translations).
         depths: depth (tz) grid values, evenly from ``-range_mm`` to ``+range_mm`` (default 5).
-        factor: detector downsampling of the search (default 4: 32 x 32 px for a 128 px X-ray).
-        candidates: grid poses handed to the local search (default 16), best first, each apart from
-            those before it (more than one step in some angle, or one depth step, or 20 mm in-plane).
+        factor: detector downsampling of the grid (default 4: 32 x 32 px for a 128 px X-ray).
+        rescore: the best grid poses scored again, shifts refined, at ``local_factor``'s resolution
+            (default 256; 0: none). Half the candidates come from that ranking, the rest from the
+            grid's own. At 1/4 resolution a realistic frame's gradients (scatter, display chain,
+            noise) separate the right pose from wrong ones poorly (the truth's grid neighbour ranked
+            26th-859th on lost ``fluoro-65kV`` frames; gradient NCC at the truth 0.28-0.50 there,
+            0.45-0.72 at 1/2 resolution), but a grid pose half a step off still scores there.
+        local_factor: detector downsampling of the rescoring and of the local search's last level
+            (default 2).
+        candidates: starts of the local search (default 16), each apart from those before it (more
+            than one step in some angle, or one depth step, or 20 mm in-plane).
         local_sigma_deg / local_sigma_mm: the local CMA-ES's initial steps (3 deg, 8 mm).
-        local_range_deg / local_range_mm: its box around each candidate (12 deg, 35 mm).
-        local_generations: its generations (default 25); local_popsize: its population (16).
-        found_above: the given poses' (the network's) best local similarity at or above which the
-            grid is skipped (default 0.85; gradient NCC at the search's resolution: a wrong network
-            pose on a realistic radiograph scored 0.75 there, right ones 0.7-0.9, so only a clear
-            match skips the grid, and the grid costs 1-3 s).
+        local_range_deg / local_range_mm: its box around each start (12 deg, 35 mm).
+        local_generations / local_fine_generations: a start from the grid's own ranking (or a given
+            one) runs ``local_generations`` (default 25) at ``factor``, whose wide basins reach a
+            pose half a grid step away, then ``local_fine_generations`` (default 10; 0: none) at
+            ``local_factor``; a start from the rescoring runs ``local_generations`` at
+            ``local_factor`` alone. Every start's search runs in lockstep (one render per
+            generation for all). local_popsize: the population (16).
+        finalists: the best distinct local results (apart by more than 2 deg in some angle or 10 mm
+            in some translation; similarity: gradient NCC at full resolution) handed on as starts of
+            the refinement (default 3), which keeps the one of highest similarity: the best local
+            result is not always the right one (on ``fluoro-65kV`` frames a wrong one scored
+            0.22-0.56 where the right one, refined, reached 0.51-0.60). 1 when the grid is skipped.
+        found_above: the given poses' (the network's) best local similarity (gradient NCC at full
+            resolution) at or above which the grid is skipped (default 0.85: a wrong network pose on
+            a realistic radiograph scored 0.75, right ones 0.7-0.9, so only a clear match skips the
+            grid, which costs 2-4 s).
         seed: CMA-ES seed.
     """
 
@@ -67,13 +88,17 @@ class GlobalSearchSettings:
     range_mm: float = 75.0
     depths: int = 5
     factor: int = 4
+    rescore: int = 256
+    local_factor: int = 2
     candidates: int = 16
     local_sigma_deg: float = 3.0
     local_sigma_mm: float = 8.0
     local_range_deg: float = 12.0
     local_range_mm: float = 35.0
     local_generations: int = 25
+    local_fine_generations: int = 10
     local_popsize: int = 16
+    finalists: int = 3
     found_above: float = 0.85
     seed: int = 0
 
@@ -86,7 +111,8 @@ class GlobalSearchSettings:
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and np.isfinite(v) and v > 0):
                 raise RegistrationError(f"{name} must be a positive number, got {v!r}")
-        for name, lo in (("depths", 1), ("factor", 1), ("candidates", 1), ("local_generations", 1),
+        for name, lo in (("depths", 1), ("factor", 1), ("local_factor", 1), ("rescore", 0), ("candidates", 1),
+                         ("finalists", 1), ("local_generations", 1), ("local_fine_generations", 0),
                          ("local_popsize", 4)):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < lo:
@@ -134,12 +160,17 @@ def masked_ncc_shifts(template: np.ndarray, mask: np.ndarray, images: np.ndarray
     st, stt = tm.sum(), (tm * t).sum()
     vt = stt - st * st / n
 
-    def corr(img, kernel):  # out[u, v] = sum_x kernel[x] img[x + (u, v)], valid shifts
-        k = fft.rfft2(kernel[::-1, ::-1], (H, W))
-        full = fft.irfft2(fft.rfft2(img, (H, W), workers=-1) * k, (H, W), workers=-1)
+    # circular correlation on a fast FFT length >= the image: valid shifts never wrap around
+    shape = (fft.next_fast_len(H, real=True), fft.next_fast_len(W, real=True))
+
+    def corr(spectrum, kernel):  # out[u, v] = sum_x kernel[x] img[x + (u, v)], valid shifts
+        k = fft.rfft2(kernel[::-1, ::-1], shape)
+        full = fft.irfft2(spectrum * k, shape, workers=-1)
         return full[..., h - 1:H, w - 1:W]
 
-    si, sii, sit = corr(imgs, mf), corr(imgs * imgs, mf), corr(imgs, tm)
+    spec = fft.rfft2(imgs, shape, workers=-1)  # the images' spectrum, shared by two correlations
+    si, sit = corr(spec, mf), corr(spec, tm)
+    sii = corr(fft.rfft2(imgs * imgs, shape, workers=-1), mf)
     cov = sit - st * si / n
     vi = sii - si * si / n
     scale = np.sqrt(np.maximum(vi, 0.0) * max(vt, 0.0))
@@ -163,59 +194,78 @@ class GlobalSearch:
                  scene: str = "cios_fusion", geometry=None, center_lps=None, physics=None,
                  label_materials: dict[int, str] | None = None):
         from sim.anatomy import anatomy_center
-        from sim.geometry import CArmGeometry
-        from sim.physics.imaging import moving_renderer
 
         self.settings = s = settings or GlobalSearchSettings()
         size = (int(size[0]), int(size[1]))
-        if size[0] % s.factor or size[1] % s.factor or min(size) // s.factor < 8:
-            raise RegistrationError(f"global search: size {size} must be divisible by factor {s.factor} and give "
-                                    f"at least 8 x 8 px")
+        for name in ("factor", "local_factor"):
+            f = getattr(s, name)
+            if size[0] % f or size[1] % f or min(size) // f < 8:
+                raise RegistrationError(f"global search: size {size} must be divisible by {name} {f} and give "
+                                        f"at least 8 x 8 px")
         self.center_lps = np.asarray(anatomy_center(volume) if center_lps is None else center_lps, float)
-        self.local = CMAESRegistration(
-            volume, CMAESSettings(levels=(s.factor,), size=size, sigma_deg=s.local_sigma_deg,
-                                  sigma_mm=s.local_sigma_mm, range_deg=s.local_range_deg, range_mm=s.local_range_mm,
-                                  popsize=s.local_popsize, generations=(s.local_generations,), metrics=("gncc",),
-                                  polish=False, seed=s.seed),
-            scene=scene, geometry=geometry, center_lps=self.center_lps, physics=physics, label_materials=label_materials)
-        g = self.local.by_factor[s.factor].geometry  # the search's detector
+        common = dict(size=size, sigma_deg=s.local_sigma_deg, sigma_mm=s.local_sigma_mm, range_deg=s.local_range_deg,
+                      range_mm=s.local_range_mm, popsize=s.local_popsize, metrics=("gncc",), polish=False, seed=s.seed)
+        where = dict(scene=scene, geometry=geometry, center_lps=self.center_lps, physics=physics,
+                     label_materials=label_materials)
+        coarse = ((s.factor, s.local_factor), (s.local_generations, s.local_fine_generations))
+        if s.local_fine_generations == 0 or s.factor == s.local_factor:
+            coarse = ((s.factor,), (s.local_generations,))
+        # the local CMA-ES from starts ranked at the grid's resolution, and from rescored ones
+        self.local = CMAESRegistration(volume, CMAESSettings(levels=coarse[0], generations=coarse[1], **common),
+                                       **where)
+        self.local_fine = CMAESRegistration(volume, CMAESSettings(levels=(s.local_factor,),
+                                                                  generations=(s.local_generations,), **common),
+                                            **where)
+        g = self.local.geometry.resized(size[0] // s.factor, size[1] // s.factor)  # the grid's detector
         if s.range_mm >= g.sod_mm:
             raise RegistrationError(f"range_mm {s.range_mm} must be below the source-isocentre distance {g.sod_mm} mm")
         self.level_geometry = g
-        # the largest in-plane shift (range_mm at the nearest depth) in pixels of the search's detector
+        # the largest in-plane shift (range_mm at the nearest depth) in pixels of the grid's detector
         self.pad = int(np.ceil(s.range_mm * g.sdd_mm / (g.sod_mm - s.range_mm) / g.pixel_spacing_mm))
-        cx, cy = g.principal_point
-        padded = CArmGeometry(g.sdd_mm, g.sod_mm, g.height + 2 * self.pad, g.width + 2 * self.pad, g.pixel_spacing_mm,
-                              cx + self.pad, cy + self.pad)
         # the grid ranks poses by their edges, which are the geometry's: line DRRs whatever the moving
         # physics (~2000 poly images would cost ~20 s, full ones minutes); the local search uses ``physics``
-        self.padded = moving_renderer(volume, None, scene=scene, size=(padded.height, padded.width),
-                                      center_lps=self.center_lps, geometry=padded)
+        self.padded = self._padded_renderer(volume, scene, g, self.pad)
+        # the rescoring refines each grid pose's shift within +-2 grid pixels at local_factor's resolution
+        self.rescore_geometry = self.local.geometry.resized(size[0] // s.local_factor, size[1] // s.local_factor)
+        self.rescore_pad = 2 * max(s.factor // s.local_factor, 1)
+        self.rescore_padded = self._padded_renderer(volume, scene, self.rescore_geometry, self.rescore_pad)
 
-    def grid(self, fixed: np.ndarray, init_params=np.zeros(6), *, mask: np.ndarray | None = None,
-             times: dict | None = None) -> tuple[np.ndarray, np.ndarray]:
-        """Every grid pose with its best in-plane shift: ``(params (N, 6) deg/mm, scores (N,))``,
-        best score first. ``fixed`` ``(H, W)`` at ``size``; ``mask`` ``(H, W)`` bool, the field.
-        ``times``: a dict that gets the seconds of ``"render"`` (the padded DRRs) and ``"ncc"``
-        (the FFT NCC of every shift)."""
+    def _padded_renderer(self, volume, scene, g, pad):
+        """A line-DRR renderer of ``g``'s detector grown by ``pad`` pixels on every side."""
+        from sim.geometry import CArmGeometry
+        from sim.physics.imaging import moving_renderer
+
+        cx, cy = g.principal_point
+        padded = CArmGeometry(g.sdd_mm, g.sod_mm, g.height + 2 * pad, g.width + 2 * pad, g.pixel_spacing_mm,
+                              cx + pad, cy + pad)
+        return moving_renderer(volume, None, scene=scene, size=(padded.height, padded.width),
+                               center_lps=self.center_lps, geometry=padded)
+
+    def _field(self, fixed, mask, factor):
+        """``fixed`` downsampled by ``factor`` and its field eroded by one pixel (as gradient_ncc)."""
         from scipy import ndimage
 
         from register.metrics import downsample
-        from sim.geometry import pose_from_params
 
-        s = self.settings
-        g = self.level_geometry
-        f = downsample(np.asarray(fixed, np.float64), s.factor)
-        m = np.ones(f.shape, bool) if mask is None else downsample(np.asarray(mask, np.float64), s.factor) > 0.999
-        # gradients over the field eroded by one pixel and never on the image's border (as gradient_ncc)
+        f = downsample(np.asarray(fixed, np.float64), factor)
+        m = np.ones(f.shape, bool) if mask is None else downsample(np.asarray(mask, np.float64), factor) > 0.999
         m = ndimage.binary_erosion(m, np.ones((3, 3)), border_value=0)
         if m.sum() < 16:
-            raise RegistrationError(f"global search: the X-ray's field leaves {int(m.sum())} pixels at 1/{s.factor} "
+            raise RegistrationError(f"global search: the X-ray's field leaves {int(m.sum())} pixels at 1/{factor} "
                                     f"resolution; too few to search")
-        x0 = np.asarray(init_params, float).reshape(6)
-        params = x0 + s.grid_offsets()
+        return f, m
+
+    @staticmethod
+    def _best_shifts(f, m, params, renderer, g, pad, times=None):
+        """Each pose of ``params`` ``(N, 6)`` moved by its best in-plane shift (within ``pad`` pixels of
+        ``g``) against ``f`` over ``m``: ``(params (N, 6), scores (N,))``, best first."""
+        from scipy import ndimage
+
+        from sim.geometry import pose_from_params
+
+        params = params.copy()
         t0 = time.perf_counter()
-        drrs = self.padded.render(pose_from_params(params, g.sod_mm))
+        drrs = renderer.render(pose_from_params(params, g.sod_mm))
         t1 = time.perf_counter()
         score = 0.0
         for axis in (-1, -2):  # Sobel x, then y: the mean of the two NCCs as gradient NCC
@@ -225,27 +275,50 @@ class GlobalSearch:
         du, dv = np.unravel_index(flat.argmax(1), score.shape[1:])
         # fixed(x) matches drr(x + d): the anatomy must move by -d pixels, at its depth
         mm_per_px = (g.sod_mm + params[:, 5]) * g.pixel_spacing_mm / g.sdd_mm
-        params[:, 3] -= (dv - self.pad) * mm_per_px
-        params[:, 4] -= (du - self.pad) * mm_per_px
+        params[:, 3] -= (dv - pad) * mm_per_px
+        params[:, 4] -= (du - pad) * mm_per_px
         best = flat.max(1)
         order = np.argsort(-best, kind="stable")
         if times is not None:
-            times.update(render=t1 - t0, ncc=time.perf_counter() - t1)
+            times["render"] = times.get("render", 0.0) + t1 - t0
+            times["ncc"] = times.get("ncc", 0.0) + time.perf_counter() - t1
         return params[order], best[order]
 
-    def _distinct(self, params: np.ndarray) -> np.ndarray:
-        """The first ``candidates`` rows of ``params`` (best first) apart from the rows kept before them."""
+    def grid(self, fixed: np.ndarray, init_params=np.zeros(6), *, mask: np.ndarray | None = None,
+             times: dict | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """Every grid pose with its best in-plane shift at ``factor``'s resolution: ``(params (N, 6)
+        deg/mm, scores (N,))``, best score first. ``fixed`` ``(H, W)`` at ``size``; ``mask``
+        ``(H, W)`` bool, the field. ``times``: a dict that gets the seconds of ``"render"`` (the
+        padded DRRs) and ``"ncc"`` (the FFT NCC of every shift), added to what it holds."""
+        s = self.settings
+        f, m = self._field(fixed, mask, s.factor)
+        params = np.asarray(init_params, float).reshape(6) + s.grid_offsets()
+        return self._best_shifts(f, m, params, self.padded, self.level_geometry, self.pad, times)
+
+    def rescored(self, fixed: np.ndarray, params: np.ndarray, *, mask: np.ndarray | None = None,
+                 times: dict | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """Poses ``(K, 6)`` (grid poses with their shifts) scored again at ``local_factor``'s
+        resolution, each shift refined within +-2 grid pixels: ``(params (K, 6), scores (K,))``,
+        best first; ``times`` as :meth:`grid`."""
+        f, m = self._field(fixed, mask, self.settings.local_factor)
+        return self._best_shifts(f, m, np.asarray(params, float).reshape(-1, 6), self.rescore_padded,
+                                 self.rescore_geometry, self.rescore_pad, times)
+
+    def _distinct(self, params: np.ndarray, limit: int, kept=()) -> list:
+        """Rows of ``params`` (best first), each apart from ``kept`` and from the rows taken before
+        it (more than one grid step in some angle, or one depth step, or 20 mm in-plane), until
+        ``limit`` rows are kept in all: ``kept`` and the new rows, as a list."""
         s = self.settings
         dz = 2 * s.range_mm / max(s.depths - 1, 1)
-        kept = []
+        kept = list(kept)
         for p in params:
+            if len(kept) >= limit:
+                break
             near = any(np.all(np.abs(p[:3] - q[:3]) <= s.step_deg + 1e-6) and abs(p[5] - q[5]) <= dz + 1e-6
                        and np.hypot(*(p[3:5] - q[3:5])) < 20.0 for q in kept)
             if not near:
                 kept.append(p)
-            if len(kept) == s.candidates:
-                break
-        return np.array(kept)
+        return kept
 
     def register(self, fixed: np.ndarray, init_params=np.zeros(6), *, mask: np.ndarray | None = None,
                  poses=()) -> RegistrationResult:
@@ -253,12 +326,17 @@ class GlobalSearch:
 
         ``poses``: ``(K, 6)`` parameters searched locally first (the network's pose): when the best
         of them reaches ``found_above`` the grid is skipped. The result's similarity is the gradient
-        NCC at the search's resolution; ``stage_seconds`` has ``search_local`` (and ``search_grid``
+        NCC at full resolution at its pose; ``stage_seconds`` has ``search_local`` (and ``search_grid``
         when the grid ran); ``history`` one row per local search (stage ``search``); ``search``
         the record ``{"given_similarity": the best given pose's local similarity (None without
         one), "found_above", "grid_poses": grid poses rendered (0: skipped), "candidates": grid
         poses searched locally, "start": "given" or "grid", "similarity", "grid_render_s" /
-        "grid_ncc_s": the grid's seconds rendering and correlating (0 when skipped)}``."""
+        "grid_ncc_s": the grid's and the rescoring's seconds rendering and correlating (0 when
+        skipped), "finalists":
+        the best distinct local results, best first (the first is the result), at most
+        ``settings.finalists`` when the grid ran and 1 otherwise: ``[{"params": (6,) deg/mm,
+        "similarity", "start": "given" or "grid"}, ...]``}``; the refinement starts from each (:class:`register.contextual.
+        ContextualRegistration`)."""
         s = self.settings
         fixed = np.asarray(fixed, np.float64)
         if mask is not None:
@@ -269,58 +347,87 @@ class GlobalSearch:
         history: list[tuple[str, float, list[float]]] = []
         renders = 0
         best = None
+        results: list[RegistrationResult] = []
 
-        def local(starts):
+        def local(starts, engine):  # every start's local CMA-ES, in lockstep
             nonlocal best, renders
-            for p in starts:
-                drr = self.local.render(p, s.factor)[0]
-                renders += 1
-                if np.count_nonzero(drr > 1e-3) < 0.01 * drr.size:  # the CT is out of view there: no start
-                    continue
-                r = self.local.register(fixed, p, mask=mask)
+            starts = np.asarray(starts, float).reshape(-1, 6)
+            if not len(starts):
+                return
+            drrs = engine.render(starts, max(engine.settings.levels))
+            renders += len(starts)
+            seen = np.count_nonzero(drrs > 1e-3, axis=(1, 2)) >= 0.01 * drrs[0].size  # else the CT is out of view
+            for r in engine.register_many(fixed, starts[seen], mask=mask):
                 renders += r.renders
                 history.append(("search", float(r.similarity), r.params.tolist()))
+                results.append(r)
                 if best is None or r.similarity > best.similarity:
                     best = r
 
         t0 = time.perf_counter()
         given = np.asarray(poses, float).reshape(-1, 6)
-        local(given)
+        local(given, self.local)
         stages["search_local"] = time.perf_counter() - t0
         given_best = best
         grid_poses = candidates = 0
-        grid_times = {"render": 0.0, "ncc": 0.0}
+        grid_times = {"render": 0.0, "ncc": 0.0}  # the grid's and the rescoring's
         if best is None or best.similarity < s.found_above:
             t0 = time.perf_counter()
             params, _ = self.grid(fixed, init_params, mask=mask, times=grid_times)
             grid_poses = len(params)
             renders += grid_poses
+            # half the candidates from the ranking at local_factor's resolution (sharper at the
+            # optimum), the rest from the grid's own (wider basins)
+            fine = []
+            if s.rescore:
+                top, _ = self.rescored(fixed, params[:s.rescore], mask=mask, times=grid_times)
+                renders += len(top)
+                fine = self._distinct(top, (s.candidates + 1) // 2)
+            coarse = self._distinct(params, s.candidates, fine)[len(fine):]
             stages["search_grid"] = time.perf_counter() - t0
             t0 = time.perf_counter()
-            starts = self._distinct(params)
-            candidates = len(starts)
-            local(starts)
+            candidates = len(fine) + len(coarse)
+            local(fine, self.local_fine)
+            local(coarse, self.local)
             stages["search_local"] += time.perf_counter() - t0
         if best is None:
             raise RegistrationError("global search: no pose of the grid overlaps the X-ray (every DRR is empty); "
                                     "check the geometry and the anatomy centre")
+        finalists = [best]
+        for r in sorted(results, key=lambda r: -r.similarity):
+            if len(finalists) >= (s.finalists if grid_poses else 1):
+                break
+            if all(np.any(np.abs(r.params[:3] - f.params[:3]) > 2.0) or np.any(np.abs(r.params[3:] - f.params[3:]) > 10.0)
+                   for f in finalists):
+                finalists.append(r)
         best.stage_seconds = stages
         best.history = history
         best.renders = renders
         best.search = {"given_similarity": None if given_best is None else float(given_best.similarity),
                        "found_above": s.found_above, "grid_poses": grid_poses, "candidates": candidates,
                        "start": "given" if best is given_best else "grid", "similarity": float(best.similarity),
-                       "grid_render_s": grid_times["render"], "grid_ncc_s": grid_times["ncc"]}
+                       "grid_render_s": grid_times["render"], "grid_ncc_s": grid_times["ncc"],
+                       "finalists": [{"params": f.params.tolist(), "similarity": float(f.similarity),
+                                      "start": "given" if f is given_best else "grid"} for f in finalists]}
         return best
 
 
 def describe_search(record: dict) -> str:
-    """One line for a user from a :meth:`GlobalSearch.register` record (the network's pose as the
-    given one)."""
+    """One line for a user from a search record (:meth:`GlobalSearch.register`, with the network's
+    pose as the given one; with ``"refined"`` and ``"chosen"`` when the refinement ran from its
+    finalists, :class:`register.contextual.ContextualRegistration`)."""
     net = record["given_similarity"]
     head = "global search: " + ("no network pose" if net is None else f"the network's pose scored {net:.2f}")
     if not record["grid_poses"]:
         return head + f" (>= {record['found_above']:g}): grid skipped, refined from it"
-    start = "the network's pose" if record["start"] == "given" else "a grid pose"
-    return (head + f" (< {record['found_above']:g}): {record['grid_poses']} grid poses, {record['candidates']} "
-            f"searched locally; refined from {start} (similarity {record['similarity']:.2f} at the search's resolution)")
+    finalists = record.get("finalists") or [{"start": record["start"], "similarity": record["similarity"]}]
+    chosen = record.get("chosen", 0)
+    kept = finalists[chosen]
+    origin = "the network's pose" if kept["start"] == "given" else "a grid pose"
+    line = (head + f" (< {record['found_above']:g}): {record['grid_poses']} grid poses, {record['candidates']} "
+            f"searched locally; ")
+    if "refined" in record and len(record["refined"]) > 1:
+        rank = ("best", "second best", "third best")[chosen] if chosen < 3 else f"number {chosen + 1}"
+        return line + (f"the best {len(record['refined'])} refined, kept the {rank} ({origin}, similarity "
+                       f"{kept['similarity']:.2f}, {record['refined'][chosen]:.2f} after refinement)")
+    return line + f"refined from {origin} (similarity {kept['similarity']:.2f})"

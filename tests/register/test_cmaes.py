@@ -75,6 +75,80 @@ def test_restarts_run_only_while_lost_and_keep_the_best_similarity(phantom):
     np.testing.assert_array_equal(found.params, first.params)
 
 
+def test_along_the_view_ray_the_centre_keeps_its_pixel_and_the_depth_moves(phantom):
+    from register.cmaes import along_view_ray
+
+    vol, c = phantom
+    engine = CMAESRegistration(vol, SMALL, center_lps=c)
+    sod = engine.geometry.sod_mm
+    p = np.array([12.0, -7.0, 5.0, 30.0, -22.0, 18.0])
+    moved = along_view_ray(p, [-40.0, 0.0, 25.0], sod)
+    np.testing.assert_array_equal(moved[:, :3], np.repeat(p[None, :3], 3, 0))  # the rotation stays
+    np.testing.assert_allclose(moved[1], p, atol=1e-12)
+    np.testing.assert_allclose(moved[:, 5] - p[5], [-40.0, 0.0, 25.0], atol=1e-9)
+    # the anatomy centre projects to the same pixel (closed form: x / z at fixed ratio)
+    px = []
+    for q in moved:
+        P = projection_matrix(engine.geometry, pose_from_params(q, sod), c)
+        h = P @ np.append(c, 1.0)
+        px.append(h[:2] / h[2])
+    np.testing.assert_allclose(px, np.repeat(px[1][None], 3, 0), atol=1e-9)
+    # and any other point does not (the magnification changes)
+    off = c + np.array([60.0, 0.0, 0.0])
+    a, b = (projection_matrix(engine.geometry, pose_from_params(q, sod), c) @ np.append(off, 1.0) for q in moved[:2])
+    assert abs(a[0] / a[2] - b[0] / b[2]) > 0.5
+    with pytest.raises(RegistrationError, match="in front of the source"):
+        along_view_ray(np.array([0, 0, 0, 0, 0, -sod - 1.0]), [0.0], sod)
+
+
+def test_the_ray_scan_recovers_a_depth_error_the_search_leaves(phantom):
+    """A start 24 mm off along the view ray and a CMA-ES that barely moves: the scan (2 mm steps)
+    lands on the truth's depth to within a step; without the scan the depth error stays."""
+    from dataclasses import replace
+
+    from register.cmaes import along_view_ray
+
+    vol, c = phantom
+    truth = np.array([6.0, -4.0, 3.0, 25.0, -15.0, 10.0])
+    still = CMAESSettings(levels=(1,), size=(64, 64), popsize=4, generations=(1,), sigma_deg=0.01, sigma_mm=0.01,
+                          metrics=("gncc",), polish=False)
+    engine = CMAESRegistration(vol, replace(still, ray_scan_mm=30.0), center_lps=c)
+    sod = engine.geometry.sod_mm
+    target = engine.render(truth, 1)[0]
+    start = along_view_ray(truth, [24.0], sod)[0]
+    scanned = engine.register(target, start)
+    assert abs(scanned.params[5] - truth[5]) <= 2.0 + 0.1, scanned.params
+    assert "ray_scan" in scanned.stage_seconds and scanned.history[-1][0] == "ray_scan"
+    plain = CMAESRegistration(vol, still, center_lps=c).register(target, start)
+    assert abs(plain.params[5] - truth[5]) > 20.0 and plain.similarity < scanned.similarity
+    with pytest.raises(RegistrationError, match="ray_scan_mm"):
+        CMAESSettings(ray_scan_mm=-1.0)
+
+
+def test_searches_in_lockstep_give_each_start_its_own_result(phantom):
+    """register_many renders every search's population in one batch; each search draws from its own
+    generator, so each start gets exactly the result register gives it alone."""
+    vol, c = phantom
+    engine = CMAESRegistration(vol, CMAESSettings(levels=(2, 1), size=(64, 64), popsize=8, generations=(8, 4),
+                                                  polish_evals=40, ray_scan_mm=6.0), center_lps=c)
+    target = engine.render(np.array([6.0, -4.0, 3.0, 8.0, -6.0, 15.0]), 1)[0]
+    starts = np.array([[9.0, -7.0, 5.0, 13.0, -1.0, 5.0], [0.0] * 6, [3.0, 3.0, -3.0, 20.0, -20.0, -20.0]])
+    many = engine.register_many(target, starts)
+    for start, got in zip(starts, many):
+        alone = engine.register(target, start)
+        np.testing.assert_array_equal(got.params, alone.params)
+        assert got.similarity == alone.similarity and got.renders == alone.renders
+        assert [h[0] for h in got.history] == [h[0] for h in alone.history]
+    assert len({tuple(r.params) for r in many}) == 3  # three searches, not one repeated
+    unpolished = engine.register_many(target, starts[:1], polish=False)[0]
+    assert "polish" not in unpolished.stage_seconds and unpolished.history[-1][0] == "ray_scan"
+    finished = engine.polish(target, unpolished.params, start=starts[0])
+    assert finished.similarity >= unpolished.similarity and set(finished.stage_seconds) == {"polish"}
+    assert engine.register_many(target, np.zeros((0, 6))) == []
+    with pytest.raises(RegistrationError, match="empty"):
+        engine.register_many(target, np.array([[0.0, 0.0, 0.0, 3000.0, 0.0, 0.0]]))
+
+
 def test_bad_settings_and_inputs_are_named(phantom):
     with pytest.raises(RegistrationError, match="restarts"):
         CMAESSettings(restarts=-1)

@@ -80,14 +80,14 @@ def test_a_lost_network_pose_goes_through_the_global_search(phantom):
     from dataclasses import replace
 
     from register.contextual import REFINE_SETTINGS
-    from register.search import GlobalSearchSettings
+    from register.search import GlobalSearchSettings, describe_search
     from sim.geometry import pose_from_params
     from sim.se3 import rotation_error_deg
 
     vol, c = phantom
     size = (64, 64)
     truth = np.array([18.0, -9.0, 6.0, 20.0, -12.0, 15.0])
-    refine = replace(REFINE_SETTINGS, size=size, generations=(10, 8), polish_evals=60)
+    refine = replace(REFINE_SETTINGS, size=size, generations=(12,), polish_evals=60)
     search = GlobalSearchSettings(candidates=3)
     wrong = lambda fixed, drr: np.array([0.0, 0.0, 0.6, 0.0, 0.0, 0.0])  # noqa: E731: a steady 45 deg drift
     reg = ContextualRegistration(vol, wrong, ContextualSettings(max_iterations=10), size=size, center_lps=c,
@@ -97,6 +97,26 @@ def test_a_lost_network_pose_goes_through_the_global_search(phantom):
     assert "search_grid" in res.stage_seconds and any(h[0] == "search" for h in res.history)
     T_true = pose_from_params(truth, reg.geometry.sod_mm)
     assert rotation_error_deg(res.pose, T_true) < 2.0, res.params  # the search found it
+    record = res.search
+    assert len(record["refined"]) == len(record["finalists"]) >= 1
+    assert record["chosen"] == int(np.argmax(record["refined"])) and res.similarity >= max(record["refined"])
+    if len(record["refined"]) > 1:  # the finalists' CMA-ES without the polish, then the winner polished once
+        assert [h[0] for h in res.history].count("polish") == 1 and res.history[-1][0] == "polish"
+        assert not any(h[0].endswith(".polish") for h in res.history)
+    # the refinement runs from each finalist: a wrong search winner (as at 1/4 resolution on realistic
+    # frames) loses to the right runner-up once both are refined at full resolution
+    far = truth + np.array([-25.0, 12.0, -10.0, -40.0, 30.0, -35.0])
+    reg.search.register = lambda fixed, init, mask=None, poses=(): type(res)(
+        params=far, pose=np.eye(4), projection=np.eye(3, 4), similarity=0.9, renders=0,
+        stage_seconds={"search_local": 0.0}, search={**record, "finalists": [
+            {"params": far.tolist(), "similarity": 0.9, "start": "grid"},
+            {"params": (truth + [2.0, -2.0, 1.0, 5.0, -4.0, 8.0]).tolist(), "similarity": 0.5, "start": "grid"}]})
+    chosen = reg.register(fixed, np.zeros(6))
+    assert chosen.search["chosen"] == 1 and chosen.search["refined"][1] > chosen.search["refined"][0]
+    assert rotation_error_deg(chosen.pose, T_true) < 1.0, chosen.params
+    assert any(h[0].startswith("finalist1.") for h in chosen.history)
+    assert [h[0] for h in chosen.history].count("polish") == 1 and chosen.history[-1][0] == "polish"
+    assert "kept the second best (a grid pose" in describe_search(chosen.search)
     # without the search the same network stays lost
     alone = ContextualRegistration(vol, wrong, ContextualSettings(max_iterations=10), size=size, center_lps=c,
                                    refine=refine).register(fixed, np.zeros(6))

@@ -49,7 +49,10 @@ def test_settings_are_checked():
     assert np.allclose(offsets.mean(0), 0) and np.allclose(np.abs(offsets).max(0), [40, 20, 20, 0, 0, 75])
     for bad, match in [(dict(step_deg=0.0), "step_deg"), (dict(range_deg=(40, 20)), "range_deg"),
                        (dict(candidates=0), "candidates"), (dict(depths=1.5), "depths"),
-                       (dict(found_above=2.0), "found_above"), (dict(factor=True), "factor")]:
+                       (dict(found_above=2.0), "found_above"), (dict(factor=True), "factor"),
+                       (dict(rescore=-1), "rescore"), (dict(local_factor=0), "local_factor"),
+                       (dict(finalists=0), "finalists"), (dict(local_generations=0), "local_generations"),
+                       (dict(local_fine_generations=-1), "local_fine_generations")]:
         with pytest.raises(RegistrationError, match=match):
             GlobalSearchSettings(**bad)
 
@@ -71,6 +74,12 @@ def test_the_grid_finds_the_in_plane_translation_of_a_grid_rotation(phantom):
     assert np.all(np.abs(params[0][3:5] - truth[3:5]) <= mm_per_px), (params[0], mm_per_px)
     # whole-pixel shifts: up to half a search pixel off, which costs the gradient NCC about 0.1
     assert scores[0] > 0.8 and scores[0] >= scores[1:].max()
+    # the rescoring at 1/2 resolution keeps the truth's grid pose first and halves the shift's error
+    top, top_scores = search.rescored(fixed, params[:8])
+    g2 = search.rescore_geometry
+    assert g2.height == 2 * g.height and np.allclose(top[0][[0, 1, 2, 5]], truth[[0, 1, 2, 5]])
+    assert np.all(np.abs(top[0][3:5] - truth[3:5]) <= mm_per_px / 2), (top[0], mm_per_px / 2)
+    assert top_scores[0] >= top_scores[1:].max() and top_scores[0] > scores[0]  # sharper: closer to 1
     # a field: only its pixels count, and the shift is still found
     field = np.zeros((128, 128), bool)
     field[16:112, 24:104] = True
@@ -96,15 +105,30 @@ def test_the_search_finds_a_far_pose_and_skips_the_grid_for_a_good_one(phantom):
     n_grid = len(search.settings.grid_offsets())
     assert res.search["grid_render_s"] > 0 and res.search["grid_ncc_s"] > 0
     assert res.search["grid_render_s"] + res.search["grid_ncc_s"] <= res.stage_seconds["search_grid"]
-    assert {k: v for k, v in res.search.items() if not k.endswith("_s")} == {
+    finalists = res.search["finalists"]
+    assert {k: v for k, v in res.search.items() if not k.endswith("_s") and k != "finalists"} == {
         "given_similarity": res.history[0][1], "found_above": 0.85, "grid_poses": n_grid, "candidates": 3,
         "start": "grid", "similarity": res.similarity}
+    # finalists: the result first, then the next best local results, each apart from those before it
+    assert 1 <= len(finalists) <= 3 and finalists[0]["params"] == res.params.tolist()
+    sims = [f["similarity"] for f in finalists]
+    assert sims == sorted(sims, reverse=True) and sims[0] == res.similarity
+    assert set(sims) <= {h[1] for h in res.history}
+    for i, f in enumerate(finalists):
+        for g in finalists[:i]:
+            d = np.abs(np.subtract(f["params"], g["params"]))
+            assert np.any(d[:3] > 2.0) or np.any(d[3:] > 10.0)
+    local_results = sorted((h[1] for h in res.history), reverse=True)
+    if len(finalists) < 3:  # fewer only when the other local results ended near a finalist
+        assert len(set(np.round(local_results, 12))) >= len(finalists)
     assert f"{n_grid} grid poses, 3 searched locally; refined from a grid pose" in describe_search(res.search)
     assert rotation_error_deg(res.pose, T) < 3.0 and np.linalg.norm(res.params[3:5] - truth[3:5]) < 8.0, res.params
     good = search.register(fixed, np.zeros(6), poses=[truth + [2.0, -1.0, 1.0, 4.0, -3.0, 5.0]])
     assert "search_grid" not in good.stage_seconds and good.similarity >= search.settings.found_above
     assert rotation_error_deg(good.pose, T) < 3.0
     assert good.search["grid_poses"] == 0 and good.search["start"] == "given"
+    assert good.search["finalists"] == [{"params": good.params.tolist(), "similarity": good.similarity,
+                                         "start": "given"}]  # the grid skipped: the network's pose only
     assert "grid skipped" in describe_search(good.search)
     with pytest.raises(RegistrationError, match="divisible"):
         GlobalSearch(vol, size=(30, 30), center_lps=c)
