@@ -1,7 +1,7 @@
 """The global search (register/search.py) on realistic frames, against the CMA-ES restarts it replaced.
 
-Frames: the first ``--cases`` poses of a study ``xray`` target (``studies/domain_gap.toml``,
-default ``fluoro-65kV``: full physics, round iris, fluoroscopy display chain, 12-bit DICOM; the
+Frames: the first ``--cases`` poses of a study ``xray`` target (``--study``, default
+``studies/domain_gap.toml`` and its ``fluoro-65kV``: full physics, round iris, fluoroscopy display chain, 12-bit DICOM; the
 study's own frames, cached in ``--out``), registered from AP through ``register_xray`` as
 ``ctxreg register`` does, with three methods:
 
@@ -41,7 +41,10 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--ct", default=str(ROOT.parent / "shared" / "data" / "ct" / "pelvis_abdomen_3mm.nii.gz"))
     ap.add_argument("--cases", type=int, default=10)
-    ap.add_argument("--target", default="fluoro-65kV", help="an xray target of studies/domain_gap.toml")
+    ap.add_argument("--study", default=str(ROOT / "studies" / "domain_gap.toml"),
+                    help="the study file whose xray targets give the frames (studies/heldout.toml: conditions "
+                         "the search was not tuned on)")
+    ap.add_argument("--target", default="fluoro-65kV", help="an xray target of --study")
     ap.add_argument("--out", default=str(ROOT / "runs" / "bench_search"), help="frame cache folder")
     a = ap.parse_args()
     if not Path(a.ct).exists():
@@ -58,7 +61,10 @@ def main() -> int:
     from sim.anatomy import anatomy_center
     from sim.geometry import pose_from_params
 
-    study = load_study(ROOT / "studies" / "domain_gap.toml")
+    if not Path(a.study).exists():
+        print(f"search: study file {a.study} not found", file=sys.stderr)
+        return 2
+    study = load_study(a.study)
     targets = {t.name: t for t in study.targets if t.kind == "xray"}
     if a.target not in targets:
         print(f"search: --target must be one of {sorted(targets)}", file=sys.stderr)
