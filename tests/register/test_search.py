@@ -107,8 +107,8 @@ def test_the_search_finds_a_far_pose_and_skips_the_grid_for_a_good_one(phantom):
     assert res.search["grid_render_s"] + res.search["grid_ncc_s"] <= res.stage_seconds["search_grid"]
     finalists = res.search["finalists"]
     assert {k: v for k, v in res.search.items() if not k.endswith("_s") and k != "finalists"} == {
-        "given_similarity": res.history[0][1], "found_above": 0.85, "grid_poses": n_grid, "candidates": 3,
-        "start": "grid", "similarity": res.similarity}
+        "given_similarity": res.history[0][1], "given_clipped": False, "found_above": 0.85,
+        "grid_poses": n_grid, "candidates": 3, "start": "grid", "similarity": res.similarity}
     # finalists: the result first, then the next best local results, each apart from those before it
     assert 1 <= len(finalists) <= 3 and finalists[0]["params"] == res.params.tolist()
     sims = [f["similarity"] for f in finalists]
@@ -130,6 +130,13 @@ def test_the_search_finds_a_far_pose_and_skips_the_grid_for_a_good_one(phantom):
     assert good.search["finalists"] == [{"params": good.params.tolist(), "similarity": good.similarity,
                                          "start": "given"}]  # the grid skipped: the network's pose only
     assert "grid skipped" in describe_search(good.search)
+    # a network pose far outside the prior box is clipped into it before its local search
+    lost = search.register(fixed, np.zeros(6), poses=[np.array([5.0, 0.0, 0.0, 0.0, 0.0, -500.0])])
+    assert lost.search["given_clipped"] and good.search["given_clipped"] is False
+    s = search.settings
+    given_row = np.array(lost.history[0][2])
+    assert given_row[5] >= -s.range_mm - s.local_range_mm - 1e-9, given_row  # the local box around -75 mm
+    assert rotation_error_deg(lost.pose, T) < 3.0
     with pytest.raises(RegistrationError, match="divisible"):
         GlobalSearch(vol, size=(30, 30), center_lps=c)
 
