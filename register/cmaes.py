@@ -45,13 +45,9 @@ class CMAESSettings:
         generations: the most generations per level (one number for all levels, or one per level).
         metrics: similarity per level (names of :data:`register.metrics.METRICS`); one name for
             all levels, or one per level.
-        ray_scan_mm: before the polish, scan the pose along the view ray through the anatomy centre,
-            +- this many mm of depth (at full resolution, ``ray_scan_step_mm`` apart; the centre's
-            projection and the view's direction stay, only the magnification changes) and go on
-            from the best; 0 (default) = no scan. Depth along the ray is the direction an X-ray
-            constrains least: on realistic frames CMA-ES stopped 16-25 mm off along it at a
-            similarity just under the truth's.
-        ray_scan_step_mm: the scan's step (mm, default 2).
+        polish: run a Powell polish at the finest level after CMA-ES (its first directions: each
+            angle, tx, ty, and depth along the view ray through the anatomy centre, the direction an
+            X-ray constrains least; :func:`along_view_ray`).
         polish_evals: the most similarity evaluations of the polish.
         seed: CMA-ES seed.
         restarts: the most restarts of the whole search (IPOP-CMA-ES, Auger & Hansen 2005: each
@@ -72,8 +68,6 @@ class CMAESSettings:
     popsize: int = 24
     generations: tuple[int, ...] = (60, 40)
     metrics: tuple[str, ...] = ("gncc", "gncc")
-    ray_scan_mm: float = 0.0
-    ray_scan_step_mm: float = 2.0
     polish: bool = True
     polish_evals: int = 300
     seed: int = 0
@@ -85,9 +79,7 @@ class CMAESSettings:
             raise RegistrationError(f"levels must be downsampling factors >= 1, got {self.levels}")
         if any(s % max(self.levels) for s in self.size):
             raise RegistrationError(f"size {self.size} must be divisible by every level factor {self.levels}")
-        if not (np.isfinite(self.ray_scan_mm) and 0 <= self.ray_scan_mm <= 500):
-            raise RegistrationError(f"ray_scan_mm must be in [0, 500] mm, got {self.ray_scan_mm}")
-        for name in ("sigma_deg", "sigma_mm", "range_deg", "range_mm", "sigma_shrink", "ray_scan_step_mm"):
+        for name in ("sigma_deg", "sigma_mm", "range_deg", "range_mm", "sigma_shrink"):
             v = getattr(self, name)
             if not (np.isfinite(v) and v > 0):
                 raise RegistrationError(f"{name} must be positive, got {v}")
@@ -407,17 +399,6 @@ class CMAESRegistration:
             sigma *= s.sigma_shrink
             stages[stage] = time.perf_counter() - t0
         finest_metric = get_metric(s.per_level("metrics", len(s.levels) - 1))
-        if s.ray_scan_mm > 0:
-            t0 = time.perf_counter()
-            depths = np.arange(-s.ray_scan_mm, s.ray_scan_mm + 1e-9, s.ray_scan_step_mm)
-            scans = [np.clip(along_view_ray(bests[k], depths, self.geometry.sod_mm), los[k], his[k])
-                     for k in range(K)]
-            values = finest_metric(fixed, self.render(np.concatenate(scans), 1), mask=mask).reshape(K, -1)
-            for k in range(K):
-                renders[k] += len(depths)
-                bests[k] = scans[k][int(np.argmax(values[k]))]
-                histories[k].append((f"{prefix}ray_scan", float(values[k].max()), bests[k].tolist()))
-            stages[f"{prefix}ray_scan"] = time.perf_counter() - t0
         if polish:
             t0 = time.perf_counter()
             out = []

@@ -101,9 +101,10 @@ def test_along_the_view_ray_the_centre_keeps_its_pixel_and_the_depth_moves(phant
         along_view_ray(np.array([0, 0, 0, 0, 0, -sod - 1.0]), [0.0], sod)
 
 
-def test_the_ray_scan_recovers_a_depth_error_the_search_leaves(phantom):
-    """A start 24 mm off along the view ray and a CMA-ES that barely moves: the scan (2 mm steps)
-    lands on the truth's depth to within a step; without the scan the depth error stays."""
+def test_the_polish_recovers_a_depth_error_along_the_view_ray(phantom):
+    """A start 24 mm off along the view ray (the centre's projection right, the magnification
+    wrong) and a CMA-ES that barely moves: the polish, whose first directions include the view
+    ray, lands on the truth's depth; without the polish the depth error stays."""
     from dataclasses import replace
 
     from register.cmaes import along_view_ray
@@ -112,17 +113,14 @@ def test_the_ray_scan_recovers_a_depth_error_the_search_leaves(phantom):
     truth = np.array([6.0, -4.0, 3.0, 25.0, -15.0, 10.0])
     still = CMAESSettings(levels=(1,), size=(64, 64), popsize=4, generations=(1,), sigma_deg=0.01, sigma_mm=0.01,
                           metrics=("gncc",), polish=False)
-    engine = CMAESRegistration(vol, replace(still, ray_scan_mm=30.0), center_lps=c)
+    engine = CMAESRegistration(vol, replace(still, polish=True, polish_evals=300), center_lps=c)
     sod = engine.geometry.sod_mm
     target = engine.render(truth, 1)[0]
     start = along_view_ray(truth, [24.0], sod)[0]
-    scanned = engine.register(target, start)
-    assert abs(scanned.params[5] - truth[5]) <= 2.0 + 0.1, scanned.params
-    assert "ray_scan" in scanned.stage_seconds and scanned.history[-1][0] == "ray_scan"
+    polished = engine.register(target, start)
+    assert abs(polished.params[5] - truth[5]) <= 2.0, polished.params
     plain = CMAESRegistration(vol, still, center_lps=c).register(target, start)
-    assert abs(plain.params[5] - truth[5]) > 20.0 and plain.similarity < scanned.similarity
-    with pytest.raises(RegistrationError, match="ray_scan_mm"):
-        CMAESSettings(ray_scan_mm=-1.0)
+    assert abs(plain.params[5] - truth[5]) > 20.0 and plain.similarity < polished.similarity
 
 
 def test_searches_in_lockstep_give_each_start_its_own_result(phantom):
@@ -130,7 +128,7 @@ def test_searches_in_lockstep_give_each_start_its_own_result(phantom):
     generator, so each start gets exactly the result register gives it alone."""
     vol, c = phantom
     engine = CMAESRegistration(vol, CMAESSettings(levels=(2, 1), size=(64, 64), popsize=8, generations=(8, 4),
-                                                  polish_evals=40, ray_scan_mm=6.0), center_lps=c)
+                                                  polish_evals=40), center_lps=c)
     target = engine.render(np.array([6.0, -4.0, 3.0, 8.0, -6.0, 15.0]), 1)[0]
     starts = np.array([[9.0, -7.0, 5.0, 13.0, -1.0, 5.0], [0.0] * 6, [3.0, 3.0, -3.0, 20.0, -20.0, -20.0]])
     many = engine.register_many(target, starts)
@@ -141,7 +139,7 @@ def test_searches_in_lockstep_give_each_start_its_own_result(phantom):
         assert [h[0] for h in got.history] == [h[0] for h in alone.history]
     assert len({tuple(r.params) for r in many}) == 3  # three searches, not one repeated
     unpolished = engine.register_many(target, starts[:1], polish=False)[0]
-    assert "polish" not in unpolished.stage_seconds and unpolished.history[-1][0] == "ray_scan"
+    assert "polish" not in unpolished.stage_seconds and unpolished.history[-1][0] == "level1"
     finished = engine.polish(target, unpolished.params, start=starts[0])
     assert finished.similarity >= unpolished.similarity and set(finished.stage_seconds) == {"polish"}
     assert engine.register_many(target, np.zeros((0, 6))) == []
