@@ -39,15 +39,17 @@ def null_network(fixed, drr):
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--ct", default=str(ROOT.parent / "shared" / "data" / "ct" / "pelvis_abdomen_3mm.nii.gz"))
-    ap.add_argument("--cases", type=int, default=10)
+    ap.add_argument("--ct", default=str(ROOT.parent / "shared" / "data" / "ct" / "pelvis_abdomen_3mm.nii.gz"),
+                    help="the CT (NIfTI; default ../shared/data/ct/pelvis_abdomen_3mm.nii.gz)")
+    ap.add_argument("--cases", type=int, default=10, help="frames: the protocol's first N poses (default 10)")
     ap.add_argument("--study", default=str(ROOT / "studies" / "domain_gap.toml"),
                     help="the study file whose xray targets give the frames (studies/heldout.toml: conditions "
                          "the search was not tuned on)")
-    ap.add_argument("--target", default="fluoro-65kV", help="an xray target of --study")
-    ap.add_argument("--out", default=str(ROOT / "runs" / "bench_search"), help="frame cache folder")
+    ap.add_argument("--target", default="fluoro-65kV", help="an xray target of --study (default fluoro-65kV)")
+    ap.add_argument("--out", default=str(ROOT / "runs" / "bench_search"),
+                    help="frame cache folder (default runs/bench_search; frames in OUT/TARGET)")
     ap.add_argument("--methods", nargs="+", choices=("peer", "null", "network"), default=("peer", "null", "network"),
-                    help="which rows to run (the peer's seconds give the ratio column)")
+                    help="which rows to run (default all three; the peer's seconds give the ratio column)")
     a = ap.parse_args()
     if not Path(a.ct).exists():
         print(f"search: CT {a.ct} not found (see ../shared/data/README.md)", file=sys.stderr)
