@@ -43,7 +43,8 @@ def main() -> int:
                     help="the CT (NIfTI; default ../shared/data/ct/pelvis_abdomen_3mm.nii.gz)")
     ap.add_argument("--cases", type=int, default=10, help="frames: the protocol's first N poses (default 10)")
     ap.add_argument("--study", default=str(ROOT / "studies" / "domain_gap.toml"),
-                    help="the study file whose xray targets give the frames (studies/heldout.toml: conditions "
+                    help="the study file whose xray targets give the frames (default studies/domain_gap.toml; "
+                         "studies/heldout.toml: conditions "
                          "the search was not tuned on)")
     ap.add_argument("--target", default="fluoro-65kV", help="an xray target of --study (default fluoro-65kV)")
     ap.add_argument("--out", default=str(ROOT / "runs" / "bench_search"),
