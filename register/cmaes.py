@@ -221,11 +221,10 @@ class CMAESRegistration:
         x0 = np.asarray(init_params, dtype=np.float64).reshape(6)
         if not np.all(np.isfinite(x0)):
             raise RegistrationError(f"the start pose must be finite, got {x0}")
-        start_drr = self.render(x0, max(s.levels))[0]
-        if np.count_nonzero(start_drr > 1e-3) < 0.01 * start_drr.size:
+        if not self.in_view(x0)[0]:
             raise RegistrationError("the CT does not overlap the view at the start pose (its DRR is "
                                     "empty): check the scene geometry, the anatomy centre and --init")
-        scale = np.array([1.0] * 3 + [s.sigma_mm / s.sigma_deg] * 3)  # search in deg-like units
+        scale = self._scale()
         lo, hi = self._box(x0)
         renders = 0
         stages: dict[str, float] = {}
@@ -263,15 +262,14 @@ class CMAESRegistration:
             return []
         if not np.all(np.isfinite(x0s)):
             raise RegistrationError("the start poses must be finite")
-        drrs = self.render(x0s, max(s.levels))
-        if np.any(np.count_nonzero(drrs > 1e-3, axis=(1, 2)) < 0.01 * drrs[0].size):
+        if not np.all(self.in_view(x0s)):
             raise RegistrationError("the CT does not overlap the view at a start pose (its DRR is empty): check "
                                     "the scene geometry, the anatomy centre and the starts")
         boxes = [self._box(x) for x in x0s]
         stages: dict[str, float] = {}
         histories: list[list] = [[] for _ in x0s]
         out = self._search_many(fixed, mask, x0s, np.array([b[0] for b in boxes]), np.array([b[1] for b in boxes]),
-                                np.array([1.0] * 3 + [s.sigma_mm / s.sigma_deg] * 3), seed=s.seed,
+                                self._scale(), seed=s.seed,
                                 popsize=s.popsize, prefix="", stages=stages, histories=histories, progress=None,
                                 polish=s.polish if polish is None else polish and s.polish)
         results = []
@@ -282,6 +280,18 @@ class CMAESRegistration:
                                               stage_seconds={k: v / len(x0s) for k, v in stages.items()},
                                               history=history))
         return results
+
+    def in_view(self, params) -> np.ndarray:
+        """``(K,)`` bool for ``(K, 6)`` (or ``(6,)``) poses: whether the CT shows in the view there
+        (at least 1 % of the DRR's pixels above 1e-3 at the coarsest level); a search cannot start
+        where it does not."""
+        drrs = self.render(np.atleast_2d(params), max(self.settings.levels))
+        return np.count_nonzero(drrs > 1e-3, axis=(1, 2)) >= 0.01 * drrs[0].size
+
+    def _scale(self) -> np.ndarray:
+        """``(6,)``: CMA-ES searches in deg-like units, translations divided by sigma_mm / sigma_deg."""
+        s = self.settings
+        return np.array([1.0] * 3 + [s.sigma_mm / s.sigma_deg] * 3)
 
     def _checked(self, fixed) -> np.ndarray:
         """``fixed`` as float64 ``(H, W)`` at ``settings.size``, finite."""

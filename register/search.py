@@ -355,9 +355,8 @@ class GlobalSearch:
             starts = np.asarray(starts, float).reshape(-1, 6)
             if not len(starts):
                 return
-            drrs = engine.render(starts, max(engine.settings.levels))
+            seen = engine.in_view(starts)  # no start where the CT is out of view
             renders += len(starts)
-            seen = np.count_nonzero(drrs > 1e-3, axis=(1, 2)) >= 0.01 * drrs[0].size  # else the CT is out of view
             for r in engine.register_many(fixed, starts[seen], mask=mask):
                 renders += r.renders
                 history.append(("search", float(r.similarity), r.params.tolist()))
