@@ -49,6 +49,7 @@ import numpy as np
 from scipy import ndimage
 
 from sim.errors import InputError
+from sim.physics.display import TONE_LEVELS, TONES, apply_tone, quantile_curve
 
 __all__ = [
     "SCALES",
@@ -59,6 +60,10 @@ __all__ = [
     "decide",
     "noise_trend",
     "centre_contrast",
+    "TONES",
+    "TONE_LEVELS",
+    "tone_curve",
+    "apply_tone",
 ]
 
 SCALES = ("linear", "log", "display")
@@ -128,10 +133,10 @@ class IntensityDecision:
 
 @dataclass(frozen=True)
 class PolarityReference:
-    """Line-integral DRRs of the CT for the polarity check: ``drrs`` ``(N, h, w)`` rendered with
-    the X-ray's own detector geometry sampled at ``h x w`` (see :func:`register.prepare.reference_drrs`),
-    and ``resample(image (H, W), mask (H, W)) -> (image (h, w), mask (h, w))`` bringing the X-ray
-    to that sampling."""
+    """Line-integral DRRs of the CT for the polarity decision and the tone (:func:`tone_curve`):
+    ``drrs`` ``(N, h, w)`` rendered with the X-ray's own detector geometry sampled at ``h x w``
+    (see :func:`register.prepare.reference_drrs`), and ``resample(image (H, W), mask (H, W)) ->
+    (image (h, w), mask (h, w))`` bringing the X-ray to that sampling."""
 
     drrs: np.ndarray
     resample: Any = field(repr=False, default=None)
@@ -148,6 +153,42 @@ class PolarityReference:
         m = np.stack([ndimage.gaussian_filter(d, self.blur_px) for d in self.drrs])
         r = ncc(f, m, mask=small_mask)
         return float(r.max()), float(-r.min())
+
+    def field_values(self, mask: np.ndarray) -> np.ndarray:
+        """The DRRs' line integrals (dimensionless, sum of mu x length) inside the X-ray's field
+        ``mask`` ``(H, W)`` (resampled to the DRRs' sampling), pooled over every pose: ``(n,)``."""
+        _, small_mask = self.resample(np.zeros(np.shape(mask)), np.asarray(mask, bool))
+        if small_mask is None:
+            return self.drrs.reshape(-1)
+        return self.drrs[:, small_mask].reshape(-1)
+
+
+# ------------------------------------------------------------------------------------- tone
+
+#: A tone curve needs at least this many reference DRR pixels inside the field (all poses together).
+TONE_MIN_PIXELS = 256
+
+
+def tone_curve(reference: PolarityReference, mask: np.ndarray | None, shape: tuple[int, int],
+               levels: int = TONE_LEVELS) -> np.ndarray | None:
+    """The values a display image's pixels are mapped onto: ``(levels,)`` quantiles (probabilities
+    ``linspace(0, 1, levels)``) of the CT's line-integral DRRs inside the X-ray's field, pooled over
+    the reference poses around the start (:attr:`PolarityReference.drrs`).
+
+    A display chain (window, gamma, log or not, a vendor's LUT) is a monotone map of the line
+    integral that the image does not state. Mapping the field's pixels by rank onto these quantiles
+    (:func:`apply_tone`: histogram specification) undoes any such map up to the difference between
+    the reference poses' histogram and the true view's, so that gradients compare with the DRR's at
+    the right strength everywhere in the field (a gamma 2.6 display, or a linear one where the body
+    sits in the lowest grey levels, otherwise hides most of them). ``mask`` ``(H, W)`` bool of the
+    image of ``shape`` (None: every pixel). None when the field holds fewer than
+    :data:`TONE_MIN_PIXELS` reference pixels.
+    """
+    m = np.ones(shape, bool) if mask is None else np.asarray(mask, bool)
+    values = reference.field_values(m)
+    if values.size < TONE_MIN_PIXELS:
+        return None
+    return quantile_curve(values, levels)
 
 
 # ------------------------------------------------------------------------------------- cues

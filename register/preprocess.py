@@ -163,8 +163,19 @@ class Intensity(Step):
     image (valid pixels only), unless ``scale`` / ``polarity`` are given, then applies
     :class:`LogCorrect` (linear) and / or :class:`Invert` (bone dark). ``tags``: the reader's
     ``meta["intensity_tags"]``; ``inverted``: whether the reader inverted the stored values;
-    ``bits``: the stored bit depth. Measured: the decision with its evidence, and the records of
-    the steps it applied.
+    ``bits``: the stored bit depth.
+
+    ``tone`` (one of :data:`register.intensity.TONES`, default ``"ct"``): a ``display`` image's
+    values went through an unknown monotone look-up table; with ``"ct"`` and a CT ``reference``
+    the step also records the **tone curve** (``tone_curve``: :data:`register.intensity.TONE_LEVELS`
+    quantiles of the line integrals of the CT's reference DRRs seen through the same field,
+    :func:`register.intensity.tone_curve`), from which :func:`register.prepare.prepare_xray` makes
+    the toned image (:attr:`register.prepare.PreparedXRay.toned`). The image itself is left as
+    decided. ``"off"`` records no curve. Raw (``linear``) and ``log`` images are line integrals
+    already and get none.
+
+    Measured: the decision with its evidence, the records of the steps it applied, and for a
+    display image ``tone`` (what was done, or why not) and ``tone_curve``.
     """
 
     name: ClassVar[str] = "intensity"
@@ -174,10 +185,13 @@ class Intensity(Step):
     inverted: bool = False
     bits: int | None = None
     reference: Any = dataclasses.field(default=None, compare=False, repr=False)
+    tone: str = "ct"
 
     def __post_init__(self) -> None:
-        from register.intensity import POLARITIES, SCALES
+        from register.intensity import POLARITIES, SCALES, TONES
 
+        if self.tone not in TONES:
+            raise PreprocessError(f"intensity.tone: one of {', '.join(TONES)}, got {self.tone!r}")
         if self.scale != "auto" and self.scale not in SCALES:
             raise PreprocessError(f"intensity.scale: 'auto' or one of {', '.join(SCALES)}, got {self.scale!r}")
         if self.polarity != "auto" and self.polarity not in POLARITIES:
@@ -186,10 +200,10 @@ class Intensity(Step):
 
     def params(self) -> dict[str, Any]:
         return {"scale": self.scale, "polarity": self.polarity, "inverted": bool(self.inverted),
-                "bits": self.bits, "ct_reference": self.reference is not None}
+                "bits": self.bits, "ct_reference": self.reference is not None, "tone": self.tone}
 
     def apply(self, image, mask):
-        from register.intensity import decide
+        from register.intensity import TONE_LEVELS, decide, tone_curve
 
         decision = decide(image, mask, tags=self.tags, inverted=self.inverted, scale=self.scale,
                           polarity=self.polarity, reference=self.reference, bits=self.bits)
@@ -197,7 +211,20 @@ class Intensity(Step):
         for step in (STEPS[n]() for n in decision.steps()):
             image, mask, measured = step.apply(image, mask)
             applied.append({"step": step.name, "params": step.params(), "measured": _jsonable(measured)})
-        return image, mask, {**decision.to_dict(), "applied": applied}
+        out = {**decision.to_dict(), "applied": applied}
+        if decision.scale == "display":
+            curve = None
+            if self.tone == "off":
+                out["tone"] = "off (option)"
+            elif self.reference is None:
+                out["tone"] = "none: no CT reference (give the CT)"
+            else:
+                curve = tone_curve(self.reference, mask, image.shape)
+                out["tone"] = ("none: the field holds too few reference pixels" if curve is None else
+                               f"ct: {TONE_LEVELS} quantiles of the CT's line integrals in the field")
+            if curve is not None:
+                out["tone_curve"] = [round(float(v), 5) for v in curve]
+        return image, mask, out
 
 
 @dataclass(frozen=True)

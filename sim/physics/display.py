@@ -371,3 +371,51 @@ class DisplayChain:
     def from_dict(cls, d: Mapping[str, Any]) -> "DisplayChain":
         """Settings from :meth:`to_dict` (or a config); missing keys take the defaults."""
         return _from_dict(cls, d)
+
+
+# --------------------------------------------------------------------------------------------
+# the tone: a display's unknown monotone curve undone against known line integrals
+# --------------------------------------------------------------------------------------------
+
+#: Whether a display image gets a toned version for registration (and, in training, whether the
+#: targets are toned): ``ct`` maps its values by rank onto line integrals of the CT seen through
+#: the same field (:func:`apply_tone`), ``off`` makes none.
+TONES = ("ct", "off")
+#: Number of quantiles of a tone curve (probabilities ``linspace(0, 1, TONE_LEVELS)``).
+TONE_LEVELS = 257
+
+
+def quantile_curve(values: np.ndarray, levels: int = TONE_LEVELS) -> np.ndarray:
+    """The tone curve of reference ``values`` (line integrals, any shape): their ``(levels,)``
+    quantiles at the probabilities ``linspace(0, 1, levels)``."""
+    v = np.asarray(values, np.float64).reshape(-1)
+    if v.size == 0 or not np.all(np.isfinite(v)):
+        raise PhysicsError(f"tone curve: needs finite reference values, got {v.size} values")
+    return np.quantile(v, np.linspace(0.0, 1.0, int(levels)))
+
+
+def apply_tone(image: np.ndarray, mask: np.ndarray | None, curve: np.ndarray, *, reverse: bool = False) -> np.ndarray:
+    """Histogram specification: ``image`` ``(H, W)`` with its valid pixels (``mask`` ``(H, W)``
+    bool, None: all) mapped by rank onto ``curve`` (:func:`quantile_curve`).
+
+    The pixel of probability ``p = (rank - 0.5) / n`` (ties share their average rank) becomes the
+    curve's value at ``p`` (at ``1 - p`` with ``reverse``: the tone of the inverted image). Any
+    strictly monotone display curve (window, gamma, log or linear) is undone exactly when
+    ``curve`` holds the true view's own line integrals; with a reference from other poses, up to
+    the difference of the two histograms. Pixels outside ``mask`` get the median of the mapped
+    values. Returns float64 ``(H, W)``.
+    """
+    from scipy.stats import rankdata
+
+    img = np.asarray(image, np.float64)
+    m = np.ones(img.shape, bool) if mask is None else np.asarray(mask, bool)
+    q = np.asarray(curve, np.float64)
+    if q.ndim != 1 or q.size < 2 or not np.all(np.isfinite(q)) or np.any(np.diff(q) < 0):
+        raise PhysicsError(f"tone curve: expected a finite non-decreasing (levels,) array, got shape {q.shape}")
+    if m.shape != img.shape or not m.any():
+        raise PhysicsError(f"tone: the mask {m.shape} must match the image {img.shape} and hold a valid pixel")
+    p = (rankdata(img[m]) - 0.5) / int(m.sum())
+    mapped = np.interp(1.0 - p if reverse else p, np.linspace(0.0, 1.0, q.size), q)
+    out = np.full(img.shape, float(np.median(mapped)))
+    out[m] = mapped
+    return out

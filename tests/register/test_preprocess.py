@@ -239,3 +239,32 @@ def test_unknown_step_names_and_bad_parameters_are_errors():
         Pipeline([]).apply(np.zeros(5))
     with pytest.raises(PreprocessError, match="NaN"):
         Pipeline([]).apply(np.full((3, 3), np.nan))
+
+
+def test_intensity_step_records_a_tone_curve_for_display_images_only():
+    """A display image (gamma 2.6 over the log) with a CT reference gets the tone curve (the
+    reference's line-integral quantiles in the field) in its record and keeps its values; the toned
+    image made from it (register.prepare.toned_image) is the line integral again (correlation >
+    0.99, where the display is not); ``tone="off"``, a log image or no reference get no curve. A bad
+    tone name is refused."""
+    from register.intensity import TONE_LEVELS, PolarityReference
+    from register.prepare import toned_image
+
+    L = 1.0 + (_anatomy() - 500.0) / 200.0
+    shown = ((L - L.min()) / np.ptp(L)) ** 2.6
+    ref = PolarityReference(drrs=np.stack([np.roll(L, s, axis=1) for s in (-8, 8)]), resample=lambda im, m: (im, m))
+    tags = {"Modality": "DX"}  # a radiograph for presentation: display, bone bright
+    out, _, rec = Pipeline([Intensity(tags=tags, reference=ref)]).apply(shown)
+    m = rec[0]["measured"]
+    assert m["scale"] == "display" and m["steps"] == [] and m["tone"].startswith("ct")
+    assert len(m["tone_curve"]) == TONE_LEVELS and json.loads(json.dumps(rec)) == rec
+    np.testing.assert_allclose(out, shown.astype(np.float32))  # the image is left as decided
+    toned = toned_image(out.astype(np.float64), None, m["tone_curve"])
+    assert 0.0 <= toned.min() and toned.max() <= 1.0
+    assert np.corrcoef(toned.ravel(), L.ravel())[0, 1] > 0.99 > np.corrcoef(shown.ravel(), L.ravel())[0, 1]
+    assert toned_image(out, None, None) is None
+    for kw in ({"tone": "off"}, {"scale": "log"}, {"reference": None}):
+        _, _, rec2 = Pipeline([Intensity(tags=tags, **{"reference": ref, **kw})]).apply(shown)
+        assert "tone_curve" not in rec2[0]["measured"]
+    with pytest.raises(PreprocessError, match="tone"):
+        Intensity(tone="histogram")
