@@ -14,6 +14,10 @@ Metrics (``x`` = pixel column / second-to-last axis ``W``, ``y`` = row / axis ``
 
 * :func:`ncc` -- global normalised cross-correlation over the mask.
 * :func:`gradient_ncc` -- mean NCC of the Sobel x and y gradient images.
+* :func:`tone_free_gradient_ncc` -- gradient NCC of the X-ray re-valued by rank onto each DRR's
+  values (:func:`tone_matched`): blind to the display's monotone curve.
+* :func:`tone_tolerant_gradient_ncc` -- the mean of the two (the global search's and the
+  refinement's similarity).
 * :func:`patch_ncc` -- local NCC in every ``patch x patch`` window (box filters on the
   batch), averaged over the textured, sufficiently masked windows.
 * :func:`patch_gradient_ncc` -- patch NCC of the Sobel gradient images, averaged over x and y
@@ -45,6 +49,9 @@ __all__ = [
     "ncc",
     "patch_gradient_ncc",
     "patch_ncc",
+    "tone_free_gradient_ncc",
+    "tone_matched",
+    "tone_tolerant_gradient_ncc",
 ]
 
 #: An image whose standard deviation over the mask is at most this fraction of its largest
@@ -237,6 +244,112 @@ def gradient_ncc(fixed: np.ndarray, moving: np.ndarray, mask: np.ndarray | None 
     return _mean_defined(scores, defined, m.shape[0])
 
 
+def _tone_matched_values(f: np.ndarray, m: np.ndarray, idx: np.ndarray) -> np.ndarray:
+    """The masked pixels of ``f`` (``idx``: ``(H, W)`` bool) re-valued by rank onto each ``m[b]``'s
+    masked values: ``(B, n)`` in the pixel order of ``f[idx]`` (see :func:`tone_matched`)."""
+    values = f[idx]
+    n = values.size
+    order = np.argsort(values, kind="stable")
+    ranked = values[order]
+    sorted_moving = np.sort(m[:, idx], axis=1)  # (B, n)
+    out = np.empty_like(sorted_moving)
+    new = np.r_[True, ranked[1:] != ranked[:-1]]
+    if new.all():  # no ties (a noisy image): the r-th pixel takes the r-th value
+        out[:, order] = sorted_moving
+        return out
+    starts = np.flatnonzero(new)
+    ends = np.r_[starts[1:], n]
+    group = np.empty(n, np.intp)
+    group[order] = np.cumsum(new) - 1
+    cums = np.concatenate([np.zeros((m.shape[0], 1)), np.cumsum(sorted_moving, axis=1)], axis=1)
+    means = (cums[:, ends] - cums[:, starts]) / (ends - starts)  # (B, groups)
+    return means[:, group]
+
+
+def tone_matched(fixed: np.ndarray, moving: np.ndarray, mask: np.ndarray | None = None) -> np.ndarray:
+    """``fixed`` re-valued, for each moving image, onto that image's values by rank: ``(B, H, W)``.
+
+    Within the mask, the pixel of ``fixed`` with the ``r``-th smallest value takes the ``r``-th
+    smallest value of ``moving[b]`` over the mask (histogram specification onto the moving image);
+    pixels of equal value (a tie group, e.g. quantised grey levels) take the mean of the moving
+    values of their rank range, so that no ordering the image does not have is made up. Outside the
+    mask ``fixed`` is kept. Any strictly increasing map of ``fixed`` (a display's window, gamma,
+    log or linear curve) gives the same result, and at the pose whose DRR ``moving[b]`` is the
+    X-ray's view the result is the DRR's own values in the X-ray's order.
+
+    Args: fixed ``(H, W)``; moving ``(B, H, W)`` or ``(H, W)``; mask ``(H, W)`` bool or None.
+    """
+    f, m, k = _check_inputs(fixed, moving, mask, min_size=3)
+    return _tone_matched(f, m, k)
+
+
+def _tone_matched(f, m, k):
+    idx = np.ones(f.shape, bool) if k is None else k
+    out = np.empty(m.shape)
+    out[:] = f
+    out[:, idx] = _tone_matched_values(f, m, idx)
+    return out
+
+
+def _tone_free_scores(toned, mgx, mgy, ke) -> np.ndarray:
+    """Gradient NCC of each toned fixed image ``(B, H, W)`` against its own moving image's Sobel
+    gradients ``mgx``, ``mgy`` over the eroded mask ``ke``: ``(B,)``."""
+    tgx, tgy = _sobel_xy(toned)
+    scores = []
+    for tg, mg in ((tgx, mgx), (tgy, mgy)):
+        num, den_f, den_m = _paired_ncc_terms(tg, mg, ke)
+        scores.append(num / np.maximum(np.sqrt(den_f * den_m), 1e-300) * ((den_f > 0) & (den_m > 0)))
+    return np.mean(scores, axis=0)
+
+
+def tone_free_gradient_ncc(fixed: np.ndarray, moving: np.ndarray, mask: np.ndarray | None = None) -> np.ndarray:
+    """Gradient NCC of :func:`tone_matched` ``fixed`` against each moving image: ``(B,)``.
+
+    Invariant to any increasing map of ``fixed`` (the display's unknown look-up table): each
+    candidate DRR is compared with the X-ray re-valued onto that DRR's own values by rank, so the
+    gradients of the X-ray count with the strength they have in line integrals at that pose, not
+    with the display's. The polarity must be right (bone bright). Costs one sort of each moving
+    image over the mask on top of :func:`gradient_ncc`.
+    """
+    f, m, k = _check_inputs(fixed, moving, mask, min_size=3)
+    mgx, mgy = _sobel_xy(m)
+    return _tone_free_scores(_tone_matched(f, m, k), mgx, mgy, _gradient_mask(k))
+
+
+def tone_tolerant_gradient_ncc(fixed: np.ndarray, moving: np.ndarray, mask: np.ndarray | None = None) -> np.ndarray:
+    """The mean of :func:`gradient_ncc` and :func:`tone_free_gradient_ncc`: ``(B,)``.
+
+    Half the score is blind to the display's curve, so a strongly curved display (gamma 2.6, a
+    linear display of a 70 kV frame) still scores high at the right pose; half is not, so a wrong
+    pose whose DRR lets the rank match threshold the X-ray into its own outline (the tone-free
+    score alone reached 0.85-0.93 at wrong poses of log-display frames) is held back by the plain
+    half. Measured on the search's frames: docs/domain_gap.md ("The tone"). The moving images'
+    gradients are computed once for both halves.
+    """
+    f, m, k = _check_inputs(fixed, moving, mask, min_size=3)
+    ke = _gradient_mask(k)
+    fgx, fgy = _sobel_xy(f)
+    mgx, mgy = _sobel_xy(m)
+    scores, defined = [], []
+    for fg, mg in ((fgx, mgx), (fgy, mgy)):
+        fv = fg if ke is None else fg[ke]
+        defined.append(bool(fv.std() > _CONSTANT_REL * np.abs(fv).max()))
+        scores.append(_ncc_core(fg, mg, ke))
+    plain = _mean_defined(scores, defined, m.shape[0])
+    return 0.5 * (plain + _tone_free_scores(_tone_matched(f, m, k), mgx, mgy, ke))
+
+
+def _paired_ncc_terms(a: np.ndarray, b: np.ndarray, mask: np.ndarray | None):
+    """Per-batch NCC terms of paired ``(B, H, W)`` images over the mask: ``(cov, var_a, var_b)``, each ``(B,)``."""
+    if mask is not None:
+        a, b = a[:, mask], b[:, mask]
+    else:
+        a, b = a.reshape(a.shape[0], -1), b.reshape(b.shape[0], -1)
+    a = a - a.mean(axis=1, keepdims=True)
+    b = b - b.mean(axis=1, keepdims=True)
+    return (a * b).sum(axis=1), (a * a).sum(axis=1), (b * b).sum(axis=1)
+
+
 # ----------------------------------------------------------------------------- patch NCC
 
 
@@ -426,6 +539,18 @@ def _gncc_entry(fixed, moving, mask=None, **kw):
     return gradient_ncc(fixed, moving, mask)
 
 
+def _tgncc_entry(fixed, moving, mask=None, **kw):
+    if kw:
+        raise MetricError(f"tone_free_gncc: unexpected options {sorted(kw)}")
+    return tone_free_gradient_ncc(fixed, moving, mask)
+
+
+def _ttgncc_entry(fixed, moving, mask=None, **kw):
+    if kw:
+        raise MetricError(f"tone_tolerant_gncc: unexpected options {sorted(kw)}")
+    return tone_tolerant_gradient_ncc(fixed, moving, mask)
+
+
 def _patch_ncc_entry(fixed, moving, mask=None, **kw):
     return patch_ncc(fixed, moving, mask=mask, **kw)
 
@@ -439,6 +564,8 @@ def _patch_gncc_entry(fixed, moving, mask=None, **kw):
 METRICS: dict[str, Callable[..., np.ndarray]] = {
     "ncc": _ncc_entry,
     "gncc": _gncc_entry,
+    "tone_free_gncc": _tgncc_entry,
+    "tone_tolerant_gncc": _ttgncc_entry,
     "patch_ncc": _patch_ncc_entry,
     "patch_gncc": _patch_gncc_entry,
 }

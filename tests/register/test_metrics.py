@@ -23,6 +23,9 @@ from register.metrics import (
     ncc,
     patch_gradient_ncc,
     patch_ncc,
+    tone_free_gradient_ncc,
+    tone_matched,
+    tone_tolerant_gradient_ncc,
 )
 
 RNG_SEED = 1234
@@ -32,6 +35,8 @@ H, W = 48, 56
 ALL = {
     "ncc": lambda f, m, mask=None: ncc(f, m, mask),
     "gncc": lambda f, m, mask=None: gradient_ncc(f, m, mask),
+    "tone_free_gncc": lambda f, m, mask=None: tone_free_gradient_ncc(f, m, mask),
+    "tone_tolerant_gncc": lambda f, m, mask=None: tone_tolerant_gradient_ncc(f, m, mask),
     "patch_ncc": lambda f, m, mask=None: patch_ncc(f, m, patch=7, mask=mask),
     "patch_gncc": lambda f, m, mask=None: patch_gradient_ncc(f, m, patch=7, mask=mask),
     "ms_ncc": lambda f, m, mask=None: multiscale("ncc", f, m, levels=3, mask=mask),
@@ -104,6 +109,46 @@ def test_constant_images_give_zero_not_nan(rng):
     for fn in ALL.values():
         assert np.array_equal(fn(f, const), [0.0])
         assert np.array_equal(fn(const, f), [0.0])
+
+
+# --------------------------------------------------------------------- the tone-free gradient NCC
+
+
+def _reference_tone_matched(f, m, mask):
+    """Loop reference: each distinct value of f (inside the mask, ascending) takes the mean of m's
+    sorted values over the rank range its pixels occupy."""
+    out = f.astype(np.float64).copy()
+    values = f[mask]
+    sm = np.sort(m[mask])
+    start = 0
+    for v in np.unique(values):
+        count = int(np.sum(values == v))
+        out[mask & (f == v)] = sm[start:start + count].mean()
+        start += count
+    return out
+
+
+def test_tone_matched_gives_ties_the_mean_of_their_rank_range(rng, mask):
+    f = np.round(smooth_image(rng) * 3.0)  # a few grey levels: large tie groups
+    m = smooth_image(rng) + rng.normal(0, 0.1, (H, W))
+    got = tone_matched(f, m, mask)[0]
+    np.testing.assert_allclose(got, _reference_tone_matched(f, m, mask), atol=1e-12)
+    assert np.array_equal(got[~mask], f[~mask])  # outside the mask: untouched
+
+
+def test_tone_free_gncc_ignores_any_increasing_display_curve(rng, mask):
+    """gamma 2.6, a linear display of exp(-x), a window that clips nothing: the score of the curved
+    image equals that of the original (to 1e-9: the ranks are the same), where plain gradient NCC
+    moves by more than 0.01."""
+    d = smooth_image(rng)
+    x = d + 0.3 * smooth_image(rng, sigma=1.5)  # the X-ray: the DRR plus what it does not explain
+    x01 = (x - x.min()) / np.ptp(x)
+    moving = np.stack([d, np.roll(d, 3, axis=0)])
+    ref = tone_free_gradient_ncc(x01, moving, mask)
+    for curve in (lambda v: v ** 2.6, lambda v: 1.0 - np.exp(-4.0 * v), lambda v: np.log1p(50.0 * v)):
+        np.testing.assert_allclose(tone_free_gradient_ncc(curve(x01), moving, mask), ref, atol=1e-9)
+        assert np.max(np.abs(gradient_ncc(curve(x01), moving, mask) - gradient_ncc(x01, moving, mask))) > 0.01
+    assert ref[0] > ref[1]  # and it still tells the right pose from a shifted one
 
 
 # --------------------------------------------------------------------- independent references
@@ -222,13 +267,16 @@ def test_float32_and_float64_agree(rng):
 
 
 def test_registry_names_and_lookup(rng):
-    assert set(METRICS) == {"ncc", "gncc", "patch_ncc", "patch_gncc"}
+    assert set(METRICS) == {"ncc", "gncc", "tone_free_gncc", "tone_tolerant_gncc", "patch_ncc", "patch_gncc"}
     f, m = smooth_image(rng), smooth_image(rng)
     np.testing.assert_allclose(get_metric("ncc")(f, m), ncc(f, m), atol=0)
     np.testing.assert_allclose(get_metric("gncc")(f, m), gradient_ncc(f, m), atol=0)
+    np.testing.assert_allclose(get_metric("tone_free_gncc")(f, m), tone_free_gradient_ncc(f, m), atol=0)
+    np.testing.assert_allclose(get_metric("tone_tolerant_gncc")(f, m),
+                               0.5 * (gradient_ncc(f, m) + tone_free_gradient_ncc(f, m)), atol=1e-15)
     np.testing.assert_allclose(get_metric("patch_ncc")(f, m, patch=5), patch_ncc(f, m, patch=5), atol=0)
     np.testing.assert_allclose(get_metric("patch_gncc")(f, m, patch=5), patch_gradient_ncc(f, m, patch=5), atol=0)
-    with pytest.raises(MetricError, match="valid names: gncc, ncc, patch_gncc, patch_ncc"):
+    with pytest.raises(MetricError, match="valid names: gncc, ncc, patch_gncc, patch_ncc, tone_free_gncc, tone_tolerant_gncc"):
         get_metric("mutual_information")
 
 
