@@ -217,7 +217,7 @@ def register_xray(ct, xray, *, method: str = "cmaes", model=None, init="ap", cen
                   scene: str = "cios_fusion", sdd_mm: float | None = None, sod_mm: float | None = None,
                   pixel_spacing_mm: float | None = None, size=(128, 128), physics="line",
                   label_materials: dict[int, str] | None = None, preprocess=None, intensity: str = "auto",
-                  polarity: str = "auto", restarts: int | None = None,
+                  polarity: str = "auto", tone: str = "ct", restarts: int | None = None,
                   log: Callable[[str], None] | None = None, note: Callable[[str], None] | None = None
                   ) -> XRayRegistration:
     """Register the X-ray ``xray`` to the CT ``ct``: its pose, as ``ctxreg register`` finds it.
@@ -241,7 +241,9 @@ def register_xray(ct, xray, *, method: str = "cmaes", model=None, init="ap", cen
             ``-log(I/I0)``), or a :class:`sim.physics.imaging.PhysicsSettings`.
         preprocess: the preprocessing step names (default
             :data:`register.preprocess.DEFAULT_STEPS`); intensity / polarity: ``"auto"`` or the
-            override of the intensity step (only with ``"intensity"`` among the steps).
+            override of the intensity step (only with ``"intensity"`` among the steps); tone:
+            ``"ct"`` maps a display image's values onto the CT's line integrals in its field,
+            ``"off"`` keeps them (:class:`register.preprocess.Intensity`).
         restarts: CMA-ES restarts for ``method="cmaes"`` (default :data:`REGISTER_RESTARTS`);
             ``"contextual+cmaes"`` runs the global search instead (:mod:`register.search`: a grid over
             the prior box around ``init`` where the network's pose is lost).
@@ -279,9 +281,9 @@ def register_xray(ct, xray, *, method: str = "cmaes", model=None, init="ap", cen
                                 f"is --method {method}")
     restarts = REGISTER_RESTARTS if restarts is None else restarts
     steps = [str(n).strip().lower() for n in (DEFAULT_STEPS if preprocess is None else preprocess)]
-    Pipeline.from_names(steps, {"intensity": {"scale": intensity, "polarity": polarity}})  # names and choices
-    if "intensity" not in steps and (intensity, polarity) != ("auto", "auto"):
-        raise RegistrationError("--intensity / --polarity: meaningful with the 'intensity' preprocessing step only; "
+    Pipeline.from_names(steps, {"intensity": {"scale": intensity, "polarity": polarity, "tone": tone}})  # choices
+    if "intensity" not in steps and (intensity, polarity, tone) != ("auto", "auto", "ct"):
+        raise RegistrationError("--intensity / --polarity / --tone: meaningful with the 'intensity' preprocessing step only; "
                                 f"this run's steps are {' '.join(steps) or 'none'}")
     box = fit_box(size)
     moving = _moving_physics(physics)
@@ -297,7 +299,7 @@ def register_xray(ct, xray, *, method: str = "cmaes", model=None, init="ap", cen
                   what="the start pose (--init, with the anatomy centre --center)")
     # -- the work
     prepared = prepare_xray(xr, volume=volume, center_lps=c, init_params=x0, scene=scene, steps=steps,
-                            scale=intensity, polarity=polarity, size=box, sdd_mm=sdd_mm, sod_mm=sod_mm,
+                            scale=intensity, polarity=polarity, tone=tone, size=box, sdd_mm=sdd_mm, sod_mm=sod_mm,
                             pixel_spacing_mm=pixel_spacing_mm)
     prepared = confirm_polarity(prepared, volume, c, x0, physics=moving, label_materials=label_materials)
     log(prepared.sources.line())
@@ -308,7 +310,7 @@ def register_xray(ct, xray, *, method: str = "cmaes", model=None, init="ap", cen
                           scene=scene, model=predictor, physics=moving, label_materials=label_materials,
                           restarts=restarts if method == "cmaes" else 0, keep_drrs=True, note=remark,
                           search=GlobalSearchSettings() if method == "contextual+cmaes" else None)
-    result = engine.register(prepared.image, x0, mask=prepared.mask)
+    result = engine.register(prepared.image, x0, mask=prepared.mask, toned=prepared.toned)
     return XRayRegistration(method=method, result=result, prepared=prepared, volume=volume, center_lps=c,
                             init_params=x0, physics=moving, label_materials=label_materials, notes=notes)
 
@@ -324,8 +326,9 @@ def _input_lines(prepared) -> list[str]:
     dec = prepared.step("intensity")
     if dec is not None:
         steps = " + ".join(dec["steps"]) or "nothing"
+        tone = f"; tone: {dec['tone']}" if dec.get("tone") else ""
         lines.append(f"intensity: {dec['scale']} ({dec['scale_source']}), {dec['polarity']} "
-                     f"({dec['polarity_source']}): {steps}")
+                     f"({dec['polarity_source']}): {steps}{tone}")
     check = prepared.step("polarity_check")
     if check is not None:
         verdict = {"inverted": "inverted the image", "confirmed": "confirmed",

@@ -14,6 +14,7 @@ import numpy as np
 from register.api import REGISTER_RESTARTS, REGISTER_SCATTER_PHOTONS, RESTART_METHODS, parse_init
 from register.cmaes import CMAESSettings
 from register.evaluate import LOCAL_ROT_DEG, LOCAL_TRANS_MM
+from register.intensity import POLARITIES, SCALES, TONES
 from register.methods import METHOD_NAMES
 from sim.cli import CT_HELP
 from sim.cliargs import IMAGE_SIDE_PX, Range, opt
@@ -188,12 +189,17 @@ class RegisterCommand:
     intensity: str = field(default="auto", metadata=opt(
         "what the pixel values are: linear (raw detector intensity: takes the log), log, display "
         "(a vendor's LUT); auto decides from the DICOM tags, then the image", group="image",
-        choices=("auto", "linear", "log", "display")))
+        choices=("auto", *SCALES)))
     polarity: str = field(default="auto", metadata=opt(
         "bone in the image as displayed: bone-bright (radiograph) or bone-dark (fluoroscopy, raw); auto "
         "decides from the DICOM tags, the image's noise, DRRs of the CT around the start and the file's "
         "modality, then checks by a coarse registration of the image and its inverse", group="image",
-        choices=("auto", "bone-bright", "bone-dark")))
+        choices=("auto", *POLARITIES)))
+    tone: str = field(default="ct", metadata=opt(
+        "a display image's unknown look-up table (window, gamma, log or not): ct also makes a toned version, the "
+        "field's pixels mapped by rank onto the line integrals of DRRs of the CT around the start, which the global "
+        "search's grid ranks beside the image (and a network trained on toned targets sees); off makes none; raw "
+        "and log images get none", group="image", choices=TONES))
     out: str = field(default="out/register", metadata=opt(
         "folder for result.json, overlay.png (DRR edges and the field outline over the X-ray at its full "
         "resolution), checkerboard.png, convergence.png (and trajectory.npz, trajectory.png, trajectory.gif for the "
@@ -215,7 +221,7 @@ def run_register(cmd: RegisterCommand) -> list[Path]:
     refuse_unused(cmd, ("restarts",), applies=cmd.method in RESTART_METHODS,
                   why=f"meaningful with --method {' or '.join(RESTART_METHODS)} only; this run is --method {cmd.method}")
     steps = [str(n).strip().lower() for n in cmd.preprocess]
-    refuse_unused(cmd, ("intensity", "polarity"), applies="intensity" in steps,
+    refuse_unused(cmd, ("intensity", "polarity", "tone"), applies="intensity" in steps,
                   why="meaningful with the 'intensity' step of --preprocess only; this run's steps are "
                       + (" ".join(steps) or "none"))
     check_level_options(cmd)
@@ -226,7 +232,7 @@ def run_register(cmd: RegisterCommand) -> list[Path]:
         cmd.ct, cmd.xray, method=cmd.method, model=cmd.model, init=cmd.init, center=cmd.center,
         label_map=cmd.label_map, scene=cmd.scene, sdd_mm=cmd.sdd, sod_mm=cmd.sod, pixel_spacing_mm=cmd.pixel_spacing,
         size=tuple(cmd.size), physics=physics, label_materials=materials, preprocess=steps, intensity=cmd.intensity,
-        polarity=cmd.polarity, restarts=cmd.restarts if cmd.method in RESTART_METHODS else None, log=print,
+        polarity=cmd.polarity, tone=cmd.tone, restarts=cmd.restarts if cmd.method in RESTART_METHODS else None, log=print,
         note=lambda text: print(f"ctxreg register: note: {text}", file=sys.stderr))
     written = outcome.write(out)
     print(outcome.summary())

@@ -88,15 +88,18 @@ class ContextualRegistration:
                                             center_lps=self.center_lps, physics=physics,
                                             label_materials=label_materials)
 
-    def register(self, fixed: np.ndarray, init_params=np.zeros(6), *, mask: np.ndarray | None = None
-                 ) -> RegistrationResult:
+    def register(self, fixed: np.ndarray, init_params=np.zeros(6), *, mask: np.ndarray | None = None,
+                 toned: np.ndarray | None = None) -> RegistrationResult:
         """Register ``fixed`` ``(H, W)`` (preprocessed like the DRRs: bone bright) from ``init_params``
         (deg, mm). ``mask`` ``(H, W)`` bool: the valid pixels (collimated field). The predictor then
         sees the X-ray with the pixels outside the mask filled by the valid pixels' mean
         (:func:`register.prepare.masked_fill`: no contrast of its own), and the DRR filled the same
         way (the same field edge in both images, so the edge says nothing about the pose) unless
         the predictor's ``current_field`` is ``"open"`` (a network trained to see the anatomy
-        around the field); CMA-ES and the final similarity use the valid pixels only."""
+        around the field); CMA-ES and the final similarity use the valid pixels only. ``toned``
+        ``(H, W)``: the X-ray's toned version (:attr:`register.prepare.PreparedXRay.toned`) or None;
+        the global search ranks its grid on it too, and a network trained on toned targets (its
+        checkpoint's ``tone`` is ``"ct"``) sees it instead of ``fixed``."""
         from learn.labels import apply_update
         from register.prepare import masked_fill
         from sim.geometry import params_from_pose, pose_from_params
@@ -108,7 +111,10 @@ class ContextualRegistration:
             if mask.shape != fixed.shape or not mask.any():
                 raise RegistrationError(f"mask: expected a non-empty bool array of shape {fixed.shape}, "
                                         f"got {mask.shape} with {int(mask.sum())} valid pixels")
-        net_fixed = masked_fill(fixed, mask)
+        if toned is not None and np.shape(toned) != fixed.shape:
+            raise RegistrationError(f"toned: expected the X-ray's shape {fixed.shape}, got {np.shape(toned)}")
+        toned_net = toned is not None and getattr(self.predictor, "tone", "off") == "ct"
+        net_fixed = masked_fill(np.asarray(toned, np.float64) if toned_net else fixed, mask)
         # a network trained on open current images sees the DRR's anatomy around the field too
         open_current = getattr(self.predictor, "current_field", "masked") == "open"
         T = pose_from_params(np.asarray(init_params, float).reshape(6), self.geometry.sod_mm)
@@ -141,7 +147,7 @@ class ContextualRegistration:
         if self.refine is not None:
             starts, found = [params], None
             if self.search is not None:
-                found = self.search.register(fixed, init_params, mask=mask, poses=[params])
+                found = self.search.register(fixed, init_params, mask=mask, poses=[params], toned=toned)
                 starts = [np.asarray(f["params"], float) for f in found.search["finalists"]]
                 stages.update(found.stage_seconds)
                 history += found.history
@@ -185,5 +191,7 @@ class ContextualRegistration:
 #: then the polish at full resolution. A first level at 1/4 resolution (as CMA-ES from afar uses)
 #: pulled right starts away on realistic frames, whose coarse gradients mislead (scatter, display
 #: chain): 5 of 7 lost ``fluoro-65kV`` frames were right before the refinement and kept with this one.
+#: The similarity is the tone-tolerant gradient NCC (:func:`register.metrics.tone_tolerant_gradient_ncc`):
+#: half of it blind to the display's curve.
 REFINE_SETTINGS = CMAESSettings(levels=(2,), sigma_deg=3.0, sigma_mm=8.0, range_deg=10.0, range_mm=30.0,
-                                generations=(40,), metrics=("gncc",))
+                                generations=(40,), metrics=("tone_tolerant_gncc",))

@@ -32,8 +32,8 @@ METHOD_NAMES = ("cmaes", "contextual", "contextual+cmaes")
 class RegistrationMethod(Protocol):
     name: str
 
-    def register(self, fixed: np.ndarray, init_params: np.ndarray, *, mask: np.ndarray | None = None
-                 ) -> RegistrationResult: ...
+    def register(self, fixed: np.ndarray, init_params: np.ndarray, *, mask: np.ndarray | None = None,
+                 toned: np.ndarray | None = None) -> RegistrationResult: ...
 
 
 def needs_model(method: str) -> bool:
@@ -69,7 +69,12 @@ class _Method:
         self.name = name
         self.engine = engine
 
-    def register(self, fixed, init_params, *, mask=None) -> RegistrationResult:
+    def register(self, fixed, init_params, *, mask=None, toned=None) -> RegistrationResult:
+        """``toned``: the X-ray's toned version (:attr:`register.prepare.PreparedXRay.toned`), used by
+        the contextual methods (their search's grid, a network trained on toned targets); CMA-ES
+        alone registers ``fixed``."""
+        if toned is not None and hasattr(self.engine, "search"):
+            return self.engine.register(fixed, init_params, mask=mask, toned=toned)
         return self.engine.register(fixed, init_params, mask=mask)
 
 

@@ -145,6 +145,10 @@ class PreparedXRay:
         full_mask: ``(H, W)`` bool the valid pixels at full resolution.
         record: the preprocessing record (one entry per step).
         sources: :class:`register.xray_io.GeometrySources` (where each geometry value came from).
+        toned: ``(h, w)`` float64 ``image`` with its valid pixels mapped by rank onto the CT's line
+            integrals in the field (the intensity step's tone curve, :func:`toned_image`) and
+            normalised to [0, 1]; None when the image got no tone curve (not a display image,
+            ``tone="off"``, no CT). The global search ranks its grid on it too.
     """
 
     xray: Any
@@ -156,6 +160,7 @@ class PreparedXRay:
     full_mask: np.ndarray
     record: list
     sources: Any
+    toned: np.ndarray | None = None
 
     def step(self, name: str) -> dict | None:
         """The measured values of the first pipeline step called ``name`` (None if it did not run)."""
@@ -173,7 +178,7 @@ class PreparedXRay:
 
 
 def prepare_xray(xray, *, volume=None, center_lps=None, init_params=None, scene: str = "cios_fusion",
-                 steps=None, scale: str = "auto", polarity: str = "auto", size=(128, 128),
+                 steps=None, scale: str = "auto", polarity: str = "auto", tone: str = "ct", size=(128, 128),
                  sdd_mm: float | None = None, sod_mm: float | None = None,
                  pixel_spacing_mm: float | None = None) -> PreparedXRay:
     """Prepare ``xray`` (a path or :class:`register.xray_io.XRayImage`) for registration.
@@ -186,6 +191,9 @@ def prepare_xray(xray, *, volume=None, center_lps=None, init_params=None, scene:
         steps: preprocessing step names (default :data:`register.preprocess.DEFAULT_STEPS`).
         scale / polarity: ``"auto"`` or an override (:data:`register.intensity.SCALES`,
             :data:`register.intensity.POLARITIES`).
+        tone: ``"ct"``: a display image also gets :attr:`PreparedXRay.toned`, its values mapped
+            onto the CT's line integrals in its field (with ``volume``;
+            :class:`register.preprocess.Intensity`); ``"off"``: not.
         size: ``(H, W)`` px the optimiser's image fits inside (aspect kept, sides multiples of 4;
             :func:`fit_to_size`), each side in [8, 4096]; one number is a square box.
         sdd_mm, sod_mm, pixel_spacing_mm: explicit geometry (override tags and scene).
@@ -200,14 +208,15 @@ def prepare_xray(xray, *, volume=None, center_lps=None, init_params=None, scene:
                                               pixel_spacing_mm=pixel_spacing_mm)
     steps = tuple(DEFAULT_STEPS if steps is None else steps)
     reference = None
-    if "intensity" in steps and volume is not None and polarity == "auto":
+    wants_tone = tone == "ct" and scale in ("auto", "display")
+    if "intensity" in steps and volume is not None and (polarity == "auto" or wants_tone):
         from sim.anatomy import anatomy_center
 
         center = anatomy_center(volume) if center_lps is None else center_lps
         reference = reference_drrs(volume, center, full_geometry, np.zeros(6) if init_params is None else init_params)
     tags = xray.meta.get("intensity_tags")
     bits = (tags or {}).get("BitsStored") if tags else (8 if xray.meta.get("dtype") == "uint8" else None)
-    options = {"intensity": {"scale": scale, "polarity": polarity, "tags": tags,
+    options = {"intensity": {"scale": scale, "polarity": polarity, "tone": tone, "tags": tags,
                              "inverted": bool(xray.meta.get("inverted", False)), "bits": bits,
                              "reference": reference}}
     image, mask, record = Pipeline.from_names(list(steps), options).apply(xray.pixels)
@@ -226,7 +235,25 @@ def prepare_xray(xray, *, volume=None, center_lps=None, init_params=None, scene:
         raise PreprocessError(f"{xray.source}: no valid pixel is left at the optimiser's {small.shape[0]} x "
                               f"{small.shape[1]} px")
     return PreparedXRay(xray=xray, image=small, mask=small_mask, geometry=geometry, full_geometry=full_geometry,
-                        full_image=full_image, full_mask=full_mask, record=record, sources=sources)
+                        full_image=full_image, full_mask=full_mask, record=record, sources=sources,
+                        toned=toned_image(small, small_mask, _tone_of(record)))
+
+
+def toned_image(image: np.ndarray, mask: np.ndarray | None, curve) -> np.ndarray | None:
+    """``image`` ``(h, w)`` (bone bright) with its valid pixels mapped by rank onto ``curve``
+    (:func:`register.intensity.tone_curve`), normalised as :class:`register.preprocess.Normalize`
+    does (1st / 99th percentiles of the valid pixels to 0 / 1, clipped); outside the mask the
+    valid median. None when ``curve`` is None."""
+    from sim.physics.display import apply_tone
+
+    if curve is None:
+        return None
+    out = apply_tone(image, mask, curve)
+    m = np.ones(out.shape, bool) if mask is None else mask
+    lo, hi = np.percentile(out[m], [1.0, 99.0])
+    if not hi > lo:
+        return np.full(out.shape, 0.5)
+    return np.clip((out - lo) / (hi - lo), 0.0, 1.0)
 
 
 def masked_fill(image: np.ndarray, mask: np.ndarray | None) -> np.ndarray:
@@ -261,7 +288,7 @@ def confirm_polarity(prepared: PreparedXRay, volume, center_lps, init_params, *,
 
     A coarse CMA-ES search (:data:`POLARITY_CHECK`: 1/4 resolution, 40 generations, gradient NCC)
     runs for the prepared image and for its inverse (``1 - image``: the image is normalised to
-    [0, 1]); the polarity whose best similarity is higher is kept. With the wrong polarity every
+    [0, 1]; the toned image, :attr:`PreparedXRay.toned`, is made again from the inverse); the polarity whose best similarity is higher is kept. With the wrong polarity every
     edge of the X-ray points against the DRR's, so the right one matches better wherever the
     search finds the anatomy. The inverse wins only by :data:`POLARITY_FLIP_MARGIN`: when
     neither search finds the anatomy the similarities are alike and the decision stands
@@ -298,4 +325,14 @@ def confirm_polarity(prepared: PreparedXRay, volume, center_lps, init_params, *,
         return replace(prepared, record=record)
     m = prepared.full_mask
     flo, fhi = (float(v) for v in np.percentile(prepared.full_image[m] if m.any() else prepared.full_image, [0, 100]))
-    return replace(prepared, image=inverse, full_image=(fhi + flo) - prepared.full_image, record=record)
+    return replace(prepared, image=inverse, full_image=(fhi + flo) - prepared.full_image, record=record,
+                   toned=toned_image(inverse, prepared.mask, _tone_of(prepared.record)))
+
+
+def _tone_of(record) -> np.ndarray | None:
+    """The tone curve ``(levels,)`` the intensity step recorded (None: the image has none)."""
+    for entry in record:
+        if entry["step"] == "intensity":
+            curve = entry["measured"].get("tone_curve")
+            return None if curve is None else np.asarray(curve, np.float64)
+    return None

@@ -36,6 +36,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from register.cmaes import CMAESRegistration, CMAESSettings, RegistrationError, RegistrationResult
+from sim.errors import InputError
 
 __all__ = ["GlobalSearchSettings", "GlobalSearch", "masked_ncc_shifts", "describe_search"]
 
@@ -76,6 +77,10 @@ class GlobalSearchSettings:
             the refinement (default 3), which keeps the one of highest similarity: the best local
             result is not always the right one (on ``fluoro-65kV`` frames a wrong one scored
             0.22-0.56 where the right one, refined, reached 0.51-0.60). 1 when the grid is skipped.
+        metric: the similarity of the local searches and of the finalists' ranking (a name of
+            :data:`register.metrics.METRICS`; default ``"tone_tolerant_gncc"``: half gradient NCC,
+            half tone-free gradient NCC, :func:`register.metrics.tone_tolerant_gradient_ncc`); the
+            grid's FFT correlation is gradient NCC whatever it is.
         found_above: the given poses' (the network's) best local similarity (gradient NCC at full
             resolution) at or above which the grid is skipped (default 0.85: a wrong network pose on
             a realistic radiograph scored 0.75, right ones 0.7-0.9, so only a clear match skips the
@@ -100,6 +105,7 @@ class GlobalSearchSettings:
     local_popsize: int = 16
     finalists: int = 3
     found_above: float = 0.85
+    metric: str = "tone_tolerant_gncc"
     seed: int = 0
 
     def __post_init__(self) -> None:
@@ -119,6 +125,12 @@ class GlobalSearchSettings:
                 raise RegistrationError(f"{name} must be an integer >= {lo}, got {v!r}")
         if not (np.isfinite(self.found_above) and -1.0 <= self.found_above <= 1.0):
             raise RegistrationError(f"found_above must be a similarity in [-1, 1], got {self.found_above}")
+        from register.metrics import get_metric
+
+        try:
+            get_metric(self.metric)
+        except InputError as e:
+            raise RegistrationError(f"metric: {e}") from None
 
     def grid_offsets(self) -> np.ndarray:
         """``(N, 6)`` grid offsets (deg, mm) around the start: rotations and depths; tx = ty = 0."""
@@ -136,29 +148,31 @@ def masked_ncc_shifts(template: np.ndarray, mask: np.ndarray, images: np.ndarray
     ``images[b, x + (u, v)]`` (Padfield 2012, the overlap always complete: "valid" shifts).
 
     Args:
-        template: ``(h, w)``; mask: ``(h, w)`` bool, at least 2 pixels; images: ``(B, H, W)``,
-            ``H >= h``, ``W >= w``.
+        template: ``(h, w)``, or ``(K, h, w)``: several templates with the same mask, whose shared
+            terms (the images' spectra, their windowed sums and sums of squares) are computed once;
+            mask: ``(h, w)`` bool, at least 2 pixels; images: ``(B, H, W)``, ``H >= h``, ``W >= w``.
 
     Returns:
-        ``(B, H - h + 1, W - w + 1)`` float64 in [-1, 1]; 0 where an image is constant under the mask.
+        ``(B, H - h + 1, W - w + 1)`` float64 in [-1, 1] (``(K, B, ...)`` for ``K`` templates); 0
+        where an image is constant under the mask.
     """
     from scipy import fft
 
-    t = np.asarray(template, np.float64)
+    ts = np.asarray(template, np.float64)
+    single = ts.ndim == 2
+    ts = ts[None] if single else ts
     m = np.asarray(mask, bool)
     imgs = np.asarray(images, np.float64)
-    if t.ndim != 2 or m.shape != t.shape or imgs.ndim != 3 or imgs.shape[1] < t.shape[0] or imgs.shape[2] < t.shape[1]:
-        raise RegistrationError(f"masked_ncc_shifts: template (h, w) and mask of its shape, images (B, H >= h, W >= w); "
-                                f"got {t.shape}, {m.shape}, {imgs.shape}")
+    if (ts.ndim != 3 or m.shape != ts.shape[1:] or imgs.ndim != 3 or imgs.shape[1] < m.shape[0]
+            or imgs.shape[2] < m.shape[1]):
+        raise RegistrationError(f"masked_ncc_shifts: template (h, w) or (K, h, w) and mask (h, w), images "
+                                f"(B, H >= h, W >= w); got {np.shape(template)}, {m.shape}, {imgs.shape}")
     if m.sum() < 2:
         raise RegistrationError("masked_ncc_shifts: the mask needs at least 2 pixels")
-    h, w = t.shape
+    h, w = m.shape
     H, W = imgs.shape[1:]
     mf = m.astype(np.float64)
-    tm = t * mf
     n = mf.sum()
-    st, stt = tm.sum(), (tm * t).sum()
-    vt = stt - st * st / n
 
     # circular correlation on a fast FFT length >= the image: valid shifts never wrap around
     shape = (fft.next_fast_len(H, real=True), fft.next_fast_len(W, real=True))
@@ -168,14 +182,20 @@ def masked_ncc_shifts(template: np.ndarray, mask: np.ndarray, images: np.ndarray
         full = fft.irfft2(spectrum * k, shape, workers=-1)
         return full[..., h - 1:H, w - 1:W]
 
-    spec = fft.rfft2(imgs, shape, workers=-1)  # the images' spectrum, shared by two correlations
-    si, sit = corr(spec, mf), corr(spec, tm)
+    spec = fft.rfft2(imgs, shape, workers=-1)  # the images' spectrum, shared by every template
+    si = corr(spec, mf)
     sii = corr(fft.rfft2(imgs * imgs, shape, workers=-1), mf)
-    cov = sit - st * si / n
     vi = sii - si * si / n
-    scale = np.sqrt(np.maximum(vi, 0.0) * max(vt, 0.0))
     tiny = 1e-9 * max(float(np.abs(imgs).max()) ** 2 * n, 1e-30)
-    return np.where(scale > tiny, cov / np.where(scale > tiny, scale, 1.0), 0.0).clip(-1.0, 1.0)
+    out = []
+    for t in ts:
+        tm = t * mf
+        st, stt = tm.sum(), (tm * t).sum()
+        vt = stt - st * st / n
+        cov = corr(spec, tm) - st * si / n
+        scale = np.sqrt(np.maximum(vi, 0.0) * max(vt, 0.0))
+        out.append(np.where(scale > tiny, cov / np.where(scale > tiny, scale, 1.0), 0.0).clip(-1.0, 1.0))
+    return out[0] if single else np.stack(out)
 
 
 class GlobalSearch:
@@ -204,7 +224,7 @@ class GlobalSearch:
                                         f"at least 8 x 8 px")
         self.center_lps = np.asarray(anatomy_center(volume) if center_lps is None else center_lps, float)
         common = dict(size=size, sigma_deg=s.local_sigma_deg, sigma_mm=s.local_sigma_mm, range_deg=s.local_range_deg,
-                      range_mm=s.local_range_mm, popsize=s.local_popsize, metrics=("gncc",), polish=False, seed=s.seed)
+                      range_mm=s.local_range_mm, popsize=s.local_popsize, metrics=(s.metric,), polish=False, seed=s.seed)
         where = dict(scene=scene, geometry=geometry, center_lps=self.center_lps, physics=physics,
                      label_materials=label_materials)
         coarse = ((s.factor, s.local_factor), (s.local_generations, s.local_fine_generations))
@@ -256,33 +276,41 @@ class GlobalSearch:
         return f, m
 
     @staticmethod
-    def _best_shifts(f, m, params, renderer, g, pad, times=None):
+    def _best_shifts(fields, params, renderer, g, pad, times=None):
         """Each pose of ``params`` ``(N, 6)`` moved by its best in-plane shift (within ``pad`` pixels of
-        ``g``) against ``f`` over ``m``: ``(params (N, 6), scores (N,))``, best first."""
+        ``g``) against each ``(f, m)`` of ``fields`` (versions of one X-ray with one field ``m``; the
+        DRRs are rendered, and their shared FFT terms computed, once): a list with ``(params (N, 6),
+        scores (N,))`` per image, best first."""
         from scipy import ndimage
 
         from sim.geometry import pose_from_params
 
-        params = params.copy()
+        m = fields[0][1]
+        if any(mk.shape != m.shape or np.any(mk != m) for _, mk in fields):
+            raise RegistrationError("global search: the versions of an X-ray must share one field")
         t0 = time.perf_counter()
         drrs = renderer.render(pose_from_params(params, g.sod_mm))
         t1 = time.perf_counter()
         score = 0.0
         for axis in (-1, -2):  # Sobel x, then y: the mean of the two NCCs as gradient NCC
-            score = score + 0.5 * masked_ncc_shifts(ndimage.sobel(f, axis=axis), m,
-                                                    ndimage.sobel(drrs, axis=axis))
-        flat = score.reshape(len(params), -1)
-        du, dv = np.unravel_index(flat.argmax(1), score.shape[1:])
-        # fixed(x) matches drr(x + d): the anatomy must move by -d pixels, at its depth
-        mm_per_px = (g.sod_mm + params[:, 5]) * g.pixel_spacing_mm / g.sdd_mm
-        params[:, 3] -= (dv - pad) * mm_per_px
-        params[:, 4] -= (du - pad) * mm_per_px
-        best = flat.max(1)
-        order = np.argsort(-best, kind="stable")
+            templates = np.stack([ndimage.sobel(f, axis=axis) for f, _ in fields])
+            score = score + 0.5 * masked_ncc_shifts(templates, m, ndimage.sobel(drrs, axis=axis))
+        out = []
+        for sc in score:  # (N, du, dv) per image
+            moved = np.array(params, float, copy=True)
+            flat = sc.reshape(len(moved), -1)
+            du, dv = np.unravel_index(flat.argmax(1), sc.shape[1:])
+            # fixed(x) matches drr(x + d): the anatomy must move by -d pixels, at its depth
+            mm_per_px = (g.sod_mm + moved[:, 5]) * g.pixel_spacing_mm / g.sdd_mm
+            moved[:, 3] -= (dv - pad) * mm_per_px
+            moved[:, 4] -= (du - pad) * mm_per_px
+            best = flat.max(1)
+            order = np.argsort(-best, kind="stable")
+            out.append((moved[order], best[order]))
         if times is not None:
             times["render"] = times.get("render", 0.0) + t1 - t0
             times["ncc"] = times.get("ncc", 0.0) + time.perf_counter() - t1
-        return params[order], best[order]
+        return out
 
     def grid(self, fixed: np.ndarray, init_params=np.zeros(6), *, mask: np.ndarray | None = None,
              times: dict | None = None) -> tuple[np.ndarray, np.ndarray]:
@@ -290,19 +318,25 @@ class GlobalSearch:
         deg/mm, scores (N,))``, best score first. ``fixed`` ``(H, W)`` at ``size``; ``mask``
         ``(H, W)`` bool, the field. ``times``: a dict that gets the seconds of ``"render"`` (the
         padded DRRs) and ``"ncc"`` (the FFT NCC of every shift), added to what it holds."""
+        return self.grids([fixed], init_params, mask=mask, times=times)[0]
+
+    def grids(self, images, init_params=np.zeros(6), *, mask: np.ndarray | None = None,
+              times: dict | None = None) -> list[tuple[np.ndarray, np.ndarray]]:
+        """:meth:`grid` for several versions of the X-ray (``images``: ``(H, W)`` each, one field
+        ``mask``), the grid's DRRs rendered once: a list of ``(params, scores)``, one per image."""
         s = self.settings
-        f, m = self._field(fixed, mask, s.factor)
+        fields = [self._field(image, mask, s.factor) for image in images]
         params = np.asarray(init_params, float).reshape(6) + s.grid_offsets()
-        return self._best_shifts(f, m, params, self.padded, self.level_geometry, self.pad, times)
+        return self._best_shifts(fields, params, self.padded, self.level_geometry, self.pad, times)
 
     def rescored(self, fixed: np.ndarray, params: np.ndarray, *, mask: np.ndarray | None = None,
                  times: dict | None = None) -> tuple[np.ndarray, np.ndarray]:
         """Poses ``(K, 6)`` (grid poses with their shifts) scored again at ``local_factor``'s
         resolution, each shift refined within +-2 grid pixels: ``(params (K, 6), scores (K,))``,
         best first; ``times`` as :meth:`grid`."""
-        f, m = self._field(fixed, mask, self.settings.local_factor)
-        return self._best_shifts(f, m, np.asarray(params, float).reshape(-1, 6), self.rescore_padded,
-                                 self.rescore_geometry, self.rescore_pad, times)
+        field = self._field(fixed, mask, self.settings.local_factor)
+        return self._best_shifts([field], np.asarray(params, float).reshape(-1, 6), self.rescore_padded,
+                                 self.rescore_geometry, self.rescore_pad, times)[0]
 
     def _distinct(self, params: np.ndarray, limit: int, kept=()) -> list:
         """Rows of ``params`` (best first), each apart from ``kept`` and from the rows taken before
@@ -320,10 +354,23 @@ class GlobalSearch:
                 kept.append(p)
         return kept
 
+    def _plain_similarity(self, fixed, result, mask) -> float:
+        """``result``'s gradient NCC at full resolution: the skip decision's score. A tone-free
+        similarity (:data:`GlobalSearchSettings.metric`) forgives any display curve, so it is more
+        lenient than the threshold was set for."""
+        if self.settings.metric == "gncc":
+            return float(result.similarity)
+        from register.metrics import gradient_ncc
+
+        return float(gradient_ncc(fixed, self.local.render(np.asarray(result.params, float).reshape(1, 6), 1),
+                                  mask=mask)[0])
+
     def register(self, fixed: np.ndarray, init_params=np.zeros(6), *, mask: np.ndarray | None = None,
-                 poses=()) -> RegistrationResult:
+                 poses=(), toned: np.ndarray | None = None) -> RegistrationResult:
         """The best pose the search finds for ``fixed`` ``(H, W)`` around ``init_params`` (deg, mm).
 
+        ``toned``: ``(H, W)`` the X-ray's toned version (:attr:`register.prepare.PreparedXRay.toned`)
+        or None: the grid ranks both, each supplying its share of the candidates.
         ``poses``: ``(K, 6)`` parameters searched locally first (the network's pose), each clipped
         into the prior box (``init_params`` +- ``range_deg`` / ``range_mm``) first: when the best
         of them reaches ``found_above`` the grid is skipped. The result's similarity is the gradient
@@ -344,6 +391,8 @@ class GlobalSearch:
             mask = np.asarray(mask, bool)
             if mask.shape != fixed.shape:
                 raise RegistrationError(f"mask: expected the X-ray's shape {fixed.shape}, got {mask.shape}")
+        if toned is not None and np.shape(toned) != fixed.shape:
+            raise RegistrationError(f"toned: expected the X-ray's shape {fixed.shape}, got {np.shape(toned)}")
         stages: dict[str, float] = {}
         history: list[tuple[str, float, list[float]]] = []
         renders = 0
@@ -377,19 +426,28 @@ class GlobalSearch:
         given_best = best
         grid_poses = candidates = 0
         grid_times = {"render": 0.0, "ncc": 0.0}  # the grid's and the rescoring's
-        if best is None or best.similarity < s.found_above:
+        if best is None or self._plain_similarity(fixed, best, mask) < s.found_above:
             t0 = time.perf_counter()
-            params, _ = self.grid(fixed, init_params, mask=mask, times=grid_times)
-            grid_poses = len(params)
+            # the grid ranks the X-ray as prepared and, for a display image, its toned version too:
+            # the toned one finds strongly curved displays (a gamma 2.6, a linear display), the
+            # prepared one the views whose histogram the tone's reference poses do not share
+            images = [fixed] if toned is None else [fixed, np.asarray(toned, np.float64)]
+            ranked = [p for p, _ in self.grids(images, init_params, mask=mask, times=grid_times)]
+            grid_poses = len(ranked[0])
             renders += grid_poses
-            # half the candidates from the ranking at local_factor's resolution (sharper at the
-            # optimum), the rest from the grid's own (wider basins)
+            # half the candidates from the rankings at local_factor's resolution (sharper at the
+            # optimum), the rest from the grid's own (wider basins); each image gets its share
+            n_fine = (s.candidates + 1) // 2 if s.rescore else 0
             fine = []
-            if s.rescore:
-                top, _ = self.rescored(fixed, params[:s.rescore], mask=mask, times=grid_times)
-                renders += len(top)
-                fine = self._distinct(top, (s.candidates + 1) // 2)
-            coarse = self._distinct(params, s.candidates, fine)[len(fine):]
+            for k, (image, params) in enumerate(zip(images, ranked)):
+                if s.rescore:
+                    top, _ = self.rescored(image, params[:s.rescore], mask=mask, times=grid_times)
+                    renders += len(top)
+                    fine = self._distinct(top, n_fine * (k + 1) // len(images), fine)
+            kept = list(fine)
+            for k, params in enumerate(ranked):
+                kept = self._distinct(params, n_fine + (s.candidates - n_fine) * (k + 1) // len(images), kept)
+            coarse = kept[len(fine):]
             stages["search_grid"] = time.perf_counter() - t0
             t0 = time.perf_counter()
             candidates = len(fine) + len(coarse)

@@ -5,7 +5,8 @@ study target ``--target`` of ``studies/domain_gap.toml`` (full physics, collimat
 12-bit DICOM; cached in ``--frames``), prepares each frame as ``ctxreg register`` does, and runs
 the contextual iteration alone (no CMA-ES) of each ``--model`` on three targets of the same pose:
 
-* ``frame``: the prepared realistic frame with its detected field (what registration sees);
+* ``frame``: the prepared realistic frame with its detected field (what registration sees: a
+  network trained on toned targets is shown its toned version, as ``ctxreg register`` does);
 * ``line+field``: the line DRR at the true pose on the same cropped detector, with the same field;
 * ``line``: that line DRR without a field (the whole cropped detector).
 
@@ -86,7 +87,8 @@ def main(argv=None) -> int:
                                   model=predictor)
             for key, (image, mask) in {"frame": (prep.image, prep.mask), "line+field": (line, prep.mask),
                                        "line": (line, None)}.items():
-                result = engine.register(image, np.zeros(6), mask=mask)
+                result = engine.register(image, np.zeros(6), mask=mask,
+                                         toned=prep.toned if key == "frame" else None)
                 e = pose_errors(result.pose, T_true, points, center, np.eye(3, 4), np.eye(3, 4), 1.0)
                 rows[key].append((e["rot_err_deg"], e["trans_err_mm"], e["mtre_mm"]))
         for key, v in rows.items():

@@ -129,9 +129,11 @@ def test_overlay_refuses_a_drr_of_another_shape():
         overlay_png(np.zeros((10, 10)), np.zeros((5, 5)), "x.png")
 
 
-def test_polarity_check_overturns_only_by_a_clear_margin():
+@pytest.mark.parametrize("tone", ["ct", "off"])
+def test_polarity_check_overturns_only_by_a_clear_margin(tone):
     """The check keeps a right decision, inverts a wrong one, and leaves the decision alone when
-    neither search finds the anatomy (two lost searches score alike)."""
+    neither search finds the anatomy (two lost searches score alike). A display image (the DRR
+    here, read as one) with a tone curve gets its toned image made again from the inverse."""
     from dataclasses import replace
 
     from register.prepare import POLARITY_FLIP_MARGIN, confirm_polarity, prepare_xray
@@ -143,9 +145,10 @@ def test_polarity_check_overturns_only_by_a_clear_margin():
     c = anatomy_center(vol)
     truth = np.array([5.0, -3.0, 2.0, 4.0, -6.0, 10.0])
     drr = DRRRenderer(vol, RenderSettings(size=(128, 128)), center_lps=c).render_params(truth)[0]
-    kw = dict(volume=vol, center_lps=c, init_params=np.zeros(6), polarity="auto", size=64)
+    kw = dict(volume=vol, center_lps=c, init_params=np.zeros(6), polarity="auto", size=64, tone=tone)
     right = prepare_xray(XRayImage(drr.astype(np.float32), source="drr"), **kw)
     assert right.step("intensity")["polarity"] == "bone-bright"
+    assert ("tone_curve" in right.step("intensity")) == (tone == "ct")
     check = confirm_polarity(right, vol, c, np.zeros(6)).step("polarity_check")
     assert check["verdict"] == "confirmed" and not check["inverted"]
     assert check["similarity_as_decided"] > check["similarity_inverted"] + POLARITY_FLIP_MARGIN
@@ -156,6 +159,11 @@ def test_polarity_check_overturns_only_by_a_clear_margin():
     assert check["verdict"] == "inverted" and check["polarity"] == "bone-dark"
     # back to the right image, up to a constant offset (the inverse is mirrored about the valid range)
     np.testing.assert_allclose(flipped.image - flipped.image.mean(), right.image - right.image.mean(), atol=1e-9)
+    if tone == "ct":  # the toned image is made again from the inverse: the right one's
+        m = right.mask
+        np.testing.assert_allclose(flipped.toned[m], right.toned[m], atol=1e-9)
+    else:
+        assert right.toned is None and flipped.toned is None
     # white noise: no anatomy to find, no flip
     noise = replace(right, image=np.random.default_rng(3).random(right.image.shape))
     check = confirm_polarity(noise, vol, c, np.zeros(6)).step("polarity_check")

@@ -37,6 +37,12 @@ def test_masked_ncc_shifts_equals_the_direct_sum():
     img = rng.normal(size=(1, 20, 20))
     hit = masked_ncc_shifts(3.0 * img[0, 5:12, 8:17] + 2.0, m, img)[0]
     assert np.unravel_index(hit.argmax(), hit.shape) == (5, 8) and hit.max() == pytest.approx(1.0, abs=1e-9)
+    # several templates with one mask: each the single template's result (shared terms computed once)
+    t2 = t ** 3
+    both = masked_ncc_shifts(np.stack([t, t2]), m, imgs)
+    assert both.shape == (2, 3, 6, 5)
+    np.testing.assert_allclose(both[0], out, atol=1e-12)
+    np.testing.assert_allclose(both[1], masked_ncc_shifts(t2, m, imgs), atol=1e-12)
     # constant images under the mask score 0, not NaN
     assert np.all(masked_ncc_shifts(t, m, np.ones((1, 12, 13))) == 0.0)
     with pytest.raises(RegistrationError, match="masked_ncc_shifts"):
@@ -52,7 +58,8 @@ def test_settings_are_checked():
                        (dict(found_above=2.0), "found_above"), (dict(factor=True), "factor"),
                        (dict(rescore=-1), "rescore"), (dict(local_factor=0), "local_factor"),
                        (dict(finalists=0), "finalists"), (dict(local_generations=0), "local_generations"),
-                       (dict(local_fine_generations=-1), "local_fine_generations")]:
+                       (dict(local_fine_generations=-1), "local_fine_generations"),
+                       (dict(metric="mutual_information"), "metric: .*unknown name 'mutual_information'")]:
         with pytest.raises(RegistrationError, match=match):
             GlobalSearchSettings(**bad)
 
@@ -87,6 +94,14 @@ def test_the_grid_finds_the_in_plane_translation_of_a_grid_rotation(phantom):
     assert np.all(np.abs(params[0][3:5] - truth[3:5]) <= mm_per_px)
     with pytest.raises(RegistrationError, match="too few"):
         search.grid(fixed, np.zeros(6), mask=np.eye(128, dtype=bool))
+    # several versions of the X-ray, one rendering: each ranking is the one grid() gives it alone
+    curved = np.where(field, fixed, 0.0) ** 2.0
+    both = search.grids([np.where(field, fixed, 0.0), curved], np.zeros(6), mask=field)
+    for (p_both, s_both), image in zip(both, (np.where(field, fixed, 0.0), curved)):
+        p_one, s_one = search.grid(image, np.zeros(6), mask=field)
+        np.testing.assert_allclose(p_both, p_one, atol=1e-9)
+        np.testing.assert_allclose(s_both, s_one, atol=1e-12)
+    assert not np.allclose(both[0][1], both[1][1])  # the curve changes the scores: the test can fail
     assert pose_from_params(params[0], g.sod_mm).shape == (4, 4)
 
 
@@ -137,6 +152,13 @@ def test_the_search_finds_a_far_pose_and_skips_the_grid_for_a_good_one(phantom):
     given_row = np.array(lost.history[0][2])
     assert given_row[5] >= -s.range_mm - s.local_range_mm - 1e-9, given_row  # the local box around -75 mm
     assert rotation_error_deg(lost.pose, T) < 3.0
+    # a toned version of the X-ray (here a gamma curve of it): the grid ranks both, the starts split
+    # between the rankings (still 3), and the pose is found
+    toned = search.register(fixed, np.zeros(6), poses=[wrong], toned=(fixed / fixed.max()) ** 2.5)
+    assert toned.search["candidates"] == 3 and toned.search["grid_poses"] == n_grid
+    assert rotation_error_deg(toned.pose, T) < 3.0
+    with pytest.raises(RegistrationError, match="toned: expected the X-ray's shape"):
+        search.register(fixed, np.zeros(6), toned=np.zeros((8, 8)))
     with pytest.raises(RegistrationError, match="divisible"):
         GlobalSearch(vol, size=(30, 30), center_lps=c)
 
