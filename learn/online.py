@@ -41,6 +41,7 @@ import torch
 from learn.labels import LabelNormalizer, apply_update, geodesic_label
 from sim.errors import InputError
 from sim.randomize import DomainRandomization
+from sim.physics.display import TONES, apply_tone, quantile_curve
 from sim.seeds import KIND_BATCH, KIND_BATCH_NOISE  # batch k: (KIND_BATCH, k); its noise: (KIND_BATCH_NOISE, k, u[, 1])
 
 
@@ -125,8 +126,8 @@ def _crop_resize(image: np.ndarray, box: tuple[int, int, int, int], shape: tuple
 
 def prepare_like_registration(display: np.ndarray, field: np.ndarray, current: np.ndarray, *, log_display: bool,
                               bone_dark: bool, raw_intensity: bool = False, low_pct: float = 1.0,
-                              high_pct: float = 99.0, i0_pct: float = 99.5, mask_current: bool = True
-                              ) -> tuple[np.ndarray, np.ndarray]:
+                              high_pct: float = 99.0, i0_pct: float = 99.5, mask_current: bool = True,
+                              tone: bool = False) -> tuple[np.ndarray, np.ndarray]:
     """A displayed X-ray and the pair's current image as the network meets them in registration.
 
     ``display`` ``(H, W)`` (the display chain's integers), ``field`` ``(H, W)`` bool (the
@@ -153,6 +154,13 @@ def prepare_like_registration(display: np.ndarray, field: np.ndarray, current: n
        (``register.prepare.masked_fill``), and the current image's too unless ``mask_current`` is
        False (a network trained with ``current_field = "open"`` sees the whole current image:
        the anatomy around the target's field, :data:`CURRENT_FIELDS`).
+
+    With ``tone`` (``train.tone = "ct"``), between steps 1 and 2 a target that registration would
+    read as a display image (everything but ``raw_intensity``) is mapped by rank onto the current
+    image's line integrals inside the field (:func:`sim.physics.display.apply_tone`), as
+    registration makes the toned version of a display image on the CT's DRRs around its start
+    pose (``register.intensity.tone_curve``; a network trained so is shown that version): the
+    current image plays the reference, a view of the same CT at another pose.
     """
     h, w = display.shape
     x = np.asarray(display, np.float64)
@@ -169,6 +177,8 @@ def prepare_like_registration(display: np.ndarray, field: np.ndarray, current: n
     elif bone_dark:
         v = x[m]
         x = (v.max() + v.min()) - x
+    if tone and not raw_intensity:
+        x = apply_tone(x, m, quantile_curve(np.asarray(current, np.float64)[m]))
     rows, cols = np.flatnonzero(m.any(axis=1)), np.flatnonzero(m.any(axis=0))
     box = (int(rows[0]), int(rows[-1]) + 1, int(cols[0]), int(cols[-1]) + 1)
     x = _crop_resize(x, box, (h, w), "bilinear")
@@ -299,6 +309,8 @@ class OnlinePairs:
         current_field: with ``randomization``: ``"masked"`` (default) or ``"open"``
             (:data:`CURRENT_FIELDS`): whether the current image is filled outside the target's
             field as the target is.
+        tone: with ``randomization``: ``"ct"`` tones every target onto its current image's line
+            integrals in the field (:func:`prepare_like_registration`), ``"off"`` (default) not.
 
     ``batch(k, n)`` returns ``target (n, 1, H, W)``, ``current (n, 1, H, W)`` float32 and the
     normalised label ``(n, 6)`` float32. Subjects are loaded (and virtual patients built) on first
@@ -308,10 +320,14 @@ class OnlinePairs:
     def __init__(self, cfg, split: str, *, near: NearPairs | None = None, transform=None,
                  normalizer: LabelNormalizer | None = None, seed: int = 0, physics: str | None = None,
                  current_physics: str | None = None, subjects_per_batch: int | None = None,
-                 randomization: DomainRandomization | None = None, current_field: str = "masked"):
+                 randomization: DomainRandomization | None = None, current_field: str = "masked",
+                 tone: str = "off"):
         if current_field_problem(current_field):
             raise OnlinePairsError(f"current_field {current_field_problem(current_field)}")
+        if tone not in TONES:
+            raise OnlinePairsError(f"tone must be one of {', '.join(TONES)}, got {tone!r}")
         self.current_field = current_field
+        self.tone = tone
         self.cfg = cfg
         entries = {p.name: p for p in cfg.physics}
         for key, name in (("physics", physics), ("current_physics", current_physics)):
@@ -409,6 +425,7 @@ class OnlinePairs:
             if n > MAX_BATCH:
                 raise OnlinePairsError(f"batch size must be <= {MAX_BATCH} with realistic targets, got {n}")
             mask_current = self.current_field == "masked"
+            toned = self.tone == "ct"
             for u in np.unique(subject):
                 rows = np.flatnonzero(subject == u)
                 draws = [self.realistic.randomization.draw(self.seed, int(k) * MAX_BATCH + int(i)) for i in rows]
@@ -426,12 +443,12 @@ class OnlinePairs:
                         field = np.ones((h, w), bool) if col is None else col.mask(h, w)
                         images[0, i], images[1, i] = prepare_like_registration(
                             ideal[at[j]], field, current[j], log_display=True, bone_dark=False,
-                            mask_current=mask_current)
+                            mask_current=mask_current, tone=toned)
                         continue
                     display, field, _ = self.realistic.image(L[at[j]], int(k) * MAX_BATCH + int(i))
                     images[0, i], images[1, i] = prepare_like_registration(
                         display, field, current[j], log_display=bool(draw["log"]),
-                        bone_dark=draw["polarity"] == "bone-dark", mask_current=mask_current)
+                        bone_dark=draw["polarity"] == "bone-dark", mask_current=mask_current, tone=toned)
         for u in () if self.realistic is not None else np.unique(subject):
             rows = np.flatnonzero(subject == u)
             if self.current_entry is self.target_entry:  # one launch for both images of the pairs

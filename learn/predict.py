@@ -47,6 +47,9 @@ class NetworkPredictor:
             moving images): ``physics`` unless the run set ``train.current_physics``.
         current_field: ``"masked"`` or ``"open"``: whether the current image is filled outside the
             X-ray's collimated field before it meets the network (``train.current_field``).
+        tone: ``"ct"`` or ``"off"`` (``train.tone``; ``"off"`` when not recorded): whether the
+            training targets were toned onto line integrals, so that registration shows the network
+            the X-ray's toned version.
         checkpoint: the loaded :class:`learn.checkpoint.Checkpoint`.
     """
 
@@ -81,6 +84,16 @@ class NetworkPredictor:
         #: what the network sees of the current image outside the X-ray's field (``"masked"``:
         #: filled as the X-ray, ``"open"``: all of it), as it was trained (:data:`learn.online.CURRENT_FIELDS`)
         self.current_field = field
+        from sim.physics.display import TONES
+
+        tone = (ckpt.config or {}).get("tone", "off")
+        if tone not in TONES:
+            from learn.checkpoint import CheckpointError
+
+            raise CheckpointError(f"{ckpt.name}: config.tone must be one of {', '.join(TONES)}, got {tone!r}")
+        #: whether the network was trained on targets toned onto line integrals (``train.tone``):
+        #: registration then shows it the X-ray's toned version
+        self.tone = tone
 
     def physics_mismatch(self, physics, *, advice: str = "set --physics to match") -> str | None:
         """A sentence when the moving images' :class:`~sim.physics.imaging.PhysicsSettings` (None =

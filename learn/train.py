@@ -93,6 +93,12 @@ class TrainConfig:
             random initialisation (fine-tuning, e.g. a network trained on line DRRs continued on
             ``poly`` images); its backbone and head channels must be this config's. The
             optimiser and schedule start afresh.
+        tone: with ``randomize``: ``"ct"`` maps every target's values by rank onto the pair's
+            current line integrals inside the target's field, as registration makes the toned
+            version of a display image on the CT's DRRs (``ctxreg register --tone``,
+            :func:`sim.physics.display.apply_tone`); ``"off"`` (default, what the networks before it
+            were trained with) keeps the display's values. Recorded in the checkpoint's config;
+            registration shows a ``"ct"`` network the X-ray's toned version.
     """
 
     dataset: str
@@ -125,6 +131,7 @@ class TrainConfig:
     init_from: str | None = None
     randomize: dict | None = None
     current_field: str = "masked"
+    tone: str = "off"
 
     @property
     def online(self) -> bool:
@@ -197,6 +204,12 @@ class TrainConfig:
 
         if current_field_problem(self.current_field):
             raise TrainConfigError(f"train.current_field {current_field_problem(self.current_field)}")
+        from sim.physics.display import TONES
+
+        if self.tone not in TONES:
+            raise TrainConfigError(f"train.tone must be one of {', '.join(TONES)}, got {self.tone!r}")
+        if self.tone != "off" and self.randomize is None:
+            raise TrainConfigError("train.tone = 'ct' needs train.randomize (it tones the realistic targets)")
         if self.current_field != "masked" and self.randomize is None:
             raise TrainConfigError("train.current_field = 'open' needs train.randomize (a collimated field is drawn "
                                    "with the realistic targets)")
@@ -622,7 +635,8 @@ class _OnlineSource:
         val_split = "val" if "val" in splits else "test"
         try:
             kw = {"near": cfg.near(), "transform": transform, "physics": target.name, "current_physics": current.name,
-                  "randomization": cfg.randomization(), "current_field": cfg.current_field}
+                  "randomization": cfg.randomization(), "current_field": cfg.current_field,
+                  "tone": cfg.tone}
             self.train = OnlinePairs(campaign, "train", seed=cfg.seed, subjects_per_batch=cfg.subjects_per_batch, **kw)
             self.val = OnlinePairs(campaign, val_split, seed=cfg.seed + 1, **kw)  # all subjects, every batch
         except OnlinePairsError as e:

@@ -52,6 +52,7 @@ TYPE_CASES = [
     ("init_from", "false", "a string, got false (a boolean)"),
     ("randomize", "3", "a table, got the integer 3"),
     ("current_field", "2", "a string, got the integer 2"),
+    ("tone", "true", "a string, got true (a boolean)"),
 ]
 
 
@@ -91,6 +92,15 @@ def test_right_types_still_load(tmp_path):
                                   'preprocess = ["normalize", {name = "gaussian", sigma = 1.0}]\nseed = 0')
     cfg = load_train_config(path)
     assert cfg.lr == 1 and cfg.near_rot_deg == (1, 10) and cfg.preprocess[1] == {"name": "gaussian", "sigma": 1.0}
+
+
+def test_a_tone_other_than_ct_or_off_or_without_realistic_targets_is_refused():
+    from learn.train import TrainConfig, TrainConfigError
+
+    with pytest.raises(TrainConfigError, match="train.tone must be one of ct, off, got 'histogram'"):
+        TrainConfig(dataset="x.toml", tone="histogram", randomize={})
+    with pytest.raises(TrainConfigError, match="train.tone = 'ct' needs train.randomize"):
+        TrainConfig(dataset="x.toml", tone="ct")
 
 
 def test_seed_out_of_range_is_refused():

@@ -142,3 +142,22 @@ def test_the_predictor_follows_the_current_field_its_checkpoint_records(tmp_path
             NetworkPredictor(path)
     else:
         assert NetworkPredictor(path).current_field == field
+
+
+@pytest.mark.parametrize("tone", [None, "ct", "off", "histogram"])
+def test_the_predictor_follows_the_tone_its_checkpoint_records(tmp_path, tone):
+    from dataclasses import replace
+
+    from learn.checkpoint import CheckpointError
+    from learn.predict import NetworkPredictor
+
+    src, _ = _trained(tmp_path)
+    ckpt = load_checkpoint(src)
+    config = {k: v for k, v in ckpt.config.items() if k != "tone"}
+    path = tmp_path / "tone.pt"
+    save_checkpoint(path, replace(ckpt, config=config if tone is None else {**config, "tone": tone}, path=None))
+    if tone == "histogram":
+        with pytest.raises(CheckpointError, match="config.tone must be one of ct, off, got 'histogram'"):
+            NetworkPredictor(path)
+    else:
+        assert NetworkPredictor(path).tone == (tone or "off")  # not recorded: trained before the tone

@@ -50,6 +50,30 @@ def test_every_display_comes_back_bone_bright(log_display, bone_dark, raw):
         assert np.corrcoef(target.ravel(), L.ravel())[0, 1] > 0.97
 
 
+@pytest.mark.parametrize("log_display, bone_dark", [(True, True), (False, False), (False, True)])
+def test_a_toned_target_is_affine_in_its_line_integrals(log_display, bone_dark):
+    """With ``tone`` a display of any curve (here linear displays of ``exp(-L)`` and a gamma 2.6
+    log display) comes back linear in L when the current image is the same view: correlation
+    > 0.99 where untoned linear displays stay below 0.97. A raw image is log-corrected, never
+    toned."""
+    L = _line_image()
+    shown = (L / L.max()) ** 2.6 if log_display else np.exp(-L)
+    if log_display == bone_dark:
+        shown = shown.max() + shown.min() - shown
+    display = np.round(shown / shown.max() * 4095).astype(np.uint16)
+    field = np.ones(L.shape, bool)
+    kw = dict(log_display=log_display, bone_dark=bone_dark)
+    toned, _ = prepare_like_registration(display, field, L, tone=True, **kw)
+    plain, _ = prepare_like_registration(display, field, L, **kw)
+    inside = L > 0.2
+    assert np.corrcoef(toned[inside], L[inside])[0, 1] > 0.99
+    assert np.corrcoef(plain[inside], L[inside])[0, 1] < 0.97
+    if not log_display:
+        raw, _ = prepare_like_registration(display, field, L, raw_intensity=True, tone=True, **kw)
+        raw0, _ = prepare_like_registration(display, field, L, raw_intensity=True, **kw)
+        np.testing.assert_array_equal(raw, raw0)
+
+
 def test_a_collimated_pair_is_cropped_to_the_field_and_filled_neutrally():
     L = _line_image(64, 64)
     field = np.zeros((64, 64), bool)
