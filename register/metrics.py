@@ -527,28 +527,13 @@ def patch_gradient_ncc(
 # ----------------------------------------------------------------------------- registry
 
 
-def _ncc_entry(fixed, moving, mask=None, **kw):
-    if kw:
-        raise MetricError(f"ncc: unexpected options {sorted(kw)}")
-    return ncc(fixed, moving, mask)
-
-
-def _gncc_entry(fixed, moving, mask=None, **kw):
-    if kw:
-        raise MetricError(f"gncc: unexpected options {sorted(kw)}")
-    return gradient_ncc(fixed, moving, mask)
-
-
-def _tgncc_entry(fixed, moving, mask=None, **kw):
-    if kw:
-        raise MetricError(f"tone_free_gncc: unexpected options {sorted(kw)}")
-    return tone_free_gradient_ncc(fixed, moving, mask)
-
-
-def _ttgncc_entry(fixed, moving, mask=None, **kw):
-    if kw:
-        raise MetricError(f"tone_tolerant_gncc: unexpected options {sorted(kw)}")
-    return tone_tolerant_gradient_ncc(fixed, moving, mask)
+def _without_options(name: str, metric: Callable[..., np.ndarray]) -> Callable[..., np.ndarray]:
+    """The registry entry of a metric that takes no options: ``entry(fixed, moving, mask=None)``."""
+    def entry(fixed, moving, mask=None, **kw):
+        if kw:
+            raise MetricError(f"{name}: unexpected options {sorted(kw)}")
+        return metric(fixed, moving, mask)
+    return entry
 
 
 def _patch_ncc_entry(fixed, moving, mask=None, **kw):
@@ -562,10 +547,10 @@ def _patch_gncc_entry(fixed, moving, mask=None, **kw):
 #: Metrics by name; each is ``metric(fixed (H, W), moving (B, H, W), mask=None, **kw) -> (B,)``
 #: (``patch`` and ``min_valid`` keywords for the patch metrics).
 METRICS: dict[str, Callable[..., np.ndarray]] = {
-    "ncc": _ncc_entry,
-    "gncc": _gncc_entry,
-    "tone_free_gncc": _tgncc_entry,
-    "tone_tolerant_gncc": _ttgncc_entry,
+    "ncc": _without_options("ncc", ncc),
+    "gncc": _without_options("gncc", gradient_ncc),
+    "tone_free_gncc": _without_options("tone_free_gncc", tone_free_gradient_ncc),
+    "tone_tolerant_gncc": _without_options("tone_tolerant_gncc", tone_tolerant_gradient_ncc),
     "patch_ncc": _patch_ncc_entry,
     "patch_gncc": _patch_gncc_entry,
 }
