@@ -93,6 +93,13 @@ class CMAESSettings:
             v = getattr(self, name)
             if len(v) not in (1, len(self.levels)):
                 raise RegistrationError(f"{name} needs 1 or {len(self.levels)} entries (one per level), got {v}")
+        from register.metrics import get_metric
+
+        for m in self.metrics:
+            try:
+                get_metric(m)
+            except InputError as e:
+                raise RegistrationError(f"metrics: {e}") from None
 
     def per_level(self, name: str, level: int):
         v = getattr(self, name)
@@ -197,6 +204,19 @@ class CMAESRegistration:
             self.renderers.append((factor, r))
         self.by_factor = dict(self.renderers)
         self.geometry = self.by_factor[1].geometry
+
+    def scored_by(self, metrics: tuple[str, ...]) -> "CMAESRegistration":
+        """This registration with another similarity per level (``settings.metrics``), sharing its
+        renderers (nothing is rebuilt): e.g. plain gradient NCC for a line-integral image where the
+        settings name a display-tolerant one."""
+        import copy
+        from dataclasses import replace
+
+        if tuple(metrics) == tuple(self.settings.metrics):
+            return self
+        other = copy.copy(self)
+        other.settings = replace(self.settings, metrics=tuple(metrics))
+        return other
 
     def render(self, params: np.ndarray, factor: int = 1) -> np.ndarray:
         """``(B, H/f, W/f)`` DRRs for ``(B, 6)`` parameters at a level's factor."""

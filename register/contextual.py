@@ -22,6 +22,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from register.cmaes import CMAESRegistration, CMAESSettings, RegistrationError, RegistrationResult
+from register.metrics import plain_equivalent
 from register.search import GlobalSearch, GlobalSearchSettings
 
 
@@ -156,8 +157,11 @@ class ContextualRegistration:
             # (ties: the earlier start) and only the winner is polished
             res, finals, cmaes_s, won = None, [], {}, 0
             several = len(starts) > 1
-            refined = (self.refine.register_many(fixed, starts, mask=mask, polish=False) if several
-                       else [self.refine.register(fixed, starts[0], mask=mask)])
+            # a display image (with a toned version) is scored display-tolerantly, line integrals plainly
+            refine = self.refine if toned is not None else self.refine.scored_by(
+                tuple(plain_equivalent(m) for m in self.refine.settings.metrics))
+            refined = (refine.register_many(fixed, starts, mask=mask, polish=False) if several
+                       else [refine.register(fixed, starts[0], mask=mask)])
             for i, r in enumerate(refined):
                 finals.append(float(r.similarity))
                 for k, v in r.stage_seconds.items():
@@ -166,8 +170,8 @@ class ContextualRegistration:
                 renders += r.renders
                 if res is None or r.similarity > res.similarity:
                     res, won = r, i
-            if several and self.refine.settings.polish:
-                polished = self.refine.polish(fixed, res.params, start=starts[won], mask=mask)
+            if several and refine.settings.polish:
+                polished = refine.polish(fixed, res.params, start=starts[won], mask=mask)
                 cmaes_s["cmaes_polish"] = polished.stage_seconds["polish"]
                 history += polished.history
                 renders += polished.renders
@@ -191,7 +195,9 @@ class ContextualRegistration:
 #: then the polish at full resolution. A first level at 1/4 resolution (as CMA-ES from afar uses)
 #: pulled right starts away on realistic frames, whose coarse gradients mislead (scatter, display
 #: chain): 5 of 7 lost ``fluoro-65kV`` frames were right before the refinement and kept with this one.
-#: The similarity is the tone-tolerant gradient NCC (:func:`register.metrics.tone_tolerant_gradient_ncc`):
-#: half of it blind to the display's curve.
+#: The similarity of a display image (one registered with its toned version) is the tone-tolerant
+#: gradient NCC (:func:`register.metrics.tone_tolerant_gradient_ncc`): half of it blind to the
+#: display's curve. An image of line integrals (a raw or log X-ray, a DRR) is scored by gradient NCC:
+#: on 50 line DRRs the tone-tolerant score lost a case (98 % against 100 %) and cost 0.5 s.
 REFINE_SETTINGS = CMAESSettings(levels=(2,), sigma_deg=3.0, sigma_mm=8.0, range_deg=10.0, range_mm=30.0,
                                 generations=(40,), metrics=("tone_tolerant_gncc",))

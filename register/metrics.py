@@ -49,6 +49,7 @@ __all__ = [
     "ncc",
     "patch_gradient_ncc",
     "patch_ncc",
+    "plain_equivalent",
     "tone_free_gradient_ncc",
     "tone_matched",
     "tone_tolerant_gradient_ncc",
@@ -554,6 +555,17 @@ METRICS: dict[str, Callable[..., np.ndarray]] = {
     "patch_ncc": _patch_ncc_entry,
     "patch_gncc": _patch_gncc_entry,
 }
+
+
+#: The display-tolerant metrics and what an image of line integrals (a raw or log X-ray, a DRR:
+#: no display curve to forgive) is scored by instead.
+_PLAIN_EQUIVALENT = {"tone_free_gncc": "gncc", "tone_tolerant_gncc": "gncc"}
+
+
+def plain_equivalent(name: str) -> str:
+    """The metric that scores an image of line integrals where ``name`` is display-tolerant
+    (``"tone_tolerant_gncc"`` -> ``"gncc"``); any other name unchanged."""
+    return _PLAIN_EQUIVALENT.get(name, name)
 
 
 def get_metric(name: str) -> Callable[..., np.ndarray]:

@@ -77,10 +77,12 @@ class GlobalSearchSettings:
             the refinement (default 3), which keeps the one of highest similarity: the best local
             result is not always the right one (on ``fluoro-65kV`` frames a wrong one scored
             0.22-0.56 where the right one, refined, reached 0.51-0.60). 1 when the grid is skipped.
-        metric: the similarity of the local searches and of the finalists' ranking (a name of
-            :data:`register.metrics.METRICS`; default ``"tone_tolerant_gncc"``: half gradient NCC,
-            half tone-free gradient NCC, :func:`register.metrics.tone_tolerant_gradient_ncc`); the
-            grid's FFT correlation is gradient NCC whatever it is.
+        metric: the similarity of the local searches and of the finalists' ranking for a display
+            image, one registered with its toned version (a name of :data:`register.metrics.METRICS`;
+            default ``"tone_tolerant_gncc"``: half gradient NCC, half tone-free gradient NCC,
+            :func:`register.metrics.tone_tolerant_gradient_ncc`); an image without one (raw or log
+            X-rays, DRRs: line integrals already) by its plain equivalent (gradient NCC), and the grid's FFT
+            correlation is gradient NCC whatever it is.
         found_above: the given poses' (the network's) best local similarity (gradient NCC at full
             resolution) at or above which the grid is skipped (default 0.85: a wrong network pose on
             a realistic radiograph scored 0.75, right ones 0.7-0.9, so only a clear match skips the
@@ -354,11 +356,11 @@ class GlobalSearch:
                 kept.append(p)
         return kept
 
-    def _plain_similarity(self, fixed, result, mask) -> float:
-        """``result``'s gradient NCC at full resolution: the skip decision's score. A tone-free
-        similarity (:data:`GlobalSearchSettings.metric`) forgives any display curve, so it is more
-        lenient than the threshold was set for."""
-        if self.settings.metric == "gncc":
+    def _plain_similarity(self, fixed, result, mask, metric: str) -> float:
+        """``result``'s gradient NCC at full resolution (``metric``: the similarity it was scored
+        by): the skip decision's score. A tone-free similarity (:data:`GlobalSearchSettings.metric`)
+        forgives any display curve, so it is more lenient than the threshold was set for."""
+        if metric == "gncc":
             return float(result.similarity)
         from register.metrics import gradient_ncc
 
@@ -398,6 +400,10 @@ class GlobalSearch:
         renders = 0
         best = None
         results: list[RegistrationResult] = []
+        from register.metrics import plain_equivalent
+
+        metric = s.metric if toned is not None else plain_equivalent(s.metric)  # GlobalSearchSettings.metric
+        coarse_engine, fine_engine = (e.scored_by((metric,)) for e in (self.local, self.local_fine))
 
         def local(starts, engine):  # every start's local CMA-ES, in lockstep
             nonlocal best, renders
@@ -421,12 +427,12 @@ class GlobalSearch:
         half = np.array([*s.range_deg, s.range_mm, s.range_mm, s.range_mm])
         raw = np.asarray(poses, float).reshape(-1, 6)
         given = np.clip(raw, x0 - half, x0 + half)
-        local(given, self.local)
+        local(given, coarse_engine)
         stages["search_local"] = time.perf_counter() - t0
         given_best = best
         grid_poses = candidates = 0
         grid_times = {"render": 0.0, "ncc": 0.0}  # the grid's and the rescoring's
-        if best is None or self._plain_similarity(fixed, best, mask) < s.found_above:
+        if best is None or self._plain_similarity(fixed, best, mask, metric) < s.found_above:
             t0 = time.perf_counter()
             # the grid ranks the X-ray as prepared and, for a display image, its toned version too:
             # the toned one finds strongly curved displays (a gamma 2.6, a linear display), the
@@ -451,8 +457,8 @@ class GlobalSearch:
             stages["search_grid"] = time.perf_counter() - t0
             t0 = time.perf_counter()
             candidates = len(fine) + len(coarse)
-            local(fine, self.local_fine)
-            local(coarse, self.local)
+            local(fine, fine_engine)
+            local(coarse, coarse_engine)
             stages["search_local"] += time.perf_counter() - t0
         if best is None:
             raise RegistrationError("global search: no pose of the grid overlaps the X-ray (every DRR is empty); "

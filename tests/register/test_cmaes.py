@@ -147,6 +147,20 @@ def test_searches_in_lockstep_give_each_start_its_own_result(phantom):
         engine.register_many(target, np.array([[0.0, 0.0, 0.0, 3000.0, 0.0, 0.0]]))
 
 
+def test_scored_by_changes_the_similarity_and_shares_the_renderers(phantom):
+    vol, c = phantom
+    reg = CMAESRegistration(vol, CMAESSettings(size=(32, 32), levels=(2,), generations=(3,),
+                                               metrics=("tone_tolerant_gncc",), polish=False), center_lps=c)
+    plain = reg.scored_by(("gncc",))
+    assert plain.settings.metrics == ("gncc",) and reg.settings.metrics == ("tone_tolerant_gncc",)
+    assert plain.renderers is reg.renderers and reg.scored_by(("tone_tolerant_gncc",)) is reg
+    fixed = reg.render(np.array([3.0, 0.0, 0.0, 5.0, 0.0, 0.0]))[0]
+    a, b = reg.register(fixed), plain.register(fixed)
+    assert a.similarity != pytest.approx(b.similarity, abs=1e-9)  # each scored by its own metric
+    with pytest.raises(RegistrationError, match="metric"):
+        reg.scored_by(("no_such_metric",))
+
+
 def test_bad_settings_and_inputs_are_named(phantom):
     with pytest.raises(RegistrationError, match="restarts"):
         CMAESSettings(restarts=-1)

@@ -376,3 +376,13 @@ def test_patch_option_errors(rng):
         multiscale("ncc", f, f, levels=0)
     with pytest.raises(MetricError, match="valid names"):
         multiscale("nope", f, f)
+
+
+def test_plain_equivalent_maps_the_display_tolerant_metrics_to_gradient_ncc():
+    from register.metrics import METRICS, plain_equivalent
+
+    assert plain_equivalent("tone_tolerant_gncc") == "gncc" and plain_equivalent("tone_free_gncc") == "gncc"
+    for name in METRICS:
+        assert plain_equivalent(name) in METRICS
+        if "tone" not in name:
+            assert plain_equivalent(name) == name

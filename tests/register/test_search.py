@@ -157,6 +157,13 @@ def test_the_search_finds_a_far_pose_and_skips_the_grid_for_a_good_one(phantom):
     toned = search.register(fixed, np.zeros(6), poses=[wrong], toned=(fixed / fixed.max()) ** 2.5)
     assert toned.search["candidates"] == 3 and toned.search["grid_poses"] == n_grid
     assert rotation_error_deg(toned.pose, T) < 3.0
+    # the local searches score a display image (one with a toned version) tone-tolerantly and an
+    # image of line integrals plainly: the given pose's local search is either engine's, run alone
+    assert search.settings.metric == "tone_tolerant_gncc"
+    for run, metric in ((res, "gncc"), (toned, "tone_tolerant_gncc")):
+        alone = search.local.scored_by((metric,)).register_many(fixed, [wrong])[0]
+        assert run.history[0][1] == pytest.approx(alone.similarity, abs=1e-12), metric
+    assert res.history[0][1] != pytest.approx(toned.history[0][1], abs=1e-6)  # the two metrics differ here
     with pytest.raises(RegistrationError, match="toned: expected the X-ray's shape"):
         search.register(fixed, np.zeros(6), toned=np.zeros((8, 8)))
     with pytest.raises(RegistrationError, match="divisible"):
