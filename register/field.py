@@ -38,9 +38,18 @@ Method (deterministic; about 0.1 s for 512 x 512):
    edges; needs ``circle_min_inliers`` of the points within ``circle_inlier_px``), a convex
    **polygon** (convex hull of the candidate's sub-pixel boundary, simplified by Douglas-Peucker
    with ``polygon_tolerance_px``, then each edge refitted as a line to its boundary points and
-   neighbouring lines intersected, so corners are sharp and corner cuts go). A candidate that none
-   fits (not convex: a body outline, dark anatomy) means no collimation: kind ``"none"``, the field
-   is the whole image (a painted outside is then still excluded as an empty / saturated plateau).
+   neighbouring lines intersected, so corners are sharp and corner cuts go). Where none of these
+   fits because anatomy at the outside's level (dense bone shown dark next to a black outside)
+   notches the candidate's edge, an **iris with blades**: a circle fitted to the boundary points
+   (at least 30 % of them) and up to four straight blade edges fitted by RANSAC to the rest, each
+   a supporting line of the field (refitted on its outer points; the strip just beyond it is not
+   candidate; it cuts at least 15 % of the radius into the circle; what it cuts off is the
+   outside region of step 1, not anatomy), together explaining 60 % of the boundary; it is
+   accepted one-sided: the candidate may not run beyond it (1 px per boundary px), the notches
+   inside it may reach 4 px per boundary px. Without blades this is a notched ``"circle"``;
+   with them, kind ``"iris-blades"``. A candidate that none fits (not convex: a body outline,
+   dark anatomy) means no collimation: kind ``"none"``, the field is the whole image (a painted
+   outside is then still excluded as an empty / saturated plateau).
    The field mask is the model's mask (not the raw candidate) eroded by ``margin_px`` from the
    model's boundary (the image edges do not erode it).
 4. **Exclusions inside the field**, from the connected components (8-neighbours) of the pixels
@@ -57,8 +66,10 @@ Method (deterministic; about 0.1 s for 512 x 512):
 5. ``mask = field_mask & ~(overlay | saturated | empty)``.
 
 Result (:class:`Field`): ``mask`` and ``field_mask`` ``(H, W)`` bool; ``kind`` (``"none"``,
-``"circle"``, ``"rectangle"``, ``"polygon"``); ``outside`` (``"black"``, ``"white"`` or ``None``);
-``params`` in pixels (circle: ``centre_x`` = column, ``centre_y`` = row, ``radius``; rectangle:
+``"circle"``, ``"rectangle"``, ``"polygon"``, ``"iris-blades"``); ``outside`` (``"black"``, ``"white"``
+or ``None``); ``params`` in pixels (circle: ``centre_x`` = column, ``centre_y`` = row, ``radius``;
+iris-blades: the circle's and ``blades`` ``[[[x0, y0], [x1, y1]], ...]``, each blade edge's fitted
+extent; rectangle:
 half-open ``row0, row1, col0, col1``; polygon: ``vertices`` ``[[x, y], ...]`` with x = column,
 y = row, pixel centres at integers; kind ``"none"``: ``reason``, why no field was accepted);
 ``excluded`` pixel counts (disjoint, inside ``field_mask``): ``overlay``, ``saturated``, ``empty``;
@@ -117,6 +128,31 @@ _POLY_MIN_EDGE_PX = 8.0
 #: Consecutive polygon edges turning by less than this (degrees) are one edge.
 _POLY_MERGE_DEG = 3.0
 _MIN_SIZE = 16
+#: Share of the boundary points (away from the image edges) an iris with blades keeps on its circle.
+_IRIS_MIN_ARC = 0.3
+#: Boundary points (about px of boundary) a blade's straight edge must span.
+_IRIS_MIN_BLADE_PTS = 8
+#: Share of a blade's chord through the circle its straight edge must show (boundary points per px).
+_IRIS_BLADE_COVER = 0.3
+#: Least depth a blade cuts into the circle (its sagitta), a fraction of the radius.
+_IRIS_MIN_CUT = 0.15
+#: Share of the boundary points (away from the image edges) the circle and blades must explain.
+_IRIS_MIN_EXPLAINED = 0.6
+#: Largest notch area per boundary px (px) an iris with blades allows inside its model: anatomy
+#: at the outside's level along the edge (the candidate must not run beyond the model at all).
+_IRIS_MAX_NOTCH_PX = 4.0
+#: Largest area of the candidate beyond an iris-with-blades model per boundary px (px): a blade's
+#: edge fitted through notches may tilt by a px or two over its length.
+_IRIS_MAX_BEYOND_PX = 1.0
+#: Width (px) of the strip just beyond a blade (past ``circle_inlier_px``, inside the circle) that
+#: must be outside: a blade is a supporting line of the field.
+_IRIS_STRIP_PX = 3.0
+#: Share of that strip the candidate may fill (a line through notches' rims cuts the field there).
+_IRIS_BLADE_SPILL = 0.2
+#: Share of the circle's part cut off by a blade that must be the outside region (step 1).
+_IRIS_CUT_OUTSIDE = 0.7
+#: Most blades cutting an iris (two pairs of shutter blades).
+_IRIS_MAX_BLADES = 4
 
 
 class FieldError(XRayInputError):
@@ -241,10 +277,12 @@ class Field:
         mask: ``(H, W)`` bool, the valid pixels: inside the field, minus the exclusions.
         field_mask: ``(H, W)`` bool, the collimated field alone (the model's mask after the margin);
             all True for kind ``"none"``.
-        kind: ``"none"`` (no collimation found), ``"circle"``, ``"rectangle"`` or ``"polygon"``.
+        kind: ``"none"`` (no collimation found), ``"circle"``, ``"rectangle"``, ``"polygon"`` or
+            ``"iris-blades"`` (a circle cut by straight shutter blades).
         outside: colour outside the field, ``"black"``, ``"white"`` or ``None`` (kind ``"none"``).
         params: the model in px (x = column, y = row, pixel centres at integers): circle
-            ``centre_x, centre_y, radius``; rectangle ``row0, row1, col0, col1`` (half-open, before
+            ``centre_x, centre_y, radius`` (iris-blades: and ``blades``, each edge's two fitted
+            ends ``[[x, y], [x, y]]``); rectangle ``row0, row1, col0, col1`` (half-open, before
             the margin); polygon ``vertices [[x, y], ...]`` (a vertex may lie beyond the image
             where the field runs off it); kind ``"none"``: ``reason``.
         excluded: disjoint pixel counts inside ``field_mask``: ``overlay`` (text, rulers, markers),
@@ -597,6 +635,109 @@ def _fit_circle(cand: np.ndarray, pts: np.ndarray, s: FieldSettings) -> tuple[np
     return _circle_mask((H, W), cx, cy, rad), {"centre_x": cx, "centre_y": cy, "radius": rad}
 
 
+def _ransac_line(q: np.ndarray, inlier_px: float, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Best line through points ``q`` (N, 2) (row, col) by seeded RANSAC over pairs, refitted by
+    total least squares on its inliers: ``(point, unit direction, inlier mask)``."""
+    n = len(q)
+    idx = rng.integers(0, n, size=(_RANSAC_TRIALS, 2))
+    a, b = q[idx[:, 0]], q[idx[:, 1]]
+    d = b - a
+    ln = np.hypot(d[:, 0], d[:, 1])
+    ok = ln > 2.0
+    if not ok.any():
+        return q.mean(axis=0), np.array([1.0, 0.0]), np.zeros(n, bool)
+    a, d = a[ok], d[ok] / ln[ok, None]
+    across = np.abs((q[None, :, 0] - a[:, None, 0]) * d[:, None, 1] - (q[None, :, 1] - a[:, None, 1]) * d[:, None, 0])
+    best = int(np.argmax((across <= inlier_px).sum(axis=1)))
+    m, u = a[best], d[best]
+    inl = across[best] <= inlier_px
+    for _ in range(3):  # total least squares on the inliers, then new inliers
+        if inl.sum() < 2:
+            break
+        m = q[inl].mean(axis=0)
+        u = np.linalg.svd(q[inl] - m, full_matrices=False)[2][0]
+        inl = np.abs((q[:, 0] - m[0]) * u[1] - (q[:, 1] - m[1]) * u[0]) <= inlier_px
+    return m, u, inl
+
+
+def _fit_iris_blades(cand: np.ndarray, pts: np.ndarray, s: FieldSettings,
+                     outside: np.ndarray | None = None) -> tuple[np.ndarray, dict] | None:
+    """Circle cut by straight blades (an iris with shutter blades, common on C-arms).
+
+    The circle is fitted to the boundary points on it (at least ``_IRIS_MIN_ARC`` of them), then
+    up to ``_IRIS_MAX_BLADES`` straight lines to the points off it (seeded RANSAC, each line with
+    at least ``_IRIS_MIN_BLADE_PTS`` points covering ``_IRIS_BLADE_COVER`` of its chord through
+    the circle); the field is the circle's inside
+    on the candidate's side of every line. The circle and lines together must explain
+    ``_IRIS_MIN_EXPLAINED`` of the points (notches where anatomy at the outside's level or a glyph
+    touches the edge spoil the rest). ``(mask, params)`` or ``None``."""
+    H, W = cand.shape
+    r, c = pts[:, 0], pts[:, 1]
+    inside = (r > -0.25) & (r < H - 0.75) & (c > -0.25) & (c < W - 0.75)  # not along the image edges
+    if inside.sum() < 20:
+        return None
+    fit = _fit_circle_points(c[inside], r[inside], s.circle_inlier_px)
+    if fit is None:
+        return None
+    cx, cy, rad, on_circle = fit
+    if on_circle.mean() < _IRIS_MIN_ARC or not (3.0 < rad < 4.0 * max(H, W)):
+        return None
+    q_all = pts[inside]
+    rest = ~on_circle
+    explained = on_circle.copy()
+    fill = np.argwhere(cand).mean(axis=0)  # (row, col): the field's side of every blade
+    circle = _circle_mask((H, W), cx, cy, rad)
+    model = circle.copy()
+    rows = np.arange(H, dtype=np.float64)[:, None]
+    cols = np.arange(W, dtype=np.float64)[None, :]
+    rng = np.random.default_rng(20261124)
+    blades = []
+    for _ in range(_IRIS_MAX_BLADES):
+        if rest.sum() < _IRIS_MIN_BLADE_PTS:
+            break
+        m, u, inl = _ransac_line(q_all[rest], s.circle_inlier_px, rng)
+        if inl.sum() < _IRIS_MIN_BLADE_PTS:
+            break
+        nrm = np.array([-u[1], u[0]])  # (row, col) normal, towards the field
+        if (fill - m) @ nrm < 0:
+            nrm = -nrm
+        # a blade is a supporting line of the field: refit on the outer half of its points
+        # (notches of anatomy at the outside's level lie inside), then the strip just beyond it
+        # must be outside (a line through notches' rims cuts the field: the candidate fills it)
+        q = q_all[rest][inl]
+        for _ in range(2):
+            depth = (q - m) @ nrm
+            outer = q[depth <= np.median(depth)]
+            if len(outer) < 3:
+                break
+            m = outer.mean(axis=0)
+            u = np.linalg.svd(outer - m, full_matrices=False)[2][0]
+            nrm = np.array([-u[1], u[0]]) if (fill - m) @ np.array([-u[1], u[0]]) >= 0 else np.array([u[1], -u[0]])
+        depth_px = (rows - m[0]) * nrm[0] + (cols - m[1]) * nrm[1]
+        strip = circle & (depth_px < -s.circle_inlier_px) & (depth_px >= -s.circle_inlier_px - _IRIS_STRIP_PX)
+        if strip.any() and (cand & strip).sum() > _IRIS_BLADE_SPILL * strip.sum():
+            break
+        # and what it cuts off the circle is the outside (grown from the border over the flat
+        # outside level), not anatomy near that level whose rim happens to be straight
+        cut = circle & (depth_px < -s.circle_inlier_px)
+        if outside is not None and cut.any() and (outside & cut).sum() < _IRIS_CUT_OUTSIDE * cut.sum():
+            break
+        dist = abs((np.array([cy, cx]) - m) @ nrm)
+        chord = 2.0 * math.sqrt(max(rad * rad - dist * dist, 0.0))  # px of the line inside the circle
+        if inl.sum() < _IRIS_BLADE_COVER * chord or rad - dist < _IRIS_MIN_CUT * rad:
+            break  # a notch (dark anatomy, a glyph), a line missing the circle or grazing it where
+            # the circle meets the image edge: not a blade
+        model &= ((rows - m[0]) * nrm[0] + (cols - m[1]) * nrm[1]) >= -0.5
+        idx = np.nonzero(rest)[0][inl]
+        explained[idx] = True
+        rest[idx] = False
+        t = (q_all[idx] - m) @ u
+        blades.append([[float(e[1]), float(e[0])] for e in (m + t.min() * u, m + t.max() * u)])
+    if not model.any() or explained.mean() < _IRIS_MIN_EXPLAINED:
+        return None
+    params = {"centre_x": float(cx), "centre_y": float(cy), "radius": float(rad)}
+    return model, (params | {"blades": blades} if blades else params)
+
 def _fit_polygon(cand: np.ndarray, pts: np.ndarray, s: FieldSettings) -> tuple[np.ndarray, dict] | None:
     """Convex polygon: hull of the boundary points, simplified and refined to straight edges."""
     H, W = cand.shape
@@ -770,7 +911,7 @@ def _refine_polygon(poly: np.ndarray, pts: np.ndarray, shape: tuple[int, int],
     return out
 
 
-def _fit_model(cand: np.ndarray, s: FieldSettings) -> tuple[str, np.ndarray | None, dict]:
+def _fit_model(cand: np.ndarray, s: FieldSettings, outside: np.ndarray | None = None) -> tuple[str, np.ndarray | None, dict]:
     """Step 3: the simplest model (rectangle, circle, polygon) within ``max_boundary_px`` of the
     candidate: ``(kind, mask, params)``, or ``("none", None, {"reason": ...})``."""
     pts = _contour(cand)
@@ -789,6 +930,16 @@ def _fit_model(cand: np.ndarray, s: FieldSettings) -> tuple[str, np.ndarray | No
         devs["polygon"] = _deviation(fit[0], cand)
         if devs["polygon"] <= s.max_boundary_px:
             return "polygon", fit[0], fit[1]
+    fit = _fit_iris_blades(cand, pts, s, outside)
+    if fit is not None:
+        # one-sided: dark (or bright) anatomy at the outside's level may notch the candidate deeply
+        # along an iris's edge and its blades; the candidate must not run beyond the model
+        kind = "iris-blades" if "blades" in fit[1] else "circle"
+        n = max(1, _boundary_len(fit[0]))
+        devs[f"notched {kind} (beyond)"] = float((cand & ~fit[0]).sum()) / n
+        devs[f"notched {kind} (notches)"] = float((fit[0] & ~cand).sum()) / n
+        if devs[f"notched {kind} (beyond)"] <= _IRIS_MAX_BEYOND_PX and devs[f"notched {kind} (notches)"] <= _IRIS_MAX_NOTCH_PX:
+            return kind, fit[0], fit[1]
     txt = ", ".join(f"{k} {v:.2f} px" for k, v in devs.items())
     return "none", None, {"reason": f"no field model fits the candidate (mean boundary deviation: {txt})"}
 
@@ -920,7 +1071,7 @@ def detect_field(image: np.ndarray, settings: FieldSettings | None = None) -> Fi
         if not reason and (cand.sum() < 0.001 * cand.size or cand.all()):
             reason = "no field candidate inside the outside region"
         if not reason:
-            kind, model, params = _fit_model(cand, s)
+            kind, model, params = _fit_model(cand, s, out.region)
             if model is not None:
                 outside_colour = out.colour
     if model is None:

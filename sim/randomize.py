@@ -20,7 +20,8 @@ Stages, in the order they act on a pair's target image:
    times the shorter image side, of the collimated signal, so it spills a little into the
    shadow); then electronic noise, Gaussian with sigma ``electronic_noise_fraction x I0``.
 3. ``collimator``: the collimated field (:meth:`Draw.collimator`, a
-   :class:`sim.physics.display.Collimator`): none, a circle or a rotated rectangle, off centre,
+   :class:`sim.physics.display.Collimator`): none, a circle (cut by a pair of blades or not) or a
+   rotated rectangle, off centre,
    the blades passing ``field_transmission`` of the signal.
 4. ``display``: the vendor processing (:meth:`Draw.display_chain`, a
    :class:`sim.physics.display.DisplayChain`): log or linear, polarity, window percentiles,
@@ -436,6 +437,12 @@ DECLARATION: tuple[Randomized, ...] = (
     _b("ideal", "physics", 0.0, "the target is an ideal line-integral DRR instead, collimated as drawn (only the "
                                 "field settings act: the field is geometry, not appearance): a share of ideal "
                                 "targets keeps a network's accuracy on DRRs while it learns realistic ones"),
+    _b("field_blades", "collimator", 0.4, "the iris cut by a pair of shutter blades (as on many C-arms)",
+       when=("field", ("circle",))),
+    _u("field_blade_half", "collimator", 0.2, 0.45, "distance of the blades from the field centre",
+       _FRACTION_H, limits=(0.0, 5.0), lo_open=True, when=("field_blades", (True,))),
+    _u("field_blade_rotation_deg", "collimator", -90, 90, "blades' rotation, counter-clockwise as displayed",
+       "deg", limits=(-360.0, 360.0), when=("field_blades", (True,))),
 )
 
 _DECLARED: dict[str, Randomized] = {r.name: r for r in DECLARATION}
@@ -539,7 +546,11 @@ class Draw:
             return None
         center = (0.5 + float(self["field_offset_x"]), 0.5 + float(self["field_offset_y"]))
         common = dict(center=center, transmission=float(self["field_transmission"]))
-        if shape == "circle":
+        if shape == "circle" and self["field_blades"]:
+            col = Collimator(shape="iris-blades", radius=float(self["field_radius"]),
+                             half_size=(5.0, float(self["field_blade_half"])),
+                             rotation_deg=float(self["field_blade_rotation_deg"]), **common)
+        elif shape == "circle":
             col = Collimator(shape="circle", radius=float(self["field_radius"]), **common)
         else:
             col = Collimator(shape="rectangle", half_size=(float(self["field_half_width"]),

@@ -41,7 +41,7 @@ import numpy as np
 from sim.atomic import jsonable
 from sim.physics import PhysicsError
 
-SHAPES = ("none", "circle", "rectangle", "polygon")
+SHAPES = ("none", "circle", "rectangle", "iris-blades", "polygon")
 POLARITIES = ("bone-dark", "bone-bright")
 SHUTTERS = ("black", "white", "none")
 
@@ -136,10 +136,11 @@ class Collimator:
 
     Attributes:
         shape (str, default ``"circle"``): ``"none"`` (the whole detector is the field),
-            ``"circle"`` (iris collimator), ``"rectangle"`` (shutter blades) or ``"polygon"``
-            (wedges).
+            ``"circle"`` (iris collimator), ``"rectangle"`` (shutter blades), ``"iris-blades"``
+            (the circle cut by the rectangle's blades: an iris with shutter blades, as on many
+            C-arms) or ``"polygon"`` (wedges).
         center (tuple[float, float], default ``(0.5, 0.5)``): field centre ``(x, y)``, fractions
-            of the image width, height, each in [0, 1] (circle and rectangle).
+            of the image width, height, each in [0, 1] (circle, rectangle, iris-blades: one centre).
         radius (float, default 0.45): circle radius, a fraction of the image's shorter side, in
             (0, 5].
         half_size (tuple[float, float], default ``(0.4, 0.4)``): rectangle half width and half
@@ -202,15 +203,17 @@ class Collimator:
             return inside
         dx = x - self.center[0] * w
         dy = y - self.center[1] * h
+        r = self.radius * min(h, w)
+        circle = dx * dx + dy * dy <= r * r
         if self.shape == "circle":
-            r = self.radius * min(h, w)
-            return dx * dx + dy * dy <= r * r
+            return circle
         # rectangle: local axes u = (cos t, -sin t), v = (-sin t, -cos t) in (column, row) pixels
         t = math.radians(self.rotation_deg)
         c, s = math.cos(t), math.sin(t)
         u = dx * c - dy * s
         v = dx * s + dy * c
-        return (np.abs(u) <= self.half_size[0] * w) & (np.abs(v) <= self.half_size[1] * h)
+        blades = (np.abs(u) <= self.half_size[0] * w) & (np.abs(v) <= self.half_size[1] * h)
+        return blades & circle if self.shape == "iris-blades" else blades
 
     def apply(self, raw: np.ndarray) -> np.ndarray:
         """Raw detector signal ``(H, W)`` or ``(B, H, W)`` -> the same shape (a float array), the

@@ -181,6 +181,98 @@ def test_circle_centre_and_radius(name):
     assert abs(p["radius"] - r) <= 1.5
 
 
+# ------------------------------------------------------------------------------------------
+# an iris cut by shutter blades; anatomy at the outside's level notching the field's edge
+
+
+def _iris_blades(cx, cy, r, half, rot_deg):
+    """Circle (cx, cy, r) px cut by two parallel blades at +-``half`` px from its centre, their
+    normal rotated ``rot_deg`` from the rows' direction."""
+    t = np.deg2rad(rot_deg)
+    n = np.array([np.sin(t), np.cos(t)])  # (x, y) unit normal of the blades
+
+    def truth(shape, pad=0):
+        yy, xx = np.mgrid[: shape[0], : shape[1]]
+        x, y = xx - pad - cx, yy - pad - cy
+        return (x * x + y * y <= r * r) & (np.abs(x * n[0] + y * n[1]) <= half)
+    truth.circle = (cx, cy, r)
+    truth.blades = [(cx + sgn * half * n[0], cy + sgn * half * n[1], n) for sgn in (-1, 1)]  # (x, y, normal)
+    return truth
+
+
+def _notched(anat, truth, outside, seed, count=6, radius=12):
+    """``anat`` with ``count`` discs of anatomy at the outside's level (1 % of the range from it,
+    not on it) centred on the field's edge: dense bone shown dark next to a black outside."""
+    rng = np.random.default_rng(seed)
+    inner = truth & ~ndimage.binary_erosion(truth, iterations=3)
+    yy, xx = np.mgrid[: truth.shape[0], : truth.shape[1]]
+    out = anat.copy()
+    level = outside + (0.01 if outside == 0.0 else -0.01)
+    for py, px in np.argwhere(inner)[rng.integers(0, inner.sum(), count)]:
+        out[(yy - py) ** 2 + (xx - px) ** 2 < radius ** 2] = level
+    return out
+
+
+IRIS_CASES = {
+    # name: (shape, truth, outside value, dtype)
+    "iris + blades 15 deg, black, 12-bit": (S, _iris_blades(128, 126, 118, 80, 15), 0.0, "u12"),
+    "iris + blades -35 deg, white, 8-bit": (S, _iris_blades(120, 130, 125, 95, -35), 1.0, "u8"),
+    "iris + blades, non-square, black, float": (S2, _iris_blades(150, 100, 110, 70, 0), 0.0, "f"),
+}
+
+
+@pytest.mark.parametrize("name", list(IRIS_CASES))
+def test_notched_iris_with_blades_matches_truth(name):
+    """Anatomy at the outside's level notches the edge (no shape model fits the candidate within
+    0.5 px any more): the iris-with-blades model still finds the circle (centre and radius within
+    1.5 px), both blades (their fitted edges within 1.5 px of the true lines) and the field
+    (within 3 px of the truth boundary)."""
+    shape, truth_fn, outside, dtype = IRIS_CASES[name]
+    seed = sum(map(ord, name)) % 1000
+    truth = truth_fn(shape)
+    img = _as(_compose(truth, _notched(_anatomy(shape, seed), truth, outside, seed), outside=outside), dtype)
+    f = detect_field(img)
+    assert f.kind == "iris-blades", f.params
+    dist = _boundary_distance(truth_fn, shape)
+    assert ((f.field_mask != truth) & (dist > 3)).sum() == 0
+    cx, cy, r = truth_fn.circle
+    p = f.params
+    assert abs(p["centre_x"] - cx) <= 1.5 and abs(p["centre_y"] - cy) <= 1.5 and abs(p["radius"] - r) <= 1.5
+    assert len(p["blades"]) == 2
+    for bx, by, n in truth_fn.blades:  # some found blade lies on each true line (pixel edges: +-0.5 px)
+        off = [max(abs((x - bx) * n[0] + (y - by) * n[1]) for x, y in blade) for blade in p["blades"]]
+        assert min(off) <= 1.5, off
+    json.dumps(f.to_dict())
+
+
+def test_notched_circle_is_a_circle_without_blades():
+    truth_fn = _circle(130, 124, 112)
+    truth = truth_fn(S)
+    f = detect_field(_as(_compose(truth, _notched(_anatomy(S, 21), truth, 0.0, 21, count=8)), "u12"))
+    assert f.kind == "circle" and "blades" not in f.params
+    assert abs(f.params["radius"] - 112) <= 1.5
+    assert ((f.field_mask != truth) & (_boundary_distance(truth_fn, S) > 3)).sum() == 0
+
+
+def test_a_blade_cuts_off_only_the_outside():
+    """A candidate missing a circular segment behind a straight rim: a blade when the segment is
+    the outside region (grown from the border over the flat outside level), not when it is
+    anatomy the candidate lost (dark anatomy near the outside level, as on a dark cine display)."""
+    from register.field import _contour, _fit_iris_blades
+
+    circle = _circle(128, 128, 115)(S)
+    yy, xx = np.mgrid[:256, :256]
+    segment = circle & (xx + 0.4 * yy < 80)
+    cand = circle & ~segment
+    pts = _contour(cand)
+    shadow = ~cand  # the segment belongs to the outside: a blade's shadow
+    fit = _fit_iris_blades(cand, pts, FieldSettings(), shadow)
+    assert fit is not None and len(fit[1]["blades"]) == 1
+    assert ((fit[0] != cand) & (_boundary_distance(lambda shape, pad=0: np.pad(cand, pad), S) > 2)).sum() == 0
+    anatomy = ~circle  # the outside is only what lies beyond the circle: the segment is anatomy
+    fit = _fit_iris_blades(cand, pts, FieldSettings(), anatomy)
+    assert fit is None or "blades" not in fit[1]
+
 def test_rectangle_and_polygon_params():
     truth_fn = _rect(30, 220, 40, 200)
     f = detect_field(_compose(truth_fn(S), _anatomy(S, 5)))

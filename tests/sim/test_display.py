@@ -80,6 +80,26 @@ def test_rectangle_and_rotated_rectangle_areas_and_sense_of_rotation():
     assert np.array_equal(m90, Collimator("rectangle", half_size=(0.15, 0.25)).mask(n, n))
 
 
+def test_iris_with_blades_area_is_the_circle_less_two_segments():
+    """An iris of radius r cut by two parallel blades at distance d from its centre (rotated 25 deg)
+    keeps pi r^2 minus two circular segments, each r^2 acos(d / r) - d sqrt(r^2 - d^2) (closed
+    form; 1 % covers the pixel staircase at r = 200 px); every pixel is inside both the circle
+    and the blades' rectangle."""
+    n = 512
+    r_frac, d_frac = 0.4, 0.25  # radius: of the shorter side; blade distance: half height, of the height
+    col = Collimator("iris-blades", center=(0.5, 0.5), radius=r_frac, half_size=(2.0, d_frac), rotation_deg=25.0)
+    m = col.mask(n, n)
+    r, d = r_frac * n, d_frac * n
+    segment = r * r * math.acos(d / r) - d * math.sqrt(r * r - d * d)
+    assert m.sum() == pytest.approx(math.pi * r * r - 2 * segment, rel=0.01)
+    circle = Collimator("circle", center=(0.5, 0.5), radius=r_frac).mask(n, n)
+    blades = Collimator("rectangle", center=(0.5, 0.5), half_size=(2.0, d_frac), rotation_deg=25.0).mask(n, n)
+    assert np.array_equal(m, circle & blades)
+    # blades wider than the circle leave the circle
+    assert np.array_equal(Collimator("iris-blades", radius=0.3, half_size=(0.5, 0.5)).mask(64, 64),
+                          Collimator("circle", radius=0.3).mask(64, 64))
+
+
 def test_polygon_area_is_the_shoelace_area():
     h, w = 300, 500
     verts = ((0.2, 0.1), (0.7, 0.15), (0.9, 0.5), (0.75, 0.9), (0.3, 0.85), (0.1, 0.45))

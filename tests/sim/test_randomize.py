@@ -264,7 +264,12 @@ def test_collimator_and_display_chain_are_the_drawn_ones(draws):
             assert col is None
             continue
         center = (0.5 + d["field_offset_x"], 0.5 + d["field_offset_y"])
-        if d["field"] == "circle":
+        if d["field"] == "circle" and d["field_blades"]:
+            kinds.add("iris-blades")
+            assert col == Collimator("iris-blades", center=center, radius=d["field_radius"],
+                                     half_size=(5.0, d["field_blade_half"]), rotation_deg=d["field_blade_rotation_deg"],
+                                     transmission=d["field_transmission"])
+        elif d["field"] == "circle":
             assert col == Collimator("circle", center=center, radius=d["field_radius"],
                                      transmission=d["field_transmission"])
         else:
@@ -276,7 +281,7 @@ def test_collimator_and_display_chain_are_the_drawn_ones(draws):
                                      gamma=d["gamma"], unsharp_sigma_px=d["unsharp_sigma_px"] if d["unsharp"] else 0.0,
                                      unsharp_amount=d["unsharp_amount"] if d["unsharp"] else 0.0, bits=d["bits"],
                                      shutter=d["shutter"])
-    assert kinds == {"none", "circle", "rectangle"}
+    assert kinds == {"none", "circle", "rectangle", "iris-blades"}
     tiny = DomainRandomization.from_table({"field": ["circle"], "field_radius": [1e-4, 1e-4],
                                            "field_offset_x": 0, "field_offset_y": 0}).draw(0, 0)
     with pytest.raises(RandomizeError, match=r"^draw 0: the circle field holds no pixel of a 8 x 8 image"):
