@@ -15,7 +15,7 @@ Example (README "Python API")::
 the start pose, the preprocessing steps, the size; then the CT and the X-ray, its geometry, and
 that the CT is in the view at the start pose), prepares the X-ray
 (:func:`register.prepare.prepare_xray`: geometry with its sources, field mask, intensity, size),
-checks the polarity by registration (:func:`register.prepare.confirm_polarity`), builds the
+checks the polarity against the CT (:func:`register.prepare.confirm_polarity`), builds the
 method (:func:`register.methods.build_method`) and registers. ``ctxreg register``
 (:func:`register.commands.run_register`) is this call plus :meth:`XRayRegistration.write`.
 """
@@ -112,7 +112,7 @@ class XRayRegistration:
     @property
     def xray_input(self) -> dict:
         """The prepared X-ray's summary (``result.json``'s ``xray_input``): where each geometry value
-        came from, the field, the intensity decision and its check by registration, the sizes."""
+        came from, the field, the intensity decision and its check against the CT, the sizes."""
         return self.prepared.summary()
 
     @property
@@ -333,6 +333,9 @@ def _input_lines(prepared) -> list[str]:
     if check is not None:
         verdict = {"inverted": "inverted the image", "confirmed": "confirmed",
                    "inconclusive": "inconclusive, the decision stands"}[check["verdict"]]
-        lines.append(f"polarity check by registration: {verdict} (similarity {check['similarity_as_decided']:.3f} "
-                     f"as decided, {check['similarity_inverted']:.3f} inverted): {check['polarity']}")
+        if "reason" in check:
+            lines.append(f"polarity check against the CT: not run ({check['reason']}): {check['polarity']}")
+        else:
+            lines.append(f"polarity check against the CT: {verdict} (similarity {check['similarity_as_decided']:.3f} "
+                         f"as decided, {check['similarity_inverted']:.3f} inverted): {check['polarity']}")
     return lines

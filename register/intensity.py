@@ -33,7 +33,7 @@ radiograph) or ``bone-dark`` (a fluoroscopy frame, a raw image).
    (:func:`centre_contrast`): the middle of a field (the thickest path through the body)
    attenuates more than its rim in ~90 % of pelvis views.
 
-``ctxreg register`` then checks the polarity by registration unless an option or the Sign tag
+``ctxreg register`` then checks the polarity against the CT unless an option or the Sign tag
 set it (:func:`register.prepare.confirm_polarity`).
 
 The decision (:class:`IntensityDecision`) records every piece of evidence it saw and which one

@@ -25,7 +25,7 @@ import numpy as np
 from scipy import ndimage
 
 __all__ = ["PreparedXRay", "prepare_xray", "confirm_polarity", "fit_to_size", "fit_box", "masked_fill", "reference_drrs",
-           "REFERENCE_POSES", "REFERENCE_SIZE", "POLARITY_CHECK"]
+           "REFERENCE_POSES", "REFERENCE_SIZE", "POLARITY_FLIP_MARGIN"]
 
 #: Number of DRRs (poses around the start) of the polarity reference, and their longer side (px).
 REFERENCE_POSES = 96
@@ -170,7 +170,7 @@ class PreparedXRay:
         return None
 
     def summary(self) -> dict:
-        """JSON: the geometry sources, field, intensity decision (and its check by registration),
+        """JSON: the geometry sources, field, intensity decision (and its check against the CT),
         and sizes, for result.json."""
         return {"geometry_sources": self.sources.to_dict(), "field": self.step("field"),
                 "intensity": self.step("intensity"), "polarity_check": self.step("polarity_check"), "full_size": [self.full_geometry.height, self.full_geometry.width],
@@ -273,56 +273,62 @@ def masked_fill(image: np.ndarray, mask: np.ndarray | None) -> np.ndarray:
 #: Polarity sources that a registration check does not question: the user's option and a decisive tag.
 _DECISIVE_POLARITY = ("option", "DICOM PixelIntensityRelationshipSign")
 
-#: The coarse search of :func:`confirm_polarity` (one level at 1/4 of the optimiser's size).
-POLARITY_CHECK = dict(levels=(4,), generations=(40,), metrics=("gncc",), polish=False)
-
-#: The inverse must match better by this much (gradient NCC) to overturn the decided polarity.
-#: A search that found the anatomy scores 0.5-0.95 with the right polarity and 0.1-0.5 with the
-#: wrong one; two lost searches score alike (0.09 against 0.10), which says nothing.
-POLARITY_FLIP_MARGIN = 0.1
+#: The inverse must score better by this much (the best gradient NCC over the global search's grid,
+#: :meth:`register.search.GlobalSearch.polarity_scores`) to overturn the decided polarity. On
+#: realistic frames (six display chains) the right polarity's best was 0.32-0.96 and the wrong
+#: one's 0.27-0.51 lower; where the decision was right, the inverse scored at most 0.04 more.
+POLARITY_FLIP_MARGIN = 0.15
 
 
 def confirm_polarity(prepared: PreparedXRay, volume, center_lps, init_params, *, physics=None,
                      label_materials=None) -> PreparedXRay:
-    """Check the decided polarity by registration, unless an option or a decisive tag set it.
+    """Check the decided polarity against the CT, unless an option or a decisive tag set it.
 
-    A coarse CMA-ES search (:data:`POLARITY_CHECK`: 1/4 resolution, 40 generations, gradient NCC)
-    runs for the prepared image and for its inverse (``1 - image``: the image is normalised to
-    [0, 1]; the toned image, :attr:`PreparedXRay.toned`, is made again from the inverse); the polarity whose best similarity is higher is kept. With the wrong polarity every
-    edge of the X-ray points against the DRR's, so the right one matches better wherever the
-    search finds the anatomy. The inverse wins only by :data:`POLARITY_FLIP_MARGIN`: when
-    neither search finds the anatomy the similarities are alike and the decision stands
-    (``verdict`` ``inconclusive``). The outcome goes into the record as step ``polarity_check``
-    (similarities, verdict, whether the image was inverted). Costs about a third of a CMA-ES
-    registration.
+    The global search's grid (:class:`register.search.GlobalSearch`: rotations and depths over the
+    prior box around ``init_params``, each pose at its best in-plane shift, gradient NCC at 1/4
+    resolution) scores the prepared image and its inverse in one pass (an inverse's gradients are
+    negated); the polarity whose best pose scores higher is kept. With the wrong polarity every
+    edge of the X-ray points against the DRR's. The inverse wins only by
+    :data:`POLARITY_FLIP_MARGIN`: an image without anatomy scores alike either way and the
+    decision stands (``verdict`` ``inconclusive``), as it does for an image too small for the grid
+    (``reason``). The outcome goes into the record as step ``polarity_check`` (both scores, verdict,
+    whether the image was inverted). About a second on 2 cores. ``physics`` and
+    ``label_materials`` are accepted for the caller's convenience: the grid's DRRs are line
+    integrals, whose edges are the geometry's.
     """
     from dataclasses import replace
 
-    from register.cmaes import CMAESRegistration, CMAESSettings
+    from register.cmaes import RegistrationError
+    from register.search import GlobalSearch, GlobalSearchSettings
 
     decision = prepared.step("intensity")
     if decision is None or decision.get("polarity_source") in _DECISIVE_POLARITY:
         return prepared
     size = (prepared.geometry.height, prepared.geometry.width)
-    engine = CMAESRegistration(volume, CMAESSettings(size=size, **POLARITY_CHECK), geometry=prepared.geometry,
-                               center_lps=center_lps, physics=physics, label_materials=label_materials)
     init = np.asarray(init_params, float).reshape(6)
-    lo, hi = (float(v) for v in np.percentile(prepared.image if prepared.mask is None else prepared.image[prepared.mask],
-                                               [0, 100]))
-    inverse = (hi + lo) - prepared.image
-    as_decided = engine.register(prepared.image, init, mask=prepared.mask).similarity
-    inverted = engine.register(inverse, init, mask=prepared.mask).similarity
+    settings = GlobalSearchSettings()
+    try:
+        grid = GlobalSearch(volume, settings, size=size, geometry=prepared.geometry, center_lps=center_lps)
+        as_decided, inverted = grid.polarity_scores(prepared.image, init, mask=prepared.mask)
+    except RegistrationError as exc:  # an image too small for the grid: the decision stands
+        measured = {"verdict": "inconclusive", "inverted": False, "polarity": decision["polarity"],
+                    "reason": str(exc)}
+        return replace(prepared, record=[*prepared.record, {"step": "polarity_check", "params": {}, "measured": measured}])
     flip = inverted >= as_decided + POLARITY_FLIP_MARGIN
     verdict = ("inverted" if flip else "confirmed" if as_decided >= inverted + POLARITY_FLIP_MARGIN
                else "inconclusive")
-    measured = {"similarity_as_decided": float(as_decided), "similarity_inverted": float(inverted),
+    measured = {"similarity_as_decided": as_decided, "similarity_inverted": inverted,
                 "margin": POLARITY_FLIP_MARGIN, "verdict": verdict, "inverted": bool(flip),
                 "polarity": (decision["polarity"] if not flip else
                              ("bone-dark" if decision["polarity"] == "bone-bright" else "bone-bright"))}
-    params = {k: list(v) if isinstance(v, tuple) else v for k, v in POLARITY_CHECK.items()}
+    params = {"grid_poses": int(len(settings.grid_offsets())), "factor": settings.factor,
+              "step_deg": settings.step_deg, "depths": settings.depths}
     record = [*prepared.record, {"step": "polarity_check", "params": params, "measured": measured}]
     if not flip:
         return replace(prepared, record=record)
+    lo, hi = (float(v) for v in np.percentile(prepared.image if prepared.mask is None else prepared.image[prepared.mask],
+                                               [0, 100]))
+    inverse = (hi + lo) - prepared.image
     m = prepared.full_mask
     flo, fhi = (float(v) for v in np.percentile(prepared.full_image[m] if m.any() else prepared.full_image, [0, 100]))
     return replace(prepared, image=inverse, full_image=(fhi + flo) - prepared.full_image, record=record,

@@ -132,8 +132,9 @@ def test_overlay_refuses_a_drr_of_another_shape():
 @pytest.mark.parametrize("tone", ["ct", "off"])
 def test_polarity_check_overturns_only_by_a_clear_margin(tone):
     """The check keeps a right decision, inverts a wrong one, and leaves the decision alone when
-    neither search finds the anatomy (two lost searches score alike). A display image (the DRR
-    here, read as one) with a tone curve gets its toned image made again from the inverse."""
+    the image holds no anatomy (both polarities' best grid poses score alike). A display image
+    (the DRR here, read as one) with a tone curve gets its toned image made again from the
+    inverse."""
     from dataclasses import replace
 
     from register.prepare import POLARITY_FLIP_MARGIN, confirm_polarity, prepare_xray
@@ -169,3 +170,29 @@ def test_polarity_check_overturns_only_by_a_clear_margin(tone):
     check = confirm_polarity(noise, vol, c, np.zeros(6)).step("polarity_check")
     assert check["verdict"] == "inconclusive" and not check["inverted"]
     assert abs(check["similarity_as_decided"] - check["similarity_inverted"]) < POLARITY_FLIP_MARGIN
+
+
+def test_polarity_scores_of_an_inverse_are_swapped_and_a_tiny_image_is_left_alone():
+    """The grid's score of the inverse is minus the surface's minimum: scoring the inverted image
+    swaps the pair exactly (to rounding). An image too small for the grid (under 32 px) keeps its
+    decision, with the reason recorded."""
+    from register.prepare import confirm_polarity, prepare_xray
+    from register.search import GlobalSearch, GlobalSearchSettings
+    from register.xray_io import XRayImage
+    from sim.anatomy import anatomy_center
+    from sim.phantom import make_pelvis_phantom
+
+    vol = make_pelvis_phantom(0, spacing_mm=4.0)
+    c = anatomy_center(vol)
+    drr = DRRRenderer(vol, RenderSettings(size=(64, 64)), center_lps=c).render_params(np.zeros(6))[0]
+    grid = GlobalSearch(vol, GlobalSearchSettings(), size=(64, 64), center_lps=c)
+    mask = np.ones((64, 64), bool)
+    mask[:6] = False
+    a, b = grid.polarity_scores(drr, mask=mask)
+    b2, a2 = grid.polarity_scores(drr.max() - drr, mask=mask)
+    assert a == pytest.approx(a2, abs=1e-9) and b == pytest.approx(b2, abs=1e-9)
+    assert a > 0.9 and b < a - 0.3  # the DRR of a grid pose itself: found, and clearly not inverted
+    small = prepare_xray(XRayImage(drr[:, :20].astype(np.float32), source="strip"), volume=vol, center_lps=c,
+                         init_params=np.zeros(6), size=(64, 20), pixel_spacing_mm=1.0)
+    check = confirm_polarity(small, vol, c, np.zeros(6)).step("polarity_check")
+    assert check["verdict"] == "inconclusive" and not check["inverted"] and "size" in check["reason"]
