@@ -621,18 +621,30 @@ def _fit_circle_points(x: np.ndarray, y: np.ndarray, inlier_px: float) -> tuple[
 def _fit_circle(cand: np.ndarray, pts: np.ndarray, s: FieldSettings) -> tuple[np.ndarray, dict] | None:
     """Circle fitted to the candidate's boundary points away from the image edges (so a circle
     clipped by the image works); ``(mask, params)`` or ``None`` when too few points agree."""
+    fit = _circle_off_edges(cand, pts, s, s.circle_min_inliers)
+    if fit is None:
+        return None
+    _, cx, cy, rad, _ = fit
+    return _circle_mask(cand.shape, cx, cy, rad), {"centre_x": cx, "centre_y": cy, "radius": rad}
+
+
+def _circle_off_edges(cand: np.ndarray, pts: np.ndarray, s: FieldSettings,
+                      min_inliers: float) -> tuple[np.ndarray, float, float, float, np.ndarray] | None:
+    """The circle through the boundary points ``pts`` (N, 2) (row, col) that do not run along the
+    image edges, if at least ``min_inliers`` of those agree and its radius is sane: ``(off_edges
+    (N,) bool, cx, cy, radius, inliers (M,) bool over the off-edge points)`` or ``None``."""
     H, W = cand.shape
     r, c = pts[:, 0], pts[:, 1]
-    keep = (r > -0.25) & (r < H - 0.75) & (c > -0.25) & (c < W - 0.75)
-    if keep.sum() < 20:
+    off_edges = (r > -0.25) & (r < H - 0.75) & (c > -0.25) & (c < W - 0.75)
+    if off_edges.sum() < 20:
         return None
-    fit = _fit_circle_points(c[keep], r[keep], s.circle_inlier_px)
+    fit = _fit_circle_points(c[off_edges], r[off_edges], s.circle_inlier_px)
     if fit is None:
         return None
     cx, cy, rad, inl = fit
-    if inl.mean() < s.circle_min_inliers or not (3.0 < rad < 4.0 * max(H, W)):
+    if inl.mean() < min_inliers or not (3.0 < rad < 4.0 * max(H, W)):
         return None
-    return _circle_mask((H, W), cx, cy, rad), {"centre_x": cx, "centre_y": cy, "radius": rad}
+    return off_edges, cx, cy, rad, inl
 
 
 def _ransac_line(q: np.ndarray, inlier_px: float, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -672,16 +684,10 @@ def _fit_iris_blades(cand: np.ndarray, pts: np.ndarray, s: FieldSettings,
     ``_IRIS_MIN_EXPLAINED`` of the points (notches where anatomy at the outside's level or a glyph
     touches the edge spoil the rest). ``(mask, params)`` or ``None``."""
     H, W = cand.shape
-    r, c = pts[:, 0], pts[:, 1]
-    inside = (r > -0.25) & (r < H - 0.75) & (c > -0.25) & (c < W - 0.75)  # not along the image edges
-    if inside.sum() < 20:
-        return None
-    fit = _fit_circle_points(c[inside], r[inside], s.circle_inlier_px)
+    fit = _circle_off_edges(cand, pts, s, _IRIS_MIN_ARC)
     if fit is None:
         return None
-    cx, cy, rad, on_circle = fit
-    if on_circle.mean() < _IRIS_MIN_ARC or not (3.0 < rad < 4.0 * max(H, W)):
-        return None
+    inside, cx, cy, rad, on_circle = fit
     q_all = pts[inside]
     rest = ~on_circle
     explained = on_circle.copy()
