@@ -11,8 +11,7 @@ before an optimiser sees it:
 3. the crop's geometry (each pixel keeps its ray) and the resampling to the optimiser's size,
    where the mask follows the image (:func:`fit_to_size`): the image is scaled, its aspect kept,
    to the largest size that fits inside ``size = (H, W)`` with each side a multiple of 4 (the
-   default 128 x 128 makes the longer side 128 px; a 2:1 X-ray becomes 128 x 64); an image
-   already inside the box (a field crop of a small frame) is never enlarged.
+   default 128 x 128 makes the longer side 128 px; a 2:1 X-ray becomes 128 x 64).
 
 The result keeps the full-resolution image and mask too, for figures a person can judge.
 """
@@ -56,19 +55,10 @@ def _fit_plan(shape: tuple[int, int], geometry, size):
     h, w = shape
     box_h, box_w = (size, size) if np.ndim(size) == 0 else size
     f = max(h / float(box_h), w / float(box_w))  # old pixels per new pixel
-    if f <= 1.0:
-        # never enlarged: upsampling adds no detail, and a scale a little above 1 (a field crop
-        # slightly smaller than the box) interpolates every pixel differently (a beat pattern in
-        # the gradients); the image keeps its pixels, its sides cut to multiples of 4
-        H, W = max(4, h // 4 * 4), max(4, w // 4 * 4)
-        f = 1.0
-    else:
-        H = max(4, int(round(h / f / 4)) * 4)
-        W = max(4, int(round(w / f / 4)) * 4)
-        f = min(h / H, w / W)
+    H = max(4, int(round(h / f / 4)) * 4)
+    W = max(4, int(round(w / f / 4)) * 4)
+    f = min(h / H, w / W)
     y0, x0 = (h - H * f) / 2.0, (w - W * f) / 2.0
-    if f == 1.0:  # whole pixels: the kept ones are copied, not interpolated
-        y0, x0 = float((h - H) // 2), float((w - W) // 2)
     rows = y0 + (np.arange(H) + 0.5) * f - 0.5
     cols = x0 + (np.arange(W) + 0.5) * f - 0.5
     cx, cy = geometry.principal_point
@@ -79,9 +69,7 @@ def _fit_plan(shape: tuple[int, int], geometry, size):
 
 def fit_to_size(image: np.ndarray, mask: np.ndarray | None, geometry, size):
     """Centre-crop and resample ``image`` ``(h, w)`` to the largest size, aspect kept, that fits
-    inside ``size`` (``(H, W)``, or one number: the longer side), each side a multiple of 4. An
-    image that already fits is not enlarged: it keeps its pixels, its sides cut (centred) to
-    multiples of 4.
+    inside ``size`` (``(H, W)``, or one number: the longer side), each side a multiple of 4.
 
     Pixels stay square: the crop removes the fraction of a pixel that keeps both sides an exact
     multiple of the new spacing. The anti-aliasing blur (Gaussian, sigma ``f / 2 - 0.5`` old
