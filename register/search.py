@@ -307,8 +307,8 @@ class GlobalSearch:
         given, inverted)``, gradient NCC at the grid's resolution over every grid pose and in-plane
         shift. The inverse's gradients are the negated ones, so one pass gives both (the score
         surfaces' maximum, and minus their minimum). The grid covers the whole prior box, so the
-        right polarity finds the anatomy wherever it lies in it (0.3-0.96 on realistic frames,
-        where the wrong one's best is 0.3-0.5 lower)."""
+        right polarity finds the anatomy wherever it lies in it (0.38-0.96 on realistic frames;
+        :data:`register.prepare.POLARITY_FLIP_MARGIN` says how far apart the two were)."""
         s = self.settings
         field = self._field(fixed, mask, s.factor)
         params = np.asarray(init_params, float).reshape(6) + s.grid_offsets()
