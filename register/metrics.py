@@ -237,12 +237,19 @@ def gradient_ncc(fixed: np.ndarray, moving: np.ndarray, mask: np.ndarray | None 
     ke = _gradient_mask(k)
     fgx, fgy = _sobel_xy(f)
     mgx, mgy = _sobel_xy(m)
+    return _plain_gradient_scores(fgx, fgy, mgx, mgy, ke)
+
+
+def _plain_gradient_scores(fgx, fgy, mgx, mgy, ke) -> np.ndarray:
+    """Gradient NCC from the fixed ``(H, W)`` and moving ``(B, H, W)`` Sobel images over the eroded
+    mask ``ke``: the mean of the x and y NCCs, leaving out a direction in which the fixed gradient
+    is constant: ``(B,)``."""
     scores, defined = [], []
     for fg, mg in ((fgx, mgx), (fgy, mgy)):
         fv = fg if ke is None else fg[ke]
         defined.append(bool(fv.std() > _CONSTANT_REL * np.abs(fv).max()))
         scores.append(_ncc_core(fg, mg, ke))
-    return _mean_defined(scores, defined, m.shape[0])
+    return _mean_defined(scores, defined, mgx.shape[0])
 
 
 def _tone_matched_values(f: np.ndarray, m: np.ndarray, idx: np.ndarray) -> np.ndarray:
@@ -331,12 +338,7 @@ def tone_tolerant_gradient_ncc(fixed: np.ndarray, moving: np.ndarray, mask: np.n
     ke = _gradient_mask(k)
     fgx, fgy = _sobel_xy(f)
     mgx, mgy = _sobel_xy(m)
-    scores, defined = [], []
-    for fg, mg in ((fgx, mgx), (fgy, mgy)):
-        fv = fg if ke is None else fg[ke]
-        defined.append(bool(fv.std() > _CONSTANT_REL * np.abs(fv).max()))
-        scores.append(_ncc_core(fg, mg, ke))
-    plain = _mean_defined(scores, defined, m.shape[0])
+    plain = _plain_gradient_scores(fgx, fgy, mgx, mgy, ke)
     return 0.5 * (plain + _tone_free_scores(_tone_matched(f, m, k), mgx, mgy, ke))
 
 
