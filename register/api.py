@@ -213,7 +213,7 @@ def _moving_physics(physics):
     return PhysicsSettings(level=physics, noise=False, scatter_photons=REGISTER_SCATTER_PHOTONS)
 
 
-def register_xray(ct, xray, *, method: str = "cmaes", model=None, init="ap", center=None, label_map=None,
+def register_xray(ct, xray, *, method: str = "contextual+cmaes", model=None, init="ap", center=None, label_map=None,
                   scene: str = "cios_fusion", sdd_mm: float | None = None, sod_mm: float | None = None,
                   pixel_spacing_mm: float | None = None, size=(128, 128), physics="line",
                   label_materials: dict[int, str] | None = None, preprocess=None, intensity: str = "auto",

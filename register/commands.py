@@ -143,7 +143,7 @@ class RegisterCommand:
     init: tuple[str, ...] = field(default=("ap",), metadata=opt(
         "start pose: 'ap' or six numbers PHI THETA PSI TX TY TZ", group="pose", nargs="+",
         unit="deg deg deg mm mm mm", metavar="ap|P"))
-    method: str = field(default="cmaes", metadata=opt("registration method", group="pose", choices=METHOD_NAMES))
+    method: str = field(default="contextual+cmaes", metadata=opt("registration method", group="pose", choices=METHOD_NAMES))
     model: str | None = field(default=None, metadata=opt(
         "the contextual methods' network: a shipped model's name (ctxreg models) or a ctxreg train checkpoint "
         "(default: the shipped default model)", group="pose", metavar="NAME|CKPT"))
@@ -193,7 +193,7 @@ class RegisterCommand:
     polarity: str = field(default="auto", metadata=opt(
         "bone in the image as displayed: bone-bright (radiograph) or bone-dark (fluoroscopy, raw); auto "
         "decides from the DICOM tags, the image's noise, DRRs of the CT around the start and the file's "
-        "modality, then checks by a coarse registration of the image and its inverse", group="image",
+        "modality, then checks it against the CT (the image and its inverse scored over the global search's pose grid)", group="image",
         choices=("auto", *POLARITIES)))
     tone: str = field(default="ct", metadata=opt(
         "a display image's unknown look-up table (window, gamma, log or not): ct also makes a toned version, the "

@@ -59,7 +59,7 @@ BAD = {
                                       ["a CT slice", "ImagePositionPatient"]),
     "register NIfTI as X-ray": ("register --ct phantom --xray {singular} --out reg", ["NIfTI", "--ct"]),
     "register folder as X-ray": ("register --ct phantom --xray {dir_png} --out reg", ["a folder"]),
-    "register model with cmaes": ("register --ct phantom --xray {xray} --model {tiny} --out reg",
+    "register model with cmaes": ("register --ct phantom --xray {xray} --method cmaes --model {tiny} --out reg",
                                   ["--model", "contextual methods only"]),
     "register unknown model name": ("register --ct phantom --xray {xray} --method contextual --model pelvis_nonexistent "
                                     "--out reg", ["--model pelvis_nonexistent", "neither a checkpoint file nor a "
@@ -108,7 +108,7 @@ GOOD = {
     "render trilinear at the smallest step": ("render --ct phantom --size 16 16 --ray-model trilinear "
                                               "--step-fraction 0.05 --out x.npy", ["x.npy", "x.json"]),
     "render replaces an existing file": ("render --ct phantom --size 16 16 --out old.npy", ["old.json"]),
-    "register": ("register --ct phantom --xray {xray} --size 32 32 --restarts 0 --out reg",
+    "register": ("register --ct phantom --xray {xray} --method cmaes --size 32 32 --restarts 0 --out reg",
                  ["reg/result.json", "reg/overlay.png"]),
 }
 

@@ -155,7 +155,7 @@ def test_register_with_poly_moving_images(poly_case, tmp_path):
 ])
 def test_bad_physics_options_of_register_are_one_line_errors(poly_case, tmp_path, extra, words):
     ct, xray, *_ = poly_case
-    r = run_cli("register", "--ct", ct, "--xray", xray, "--out", tmp_path, *extra)
+    r = run_cli("register", "--ct", ct, "--xray", xray, "--method", "cmaes", "--out", tmp_path, *extra)
     assert r.returncode == 2 and words in r.stderr and r.stderr.count("\n") == 1, r.stderr
 
 
