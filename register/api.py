@@ -259,7 +259,7 @@ def register_xray(ct, xray, *, method: str = "contextual+cmaes", model=None, ini
     from register.methods import build_method, check_method, load_predictor, needs_model
     from register.prepare import confirm_polarity, fit_box, prepare_xray
     from register.preprocess import DEFAULT_STEPS, Pipeline
-    from register.search import GlobalSearchSettings
+    from register.search import GlobalSearch, GlobalSearchSettings
     from register.xray_io import XRayImage, load_xray, resolve_geometry
     from sim.anatomy import anatomy_center
     from sim.geometry import pose_from_params
@@ -301,15 +301,20 @@ def register_xray(ct, xray, *, method: str = "contextual+cmaes", model=None, ini
     prepared = prepare_xray(xr, volume=volume, center_lps=c, init_params=x0, scene=scene, steps=steps,
                             scale=intensity, polarity=polarity, tone=tone, size=box, sdd_mm=sdd_mm, sod_mm=sod_mm,
                             pixel_spacing_mm=pixel_spacing_mm)
-    prepared = confirm_polarity(prepared, volume, c, x0, physics=moving, label_materials=label_materials)
+    geometry = prepared.geometry
+    search = None  # contextual+cmaes's global search, built once: the polarity check scores on its grid
+    if method == "contextual+cmaes":
+        search = GlobalSearch(volume, GlobalSearchSettings(), size=(geometry.height, geometry.width), scene=scene,
+                              geometry=geometry, center_lps=c, physics=moving, label_materials=label_materials)
+    prepared = confirm_polarity(prepared, volume, c, x0, physics=moving, label_materials=label_materials,
+                                search=search)
     log(prepared.sources.line())
     for line in _input_lines(prepared):
         log(line)
-    geometry = prepared.geometry
     engine = build_method(method, volume, center_lps=c, size=(geometry.height, geometry.width), geometry=geometry,
                           scene=scene, model=predictor, physics=moving, label_materials=label_materials,
                           restarts=restarts if method == "cmaes" else 0, keep_drrs=True, note=remark,
-                          search=GlobalSearchSettings() if method == "contextual+cmaes" else None)
+                          search=search)
     result = engine.register(prepared.image, x0, mask=prepared.mask, toned=prepared.toned)
     return XRayRegistration(method=method, result=result, prepared=prepared, volume=volume, center_lps=c,
                             init_params=x0, physics=moving, label_materials=label_materials, notes=notes)

@@ -51,7 +51,9 @@ class ContextualRegistration:
 
     ``refine``: the CMA-ES settings of the hand-over (narrowed box around the network's pose), or
     None for the contextual iteration alone. ``search`` (with ``refine`` only): the global search
-    (:class:`register.search.GlobalSearch`) between the iteration and the refinement: the
+    (:class:`register.search.GlobalSearch`, built from its settings, or one the caller built for
+    the same detector and physics, e.g. to share its grid's DRRs with the polarity check
+    :func:`register.prepare.confirm_polarity`) between the iteration and the refinement: the
     network's pose is searched locally first and kept when its similarity reaches
     ``search.found_above``; otherwise a grid over the prior box supplies further starts, the
     refinement's CMA-ES runs from each of the search's finalists (its best distinct local results,
@@ -65,7 +67,7 @@ class ContextualRegistration:
 
     def __init__(self, volume, predictor, settings: ContextualSettings | None = None, *, size=(128, 128),
                  scene: str = "cios_fusion", geometry=None, center_lps=None, refine: CMAESSettings | None = None,
-                 search: GlobalSearchSettings | None = None, physics=None,
+                 search: GlobalSearchSettings | GlobalSearch | None = None, physics=None,
                  label_materials: dict[int, str] | None = None):
         from sim.anatomy import anatomy_center
         from sim.physics.imaging import moving_renderer
@@ -81,7 +83,12 @@ class ContextualRegistration:
         self.search = None
         if search is not None and refine is None:
             raise RegistrationError("search: the global search needs the refinement (refine settings)")
-        if search is not None:
+        if isinstance(search, GlobalSearch):  # built by the caller (its grid shared with the polarity check)
+            if not search.built_for(self.geometry, physics):
+                raise RegistrationError("search: the given GlobalSearch was built for another detector or physics "
+                                        "than this registration's")
+            self.search = search
+        elif search is not None:
             self.search = GlobalSearch(volume, search, size=size, scene=scene, geometry=geometry,
                                        center_lps=self.center_lps, physics=physics, label_materials=label_materials)
         if refine is not None:

@@ -95,7 +95,9 @@ def build_method(method: str, volume, *, center_lps, size: tuple[int, int], geom
             label_materials: ``{label: material}`` overrides for poly / full.
         restarts: CMA-ES restarts of ``cmaes`` (:class:`register.cmaes.CMAESSettings`).
         search: :class:`register.search.GlobalSearchSettings` of ``contextual+cmaes``'s global
-            search (:class:`register.contextual.ContextualRegistration`); None = none.
+            search (:class:`register.contextual.ContextualRegistration`), or a
+            :class:`register.search.GlobalSearch` built for these images (``geometry``, ``physics``);
+            None = none.
         keep_drrs: keep the contextual iteration's DRRs in the result's trajectory (for figures).
         note: called with a sentence when the network's training physics differ from ``physics``.
     """

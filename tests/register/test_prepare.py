@@ -196,3 +196,46 @@ def test_polarity_scores_of_an_inverse_are_swapped_and_a_tiny_image_is_left_alon
                          init_params=np.zeros(6), size=(64, 20), pixel_spacing_mm=1.0)
     check = confirm_polarity(small, vol, c, np.zeros(6)).step("polarity_check")
     assert check["verdict"] == "inconclusive" and not check["inverted"] and "size" in check["reason"]
+
+
+def test_polarity_check_and_search_render_the_grid_once_with_the_same_result():
+    """A GlobalSearch given to the polarity check keeps the grid's DRRs: the search on it renders
+    the grid no second time, and finds what a fresh search finds (the DRRs are the same poses'),
+    to the last digit. A search built for another detector is refused."""
+    from register.prepare import confirm_polarity, prepare_xray
+    from register.search import GlobalSearch, GlobalSearchSettings
+    from register.xray_io import XRayImage
+    from sim.anatomy import anatomy_center
+    from sim.phantom import make_pelvis_phantom
+
+    vol = make_pelvis_phantom(0, spacing_mm=4.0)
+    c = anatomy_center(vol)
+    truth = np.array([16.0, -8.0, 8.0, 6.0, -5.0, 0.0])
+    drr = DRRRenderer(vol, RenderSettings(size=(64, 64)), center_lps=c).render_params(truth)[0]
+    prepared = prepare_xray(XRayImage(drr.astype(np.float32), source="drr"), volume=vol, center_lps=c,
+                            init_params=np.zeros(6), size=64, pixel_spacing_mm=None)
+    g = prepared.geometry
+    settings = GlobalSearchSettings(candidates=2, finalists=1, local_generations=3, local_fine_generations=1,
+                                    rescore=8)
+    shared = GlobalSearch(vol, settings, size=(g.height, g.width), geometry=g, center_lps=c)
+    calls = []
+    render = shared.padded.render
+    shared.padded.render = lambda poses: (calls.append(len(poses)), render(poses))[1]
+    confirm_polarity(prepared, vol, c, np.zeros(6), search=shared)
+    assert calls == [len(settings.grid_offsets())]
+    ours = shared.register(prepared.image, mask=prepared.mask)
+    assert calls == [len(settings.grid_offsets())]  # the grid was not rendered again
+    fresh = GlobalSearch(vol, settings, size=(g.height, g.width), geometry=g, center_lps=c)
+    theirs = fresh.register(prepared.image, mask=prepared.mask)
+    np.testing.assert_array_equal(ours.params, theirs.params)
+    assert ours.similarity == theirs.similarity
+    other = GlobalSearch(vol, settings, size=(g.height, g.width), center_lps=c,
+                         geometry=CArmGeometry(g.sdd_mm, g.sod_mm, g.height, g.width, g.pixel_spacing_mm * 1.1))
+    with pytest.raises(ValueError, match="another detector"):
+        confirm_polarity(prepared, vol, c, np.zeros(6), search=other)
+    from register.cmaes import RegistrationError
+    from register.contextual import REFINE_SETTINGS, ContextualRegistration
+
+    with pytest.raises(RegistrationError, match="another detector or physics"):
+        ContextualRegistration(vol, lambda fixed, drr: np.zeros(6), size=(g.height, g.width), geometry=g,
+                               center_lps=c, refine=REFINE_SETTINGS, search=other)

@@ -20,7 +20,8 @@ def phantom():
 
 
 def test_masked_ncc_shifts_equals_the_direct_sum():
-    # the FFT route against the NCC written out per shift: equal to rounding (1e-9)
+    # the FFT route against the NCC written out per shift: equal to single-precision rounding (the FFTs run
+    # in float32, about 1e-7 relative; 1e-5 allows the sums' cancellation in the variances)
     rng = np.random.default_rng(0)
     t = rng.normal(size=(7, 9))
     m = rng.random((7, 9)) > 0.3
@@ -32,11 +33,11 @@ def test_masked_ncc_shifts_equals_the_direct_sum():
             for v in range(5):
                 a, w = t[m], imgs[b, u:u + 7, v:v + 9][m]
                 ref = np.sum((a - a.mean()) * (w - w.mean())) / np.sqrt(np.sum((a - a.mean()) ** 2) * np.sum((w - w.mean()) ** 2))
-                assert out[b, u, v] == pytest.approx(ref, abs=1e-9)
+                assert out[b, u, v] == pytest.approx(ref, abs=1e-5)
     # the template cut out of an image is found at its place with NCC 1, whatever the gain and offset
     img = rng.normal(size=(1, 20, 20))
     hit = masked_ncc_shifts(3.0 * img[0, 5:12, 8:17] + 2.0, m, img)[0]
-    assert np.unravel_index(hit.argmax(), hit.shape) == (5, 8) and hit.max() == pytest.approx(1.0, abs=1e-9)
+    assert np.unravel_index(hit.argmax(), hit.shape) == (5, 8) and hit.max() == pytest.approx(1.0, abs=1e-5)
     # several templates with one mask: each the single template's result (shared terms computed once)
     t2 = t ** 3
     both = masked_ncc_shifts(np.stack([t, t2]), m, imgs)
