@@ -217,7 +217,7 @@ def register_xray(ct, xray, *, method: str = "contextual+cmaes", model=None, ini
                   scene: str = "cios_fusion", sdd_mm: float | None = None, sod_mm: float | None = None,
                   pixel_spacing_mm: float | None = None, size=(128, 128), physics="line",
                   label_materials: dict[int, str] | None = None, preprocess=None, intensity: str = "auto",
-                  polarity: str = "auto", tone: str = "ct", restarts: int | None = None,
+                  polarity: str = "auto", tone: str = "ct", orient: str = "none", restarts: int | None = None,
                   log: Callable[[str], None] | None = None, note: Callable[[str], None] | None = None
                   ) -> XRayRegistration:
     """Register the X-ray ``xray`` to the CT ``ct``: its pose, as ``ctxreg register`` finds it.
@@ -244,6 +244,9 @@ def register_xray(ct, xray, *, method: str = "contextual+cmaes", model=None, ini
             override of the intensity step (only with ``"intensity"`` among the steps); tone:
             ``"ct"`` maps a display image's values onto the CT's line integrals in its field,
             ``"off"`` keeps them (:class:`register.preprocess.Intensity`).
+        orient: how the stored X-ray is turned into the CT's view first (a name of
+            :data:`register.xray_io.ORIENTATIONS`: ``"none"``, ``"flip-left-right"``, ...); the
+            figures show the X-ray so turned.
         restarts: CMA-ES restarts for ``method="cmaes"`` (default :data:`REGISTER_RESTARTS`);
             ``"contextual+cmaes"`` runs the global search instead (:mod:`register.search`: a grid over
             the prior box around ``init`` where the network's pose is lost).
@@ -260,7 +263,7 @@ def register_xray(ct, xray, *, method: str = "contextual+cmaes", model=None, ini
     from register.prepare import confirm_polarity, fit_box, prepare_xray
     from register.preprocess import DEFAULT_STEPS, Pipeline
     from register.search import GlobalSearch, GlobalSearchSettings
-    from register.xray_io import XRayImage, load_xray, resolve_geometry
+    from register.xray_io import ORIENTATIONS, XRayImage, load_xray, resolve_geometry
     from sim.anatomy import anatomy_center
     from sim.geometry import pose_from_params
     from sim.render import check_in_view
@@ -276,6 +279,8 @@ def register_xray(ct, xray, *, method: str = "contextual+cmaes", model=None, ini
     # -- the inputs that need no file: checked before any work
     x0 = parse_init(init)
     check_method(method, model)
+    if orient not in ORIENTATIONS:
+        raise RegistrationError(f"--orient must be one of {', '.join(ORIENTATIONS)}, got {orient!r}")
     if restarts is not None and method not in RESTART_METHODS:
         raise RegistrationError(f"--restarts: meaningful with --method {' or '.join(RESTART_METHODS)} only; this run "
                                 f"is --method {method}")
@@ -291,7 +296,7 @@ def register_xray(ct, xray, *, method: str = "contextual+cmaes", model=None, ini
     # -- the CT, the X-ray and its geometry, the view at the start
     volume = load_ct(ct, label_map=label_map)
     c = np.asarray(center, float) if center is not None else anatomy_center(volume)
-    xr = xray if isinstance(xray, XRayImage) else load_xray(xray)
+    xr = (xray if isinstance(xray, XRayImage) else load_xray(xray)).reoriented(orient)
     if not xr.attenuation_bright and not {"intensity", "log", "invert"} & set(steps):
         raise RegistrationError(f"{xr.source}: raw detector data (bone dark): add 'intensity' or 'log' to --preprocess")
     full_geometry, _ = resolve_geometry(xr, scene, sdd_mm=sdd_mm, sod_mm=sod_mm, pixel_spacing_mm=pixel_spacing_mm)
@@ -323,6 +328,8 @@ def register_xray(ct, xray, *, method: str = "contextual+cmaes", model=None, ini
 def _input_lines(prepared) -> list[str]:
     """One line each for the field and the intensity decision (what a user should check first)."""
     lines = []
+    if prepared.xray.meta.get("orientation"):
+        lines.append(f"orientation: {prepared.xray.meta['orientation']} (--orient), as the CT's view")
     fld = prepared.step("field")
     if fld is not None:
         kind = fld.get("kind")

@@ -16,6 +16,7 @@ from register.cmaes import CMAESSettings
 from register.evaluate import LOCAL_ROT_DEG, LOCAL_TRANS_MM
 from register.intensity import POLARITIES, SCALES, TONES
 from register.methods import METHOD_NAMES
+from register.xray_io import ORIENTATIONS
 from sim.cli import CT_HELP
 from sim.cliargs import IMAGE_SIDE_PX, Range, opt
 from sim.physics.options import level_field, physics_option
@@ -200,6 +201,11 @@ class RegisterCommand:
         "field's pixels mapped by rank onto the line integrals of DRRs of the CT around the start, which the global "
         "search's grid ranks beside the image (and a network trained on toned targets sees); off makes none; raw "
         "and log images get none", group="image", choices=TONES))
+    orient: str = field(default="none", metadata=opt(
+        "how the stored X-ray is turned into the CT's view before anything else: mirrored (flip-left-right, "
+        "flip-top-bottom), rotated counter-clockwise (rotate-90/180/270) or both (transpose, transverse); for "
+        "vendors and viewers that store frames mirrored or rotated. Not guessed: a mirrored pelvis can score as "
+        "well as the right view. The figures show the X-ray so turned", group="image", choices=tuple(ORIENTATIONS)))
     out: str = field(default="out/register", metadata=opt(
         "folder for result.json, overlay.png (DRR edges and the field outline over the X-ray at its full "
         "resolution), checkerboard.png, convergence.png (and trajectory.npz, trajectory.png, trajectory.gif for the "
@@ -232,7 +238,7 @@ def run_register(cmd: RegisterCommand) -> list[Path]:
         cmd.ct, cmd.xray, method=cmd.method, model=cmd.model, init=cmd.init, center=cmd.center,
         label_map=cmd.label_map, scene=cmd.scene, sdd_mm=cmd.sdd, sod_mm=cmd.sod, pixel_spacing_mm=cmd.pixel_spacing,
         size=tuple(cmd.size), physics=physics, label_materials=materials, preprocess=steps, intensity=cmd.intensity,
-        polarity=cmd.polarity, tone=cmd.tone, restarts=cmd.restarts if cmd.method in RESTART_METHODS else None, log=print,
+        polarity=cmd.polarity, tone=cmd.tone, orient=cmd.orient, restarts=cmd.restarts if cmd.method in RESTART_METHODS else None, log=print,
         note=lambda text: print(f"ctxreg register: note: {text}", file=sys.stderr))
     written = outcome.write(out)
     print(outcome.summary())

@@ -172,7 +172,8 @@ class PreparedXRay:
     def summary(self) -> dict:
         """JSON: the geometry sources, field, intensity decision (and its check against the CT),
         and sizes, for result.json."""
-        return {"geometry_sources": self.sources.to_dict(), "field": self.step("field"),
+        return {"geometry_sources": self.sources.to_dict(), "orientation": self.xray.meta.get("orientation", "none"),
+                "field": self.step("field"),
                 "intensity": self.step("intensity"), "polarity_check": self.step("polarity_check"), "full_size": [self.full_geometry.height, self.full_geometry.width],
                 "optimiser_size": [self.geometry.height, self.geometry.width]}
 

@@ -84,7 +84,25 @@ __all__ = [
     "geometry_for",
     "write_xray_dicom",
     "INTENSITY_TAG_KEYS",
+    "ORIENTATIONS",
 ]
+
+#: How a stored X-ray is turned into the CT's view before registration (``--orient``), named as
+#: Pillow's transposes: ``(H, W)`` pixels -> the image as ctxreg's DRRs of the CT show the same view
+#: (:mod:`sim.geometry`'s detector, row 0 at the top and column 0 at the left as displayed). Vendors and viewers store frames mirrored or rotated: a frame registered in the wrong
+#: orientation finds a wrong (often mirrored) pose, and a mirrored view of a nearly symmetric
+#: anatomy such as the pelvis can score as well as the right one, so the orientation is the
+#: user's to give, not guessed. Rotations are counter-clockwise as displayed.
+ORIENTATIONS = {
+    "none": lambda a: a,
+    "flip-left-right": lambda a: a[:, ::-1],
+    "flip-top-bottom": lambda a: a[::-1, :],
+    "rotate-90": lambda a: np.rot90(a, 1),
+    "rotate-180": lambda a: np.rot90(a, 2),
+    "rotate-270": lambda a: np.rot90(a, 3),
+    "transpose": lambda a: a.T,
+    "transverse": lambda a: np.rot90(a, 2).T,
+}
 
 #: Relative tolerance for treating a (row, column) spacing pair as square.
 _SQUARE_RTOL = 1e-4
@@ -180,6 +198,23 @@ class XRayImage:
     def shape(self) -> tuple[int, int]:
         """``(H, W)`` in pixels."""
         return int(self.pixels.shape[0]), int(self.pixels.shape[1])
+
+    def reoriented(self, orientation: str) -> "XRayImage":
+        """This image turned by ``orientation`` (a name of :data:`ORIENTATIONS`): the pixels
+        ``(H, W)`` mirrored or rotated (``(W, H)`` after a quarter turn), the geometry unchanged (square
+        pixels, the principal point at the centre); ``meta["orientation"]`` records it. ``"none"``
+        returns the image itself."""
+        if orientation not in ORIENTATIONS:
+            raise XRayInputError(f"orientation must be one of {', '.join(ORIENTATIONS)}, got {orientation!r}")
+        if orientation == "none":
+            return self
+        from dataclasses import replace
+
+        meta = dict(self.meta, orientation=orientation)
+        rc = meta.get("pixel_spacing_rc_mm")
+        if rc is not None and orientation in ("rotate-90", "rotate-270", "transpose", "transverse"):
+            meta["pixel_spacing_rc_mm"] = [rc[1], rc[0]]  # rows and columns swap
+        return replace(self, pixels=np.ascontiguousarray(ORIENTATIONS[orientation](self.pixels)), meta=meta)
 
 
 # --------------------------------------------------------------------------------------------

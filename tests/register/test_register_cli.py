@@ -218,3 +218,54 @@ def test_sizes_outside_the_declared_range_are_refused(size):
     x = XRayImage(np.ones((16, 16), np.float32), pixel_spacing_mm=0.3, sdd_mm=1000.0, sod_mm=600.0, source="x")
     with pytest.raises(PreprocessError, match=r"\[8, 4096\]"):
         prepare_xray(x, steps=["normalize"], size=size)
+
+
+def test_orientations_are_pillows_transposes_and_keep_the_geometry():
+    """Each --orient name turns the pixels as Pillow's transpose of the same name does, keeps the
+    geometry values, records itself, and swaps an anisotropic (row, column) spacing on a quarter turn."""
+    from register.xray_io import ORIENTATIONS, XRayImage, XRayInputError
+
+    a = np.arange(12, dtype=np.uint8).reshape(3, 4) * 20
+    x = XRayImage(a.astype(np.float32), pixel_spacing_mm=0.3, sdd_mm=1000.0, sod_mm=600.0, source="a",
+                  meta={"pixel_spacing_rc_mm": [0.3, 0.31]})
+    for name in ORIENTATIONS:
+        turned = x.reoriented(name)
+        if name == "none":
+            assert turned is x
+            continue
+        want = np.asarray(Image.fromarray(a).transpose(getattr(Image.Transpose, name.upper().replace("-", "_"))))
+        np.testing.assert_array_equal(turned.pixels, want.astype(np.float32))
+        assert (turned.pixel_spacing_mm, turned.sdd_mm, turned.sod_mm) == (0.3, 1000.0, 600.0)
+        assert turned.meta["orientation"] == name
+        quarter = name in ("rotate-90", "rotate-270", "transpose", "transverse")
+        assert turned.meta["pixel_spacing_rc_mm"] == ([0.31, 0.3] if quarter else [0.3, 0.31])
+    with pytest.raises(XRayInputError, match="orientation must be one of"):
+        x.reoriented("mirror")
+
+
+def test_register_undoes_a_stored_mirror_or_rotation_with_orient(synthetic_case, tmp_path):
+    """The synthetic DRR stored mirrored (left-right) and rotated a quarter turn: --orient undoes
+    each and the pose comes back as from the unturned file; the mirrored file registered as it is
+    ends elsewhere (so the option is what does it)."""
+    from register.xray_io import load_xray, write_xray_dicom
+
+    ct, xray, truth, center = synthetic_case
+    x = load_xray(xray)
+    start = truth + np.array([4.0, 3.0, -3.0, -8.0, 6.0, 15.0])
+    for stored, orient in ((x.pixels[:, ::-1], "flip-left-right"), (np.rot90(x.pixels, 1), "rotate-270")):
+        path = write_xray_dicom(tmp_path / f"{orient}.dcm", np.ascontiguousarray(stored),
+                                pixel_spacing_mm=x.pixel_spacing_mm, sdd_mm=x.sdd_mm, sod_mm=x.sod_mm)
+        out = tmp_path / orient
+        r = run_cli("register", "--ct", ct, "--xray", path, "--init", *start, "--size", 96, 96, "--center",
+                    *center, "--method", "cmaes", "--orient", orient, "--out", out)
+        assert r.returncode == 0, r.stderr
+        assert f"orientation: {orient} (--orient)" in r.stdout
+        result = _assert_recovered(out, truth)
+        assert result["xray_input"]["orientation"] == orient
+    out = tmp_path / "as-stored"
+    r = run_cli("register", "--ct", ct, "--xray", tmp_path / "flip-left-right.dcm", "--init", *start, "--size", 96,
+                96, "--center", *center, "--method", "cmaes", "--out", out)
+    assert r.returncode == 0, r.stderr
+    est = np.array([json.loads((out / "result.json").read_text())["params"][k]
+                    for k in ("phi", "theta", "psi", "tx", "ty", "tz")])
+    assert np.abs(est[:3] - truth[:3]).max() > 2.0 or np.abs(est[3:5] - truth[3:5]).max() > 5.0, est
