@@ -60,7 +60,7 @@ class ContextualRegistration:
     ``search.finalists``), the highest similarity at full resolution wins and only the winner is
     polished (``stage_seconds``, summed over the refinements, and ``history`` record the search;
     the result's ``search`` record adds ``"refined"``, each finalist's similarity before the
-    polish, and ``"chosen"``, the index of the winner). The similarity, not the truth, decides, so a user's registration can take
+    polish, ``"refined_params"``, its pose (deg, mm) then, and ``"chosen"``, the index of the winner). The similarity, not the truth, decides, so a user's registration can take
     it: a network that fails on an image outside its training domain costs time, not the
     registration.
     """
@@ -188,7 +188,8 @@ class ContextualRegistration:
             res.renders = renders
             res.trajectory = trajectory
             if found is not None:
-                res.search = {**found.search, "refined": finals, "chosen": int(np.argmax(finals))}
+                res.search = {**found.search, "refined": finals, "chosen": int(np.argmax(finals)),
+                              "refined_params": [np.asarray(r.params, float).tolist() for r in refined]}
             return res
         from register.metrics import gradient_ncc
 
