@@ -501,6 +501,7 @@ class GlobalSearch:
             # prepared one the views whose histogram the tone's reference poses do not share
             images = [fixed] if toned is None else [fixed, np.asarray(toned, np.float64)]
             ranked = [p for p, _ in self.grids(images, init_params, mask=mask, times=grid_times)]
+            self._grid_drrs = None  # used: the polarity check's render served it (tens of MB freed)
             grid_poses = len(ranked[0])
             renders += grid_poses
             # half the candidates from the rankings at local_factor's resolution (sharper at the
