@@ -16,7 +16,13 @@ and slowest seconds per registration (the whole ``register_xray``: reading, fiel
 registration) and the ratio to the peer, median seconds of the grid; and a second with the grid's split (rendering
 the padded DRRs of every grid pose against the FFT NCC of every shift), medians over the frames.
 
+With ``--target all`` every ``xray`` target of every ``--study`` is measured in turn and a last
+table sums them up, one row per target and method: the whole robustness table in one command,
+
     .venv/bin/python benchmarks/search.py --cases 10
+    .venv/bin/python benchmarks/search.py --methods network --cases 20 --target all \
+        --study studies/domain_gap.toml studies/heldout.toml studies/heldout2.toml studies/heldout3.toml \
+        studies/heldout4.toml        # 15 conditions, about 45 min on 2 cores
 """
 
 from __future__ import annotations
@@ -42,11 +48,12 @@ def main() -> int:
     ap.add_argument("--ct", default=str(ROOT.parent / "shared" / "data" / "ct" / "pelvis_abdomen_3mm.nii.gz"),
                     help="the CT (NIfTI; default ../shared/data/ct/pelvis_abdomen_3mm.nii.gz)")
     ap.add_argument("--cases", type=int, default=10, help="frames: the protocol's first N poses (default 10)")
-    ap.add_argument("--study", default=str(ROOT / "studies" / "domain_gap.toml"),
-                    help="the study file whose xray targets give the frames (default studies/domain_gap.toml; "
-                         "studies/heldout.toml: conditions "
-                         "the search was not tuned on)")
-    ap.add_argument("--target", default="fluoro-65kV", help="an xray target of --study (default fluoro-65kV)")
+    ap.add_argument("--study", nargs="+", default=[str(ROOT / "studies" / "domain_gap.toml")],
+                    help="the study file(s) whose xray targets give the frames (default studies/domain_gap.toml; "
+                         "studies/heldout*.toml: conditions the search was not tuned on)")
+    ap.add_argument("--target", default="fluoro-65kV",
+                    help="an xray target of --study (default fluoro-65kV), or 'all': every xray target of every "
+                         "--study, one summary row each")
     ap.add_argument("--out", default=str(ROOT / "runs" / "bench_search"),
                     help="frame cache folder (default runs/bench_search; frames in OUT/TARGET)")
     ap.add_argument("--methods", nargs="+", choices=("peer", "null", "network"), default=("peer", "null", "network"),
@@ -59,28 +66,57 @@ def main() -> int:
         print(f"search: --cases must be >= 1, got {a.cases}", file=sys.stderr)
         return 2
 
-    from register.api import register_xray
-    from register.evaluate import EvaluationSettings, bone_points, pose_errors, sample_cases
-    from register.study import XRayFrames, frame_refusals, load_study
+    from register.study import load_study
     from sim import load_ct
     from sim.anatomy import anatomy_center
-    from sim.geometry import pose_from_params
 
-    if not Path(a.study).exists():
-        print(f"search: study file {a.study} not found", file=sys.stderr)
+    chosen = []  # (study, target) pairs to measure
+    for path in a.study:
+        if not Path(path).exists():
+            print(f"search: study file {path} not found", file=sys.stderr)
+            return 2
+        study = load_study(path)
+        chosen += [(study, t) for t in study.targets if t.kind == "xray" and a.target in ("all", t.name)]
+    if not chosen:
+        names = sorted({t.name for p in a.study for t in load_study(p).targets if t.kind == "xray"})
+        print(f"search: --target must be 'all' or one of {names}", file=sys.stderr)
         return 2
-    study = load_study(a.study)
-    targets = {t.name: t for t in study.targets if t.kind == "xray"}
-    if a.target not in targets:
-        print(f"search: --target must be one of {sorted(targets)}", file=sys.stderr)
+    names = [t.name for _, t in chosen]
+    if len(set(names)) != len(names):  # the frame cache is OUT/TARGET
+        print(f"search: target names must be unique across the studies, got {sorted(names)}", file=sys.stderr)
         return 2
     volume = load_ct(a.ct)
     center = anatomy_center(volume)
-    frames = XRayFrames(study, targets[a.target], volume, center)
+    summary = []
+    for k, (study, target) in enumerate(chosen):
+        print(f"search: target {k + 1}/{len(chosen)}: {target.name}", file=sys.stderr, flush=True)
+        summary.append((target.name, _measure(a, study, target, volume, center)))
+    if len(summary) > 1:
+        print(f"\nevery target: {a.cases} frames each from AP through register_xray (refused frames count as "
+              f"failures; {time.strftime('%Y-%m-%d %H:%M')}, 2-core CPU)\n")
+        print("| target | refused | method | mTRE < 10 mm | and rotation < 1 deg | median s / registration |")
+        print("|---|---|---|---|---|---|")
+        for name, (rows, refused) in summary:
+            for method, r in rows.items():
+                v = np.array(r, float)
+                print(f"| {name} | {refused} | {method} | {v[:, 3].mean():.0%} | {v[:, 0].mean():.0%} | "
+                      f"{np.median(v[:, 1]):.1f} |")
+    return 0
+
+
+def _measure(a, study, target, volume, center):
+    """One target's frames through every method: prints its table (and the grid's split) and returns
+    ``(rows, refused)``: per method ``[(success, seconds, grid seconds, mTRE < 10 mm)]`` per frame."""
+    from register.api import register_xray
+    from register.evaluate import EvaluationSettings, bone_points, pose_errors, sample_cases
+    from register.study import XRayFrames, frame_refusals
+    from sim.geometry import pose_from_params
+
+    frames = XRayFrames(study, target, volume, center)
     sod = frames.imager.geometry.sod_mm
     poses, _ = sample_cases(EvaluationSettings(cases=a.cases, seed=study.seed, size=study.size, start="ap"))
     points = bone_points(volume, 2000, 0)
-    folder = Path(a.out) / a.target
+    folder = Path(a.out) / target.name
     folder.mkdir(parents=True, exist_ok=True)
     methods = {name: kw for key, name, kw in (
         ("peer", "cmaes + restarts (peer)", dict(method="cmaes", restarts=3)),
@@ -122,7 +158,7 @@ def main() -> int:
 
     peer_rows = rows.get("cmaes + restarts (peer)")
     peer = np.median([r[1] for r in peer_rows]) if peer_rows else float("nan")
-    print(f"\n{a.target}: {a.cases} frames from AP through register_xray ({refused} refused by their content, "
+    print(f"\n{target.name}: {a.cases} frames from AP through register_xray ({refused} refused by their content, "
           f"counted as failures; {time.strftime('%Y-%m-%d %H:%M')}, 2-core CPU)\n")
     print("| method | mTRE < 10 mm | and rotation < 1 deg | median s / registration | slowest s | ratio to the peer "
           "| median s of the grid |")
@@ -134,7 +170,7 @@ def main() -> int:
               f"{v[:, 1].max():.1f} | " + ("-" if not np.isfinite(peer) else f"{np.median(v[:, 1]) / peer:.2f}x") + " | "
               + ("-" if not np.isfinite(grid_s) else f"{grid_s:.2f}") + " |")
     if not split:
-        return 0
+        return rows, refused
     s = np.array([(x[1], x[2]) for x in split])
     n = split[0][0]
     from register.search import GlobalSearchSettings
@@ -145,8 +181,7 @@ def main() -> int:
     print("|---|---|---|")
     for label, col in (("render (line DRRs, one batch)", 0), ("FFT masked NCC, every shift, x and y", 1)):
         print(f"| {label} | {1e3 * np.median(s[:, col]):.0f} | {1e3 * np.median(s[:, col]) / n:.2f} |")
-    return 0
-
+    return rows, refused
 
 if __name__ == "__main__":
     raise SystemExit(main())
