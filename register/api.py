@@ -263,7 +263,7 @@ def register_xray(ct, xray, *, method: str = "contextual+cmaes", model=None, ini
     from register.prepare import confirm_polarity, fit_box, prepare_xray
     from register.preprocess import DEFAULT_STEPS, Pipeline
     from register.search import GlobalSearch, GlobalSearchSettings
-    from register.xray_io import ORIENTATIONS, XRayImage, load_xray, resolve_geometry
+    from register.xray_io import XRayImage, check_orientation, load_xray, resolve_geometry
     from sim.anatomy import anatomy_center
     from sim.geometry import pose_from_params
     from sim.render import check_in_view
@@ -279,8 +279,7 @@ def register_xray(ct, xray, *, method: str = "contextual+cmaes", model=None, ini
     # -- the inputs that need no file: checked before any work
     x0 = parse_init(init)
     check_method(method, model)
-    if orient not in ORIENTATIONS:
-        raise RegistrationError(f"--orient must be one of {', '.join(ORIENTATIONS)}, got {orient!r}")
+    check_orientation(orient)
     if restarts is not None and method not in RESTART_METHODS:
         raise RegistrationError(f"--restarts: meaningful with --method {' or '.join(RESTART_METHODS)} only; this run "
                                 f"is --method {method}")

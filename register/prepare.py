@@ -173,8 +173,9 @@ class PreparedXRay:
         """JSON: the geometry sources, field, intensity decision (and its check against the CT),
         and sizes, for result.json."""
         return {"geometry_sources": self.sources.to_dict(), "orientation": self.xray.meta.get("orientation", "none"),
-                "field": self.step("field"),
-                "intensity": self.step("intensity"), "polarity_check": self.step("polarity_check"), "full_size": [self.full_geometry.height, self.full_geometry.width],
+                "field": self.step("field"), "intensity": self.step("intensity"),
+                "polarity_check": self.step("polarity_check"),
+                "full_size": [self.full_geometry.height, self.full_geometry.width],
                 "optimiser_size": [self.geometry.height, self.geometry.width]}
 
 
@@ -307,13 +308,13 @@ def confirm_polarity(prepared: PreparedXRay, volume, center_lps, init_params, *,
     decision = prepared.step("intensity")
     if decision is None or decision.get("polarity_source") in _DECISIVE_POLARITY:
         return prepared
-    size = (prepared.geometry.height, prepared.geometry.width)
+    if search is not None and not search.built_for(prepared.geometry):
+        raise ValueError("confirm_polarity: search was built for another detector than the prepared X-ray's")
+    g = prepared.geometry
     init = np.asarray(init_params, float).reshape(6)
-    settings = GlobalSearchSettings() if search is None else search.settings
     try:
-        grid = search or GlobalSearch(volume, settings, size=size, geometry=prepared.geometry, center_lps=center_lps)
-        if not grid.built_for(prepared.geometry):
-            raise ValueError("confirm_polarity: search was built for another detector than the prepared X-ray's")
+        grid = search or GlobalSearch(volume, GlobalSearchSettings(), size=(g.height, g.width), geometry=g,
+                                      center_lps=center_lps)
         as_decided, inverted = grid.polarity_scores(prepared.image, init, mask=prepared.mask)
     except RegistrationError as exc:  # an image too small for the grid: the decision stands
         measured = {"verdict": "inconclusive", "inverted": False, "polarity": decision["polarity"],
@@ -326,6 +327,7 @@ def confirm_polarity(prepared: PreparedXRay, volume, center_lps, init_params, *,
                 "margin": POLARITY_FLIP_MARGIN, "verdict": verdict, "inverted": bool(flip),
                 "polarity": (decision["polarity"] if not flip else
                              ("bone-dark" if decision["polarity"] == "bone-bright" else "bone-bright"))}
+    settings = grid.settings
     params = {"grid_poses": int(len(settings.grid_offsets())), "factor": settings.factor,
               "step_deg": settings.step_deg, "depths": settings.depths}
     record = [*prepared.record, {"step": "polarity_check", "params": params, "measured": measured}]

@@ -85,11 +85,13 @@ __all__ = [
     "write_xray_dicom",
     "INTENSITY_TAG_KEYS",
     "ORIENTATIONS",
+    "check_orientation",
 ]
 
 #: How a stored X-ray is turned into the CT's view before registration (``--orient``), named as
-#: Pillow's transposes: ``(H, W)`` pixels -> the image as ctxreg's DRRs of the CT show the same view
-#: (:mod:`sim.geometry`'s detector, row 0 at the top and column 0 at the left as displayed). Vendors and viewers store frames mirrored or rotated: a frame registered in the wrong
+#: Pillow's transposes: ``(H, W)`` pixels -> the image as ctxreg's DRRs of the CT show the same
+#: view (:mod:`sim.geometry`'s detector, row 0 at the top and column 0 at the left as displayed).
+#: Vendors and viewers store frames mirrored or rotated: a frame registered in the wrong
 #: orientation finds a wrong (often mirrored) pose, and a mirrored view of a nearly symmetric
 #: anatomy such as the pelvis can score as well as the right one, so the orientation is the
 #: user's to give, not guessed. Rotations are counter-clockwise as displayed.
@@ -204,8 +206,7 @@ class XRayImage:
         ``(H, W)`` mirrored or rotated (``(W, H)`` after a quarter turn), the geometry unchanged (square
         pixels, the principal point at the centre); ``meta["orientation"]`` records it. ``"none"``
         returns the image itself."""
-        if orientation not in ORIENTATIONS:
-            raise XRayInputError(f"orientation must be one of {', '.join(ORIENTATIONS)}, got {orientation!r}")
+        check_orientation(orientation)
         if orientation == "none":
             return self
         from dataclasses import replace
@@ -215,6 +216,12 @@ class XRayImage:
         if rc is not None and orientation in ("rotate-90", "rotate-270", "transpose", "transverse"):
             meta["pixel_spacing_rc_mm"] = [rc[1], rc[0]]  # rows and columns swap
         return replace(self, pixels=np.ascontiguousarray(ORIENTATIONS[orientation](self.pixels)), meta=meta)
+
+
+def check_orientation(orientation: object) -> None:
+    """Refuse (:class:`XRayInputError`, one line) a name that is not one of :data:`ORIENTATIONS`."""
+    if orientation not in ORIENTATIONS:
+        raise XRayInputError(f"--orient must be one of {', '.join(ORIENTATIONS)}, got {orientation!r}")
 
 
 # --------------------------------------------------------------------------------------------

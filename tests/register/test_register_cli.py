@@ -239,7 +239,7 @@ def test_orientations_are_pillows_transposes_and_keep_the_geometry():
         assert turned.meta["orientation"] == name
         quarter = name in ("rotate-90", "rotate-270", "transpose", "transverse")
         assert turned.meta["pixel_spacing_rc_mm"] == ([0.31, 0.3] if quarter else [0.3, 0.31])
-    with pytest.raises(XRayInputError, match="orientation must be one of"):
+    with pytest.raises(XRayInputError, match="--orient must be one of"):
         x.reoriented("mirror")
 
 
