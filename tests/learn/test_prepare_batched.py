@@ -1,0 +1,141 @@
+"""The batched preparation of realistic targets (learn/prepare_batched.py) equals
+learn.online.prepare_like_registration (raw_intensity=False, tone=False).
+
+Tolerance: targets (in [0, 1]) and currents (here in [0, 3]) within 1e-4 absolute (measured:
+~3e-7 and ~7e-7). The numpy function resamples a cropped pair with F.interpolate in float32;
+the batched one gathers with F.interpolate's own float32 source indices and weights, so the
+two differ by float32 rounding of the interpolation sums only, and the resampled field is the
+same (the percentiles and means are over the same pixels).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+import torch.nn.functional as F
+
+from learn.online import OnlinePairsError, prepare_like_registration
+from learn.prepare_batched import _gather2d, _nearest_source, _resize_boxes, prepare_like_registration_batched
+from sim.physics.batched import apply_image_batched, draw_tensors, field_masks
+from sim.randomize import DomainRandomization, image_rng
+
+TOL = 1e-4
+
+
+@pytest.fixture(autouse=True, scope="module")
+def one_thread():
+    """One CPU thread: these small batches gain nothing from more, and lose much on a busy machine."""
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)
+
+
+@pytest.mark.parametrize("size", [(64, 64), (48, 80)], ids=["64x64", "48x80"])
+def test_box_resampling_equals_interpolate_on_the_crop(size):
+    h, w = size
+    rng = np.random.default_rng(0)
+    n = 40
+    r0, c0 = rng.integers(0, h, n), rng.integers(0, w, n)
+    r1, c1 = r0 + 1 + rng.integers(0, h - r0), c0 + 1 + rng.integers(0, w - c0)
+    x = torch.from_numpy(rng.random((n, h, w)).astype(np.float32))
+    mask = torch.from_numpy(rng.random((n, h, w)) < 0.5)
+    box = tuple(torch.from_numpy(a) for a in (r0, r1, c0, c1))
+    got = _resize_boxes(x, box, size)
+    rows = _nearest_source(box[1] - box[0], h) + box[0][:, None]
+    cols = _nearest_source(box[3] - box[2], w) + box[2][:, None]
+    got_mask = _gather2d(mask, rows, cols)
+    for i in range(n):
+        crop = x[i, r0[i]:r1[i], c0[i]:c1[i]][None, None]
+        ref = F.interpolate(crop, size=size, mode="bilinear", align_corners=False)[0, 0]
+        assert (got[i] - ref).abs().max() <= 1e-6
+        ref_mask = F.interpolate(mask[i, r0[i]:r1[i], c0[i]:c1[i]][None, None].float(), size=size,
+                                 mode="nearest")[0, 0] > 0.5
+        assert torch.equal(got_mask[i], ref_mask)
+
+
+def _check(display, field, current, log_display, bone_dark, mask_current, dtype):
+    target, cur = prepare_like_registration_batched(
+        torch.from_numpy(np.asarray(display, np.float64)).to(dtype), torch.from_numpy(field),
+        torch.from_numpy(current).to(dtype), log_display=torch.from_numpy(log_display),
+        bone_dark=torch.from_numpy(bone_dark), mask_current=mask_current)
+    assert target.dtype == torch.float32 and cur.dtype == torch.float32
+    worst = 0.0
+    for i in range(len(display)):
+        rt, rc = prepare_like_registration(display[i], field[i], current[i], log_display=bool(log_display[i]),
+                                           bone_dark=bool(bone_dark[i]), mask_current=mask_current)
+        worst = max(worst, float(np.abs(target[i].numpy() - rt).max()), float(np.abs(cur[i].numpy() - rc).max()))
+    assert worst <= TOL, f"{dtype}, mask_current={mask_current}: {worst:.3g} apart"
+
+
+@pytest.mark.parametrize("size", [(64, 64), (48, 80)], ids=["64x64", "48x80"])
+def test_prepare_batched_equals_numpy_on_random_pairs(size):
+    h, w = size
+    n = 56
+    dr = DomainRandomization()
+    draws = [dr.draw(9, i) for i in range(n)]
+    field = field_masks(draw_tensors(draws), h, w).numpy()
+    keep = field.reshape(n, -1).any(1)
+    field = field[keep]
+    n = len(field)
+    assert n >= 50 and not field.reshape(n, -1).all(1).all()  # cropped pairs and whole ones
+    rng = np.random.default_rng(1)
+    bits = rng.choice([8, 12, 16], n)
+    display = np.stack([rng.integers(0, 2 ** b, (h, w)) for b in bits]).astype(np.uint16)
+    current = rng.random((n, h, w)) * 3.0
+    log_display, bone_dark = rng.random(n) < 0.5, rng.random(n) < 0.5
+    for dtype in (torch.float64, torch.float32):
+        for mask_current in (True, False):
+            _check(display, field, current, log_display, bone_dark, mask_current, dtype)
+
+
+def test_prepare_batched_equals_numpy_after_apply_image_batched():
+    """End to end: displays of the batched post-render stages, polarity and log from the draws."""
+    h, w, n = 64, 64, 50
+    dr = DomainRandomization.from_table({"scatter": ["none", "kernel"]})
+    draws = [dr.draw(4, i) for i in range(n)]
+    p = draw_tensors(draws, dtype=torch.float64)
+    yy, xx = np.mgrid[0:h, 0:w]
+    line = np.stack([1.5 * np.exp(-((yy - 20 - i % 9) ** 2 + (xx - 30) ** 2) / 300.0) for i in range(n)])
+    raw = torch.from_numpy(1000.0 * np.exp(-line))
+    normals = torch.from_numpy(np.stack([image_rng(4, i).standard_normal((h, w)) for i in range(n)]))
+    display, field = apply_image_batched(raw, 1000.0, p, normals)
+    bone_dark = (p["polarity"] == 0).numpy()
+    _check(display.numpy(), field.numpy(), line, p["log"].numpy(), bone_dark, True, torch.float64)
+
+
+def test_prepare_batched_refuses_bad_inputs():
+    d, c = torch.zeros(2, 8, 8), torch.zeros(2, 8, 8)
+    m = torch.ones(2, 8, 8, dtype=torch.bool)
+    kw = dict(log_display=True, bone_dark=False, mask_current=True)
+    empty = m.clone()
+    empty[1] = False
+    with pytest.raises(OnlinePairsError, match=r"pairs \[1\] hold no pixel"):
+        prepare_like_registration_batched(d, empty, c, **kw)
+    with pytest.raises(OnlinePairsError, match="field must be a bool"):
+        prepare_like_registration_batched(d, m.float(), c, **kw)
+    with pytest.raises(OnlinePairsError, match="current must have"):
+        prepare_like_registration_batched(d, m, c[:, :4], **kw)
+    with pytest.raises(OnlinePairsError, match="bone_dark"):
+        prepare_like_registration_batched(d, m, c, **{**kw, "bone_dark": torch.zeros(3, dtype=torch.bool)})
+    with pytest.raises(OnlinePairsError, match="low < high"):
+        prepare_like_registration_batched(d, m, c, low_pct=50.0, high_pct=50.0, **kw)
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device")
+def test_prepare_batched_on_cuda_equals_cpu():
+    h, w, n = 48, 80, 64
+    field = field_masks(draw_tensors([DomainRandomization().draw(2, i) for i in range(n)]), h, w)
+    field = field[field.flatten(1).any(1)]
+    rng = np.random.default_rng(5)
+    display = torch.from_numpy(rng.integers(0, 4096, (len(field), h, w)).astype(np.float32))
+    current = torch.from_numpy(rng.random((len(field), h, w)).astype(np.float32))
+    flags = dict(log_display=torch.from_numpy(rng.random(len(field)) < 0.5),
+                 bone_dark=torch.from_numpy(rng.random(len(field)) < 0.5), mask_current=True)
+    cpu = prepare_like_registration_batched(display, field, current, **flags)
+    gpu = prepare_like_registration_batched(display.cuda(), field.cuda(), current.cuda(),
+                                            **{k: v.cuda() if isinstance(v, torch.Tensor) else v
+                                               for k, v in flags.items()})
+    for a, b in zip(cpu, gpu):
+        assert b.is_cuda and (a - b.cpu()).abs().max() <= TOL
