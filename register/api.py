@@ -29,7 +29,7 @@ from typing import Any, Callable
 import numpy as np
 
 __all__ = ["register_xray", "XRayRegistration", "parse_init", "REGISTER_RESTARTS", "REGISTER_SCATTER_PHOTONS",
-           "OUTPUT_FILES"]
+           "OUTPUT_FILES", "SEARCH_MODES", "SEARCH_METHODS"]
 
 #: Monte Carlo histories per moving image with physics full: a registration renders thousands
 #: of images, and the smoothed scatter of 10^5 histories differs from that of 10^6 by a few %.
@@ -42,6 +42,15 @@ REGISTER_RESTARTS = 3
 #: The methods that take ``restarts``: CMA-ES's own. contextual+cmaes runs the global search
 #: (:mod:`register.search`, default settings) where the network's pose is lost instead.
 RESTART_METHODS = ("cmaes",)
+
+#: The methods with the global search (:mod:`register.search`), the ones ``search`` (``--search``) applies to.
+SEARCH_METHODS = ("contextual+cmaes",)
+
+#: ``search`` (``--search``) of contextual+cmaes: ``"auto"`` runs the global search's grid where the
+#: network's pose scores below :attr:`register.search.GlobalSearchSettings.found_above` (the default),
+#: ``"off"`` never builds the search (the network's pose goes straight to the CMA-ES refinement: the
+#: network measured on its own), ``"always"`` runs the grid whatever the network's pose scored.
+SEARCH_MODES = ("auto", "off", "always")
 
 #: The files :meth:`XRayRegistration.write` writes (the trajectory files for the contextual methods only).
 OUTPUT_FILES = ("result.json", "overlay.png", "checkerboard.png", "convergence.png", "trajectory.npz", "trajectory.png",
@@ -83,6 +92,11 @@ class XRayRegistration:
         init_params: ``(6,)`` the start pose (deg, mm).
         physics: the :class:`sim.physics.imaging.PhysicsSettings` of the moving images.
         label_materials: ``{label: material}`` overrides of the CT's label map, or None.
+        search_mode: the ``search`` option (:data:`SEARCH_MODES`) of a method with the global
+            search, None for the others.
+        search_ran: whether the global search's grid ran (False where it was skipped, off, or not
+            part of the method); ``result.search`` keeps the search's record where it was built,
+            :attr:`search_status` says it in words.
     """
 
     method: str
@@ -94,6 +108,22 @@ class XRayRegistration:
     physics: Any
     label_materials: dict | None = None
     notes: list[str] = field(default_factory=list)
+    search_mode: str | None = None
+    search_ran: bool = False
+
+    @property
+    def search_status(self) -> str:
+        """What the global search did: ``"ran"``, ``"skipped (network pose scored S >= T)"``, ``"off"``
+        (``search="off"``) or ``"none (method M has no global search)"``."""
+        record = self.result.search
+        if self.search_mode is None:
+            return f"none (method {self.method} has no global search)"
+        if self.search_mode == "off" or record is None:
+            return "off"
+        if self.search_ran:
+            return "ran" + (" (--search always)" if record.get("always_grid") else "")
+        score = record.get("given_score", record.get("given_similarity"))
+        return f"skipped (network pose scored {score:.2f} >= {record['found_above']:g})"
 
     @property
     def params(self) -> dict[str, float]:
@@ -121,24 +151,31 @@ class XRayRegistration:
         return self.prepared.geometry
 
     def summary(self) -> str:
-        """Similarity, renders and the pose (deg, mm) in one line; with the global search a line
-        before it on what the search did (:func:`register.search.describe_search`)."""
+        """Similarity, renders and the pose (deg, mm) in one line; for a method with the global
+        search two lines before it: ``search: ran|skipped (...)|off`` (:attr:`search_status`) and,
+        where it was built, what it did (:func:`register.search.describe_search`)."""
         from register.search import describe_search
 
         r = self.result
         line = (f"similarity {r.similarity:.4f} after {r.renders} renders; pose: "
                 + " ".join(f"{v:.2f}" for v in r.params))
-        return line if r.search is None else describe_search(r.search) + "\n" + line
+        head = [] if self.search_mode is None else [f"search: {self.search_status}"]
+        if r.search is not None:
+            head.append(describe_search(r.search))
+        return "\n".join([*head, line])
 
     def to_dict(self) -> dict:
         """``result.json``: the pose, its projection, the similarity, the method, the inputs (CT,
         X-ray, start, anatomy centre), the prepared X-ray's summary and preprocessing record, the
-        moving physics and the optimiser's geometry."""
+        moving physics and the optimiser's geometry; the global search: ``search_mode`` (None for a
+        method without it), ``search_ran``, ``search_status`` (:attr:`search_status`) and, where it
+        was built, its record ``search``."""
         from dataclasses import asdict
 
         g = self.geometry
         return {
-            **self.result.to_dict(), "method": self.method, "ct": self.volume.source,
+            **self.result.to_dict(), "method": self.method, "search_mode": self.search_mode,
+            "search_ran": bool(self.search_ran), "search_status": self.search_status, "ct": self.volume.source,
             "xray": self.prepared.xray.source, "init_params": self.init_params.tolist(),
             "anatomy_center_lps_mm": self.center_lps.tolist(), "xray_input": self.xray_input,
             "preprocessing": self.prepared.record,
@@ -218,7 +255,8 @@ def register_xray(ct, xray, *, method: str = "contextual+cmaes", model=None, ini
                   pixel_spacing_mm: float | None = None, size=(128, 128), physics="line",
                   label_materials: dict[int, str] | None = None, preprocess=None, intensity: str = "auto",
                   polarity: str = "auto", tone: str = "ct", orient: str = "none", restarts: int | None = None,
-                  log: Callable[[str], None] | None = None, note: Callable[[str], None] | None = None
+                  search: str = "auto", log: Callable[[str], None] | None = None,
+                  note: Callable[[str], None] | None = None
                   ) -> XRayRegistration:
     """Register the X-ray ``xray`` to the CT ``ct``: its pose, as ``ctxreg register`` finds it.
 
@@ -250,6 +288,14 @@ def register_xray(ct, xray, *, method: str = "contextual+cmaes", model=None, ini
         restarts: CMA-ES restarts for ``method="cmaes"`` (default :data:`REGISTER_RESTARTS`);
             ``"contextual+cmaes"`` runs the global search instead (:mod:`register.search`: a grid over
             the prior box around ``init`` where the network's pose is lost).
+        search: ``"contextual+cmaes"``'s global search (:data:`SEARCH_MODES`): ``"auto"`` (the
+            default) runs its grid where the network's pose scores below
+            :attr:`register.search.GlobalSearchSettings.found_above`; ``"off"`` never builds it
+            (the network's pose goes straight to the CMA-ES refinement, and the polarity check,
+            which scores on the search's grid, is not run: the intensity step's decision stands);
+            ``"always"`` runs the grid whatever the network's pose scored. Another value than
+            ``"auto"`` with another method is refused. The result's ``search_ran`` says whether the
+            grid ran.
         log: called with each line a user should check (geometry sources, field, intensity);
             note: with remarks (a network trained on other physics). Both default to silence.
 
@@ -283,6 +329,11 @@ def register_xray(ct, xray, *, method: str = "contextual+cmaes", model=None, ini
     if restarts is not None and method not in RESTART_METHODS:
         raise RegistrationError(f"--restarts: meaningful with --method {' or '.join(RESTART_METHODS)} only; this run "
                                 f"is --method {method}")
+    if search not in SEARCH_MODES:
+        raise RegistrationError(f"--search {search}: choose one of {', '.join(SEARCH_MODES)}")
+    if search != "auto" and method not in SEARCH_METHODS:
+        raise RegistrationError(f"--search {search}: meaningful with --method {' or '.join(SEARCH_METHODS)} only (the "
+                                f"other methods have no global search); this run is --method {method}")
     restarts = REGISTER_RESTARTS if restarts is None else restarts
     steps = [str(n).strip().lower() for n in (DEFAULT_STEPS if preprocess is None else preprocess)]
     Pipeline.from_names(steps, {"intensity": {"scale": intensity, "polarity": polarity, "tone": tone}})  # choices
@@ -306,22 +357,46 @@ def register_xray(ct, xray, *, method: str = "contextual+cmaes", model=None, ini
                             scale=intensity, polarity=polarity, tone=tone, size=box, sdd_mm=sdd_mm, sod_mm=sod_mm,
                             pixel_spacing_mm=pixel_spacing_mm)
     geometry = prepared.geometry
-    search = None  # contextual+cmaes's global search, built once: the polarity check scores on its grid
-    if method == "contextual+cmaes":
-        search = GlobalSearch(volume, GlobalSearchSettings(), size=(geometry.height, geometry.width), scene=scene,
-                              geometry=geometry, center_lps=c, physics=moving, label_materials=label_materials)
-    prepared = confirm_polarity(prepared, volume, c, x0, physics=moving, label_materials=label_materials,
-                                search=search)
+    grid = None  # contextual+cmaes's global search, built once: the polarity check scores on its grid
+    if method in SEARCH_METHODS and search != "off":
+        grid = GlobalSearch(volume, GlobalSearchSettings(always_grid=search == "always"),
+                            size=(geometry.height, geometry.width), scene=scene, geometry=geometry, center_lps=c,
+                            physics=moving, label_materials=label_materials)
+    if method in SEARCH_METHODS and search == "off":
+        prepared = _polarity_unchecked(prepared)  # no grid to check on: the intensity step's decision stands
+    else:
+        prepared = confirm_polarity(prepared, volume, c, x0, physics=moving, label_materials=label_materials,
+                                    search=grid)
     log(prepared.sources.line())
     for line in _input_lines(prepared):
         log(line)
     engine = build_method(method, volume, center_lps=c, size=(geometry.height, geometry.width), geometry=geometry,
                           scene=scene, model=predictor, physics=moving, label_materials=label_materials,
                           restarts=restarts if method == "cmaes" else 0, keep_drrs=True, note=remark,
-                          search=search)
+                          search=grid)
     result = engine.register(prepared.image, x0, mask=prepared.mask, toned=prepared.toned)
+    ran = result.search is not None and bool(result.search.get("grid_poses"))
     return XRayRegistration(method=method, result=result, prepared=prepared, volume=volume, center_lps=c,
-                            init_params=x0, physics=moving, label_materials=label_materials, notes=notes)
+                            init_params=x0, physics=moving, label_materials=label_materials, notes=notes,
+                            search_mode=search if method in SEARCH_METHODS else None, search_ran=ran)
+
+
+def _polarity_unchecked(prepared):
+    """``prepared`` with the polarity check recorded as not run (``search="off"``: the check scores
+    on the global search's grid, which such a run does not build), as
+    :func:`register.prepare.confirm_polarity` records an image too small for the grid: the
+    decision stands. Nothing is recorded where an option or a decisive tag set the polarity (the
+    check would not run either)."""
+    from dataclasses import replace
+
+    from register.prepare import _DECISIVE_POLARITY
+
+    decision = prepared.step("intensity")
+    if decision is None or decision.get("polarity_source") in _DECISIVE_POLARITY:
+        return prepared
+    measured = {"verdict": "inconclusive", "inverted": False, "polarity": decision["polarity"],
+                "reason": "--search off: the check scores on the global search's grid, which this run does not build"}
+    return replace(prepared, record=[*prepared.record, {"step": "polarity_check", "params": {}, "measured": measured}])
 
 
 def _input_lines(prepared) -> list[str]:

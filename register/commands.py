@@ -11,11 +11,13 @@ from pathlib import Path
 
 import numpy as np
 
-from register.api import REGISTER_RESTARTS, REGISTER_SCATTER_PHOTONS, RESTART_METHODS, parse_init
+from register.api import (REGISTER_RESTARTS, REGISTER_SCATTER_PHOTONS, RESTART_METHODS, SEARCH_METHODS, SEARCH_MODES,
+                          parse_init)
 from register.cmaes import CMAESSettings
 from register.evaluate import LOCAL_ROT_DEG, LOCAL_TRANS_MM
 from register.intensity import POLARITIES, SCALES, TONES
 from register.methods import METHOD_NAMES
+from register.search import GlobalSearchSettings
 from register.xray_io import ORIENTATIONS
 from sim.cli import CT_HELP
 from sim.cliargs import IMAGE_SIDE_PX, Range, opt
@@ -153,6 +155,13 @@ class RegisterCommand:
         f"{CMAESSettings.restart_below}: a search lost far from the start tries again (--method cmaes only; "
         "contextual+cmaes runs a global search where the network's pose is lost)",
         group="pose", metavar="N", bounds=Range(0, 10)))
+    search: str = field(default="auto", metadata=opt(
+        "the global search of --method contextual+cmaes (a rotation / depth grid over the prior box around "
+        "--init): auto runs it where the network's pose scores below "
+        f"{GlobalSearchSettings.found_above:g} (gradient NCC), else refines the network's pose directly; off never builds it: the network's pose goes straight to the CMA-ES "
+        "refinement (the network measured on its own; the polarity check, which scores on the grid, is not run); "
+        "always runs it whatever the network's pose scored. result.json's search_ran / search_status say what "
+        "it did (--method contextual+cmaes only)", group="pose", choices=SEARCH_MODES))
     scene: str = field(default="cios_fusion", metadata=opt(
         "C-arm scene: the geometry where the image does not give it", group="geometry"))
     sdd: float | None = field(default=None, metadata=opt(
@@ -226,6 +235,9 @@ def run_register(cmd: RegisterCommand) -> list[Path]:
     refuse_unused_label_map(cmd)
     refuse_unused(cmd, ("restarts",), applies=cmd.method in RESTART_METHODS,
                   why=f"meaningful with --method {' or '.join(RESTART_METHODS)} only; this run is --method {cmd.method}")
+    refuse_unused(cmd, ("search",), applies=cmd.method in SEARCH_METHODS,
+                  why=f"meaningful with --method {' or '.join(SEARCH_METHODS)} only (the other methods have no global "
+                      f"search); this run is --method {cmd.method}")
     steps = [str(n).strip().lower() for n in cmd.preprocess]
     refuse_unused(cmd, ("intensity", "polarity", "tone"), applies="intensity" in steps,
                   why="meaningful with the 'intensity' step of --preprocess only; this run's steps are "
@@ -238,7 +250,9 @@ def run_register(cmd: RegisterCommand) -> list[Path]:
         cmd.ct, cmd.xray, method=cmd.method, model=cmd.model, init=cmd.init, center=cmd.center,
         label_map=cmd.label_map, scene=cmd.scene, sdd_mm=cmd.sdd, sod_mm=cmd.sod, pixel_spacing_mm=cmd.pixel_spacing,
         size=tuple(cmd.size), physics=physics, label_materials=materials, preprocess=steps, intensity=cmd.intensity,
-        polarity=cmd.polarity, tone=cmd.tone, orient=cmd.orient, restarts=cmd.restarts if cmd.method in RESTART_METHODS else None, log=print,
+        polarity=cmd.polarity, tone=cmd.tone, orient=cmd.orient,
+        restarts=cmd.restarts if cmd.method in RESTART_METHODS else None,
+        search=cmd.search if cmd.method in SEARCH_METHODS else "auto", log=print,
         note=lambda text: print(f"ctxreg register: note: {text}", file=sys.stderr))
     written = outcome.write(out)
     print(outcome.summary())

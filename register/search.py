@@ -19,7 +19,8 @@ The search covers the prior box of the poses around a start (by default the orig
    the best distinct results are the ``finalists`` a refinement starts from.
 
 The network's pose is searched first: when its local similarity reaches ``found_above`` the grid
-is skipped (a clearly right network costs a short local search, not the grid).
+is skipped (a clearly right network costs a short local search, not the grid), unless
+``always_grid`` (``ctxreg register --search always``).
 
 Use (``volume`` a CT, ``xray`` ``(128, 128)`` prepared bone-bright, ``field`` its bool mask)::
 
@@ -87,6 +88,9 @@ class GlobalSearchSettings:
             resolution) at or above which the grid is skipped (default 0.85: a wrong network pose on
             a realistic radiograph scored 0.75, right ones 0.7-0.9, so only a clear match skips the
             grid, which costs 2-4 s).
+        always_grid: run the grid even when a given pose reaches ``found_above`` (``ctxreg register
+            --search always``: the grid's finalists compete with the network's pose whatever it
+            scored); default False.
         seed: CMA-ES seed.
     """
 
@@ -108,6 +112,7 @@ class GlobalSearchSettings:
     finalists: int = 3
     found_above: float = 0.85
     metric: str = "tone_tolerant_gncc"
+    always_grid: bool = False
     seed: int = 0
 
     def __post_init__(self) -> None:
@@ -125,6 +130,8 @@ class GlobalSearchSettings:
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < lo:
                 raise RegistrationError(f"{name} must be an integer >= {lo}, got {v!r}")
+        if not isinstance(self.always_grid, (bool, np.bool_)):
+            raise RegistrationError(f"always_grid must be True or False, got {self.always_grid!r}")
         if not (np.isfinite(self.found_above) and -1.0 <= self.found_above <= 1.0):
             raise RegistrationError(f"found_above must be a similarity in [-1, 1], got {self.found_above}")
         from register.metrics import get_metric
@@ -441,8 +448,10 @@ class GlobalSearch:
         NCC at full resolution at its pose; ``stage_seconds`` has ``search_local`` (and
         ``search_grid`` when the grid ran); ``history`` one row per local search (stage
         ``search``); ``search`` the record ``{"given_similarity": the best given pose's local
-        similarity (None without one), "given_clipped": whether a given pose lay outside the prior
-        box, "found_above", "grid_poses": grid poses rendered (0: skipped), "candidates": grid
+        similarity (None without one), "given_score": its gradient NCC at full resolution, the
+        score the skip decision tested (None without one), "given_clipped": whether a given pose
+        lay outside the prior box, "found_above", "always_grid": whether the grid ran whatever the
+        given pose scored, "grid_poses": grid poses rendered (0: skipped), "candidates": grid
         poses searched locally, "start": "given" or "grid", "similarity", "grid_render_s" /
         "grid_ncc_s": the grid's and the rescoring's seconds rendering and correlating (0 when
         skipped), "finalists": the best distinct local results, best first (the first is the
@@ -492,9 +501,11 @@ class GlobalSearch:
         local(given, coarse_engine)
         stages["search_local"] = time.perf_counter() - t0
         given_best = best
+        # the skip decision's score: the given poses' best, plain gradient NCC at full resolution
+        given_score = None if best is None else self._plain_similarity(fixed, best, mask, metric)
         grid_poses = candidates = 0
         grid_times = {"render": 0.0, "ncc": 0.0}  # the grid's and the rescoring's
-        if best is None or self._plain_similarity(fixed, best, mask, metric) < s.found_above:
+        if given_score is None or s.always_grid or given_score < s.found_above:
             t0 = time.perf_counter()
             # the grid ranks the X-ray as prepared and, for a display image, its toned version too:
             # the toned one finds strongly curved displays (a gamma 2.6, a linear display), the
@@ -537,8 +548,9 @@ class GlobalSearch:
         best.history = history
         best.renders = renders
         best.search = {"given_similarity": None if given_best is None else float(given_best.similarity),
-                       "given_clipped": bool(np.any(given != raw)),
-                       "found_above": s.found_above, "grid_poses": grid_poses, "candidates": candidates,
+                       "given_score": given_score, "given_clipped": bool(np.any(given != raw)),
+                       "found_above": s.found_above, "always_grid": bool(s.always_grid),
+                       "grid_poses": grid_poses, "candidates": candidates,
                        "start": "given" if best is given_best else "grid", "similarity": float(best.similarity),
                        "grid_render_s": grid_times["render"], "grid_ncc_s": grid_times["ncc"],
                        "finalists": [{"params": f.params.tolist(), "similarity": float(f.similarity),
@@ -558,8 +570,9 @@ def describe_search(record: dict) -> str:
     chosen = record.get("chosen", 0)
     kept = finalists[chosen]
     origin = "the network's pose" if kept["start"] == "given" else "a grid pose"
-    line = (head + f" (< {record['found_above']:g}): {record['grid_poses']} grid poses, {record['candidates']} "
-            f"searched locally; ")
+    why = ("grid run whatever it scored, --search always" if record.get("always_grid")
+           else f"< {record['found_above']:g}")
+    line = head + f" ({why}): {record['grid_poses']} grid poses, {record['candidates']} searched locally; "
     if "refined" in record and len(record["refined"]) > 1:
         rank = ("best", "second best", "third best")[chosen] if chosen < 3 else f"number {chosen + 1}"
         return line + (f"the best {len(record['refined'])} refined, kept the {rank} ({origin}, similarity "

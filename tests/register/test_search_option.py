@@ -1,0 +1,152 @@
+"""``register_xray(search=...)`` / ``ctxreg register --search``: contextual+cmaes with the global
+search's grid where the network's pose is lost (auto), never (off: the network measured on its own,
+the search not even built) or always; the result records whether the grid ran."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from register.cmaes import RegistrationError
+
+
+@pytest.fixture(scope="module")
+def phantom():
+    from sim.anatomy import anatomy_center
+    from sim.phantom import make_pelvis_phantom
+
+    vol = make_pelvis_phantom(0, spacing_mm=4.0)
+    return vol, anatomy_center(vol)
+
+
+def xray_at(phantom, truth):
+    """A 64 x 64 line DRR of the phantom at ``truth`` (deg, mm) as an X-ray with its geometry."""
+    from register.xray_io import XRayImage
+    from sim.render import DRRRenderer, RenderSettings
+
+    vol, c = phantom
+    r = DRRRenderer(vol, RenderSettings(size=(64, 64)), center_lps=c)
+    g = r.geometry
+    return XRayImage(r.render_params(np.asarray(truth, float))[0], pixel_spacing_mm=g.pixel_spacing_mm,
+                     sdd_mm=g.sdd_mm, sod_mm=g.sod_mm, source="drr")
+
+
+def null_network(fixed, drr):
+    """No opinion: gradient 0, so the network's pose is the start (AP)."""
+    return np.zeros(6)
+
+
+NEAR = [6.0, -4.0, 3.0, 8.0, -6.0, 10.0]     # the start (AP) scores well: a right network's pose
+FAR = [26.0, -12.0, 10.0, 35.0, -25.0, 30.0]  # AP scores low: a lost network's pose
+
+
+def register_drr(phantom, truth, **kw):
+    from register.api import register_xray
+
+    vol, c = phantom
+    return register_xray(vol, xray_at(phantom, truth), model=null_network, center=c, size=(32, 32), **kw)
+
+
+def test_search_off_never_builds_the_global_search(phantom, monkeypatch, tmp_path):
+    import register.contextual
+    import register.search
+
+    class NoSearch:
+        def __init__(self, *args, **kwargs):
+            raise AssertionError("the global search was built with search='off'")
+
+    monkeypatch.setattr(register.search, "GlobalSearch", NoSearch)
+    monkeypatch.setattr(register.contextual, "GlobalSearch", NoSearch)
+    res = register_drr(phantom, NEAR, search="off")
+    assert res.search_ran is False and res.search_mode == "off" and res.result.search is None
+    assert res.search_status == "off" and res.summary().splitlines()[0] == "search: off"
+    # the network's pose went straight to the refinement, which found the pose
+    assert not any(k.startswith("search") for k in res.result.stage_seconds)
+    assert any(k.startswith("cmaes_") for k in res.result.stage_seconds)
+    assert np.abs(np.array(list(res.params.values()))[:3] - NEAR[:3]).max() < 2.0, res.params
+    # the polarity check scores on the grid: not run, the intensity step's decision stands
+    check = res.prepared.step("polarity_check")
+    assert check["verdict"] == "inconclusive" and not check["inverted"] and "--search off" in check["reason"]
+    res.write(tmp_path)
+    saved = json.loads((tmp_path / "result.json").read_text())
+    assert saved["search_mode"] == "off" and saved["search_ran"] is False and saved["search_status"] == "off"
+    assert "search" not in saved
+
+
+def test_search_auto_runs_the_grid_where_the_networks_pose_is_lost(phantom, tmp_path):
+    res = register_drr(phantom, FAR)  # search="auto", the default
+    assert res.search_mode == "auto" and res.search_ran is True and res.search_status == "ran"
+    assert res.result.search["grid_poses"] > 0 and "search_grid" in res.result.stage_seconds
+    assert res.result.search["given_score"] < res.result.search["found_above"]
+    assert res.summary().splitlines()[0] == "search: ran"
+    res.write(tmp_path)
+    saved = json.loads((tmp_path / "result.json").read_text())
+    assert saved["search_mode"] == "auto" and saved["search_ran"] is True and saved["search_status"] == "ran"
+    assert saved["search"]["grid_poses"] == res.result.search["grid_poses"] and saved["search"]["finalists"]
+
+
+def test_search_auto_skips_the_grid_for_a_good_pose_and_always_runs_it(phantom):
+    skipped = register_drr(phantom, NEAR, search="auto")
+    record = skipped.result.search
+    assert skipped.search_ran is False and record["grid_poses"] == 0 and record["given_score"] >= 0.85
+    assert skipped.search_status == f"skipped (network pose scored {record['given_score']:.2f} >= 0.85)"
+    assert skipped.to_dict()["search_status"] == skipped.search_status
+    always = register_drr(phantom, NEAR, search="always")
+    assert always.search_ran is True and always.result.search["grid_poses"] > 0
+    assert always.result.search["always_grid"] is True and always.search_status.startswith("ran")
+    assert "--search always" in always.summary()
+
+
+def test_methods_without_the_search_record_none_and_refuse_the_option(phantom, tmp_path):
+    from register.api import register_xray
+
+    # refused before any work: the CT is not even read
+    for method, kw in (("cmaes", {}), ("contextual", {"model": null_network})):
+        with pytest.raises(RegistrationError, match=f"--search off: meaningful with --method contextual\\+cmaes only.*"
+                                                    f"--method {method}"):
+            register_xray("no-such-ct.nii.gz", "no-such.png", method=method, search="off", **kw)
+    with pytest.raises(RegistrationError, match="--search sometimes: choose one of auto, off, always"):
+        register_xray("no-such-ct.nii.gz", "no-such.png", search="sometimes")
+    vol, c = phantom
+    res = register_xray(vol, xray_at(phantom, NEAR), method="contextual", model=null_network, center=c,
+                        size=(32, 32))
+    assert res.search_mode is None and res.search_ran is False
+    assert res.to_dict()["search_status"] == "none (method contextual has no global search)"
+    assert not res.summary().startswith("search:")
+
+
+@pytest.mark.parametrize("method", ["cmaes", "contextual"])
+def test_cli_refuses_search_with_a_method_without_it_in_one_line(monkeypatch, capsys, tmp_path, method):
+    from register import cli
+
+    monkeypatch.delenv("CTXREG_DEBUG", raising=False)
+    code = cli.main(["register", "--ct", "phantom", "--xray", str(tmp_path / "missing.png"), "--method", method,
+                     "--search", "off", "--out", str(tmp_path / "out")])
+    err = capsys.readouterr().err
+    assert code == 2 and err == (f"ctxreg register: error: --search: meaningful with --method contextual+cmaes only "
+                                 f"(the other methods have no global search); this run is --method {method}\n")
+    assert not (tmp_path / "out").exists()  # refused before any work
+
+
+def test_cli_passes_search_on(monkeypatch, capsys, tmp_path):
+    from register import api, cli
+
+    seen = {}
+
+    class Stop(Exception):
+        pass
+
+    def fake(*args, **kwargs):
+        seen.update(kwargs)
+        raise Stop
+
+    monkeypatch.setattr(api, "register_xray", fake)
+    with pytest.raises(Stop):
+        cli.main(["register", "--ct", "phantom", "--xray", "x.png", "--search", "off", "--out", str(tmp_path / "o")])
+    assert seen["search"] == "off" and seen["method"] == "contextual+cmaes"
+    with pytest.raises(SystemExit):
+        cli.main(["register", "--help"])
+    help_text = " ".join(capsys.readouterr().out.split())
+    assert "--search {auto,off,always}" in help_text and "contextual+cmaes only) (default: auto)" in help_text
