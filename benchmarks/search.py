@@ -3,18 +3,30 @@
 Frames: the first ``--cases`` poses of a study ``xray`` target (``--study``, default
 ``studies/domain_gap.toml`` and its ``fluoro-65kV``: full physics, round iris, fluoroscopy display chain, 12-bit DICOM; the
 study's own frames, cached in ``--out``), registered from AP through ``register_xray`` as
-``ctxreg register`` does, with three methods:
+``ctxreg register`` does, with the methods of ``--methods`` (default ``peer null network``):
 
-* ``cmaes + restarts`` (the peer): multi-resolution CMA-ES from AP with up to 3 IPOP restarts
+* ``peer``, ``cmaes + restarts``: multi-resolution CMA-ES from AP with up to 3 IPOP restarts
   while the gradient NCC is below 0.6, what contextual+cmaes fell back to before the search;
-* ``search + cmaes``: contextual+cmaes with a null network (its gradient is 0, so its pose is the
-  start): the global search and the refinement alone;
-* ``contextual+cmaes``: the same with the shipped default network.
+* ``null``, ``search + cmaes``: contextual+cmaes with a null network (its gradient is 0, so its pose
+  is the start): the global search and the refinement alone;
+* ``contextual``, ``contextual alone``: the shipped default network's iteration, nothing after it
+  (``method="contextual"``);
+* ``off``, ``contextual+cmaes, no grid``: the network's pose straight to the CMA-ES refinement
+  (``search="off"``: the network measured on its own, the global search never built);
+* ``network``, ``contextual+cmaes``: the default pipeline with the shipped default network; its
+  "grid skipped" column is the share of frames whose network pose scored well enough to skip the
+  grid.
 
-Prints one table: success (mTRE < 10 mm, the issue's bar; and with rotation < 1 deg too), median
-and slowest seconds per registration (the whole ``register_xray``: reading, field, polarity,
-registration) and the ratio to the peer, median seconds of the grid; and a second with the grid's split (rendering
+Prints one table: success (mTRE < 10 mm, the issue's bar; and with rotation < 1 deg too), mean
+rotation and translation errors (over the frames registered, refused ones left out), median and
+slowest seconds per registration (the whole ``register_xray``: reading, field, polarity,
+registration) and the ratio to the peer, median seconds of the grid, the share of frames whose grid
+was skipped (methods with the search in ``auto``); and a second with the grid's split (rendering
 the padded DRRs of every grid pose against the FFT NCC of every shift), medians over the frames.
+The network measured on its own, per condition::
+
+    .venv/bin/python benchmarks/search.py --methods contextual off network --cases 20 --target all \
+        --study studies/domain_gap.toml studies/heldout.toml
 
 With ``--target all`` every ``xray`` target of every ``--study`` is measured in turn and a last
 table sums them up, one row per target and method: the whole robustness table in one command,
@@ -56,8 +68,11 @@ def main() -> int:
                          "--study, one summary row each")
     ap.add_argument("--out", default=str(ROOT / "runs" / "bench_search"),
                     help="frame cache folder (default runs/bench_search; frames in OUT/TARGET)")
-    ap.add_argument("--methods", nargs="+", choices=("peer", "null", "network"), default=("peer", "null", "network"),
-                    help="which rows to run (default all three; the peer's seconds give the ratio column)")
+    ap.add_argument("--methods", nargs="+", choices=tuple(METHODS), default=("peer", "null", "network"),
+                    help="which rows to run, in this order: peer (cmaes + restarts), null (search + cmaes, null "
+                         "network), contextual (the network alone), off (contextual+cmaes without the grid, "
+                         "search='off'), network (contextual+cmaes, the default pipeline); default peer null network "
+                         "(the peer's seconds give the ratio column)")
     a = ap.parse_args()
     if not Path(a.ct).exists():
         print(f"search: CT {a.ct} not found (see ../shared/data/README.md)", file=sys.stderr)
@@ -94,20 +109,56 @@ def main() -> int:
     if len(summary) > 1:
         print(f"\nevery target: {a.cases} frames each from AP through register_xray (refused frames count as "
               f"failures; {time.strftime('%Y-%m-%d %H:%M')}, 2-core CPU)\n")
-        print("| target | refused | method | mTRE < 10 mm | and rotation < 1 deg | median s / registration |")
-        print("|---|---|---|---|---|---|")
+        print("| target | refused | method | mTRE < 10 mm | and rotation < 1 deg | mean rotation error deg | "
+              "mean translation error mm | median s / registration | grid skipped |")
+        print("|---|---|---|---|---|---|---|---|---|")
         for name, (rows, refused) in summary:
             for method, r in rows.items():
-                v = np.array(r, float)
-                print(f"| {name} | {refused} | {method} | {v[:, 3].mean():.0%} | {v[:, 0].mean():.0%} | "
-                      f"{np.median(v[:, 1]):.1f} |")
+                c = _columns(r)
+                print(f"| {name} | {refused} | {method} | {c['hit']} | {c['ok']} | {c['rot']} | {c['trans']} | "
+                      f"{c['median_s']} | {c['skipped']} |")
     return 0
+
+
+#: ``--methods`` key: (row name, register_xray's keywords); the model is the shipped default where
+#: none is given
+METHODS = {
+    "peer": ("cmaes + restarts (peer)", dict(method="cmaes", restarts=3)),
+    "null": ("search + cmaes (null network)", dict(method="contextual+cmaes", model=null_network)),
+    "contextual": ("contextual alone (default network)", dict(method="contextual")),
+    "off": ("contextual+cmaes, no grid (search off)", dict(method="contextual+cmaes", search="off")),
+    "network": ("contextual+cmaes (default network)", dict(method="contextual+cmaes")),
+}
+
+
+def _pct(values) -> str:
+    return "-" if not len(values) else f"{np.mean(values):.0%}"
+
+
+def _columns(frames: list[dict]) -> dict[str, str]:
+    """One method's table cells from its frames' rows (:func:`_measure`)."""
+    done = [f for f in frames if not f["refused"]]
+    rot = np.array([f["rot"] for f in done], float)
+    trans = np.array([f["trans"] for f in done], float)
+    grid = np.array([f["grid_s"] for f in done], float)
+    searched = [f["skipped"] for f in done if f["skipped"] is not None]
+    modes = {f["search_mode"] for f in done}
+    seconds = [f["s"] for f in frames]
+    return {"hit": _pct([f["hit"] for f in frames]), "ok": _pct([f["ok"] for f in frames]),
+            "rot": "-" if not len(rot) else f"{rot.mean():.2f}",
+            "trans": "-" if not len(trans) else f"{trans.mean():.1f}",
+            "median_s": f"{np.median(seconds):.1f}", "slowest_s": f"{np.max(seconds):.1f}",
+            "median_grid_s": f"{np.nanmedian(grid):.2f}" if np.isfinite(grid).any() else "-",
+            "skipped": _pct(searched) if searched else ("off" if modes == {"off"} else "-")}
 
 
 def _measure(a, study, target, volume, center):
     """One target's frames through every method: prints its table (and the grid's split) and returns
-    ``(rows, refused)``: per method ``[(success, seconds, grid seconds, mTRE < 10 mm)]`` per frame."""
-    from register.api import register_xray
+    ``(rows, refused)``: per method one dict per frame: ``hit`` (mTRE < 10 mm), ``ok`` (and rotation
+    < 1 deg), ``rot`` / ``trans`` (deg, mm; NaN when refused), ``s`` (seconds), ``grid_s`` (the grid's
+    seconds, NaN where it did not run), ``skipped`` (whether the grid was skipped; None for a method
+    without the search in auto or always), ``search_mode``, ``refused``."""
+    from register.api import SEARCH_METHODS, register_xray
     from register.evaluate import EvaluationSettings, bone_points, pose_errors, sample_cases
     from register.study import XRayFrames, frame_refusals
     from sim.geometry import pose_from_params
@@ -118,10 +169,7 @@ def _measure(a, study, target, volume, center):
     points = bone_points(volume, 2000, 0)
     folder = Path(a.out) / target.name
     folder.mkdir(parents=True, exist_ok=True)
-    methods = {name: kw for key, name, kw in (
-        ("peer", "cmaes + restarts (peer)", dict(method="cmaes", restarts=3)),
-        ("null", "search + cmaes (null network)", dict(method="contextual+cmaes", model=null_network)),
-        ("network", "contextual+cmaes (default network)", dict(method="contextual+cmaes"))) if key in a.methods}
+    methods = {name: (key, kw) for key, (name, kw) in METHODS.items() if key in a.methods}
     rows = {name: [] for name in methods}
     split = []
     refused = 0  # frames whose content registration refuses (counted as failures)
@@ -132,24 +180,32 @@ def _measure(a, study, target, volume, center):
         if not path.exists():
             frames.write(path, T_true, i)
         refused_frame = False
-        for name, kw in methods.items():
+        for name, (key, kw) in methods.items():
             t0 = time.perf_counter()
             try:
                 res = register_xray(volume, path, center=center, **kw)
             except frame_refusals() as exc:  # the frame's content refused: a failed case, as in the study
-                rows[name].append((False, time.perf_counter() - t0, np.nan, False))
+                rows[name].append({"hit": False, "ok": False, "rot": np.nan, "trans": np.nan,
+                                   "s": time.perf_counter() - t0, "grid_s": np.nan, "skipped": None,
+                                   "search_mode": kw.get("search", "auto") if kw["method"] in SEARCH_METHODS else None,
+                                   "refused": True})
                 refused_frame = True
                 print(f"search: frame {i} {name}: refused ({exc})", file=sys.stderr, flush=True)
                 continue
             seconds = time.perf_counter() - t0
             e = pose_errors(res.pose, T_true, points, center, np.eye(3, 4), np.eye(3, 4), 1.0)
-            ok = e["mtre_mm"] < 10 and e["rot_err_deg"] < 1
-            rows[name].append((ok, seconds, res.result.stage_seconds.get("search_grid", np.nan), e["mtre_mm"] < 10))
+            searched = res.search_mode in ("auto", "always")
+            rows[name].append({"hit": e["mtre_mm"] < 10, "ok": e["mtre_mm"] < 10 and e["rot_err_deg"] < 1,
+                               "rot": e["rot_err_deg"], "trans": e["trans_err_mm"], "s": seconds,
+                               "grid_s": res.result.stage_seconds.get("search_grid", np.nan),
+                               "skipped": (not res.search_ran) if searched else None, "search_mode": res.search_mode,
+                               "refused": False})
             record = res.result.search
-            if name.startswith("search") and record["grid_poses"]:  # the grid's two parts on this frame
+            if key == "null" and record["grid_poses"]:  # the grid's two parts on this frame
                 split.append((record["grid_poses"], record["grid_render_s"], record["grid_ncc_s"]))
             print(f"search: frame {i} {name}: mTRE {e['mtre_mm']:.1f} mm, rotation {e['rot_err_deg']:.2f} deg, "
-                  f"similarity {res.similarity:.2f}, {seconds:.1f} s", file=sys.stderr, flush=True)
+                  f"similarity {res.similarity:.2f}, search {res.search_status}, {seconds:.1f} s", file=sys.stderr,
+                  flush=True)
         refused += refused_frame
         done = i + 1
         rate = done / (time.perf_counter() - t_all)
@@ -157,18 +213,17 @@ def _measure(a, study, target, volume, center):
               file=sys.stderr, flush=True)
 
     peer_rows = rows.get("cmaes + restarts (peer)")
-    peer = np.median([r[1] for r in peer_rows]) if peer_rows else float("nan")
+    peer = np.median([r["s"] for r in peer_rows]) if peer_rows else float("nan")
     print(f"\n{target.name}: {a.cases} frames from AP through register_xray ({refused} refused by their content, "
-          f"counted as failures; {time.strftime('%Y-%m-%d %H:%M')}, 2-core CPU)\n")
-    print("| method | mTRE < 10 mm | and rotation < 1 deg | median s / registration | slowest s | ratio to the peer "
-          "| median s of the grid |")
-    print("|---|---|---|---|---|---|---|")
+          f"counted as failures, left out of the mean errors; {time.strftime('%Y-%m-%d %H:%M')}, 2-core CPU)\n")
+    print("| method | mTRE < 10 mm | and rotation < 1 deg | mean rotation error deg | mean translation error mm "
+          "| median s / registration | slowest s | ratio to the peer | median s of the grid | grid skipped |")
+    print("|---|---|---|---|---|---|---|---|---|---|")
     for name, r in rows.items():
-        v = np.array(r, float)
-        grid_s = np.nanmedian(v[:, 2]) if np.isfinite(v[:, 2]).any() else float("nan")
-        print(f"| {name} | {v[:, 3].mean():.0%} | {v[:, 0].mean():.0%} | {np.median(v[:, 1]):.1f} | "
-              f"{v[:, 1].max():.1f} | " + ("-" if not np.isfinite(peer) else f"{np.median(v[:, 1]) / peer:.2f}x") + " | "
-              + ("-" if not np.isfinite(grid_s) else f"{grid_s:.2f}") + " |")
+        c = _columns(r)
+        ratio = "-" if not np.isfinite(peer) else f"{np.median([f['s'] for f in r]) / peer:.2f}x"
+        print(f"| {name} | {c['hit']} | {c['ok']} | {c['rot']} | {c['trans']} | {c['median_s']} | {c['slowest_s']} | "
+              f"{ratio} | {c['median_grid_s']} | {c['skipped']} |")
     if not split:
         return rows, refused
     s = np.array([(x[1], x[2]) for x in split])
