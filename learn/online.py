@@ -267,6 +267,8 @@ class RealisticTargets:
             raise OnlinePairsError(f"density integrals must be (M={m}, H, W), got {L.shape}")
         dens = np.zeros((1, len(self.names), *L.shape[1:]), np.float64)
         dens[0, :m] = L
+        for bone in ("cancellous_bone", "cortical_bone"):  # randomize.bone_scale: bone's attenuation
+            dens[0, self.names.index(bone)] *= float(draw["bone_scale"])
         tools = self.bank.for_draw(draw)
         if tools is not None:
             chords, channels = tools
@@ -396,7 +398,9 @@ class OnlinePairs:
         else:
             chosen = rng.choice(len(self.subjects), self.subjects_per_batch, replace=False)
             subject = chosen[rng.integers(0, len(chosen), n)]
-        sod = self.context(0).renderers[self.target_entry.name].geometry.sod_mm
+        from sim.scene import load_scene
+
+        sod = load_scene(self.cfg.scene.name).geometry.sod_mm  # the renderers' too (geometry_at keeps it)
         T_a = pose_from_params(self.cfg.poses.sample(rng, n), sod)
         T_b = pose_from_params(self.cfg.poses.sample(rng, n), sod)
         near = rng.random(n) < self.near.fraction

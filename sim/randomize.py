@@ -443,6 +443,10 @@ DECLARATION: tuple[Randomized, ...] = (
        _FRACTION_H, limits=(0.0, 5.0), lo_open=True, when=("field_blades", (True,))),
     _u("field_blade_rotation_deg", "collimator", -90, 90, "blades' rotation, counter-clockwise as displayed",
        "deg", limits=(-360.0, 360.0), when=("field_blades", (True,))),
+    _lu("bone_scale", "physics", 0.75, 1.5, "factor on bone's attenuation (bone mineral density and the CT's "
+                                            "calibration vary between patients): on the bone channels of the "
+                                            "density integrals, or the bone basis of the two-basis model",
+        limits=(0.0, 10.0)),
 )
 
 _DECLARED: dict[str, Randomized] = {r.name: r for r in DECLARATION}

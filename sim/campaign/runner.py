@@ -306,26 +306,36 @@ class _RunLock:
 
 
 # ----------------------------------------------------------------------------- worker side
+def subject_volume(cfg, subject):
+    """A campaign subject's CT (a virtual patient's deformed copy where it is one), its anatomy
+    centre (LPS mm) and its virtual-patient parameters (None for a CT itself), without renderers:
+    ``(CTVolume, (3,) centre, VirtualPatientParams | None)``."""
+    from sim.anatomy import anatomy_center
+    from sim.ct_io import load_ct_spec
+
+    entry = cfg.cts[subject.ct_index]
+    volume = load_ct_spec(entry.path, label_map=entry.label_map)
+    center = np.asarray(entry.center, float) if entry.center is not None else anatomy_center(volume)
+    params = None
+    if subject.vp_index is not None:
+        from sim.augment import VirtualPatientRanges, make_virtual_patient
+
+        ranges = VirtualPatientRanges.from_dict(dict(cfg.virtual_patients))
+        params = ranges.sample(rng_for(cfg.seed, KIND_VIRTUAL_PATIENT, subject.ct_index, subject.vp_index))
+        volume = make_virtual_patient(volume, params, center_lps=center)
+    return volume, center, params
+
+
 class SubjectContext:
     """A subject's volume, anatomy centre and renderers, built once per worker and subject."""
 
     def __init__(self, cfg, subject):
-        from sim.anatomy import anatomy_center, bone_mask
-        from sim.ct_io import load_ct_spec
+        from sim.anatomy import bone_mask
         from sim.render import DRRRenderer, RenderSettings
         from sim.volume import CTVolume
 
         entry = cfg.cts[subject.ct_index]
-        volume = load_ct_spec(entry.path, label_map=entry.label_map)
-        center = np.asarray(entry.center, float) if entry.center is not None else anatomy_center(volume)
-        self.vp_params = None
-        if subject.vp_index is not None:
-            from sim.augment import VirtualPatientRanges, make_virtual_patient
-
-            ranges = VirtualPatientRanges.from_dict(dict(cfg.virtual_patients))
-            self.vp_params = ranges.sample(rng_for(cfg.seed, KIND_VIRTUAL_PATIENT, subject.ct_index,
-                                                   subject.vp_index))
-            volume = make_virtual_patient(volume, self.vp_params, center_lps=center)
+        volume, center, self.vp_params = subject_volume(cfg, subject)
         self.subject = subject
         self.center = center
         self.volume = volume  # the subject's CT (a virtual patient's deformed copy): for further renderers

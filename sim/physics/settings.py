@@ -18,8 +18,8 @@ Ranges are closed unless written with a parenthesis: ``kvp`` in [20, 150] kV, ``
 A value outside its range is refused with a :class:`sim.physics.PhysicsError` that names the
 setting (as the field, the campaign key path or the option), its unit and the range.
 
-This module imports no numpy, no Dr.Jit (the filters' element symbols are checked with xraylib
-when filters are given).
+This module imports no numpy, no Dr.Jit (the filters' element symbols are checked against
+sim.physics.spectrum.ELEMENT_SYMBOLS when filters are given).
 """
 
 from __future__ import annotations

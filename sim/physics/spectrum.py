@@ -76,11 +76,18 @@ class Spectrum:
                                            name=f"{self.kvp:g} kVp")
 
 
+#: The chemical elements' symbols in order of atomic number (Z = index + 1): filter symbols are
+#: checked against it, without xraylib (a machine that only reads cached spectra lacks it).
+ELEMENT_SYMBOLS = tuple((
+    "H He Li Be B C N O F Ne Na Mg Al Si P S Cl Ar K Ca Sc Ti V Cr Mn Fe Co Ni Cu Zn Ga Ge As Se Br Kr "
+    "Rb Sr Y Zr Nb Mo Tc Ru Rh Pd Ag Cd In Sn Sb Te I Xe Cs Ba La Ce Pr Nd Pm Sm Eu Gd Tb Dy Ho Er Tm Yb "
+    "Lu Hf Ta W Re Os Ir Pt Au Hg Tl Pb Bi Po At Rn Fr Ra Ac Th Pa U Np Pu Am Cm Bk Cf Es Fm Md No Lr Rf "
+    "Db Sg Bh Hs Mt Ds Rg Cn Nh Fl Mc Lv Ts Og").split())
+
+
 def parse_filters(items) -> tuple[tuple[str, float], ...]:
     """``["Al:2.5", "Cu:0.1"]`` -> ``(("Al", 2.5), ("Cu", 0.1))`` (element symbol, mm); items that
     are already ``(symbol, mm)`` pairs are checked the same way."""
-    import xraylib as xr
-
     out = []
     for item in items:
         if isinstance(item, (tuple, list)) and len(item) == 2:
@@ -88,10 +95,7 @@ def parse_filters(items) -> tuple[tuple[str, float], ...]:
             mm = item[1] if isinstance(item[1], numbers.Real) and not isinstance(item[1], bool) else "?"
         else:
             sym, sep, mm = str(item).partition(":")
-        try:
-            z = xr.SymbolToAtomicNumber(sym.strip())
-        except ValueError:
-            z = 0
+        z = ELEMENT_SYMBOLS.index(sym.strip()) + 1 if sym.strip() in ELEMENT_SYMBOLS else 0
         try:
             t = float(mm)
         except ValueError:
