@@ -16,6 +16,12 @@ class TrainCommand:
                                      group="input", positional=True, metavar="CONFIG.toml"))
     resume: bool = field(default=False, metadata=opt(
         "continue from the output folder's checkpoint (same config)", group="run"))
+    device: str = field(default="auto", metadata=opt(
+        "where the network trains and batched pairs (train.pairs = 'batched') are made: auto (a CUDA GPU when "
+        "torch sees one), cpu or cuda", group="run", choices=("auto", "cpu", "cuda")))
+    stop_after: float | None = field(default=None, metadata=opt(
+        "stop at the first iteration after this many seconds of training, with a checkpoint (then --resume)",
+        group="run", unit="s", metavar="S"))
 
 
 #: What ``ctxreg train`` writes into the config's ``out`` folder, and ``ctxreg accuracy`` into ``--out``.
@@ -28,9 +34,12 @@ def run_train(cmd: TrainCommand) -> list[Path]:
 
     from sim.outputs import check_output_dir
 
+    from learn.train import resolve_device
+
     cfg = load_train_config(cmd.config)
+    resolve_device(cmd.device)  # refused before any work
     out = check_output_dir(cfg.out, TRAIN_FILES, flag=f"{cmd.config}: [train] out")
-    train(cfg, resume=cmd.resume)
+    train(cfg, resume=cmd.resume, device=cmd.device, stop_after_s=cmd.stop_after)
     return [out / name for name in TRAIN_FILES]
 
 

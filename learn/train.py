@@ -40,6 +40,10 @@ class TrainConfigError(InputError):
     """A training config key is wrong; the message names the key and the allowed values."""
 
 
+#: How realistic targets are made (``[train] pairs``; :class:`TrainConfig`).
+PAIRS = ("per-pair", "batched")
+
+
 @dataclass(frozen=True)
 class TrainConfig:
     """The ``[train]`` table. Paths relative to the config file's folder.
@@ -99,6 +103,13 @@ class TrainConfig:
             :func:`sim.physics.display.apply_tone`); ``"off"`` (default, what the networks before it
             were trained with) keeps the display's values. Recorded in the checkpoint's config;
             registration shows a ``"ct"`` network the X-ray's toned version.
+        pairs: with ``randomize``: ``"per-pair"`` (default: :class:`learn.online.RealisticTargets`,
+            the 9-material render and numpy post-processing pair by pair) or ``"batched"``
+            (:class:`learn.batched.BatchedPairs`: the two-basis model and every image stage batched
+            in torch, on the training device: the way to train on a GPU). ``tone = "ct"`` is
+            per-pair only. The batched pairs' spectral table and tool bank are cached in
+            ``<out>/tables`` (built once with spekpy, xraylib and Mitsuba; a GPU machine without
+            them reads the cache).
     """
 
     dataset: str
@@ -132,6 +143,7 @@ class TrainConfig:
     randomize: dict | None = None
     current_field: str = "masked"
     tone: str = "off"
+    pairs: str = "per-pair"
 
     @property
     def online(self) -> bool:
@@ -213,6 +225,12 @@ class TrainConfig:
         if self.current_field != "masked" and self.randomize is None:
             raise TrainConfigError("train.current_field = 'open' needs train.randomize (a collimated field is drawn "
                                    "with the realistic targets)")
+        if self.pairs not in PAIRS:
+            raise TrainConfigError(f"train.pairs must be one of {', '.join(PAIRS)}, got {self.pairs!r}")
+        if self.pairs == "batched" and self.randomize is None:
+            raise TrainConfigError("train.pairs = 'batched' needs train.randomize (it batches the realistic targets)")
+        if self.pairs == "batched" and self.tone != "off":
+            raise TrainConfigError("train.pairs = 'batched' cannot tone the targets (train.tone = 'ct' is per-pair only)")
         if self.randomize is not None:
             if not self.online:
                 raise TrainConfigError("train.randomize needs pairs rendered on the fly: set train.dataset to a "
@@ -408,8 +426,36 @@ def _errors(pred_norm: torch.Tensor, true_norm: torch.Tensor, normalizer) -> tup
     return rot, trans
 
 
-def train(cfg: TrainConfig, *, resume: bool = False, log=print) -> dict:
-    """Train; returns the last log row. See the module doc for the outputs."""
+#: Where ``ctxreg train`` runs (``--device``): ``auto`` is CUDA when torch sees a GPU, else the CPU.
+DEVICES = ("auto", "cpu", "cuda")
+
+
+def resolve_device(device: str = "auto") -> torch.device:
+    """The torch device of a ``--device`` value (:data:`DEVICES`); ``cuda`` without a GPU is refused."""
+    if device not in DEVICES:
+        raise TrainConfigError(f"device must be one of {', '.join(DEVICES)}, got {device!r}")
+    if device == "auto":
+        device = "cuda" if torch.cuda.is_available() else "cpu"
+    if device == "cuda" and not torch.cuda.is_available():
+        raise TrainConfigError("device 'cuda': torch sees no CUDA GPU on this machine (use --device cpu or auto)")
+    return torch.device(device)
+
+
+def _on(device, tensors):
+    return [t.to(device, non_blocking=True) if isinstance(t, torch.Tensor) else t for t in tensors]
+
+
+def train(cfg: TrainConfig, *, resume: bool = False, log=print, device: str = "auto",
+          stop_after_s: float | None = None) -> dict:
+    """Train; returns the last log row. See the module doc for the outputs. ``device``: where the
+    network trains and batched pairs are made (:func:`resolve_device`); a checkpoint written on
+    one device resumes on another. ``stop_after_s``: stop at the first iteration after this many
+    seconds of training (s, > 0), with a checkpoint there, so that ``--resume`` continues the same
+    steps (a lent machine's time, a session's end)."""
+    if stop_after_s is not None and not (isinstance(stop_after_s, (int, float)) and stop_after_s > 0
+                                         and math.isfinite(stop_after_s)):
+        raise TrainConfigError(f"stop_after_s must be a positive number of seconds, got {stop_after_s!r}")
+    device = resolve_device(device)
     from learn.checkpoint import Checkpoint, CheckpointError, capture_rng, load_weights, remove_stale_temps, restore_rng
     from learn.model import Weights, pose_update_net
 
@@ -425,7 +471,7 @@ def train(cfg: TrainConfig, *, resume: bool = False, log=print) -> dict:
     init = _init_checkpoint(cfg) if cfg.init_from and resumed is None else None
     torch.manual_seed(cfg.seed)
     np.random.seed(cfg.seed)
-    source = _OnlineSource(cfg) if cfg.online else None if cfg.cache_features else _CampaignSource(cfg)
+    source = _OnlineSource(cfg, device) if cfg.online else None if cfg.cache_features else _CampaignSource(cfg)
     model = pose_update_net(backbone=cfg.backbone,
                             weights=Weights.IMAGENET_LOCAL if cfg.weights == "imagenet_local" else Weights.NONE,
                             weights_path=cfg.weights_path, freeze_backbone=cfg.freeze_backbone,
@@ -433,6 +479,9 @@ def train(cfg: TrainConfig, *, resume: bool = False, log=print) -> dict:
     if init is not None:
         _init_weights(model, init)
         log(f"weights from {cfg.init_from}")
+    model.to(device)
+    if device.type != "cpu":
+        log(f"training on {device} ({torch.cuda.get_device_name(device) if device.type == 'cuda' else device})")
     if source is None:  # the cache needs the (frozen) backbone; neither draws random numbers
         source = _CachedSource(cfg, model, rebuild=resumed is None, log=log)
     params = [p for p in model.parameters() if p.requires_grad]
@@ -464,7 +513,7 @@ def train(cfg: TrainConfig, *, resume: bool = False, log=print) -> dict:
                    rate_scale=cfg.batch_size)
     while iteration < cfg.iterations:
         # batches are a function of (seed, iteration) alone, so a resumed run takes the same steps
-        *inputs, label = source.train_batch(iteration)
+        *inputs, label = _on(device, source.train_batch(iteration))
         output = source.forward(model, inputs)
         loss = _loss(output, label, cfg)
         optimizer.zero_grad()
@@ -474,8 +523,9 @@ def train(cfg: TrainConfig, *, resume: bool = False, log=print) -> dict:
         iteration += 1
         bar.update(1)
         last = {"iteration": iteration, "train_loss": float(loss.item()), "lr": scheduler.get_last_lr()[0]}
-        if iteration % cfg.val_every == 0 or iteration == cfg.iterations:
-            last.update(_validate(model, source, cfg))
+        stopping = stop_after_s is not None and time.perf_counter() - started >= stop_after_s
+        if iteration % cfg.val_every == 0 or iteration == cfg.iterations or stopping:
+            last.update(_validate(model, source, cfg, device))
             model.train()
             rate = (iteration - start_iteration) * cfg.batch_size / (time.perf_counter() - started)
             rows.append({k: last.get(k, "") for k in ("iteration", "train_loss", "val_loss", "val_rot_err_deg",
@@ -484,14 +534,20 @@ def train(cfg: TrainConfig, *, resume: bool = False, log=print) -> dict:
             log(f"iteration {iteration}/{cfg.iterations}: train {last['train_loss']:.4f}, "
                 f"val {last['val_loss']:.4f}, rotation {last['val_rot_err_deg']:.2f} deg, "
                 f"translation {last['val_trans_err_mm']:.1f} mm ({rate:.0f} pairs/s)")
-        if iteration % cfg.checkpoint_every == 0 or iteration == cfg.iterations:
+        if iteration % cfg.checkpoint_every == 0 or iteration == cfg.iterations or stopping:
             _save_checkpoint(ckpt_path, Checkpoint(
                 model_state=model.state_dict(), backbone=cfg.backbone, head_channels=cfg.head_channels,
                 preprocess=tuple(cfg.preprocess), config=asdict(cfg), image_size=tuple(source.size),
                 physics=source.physics, current_physics=getattr(source, "current_physics", source.physics),
                 iteration=iteration, optimizer=optimizer.state_dict(), scheduler=scheduler.state_dict(),
                 rng=capture_rng()))
-    _plot(rows, out / "loss.png")
+        if stopping:
+            log(f"stopped after {time.perf_counter() - started:.0f} s at iteration {iteration} (--resume continues)")
+            break
+    try:
+        _plot(rows, out / "loss.png")
+    except ImportError as e:  # a bare GPU machine: the log.csv holds the curve
+        log(f"loss.png not written: {e}")
     source.close()
     return last
 
@@ -612,7 +668,7 @@ class _CachedSource(_CampaignSource):
 class _OnlineSource:
     """Pairs rendered on the fly from a campaign file (:class:`learn.online.OnlinePairs`)."""
 
-    def __init__(self, cfg: TrainConfig):
+    def __init__(self, cfg: TrainConfig, device=None):
         from learn.online import OnlinePairs, OnlinePairsError
         from learn.preprocess import build
         from sim.campaign.config import CampaignConfigError, load_campaign
@@ -637,8 +693,18 @@ class _OnlineSource:
             kw = {"near": cfg.near(), "transform": transform, "physics": target.name, "current_physics": current.name,
                   "randomization": cfg.randomization(), "current_field": cfg.current_field,
                   "tone": cfg.tone}
-            self.train = OnlinePairs(campaign, "train", seed=cfg.seed, subjects_per_batch=cfg.subjects_per_batch, **kw)
-            self.val = OnlinePairs(campaign, val_split, seed=cfg.seed + 1, **kw)  # all subjects, every batch
+            if cfg.pairs == "batched":
+                from learn.batched import BatchedPairs
+
+                del kw["physics"], kw["current_physics"], kw["tone"]
+                kw.update(device=device or "cpu", tables=Path(cfg.out) / "tables")
+                self.train = BatchedPairs(campaign, "train", seed=cfg.seed, subjects_per_batch=cfg.subjects_per_batch,
+                                          **kw)
+                self.val = BatchedPairs(campaign, val_split, seed=cfg.seed + 1, **kw)
+            else:
+                self.train = OnlinePairs(campaign, "train", seed=cfg.seed, subjects_per_batch=cfg.subjects_per_batch,
+                                         **kw)
+                self.val = OnlinePairs(campaign, val_split, seed=cfg.seed + 1, **kw)  # all subjects, every batch
         except OnlinePairsError as e:
             raise TrainConfigError(f"train.dataset {cfg.dataset}: {e}") from None
         self._val = None
@@ -671,18 +737,19 @@ def _loss(output, label, cfg: TrainConfig):
 
 
 @torch.no_grad()
-def _validate(model, source, cfg: TrainConfig) -> dict:
+def _validate(model, source, cfg: TrainConfig, device=None) -> dict:
     from learn.labels import LabelNormalizer
 
     model.eval()
     losses, preds, trues = [], [], []
     for *inputs, label in source.val_batches():
+        *inputs, label = _on(device or torch.device("cpu"), (*inputs, label))
         out = source.forward(model, inputs)
         losses.append(float(_loss(out, label, cfg)) * len(label))
         preds.append(out.g)
         trues.append(label)
     n = sum(len(t) for t in trues)
-    rot, trans = _errors(torch.cat(preds), torch.cat(trues), LabelNormalizer())
+    rot, trans = _errors(torch.cat(preds).cpu(), torch.cat(trues).cpu(), LabelNormalizer())
     return {"val_loss": sum(losses) / n, "val_rot_err_deg": rot, "val_trans_err_mm": trans}
 
 

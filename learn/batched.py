@@ -1,0 +1,254 @@
+"""Realistic training pairs batched in torch: every stage of a pair on the training device.
+
+:class:`learn.online.OnlinePairs` with realistic targets renders each pair's target through the
+9-material density render and per-pair numpy post-processing: 19 pairs/s per core, and a GPU
+waits for the CPU. :class:`BatchedPairs` draws the same kind of pairs (the campaign's subjects,
+its pose distribution, near pairs, :mod:`sim.randomize`'s settings drawn per pair from
+``(seed, index)``) with every image stage batched over the pairs in torch, on the CPU or CUDA:
+
+1. the ray march of the targets and currents of every pair of every subject
+   (:func:`sim.raymarch.volumes_for`: Dr.Jit's Siddon kernel on a CPU, ``grid_sample`` on a GPU):
+   ``mu`` for the currents and ideal targets (the line DRR registration renders), the water and
+   bone basis densities of :mod:`sim.physics.two_basis` for the realistic targets;
+2. the targets' polychromatic signal from the two basis line integrals and the tools' density
+   integrals (:class:`sim.physics.two_basis.TorchImager`: the drawn spectrum, filtration,
+   exposure and bone factor), the quantum noise of its variance in one normal draw, the
+   detector's blur (:func:`sim.physics.batched.gaussian_reflect`);
+3. collimator, kernel scatter, electronic noise and display chain
+   (:func:`sim.physics.batched.apply_image_batched`);
+4. made ready as registration makes a user's X-ray ready
+   (:func:`learn.prepare_batched.prepare_like_registration_batched`).
+
+``ideal`` draws take the line DRR of the target pose as their target, collimated as drawn. The
+currents are line DRRs of ``mu`` (the campaign's first physics entry must be a line entry, as
+registration's moving images). Each pair's noise comes from a generator of its own
+(:func:`sim.seeds.pair_normals`), so a pair is a function of ``(seed, batch, index)`` only: the same
+in a batch of 1 or 256 (tested); a CPU and a GPU draw different noise of the same distribution.
+
+What the two-basis model leaves out, against the per-pair path: nothing of the randomization
+but the Monte Carlo scatter (refused there too); the physics error of the two bases is in
+``docs/physics.md``. The ray march is trilinear (the per-pair path renders Siddon): the two
+agree to the tolerance stated in ``tests/sim/test_raymarch.py``; on a CPU the Siddon kernel runs.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from learn.labels import LabelNormalizer, geodesic_label
+from learn.online import MAX_BATCH, NearPairs, OnlinePairs, OnlinePairsError, check_trainable
+
+__all__ = ["BatchedPairs", "NOISE_STREAM_QUANTUM", "NOISE_STREAM_ELECTRONIC", "tool_arrangements", "tool_looks"]
+
+#: :func:`sim.seeds.pair_normals` streams of a pair's noise (the seed is the randomization seed).
+NOISE_STREAM_QUANTUM = 1
+NOISE_STREAM_ELECTRONIC = 2
+
+
+def tool_arrangements(bank, names: tuple[str, ...]) -> np.ndarray:
+    """``(TOOL_BANK_SIZE, len(names), H, W)`` float32 density integrals (g/cm^2) of every
+    arrangement of a :class:`sim.randomize.ToolBank`, one channel per material name (a tool
+    material outside ``names`` is refused)."""
+    from sim.randomize import TOOL_BANK_SIZE
+
+    out = []
+    for j in range(TOOL_BANK_SIZE):
+        chords, channels = bank.arrangement(j)  # (C, H, W) mm; ((material, g/cm^3), ...)
+        dens = np.zeros((len(names),) + chords.shape[1:], np.float32)
+        for c, (material, rho) in enumerate(channels):
+            if material not in names:
+                raise OnlinePairsError(f"tool material {material!r} has no channel (have {list(names)})")
+            dens[names.index(material)] += chords[c] * float(rho) / 10.0  # mm x g/cm^3 -> g/cm^2
+        out.append(dens)
+    return np.stack(out)
+
+
+def tool_looks(arrangements: np.ndarray) -> torch.Tensor:
+    """``(TOOL_BANK_SIZE * 8, K, H, W)``: each arrangement in its 8 looks, in the order of a draw's
+    ``tools_pick`` (``int(pick * 16 * 8)``: arrangement ``// 8``, look ``% 8``; look bit 1 flips
+    the rows, 2 the columns, 4 transposes a square image), as :meth:`sim.randomize.ToolBank.for_draw`."""
+    looks = []
+    for dens in arrangements:
+        h, w = dens.shape[1:]
+        for look in range(8):
+            d = dens
+            if look & 1:
+                d = d[:, ::-1]
+            if look & 2:
+                d = d[:, :, ::-1]
+            if look & 4 and h == w:
+                d = d.transpose(0, 2, 1)
+            looks.append(np.ascontiguousarray(d))
+    return torch.from_numpy(np.stack(looks))
+
+
+class BatchedPairs(OnlinePairs):
+    """Batches of realistic (target, current, label) pairs, every stage in torch (module doc).
+
+    Args:
+        cfg, split, near, transform, normalizer, seed, subjects_per_batch, current_field: as
+            :class:`learn.online.OnlinePairs` (its draws of subjects and poses are reused).
+        randomization: the :class:`sim.randomize.DomainRandomization` (required; no Monte Carlo
+            scatter).
+        device: torch device of the rendering and the returned tensors (default CPU).
+        tables: a folder for the cached spectral table and tool bank (``pair_tables.npz``,
+            ``tool_bank_seed<seed>_<H>x<W>.npz``): built once where spekpy, xraylib and Mitsuba are at hand, then
+            read on a machine without them (a GPU machine). None: built in memory.
+        step_fraction: the trilinear ray march's step on a GPU, a fraction of the smallest voxel
+            spacing (default 1: against Siddon it does as well as 0.5, ``tests/sim/test_raymarch.py``).
+
+    ``batch(k, n)`` -> ``target (n, 1, H, W)``, ``current (n, 1, H, W)`` float32 on ``device``
+    and the normalised label ``(n, 6)`` float32 on ``device``.
+    """
+
+    def __init__(self, cfg, split: str, *, randomization, near: NearPairs | None = None, transform=None,
+                 normalizer: LabelNormalizer | None = None, seed: int = 0, subjects_per_batch: int | None = None,
+                 current_field: str = "masked", device="cpu", tables=None, step_fraction: float = 1.0):
+        super().__init__(cfg, split, near=near, transform=transform, normalizer=normalizer, seed=seed,
+                         subjects_per_batch=subjects_per_batch, current_field=current_field)
+        if randomization is None:
+            raise OnlinePairsError("batched pairs need a randomization (train.randomize)")
+        check_trainable(randomization)
+        if self.current_entry.level != "line":
+            raise OnlinePairsError(f"batched pairs render line DRRs as current images: the campaign's physics entry "
+                                   f"{self.current_entry.name!r} is {self.current_entry.level!r}")
+        self.randomization = randomization
+        self.device = torch.device(device)
+        self.tables = tables
+        self.step_fraction = step_fraction
+        from sim.scene import load_scene
+
+        h, w = cfg.scene.size
+        self.geometry = load_scene(cfg.scene.name).geometry_at(h, w)
+        self._volumes = None
+        self._imager = None
+        self._tools = None
+        self._subject_rows = None
+
+    # -- built on first use --------------------------------------------------------------------
+    def _build(self):
+        from sim.campaign.runner import subject_volume
+        from sim.materials import mu_from_hu
+        from sim.physics.two_basis import BasisDecomposition, TorchImager
+        from sim.raymarch import volumes_for
+
+        table = self._table()
+        basis = BasisDecomposition(matrix=table.basis)
+        channels, affines, centers = [], [], []
+        mu_water = self.current_entry.mu_water_per_mm
+        for s in self.subjects:
+            volume, center, _ = subject_volume(self.cfg, s)
+            channels.append(np.concatenate([mu_from_hu(volume.hu, mu_water)[None], basis.partial_densities(volume.hu)]))
+            affines.append(volume.affine)
+            centers.append(center)
+        self._volumes = volumes_for(self.device, channels, affines, centers, self.geometry,
+                                    step_fraction=self.step_fraction, scene=self.cfg.scene.name)
+        self._imager = TorchImager(table, self.device)
+        self._tools = self._tool_bank().to(self.device)
+
+    def _table(self):
+        from sim.physics.two_basis import SpectralTable
+
+        if self.tables is None:
+            return SpectralTable.for_randomization(self.randomization)
+        from pathlib import Path
+
+        path = Path(self.tables) / "pair_tables.npz"
+        if path.exists():  # a draw outside it is refused by SpectralTable.index, naming the setting
+            return SpectralTable.load(path)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        table = SpectralTable.for_randomization(self.randomization)
+        table.save(path)
+        return table
+
+    def _tool_bank(self) -> torch.Tensor:
+        from sim.physics.two_basis import TOOL_CHANNELS
+        from sim.randomize import ToolBank
+
+        h, w = self.geometry.height, self.geometry.width
+        path = None
+        if self.tables is not None:
+            from pathlib import Path
+
+            path = Path(self.tables) / f"tool_bank_seed{self.seed}_{h}x{w}.npz"
+            if path.exists():
+                try:
+                    with np.load(path, allow_pickle=False) as z:
+                        arrangements = np.asarray(z["density"], np.float32)
+                except (OSError, KeyError, ValueError) as e:
+                    raise OnlinePairsError(f"tool bank {path} cannot be read ({e}): remove it to rebuild") from None
+                if arrangements.shape[1:] != (len(TOOL_CHANNELS), h, w):
+                    raise OnlinePairsError(f"tool bank {path} holds {arrangements.shape[1:]} (channels, rows, "
+                                           f"columns), this run needs {(len(TOOL_CHANNELS), h, w)}: remove it to "
+                                           f"rebuild")
+                return tool_looks(arrangements)
+        arrangements = tool_arrangements(ToolBank(self.seed, self.geometry, scene=self.cfg.scene.name), TOOL_CHANNELS)
+        if path is not None:
+            from sim.atomic import atomic_path
+
+            path.parent.mkdir(parents=True, exist_ok=True)
+            with atomic_path(path) as tmp:
+                with open(tmp, "wb") as f:
+                    np.savez_compressed(f, density=arrangements)
+        return tool_looks(arrangements)
+
+    def prepare(self):
+        """Build the subjects' volumes, the spectral table and the tool bank now (else on the first batch)."""
+        if self._volumes is None:
+            self._build()
+        return self
+
+    # -- pairs ---------------------------------------------------------------------------------
+    def batch(self, k: int, n: int):
+        from learn.prepare_batched import prepare_like_registration_batched
+        from sim.physics.batched import apply_image_batched, draw_tensors, gaussian_reflect
+        from sim.physics.settings import SETTINGS
+        from sim.seeds import pair_normals
+
+        if n > MAX_BATCH:
+            raise OnlinePairsError(f"batch size must be <= {MAX_BATCH}, got {n}")
+        self.prepare()
+        subject, t_a, t_b = self.draw(k, n)
+        index = int(k) * MAX_BATCH + np.arange(n)
+        draws = [self.randomization.draw(self.seed, int(i)) for i in index]
+        p = draw_tensors(draws, device=self.device, dtype=torch.float32)
+        g = self.geometry
+        h, w = g.height, g.width
+        ideal = p["ideal"].bool()
+        ideal_rows = np.flatnonzero(ideal.cpu().numpy())
+        real_rows = np.flatnonzero(~ideal.cpu().numpy())
+        march = self._volumes.line_integrals
+        current = march(subject, t_b, (0,))[:, 0]  # line DRRs of mu, as registration's moving images
+        mu_target = torch.zeros_like(current)
+        basis = torch.zeros((n, 2, h, w), dtype=current.dtype, device=self.device)
+        if len(ideal_rows):
+            mu_target[ideal_rows] = march(subject[ideal_rows], t_a[ideal_rows], (0,))[:, 0]
+        if len(real_rows):  # water and bone basis integrals: g/cm^3 mm -> g/cm^2
+            basis[real_rows] = march(subject[real_rows], t_a[real_rows], (1, 2)) / 10.0
+        tools = self._tools[(p["tools_pick"].clamp(max=1 - 1e-7) * self._tools.shape[0]).long()]
+        tools = tools * p["tools"].to(tools.dtype)[:, None, None, None]
+        dens = torch.cat([basis, tools], dim=1)  # (n, 7, H, W)
+        combo = torch.as_tensor(self._imager.table.index(*([d[k] for d in draws] for k in ("kvp", "al_mm", "cu_mm"))),
+                                device=self.device)
+        mean, var, flat = self._imager.signal(dens, combo, p["mas"], p["bone_scale"],
+                                              pixel_area_mm2=g.pixel_spacing_mm ** 2, sdd_mm=g.sdd_mm)
+        e_det = float(SETTINGS["electronic_noise"].default)
+        raw = mean + torch.sqrt(var + e_det ** 2) * pair_normals(self.seed, index, NOISE_STREAM_QUANTUM, (h, w),
+                                                                     device=self.device, dtype=mean.dtype)
+        raw = gaussian_reflect(raw, p["blur_mm"].to(raw.dtype) / g.pixel_spacing_mm)
+        raw = raw.clamp(min=0.0)
+        normals = pair_normals(self.seed, index, NOISE_STREAM_ELECTRONIC, (h, w), device=self.device,
+                                  dtype=raw.dtype)
+        display, field = apply_image_batched(raw, flat, p, normals)
+        display = torch.where(ideal[:, None, None], mu_target.to(display.dtype), display)
+        log_display = p["log"].bool() | ideal
+        bone_dark = (p["polarity"] == 0) & ~ideal  # choice 0: "bone-dark"
+        target, cur = prepare_like_registration_batched(display, field, current, log_display=log_display,
+                                                        bone_dark=bone_dark,
+                                                        mask_current=self.current_field == "masked")
+        x = torch.cat([target, cur])[:, None].to(torch.float32)
+        if self.transform is not None:
+            x = self.transform(x)
+        label = self.normalizer.normalize(geodesic_label(torch.from_numpy(t_a), torch.from_numpy(t_b)))
+        return x[:n], x[n:], label.to(device=self.device, dtype=torch.float32)

@@ -1,0 +1,38 @@
+#!/usr/bin/env bash
+# Build .devbundle_batched/ (git-ignored) for `ctxreg train configs/train_batched_gpu.toml` on the
+# lent GPU machine (Python 3.12 with torch, torchvision, numpy and scipy; no Mitsuba, Dr.Jit,
+# xraylib, spekpy or nibabel, no internet). Batched pairs need none of the first four there: the
+# spectral table and tool bank are cached in runs/batched_gpu/tables, built here first.
+#   bash scripts/device/batched_bundle.sh          # bundle + tables (and the simulated device run with --check)
+# Device calls (run tool; the tree travels, so do .devbundle_batched and runs/batched_gpu when carried):
+#   run(command="bash scripts/device/batched.sh 540 2>&1", carry=[".devbundle_batched", "runs/batched_gpu"],
+#       timeout_s=600)
+#   then: cp $files_at/checkpoint.pt $files_at/log.csv runs/batched_gpu/ (keep runs/batched_gpu small: it travels)
+set -euo pipefail
+REPO=$(cd "$(dirname "${BASH_SOURCE[0]}")/../.." && pwd)
+B=$REPO/.devbundle_batched
+PY=$REPO/.venv/bin/python
+SP=$($PY -c 'import sysconfig; print(sysconfig.get_paths()["purelib"])')
+grep -qx '/.devbundle_batched/' "$REPO/.git/info/exclude" 2>/dev/null || echo /.devbundle_batched/ >> "$REPO/.git/info/exclude"
+rm -rf "$B" && mkdir -p "$B/site"
+# pure-Python packages the device lacks: nibabel (the CT) and what it imports on Python 3.12
+for p in nibabel packaging typing_extensions.py; do cp -a "$SP/$p" "$B/site/"; done
+find "$B/site" -name __pycache__ -prune -exec rm -rf {} +
+find "$B/site/nibabel" -type d -name tests -prune -exec rm -rf {} +
+cp "$REPO/../shared/data/ct/pelvis_abdomen_3mm.nii.gz" "$B/"
+# the cached tables: the spectral table (spekpy, xraylib) and both tool banks (Mitsuba)
+(cd "$REPO" && $PY - <<'PY'
+from pathlib import Path
+from learn.train import load_train_config
+from learn.batched import BatchedPairs
+from sim.campaign.config import load_campaign
+cfg = load_train_config("configs/train_batched_gpu.toml")
+campaign = load_campaign(cfg.dataset)
+tables = Path(cfg.out) / "tables"
+for split, seed in (("train", cfg.seed), ("val", cfg.seed + 1)):
+    p = BatchedPairs(campaign, split, randomization=cfg.randomization(), seed=seed, tables=tables)
+    p._table(); p._tool_bank()
+print("tables:", sorted(x.name for x in tables.iterdir()))
+PY
+)
+du -sh "$B" "$REPO/runs/batched_gpu"
