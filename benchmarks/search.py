@@ -73,6 +73,9 @@ def main() -> int:
                          "network), contextual (the network alone), off (contextual+cmaes without the grid, "
                          "search='off'), network (contextual+cmaes, the default pipeline); default peer null network "
                          "(the peer's seconds give the ratio column)")
+    ap.add_argument("--model", default=None,
+                    help="the network of the contextual, off and network rows: a shipped model's name (ctxreg models) "
+                         "or a ctxreg train checkpoint (default: the shipped default)")
     a = ap.parse_args()
     if not Path(a.ct).exists():
         print(f"search: CT {a.ct} not found (see ../shared/data/README.md)", file=sys.stderr)
@@ -126,9 +129,13 @@ METHODS = {
     "peer": ("cmaes + restarts (peer)", dict(method="cmaes", restarts=3)),
     "null": ("search + cmaes (null network)", dict(method="contextual+cmaes", model=null_network)),
     "contextual": ("contextual alone (default network)", dict(method="contextual")),
-    "off": ("contextual+cmaes, no grid (search off)", dict(method="contextual+cmaes", search="off")),
+    "off": ("contextual+cmaes, no grid (search off, default network)", dict(method="contextual+cmaes", search="off")),
     "network": ("contextual+cmaes (default network)", dict(method="contextual+cmaes")),
 }
+
+
+#: The ``--methods`` keys that run the network (``--model`` replaces it).
+NETWORK_METHODS = ("contextual", "off", "network")
 
 
 def _pct(values) -> str:
@@ -170,6 +177,10 @@ def _measure(a, study, target, volume, center):
     folder = Path(a.out) / target.name
     folder.mkdir(parents=True, exist_ok=True)
     methods = {name: (key, kw) for key, (name, kw) in METHODS.items() if key in a.methods}
+    if a.model is not None:  # the network rows with another model, named in the row
+        methods = {(name.replace("default network", Path(a.model).parent.name if a.model.endswith(".pt") else a.model)
+                    if key in NETWORK_METHODS else name): (key, {**kw, "model": a.model} if key in NETWORK_METHODS else kw)
+                   for name, (key, kw) in methods.items()}
     rows = {name: [] for name in methods}
     split = []
     refused = 0  # frames whose content registration refuses (counted as failures)

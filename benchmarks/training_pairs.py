@@ -11,7 +11,13 @@ virtual patients, 64 x 64 px, 4 subjects per batch) of three kinds, measured in 
 * ``realistic``: the target drawn with domain randomization and prepared as registration does
   (``learn.online.RealisticTargets``: density integrals, tools, spectrum, noise, kernel scatter,
   collimator, display chain, bits), the current a line DRR;
-* ``realistic, no tools``: the same with ``tools = false``.
+* ``realistic, no tools``: the same with ``tools = false``;
+* ``realistic, batched``: the same randomization through ``learn.batched.BatchedPairs``
+  (``train.pairs = "batched"``): the two-basis model and every image stage batched in torch (on a
+  CPU the ray march is Dr.Jit's Siddon kernel; with ``--device cuda`` everything runs on the GPU).
+
+``--kinds`` picks the rows (default all four); ``--device`` runs the network (and the batched
+pairs) there.
 
 Columns: median seconds per batch of rendering (``OnlinePairs.batch``), of one optimiser step
 of the tiny network (forward, backward, Adam) and of both, pairs per second of both, and the
@@ -36,7 +42,11 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 
 
-def _source(kind: str):
+#: The rows of the table, in order.
+KINDS = ("line", "realistic", "realistic, no tools", "realistic, batched")
+
+
+def _source(kind: str, device="cpu"):
     from learn.online import NearPairs, OnlinePairs
     from learn.preprocess import build
     from sim.campaign.config import load_campaign
@@ -46,6 +56,12 @@ def _source(kind: str):
     table = None if kind == "line" else {"scatter": ["none", "kernel"], **({"tools": False} if "no tools" in kind
                                                                           else {})}
     randomization = None if table is None else DomainRandomization.from_table(table)
+    if kind == "realistic, batched":
+        from learn.batched import BatchedPairs
+
+        return BatchedPairs(cfg, "train", near=NearPairs(), transform=build(["normalize"]), seed=0,
+                            subjects_per_batch=4, randomization=randomization, device=device,
+                            tables=REPO / "runs" / "bench_pairs_tables")
     return OnlinePairs(cfg, "train", near=NearPairs(), transform=build(["normalize"]), seed=0,
                        subjects_per_batch=4, randomization=randomization)
 
@@ -57,6 +73,14 @@ def _warm(source) -> None:
 
     from sim.randomize import TOOL_BANK_SIZE
 
+    if hasattr(source, "prepare"):  # batched: volumes, table, tool bank, every subject's renderers
+        source.prepare()
+        for u in range(len(source.subjects)):
+            for chans in ((0,), (1, 2)):
+                if hasattr(source._volumes, "_renderer"):
+                    source._volumes._renderer(u, chans)
+        source.batch(0, 4)
+        return
     for u in range(len(source.subjects)):
         source.context(u)
         if source.realistic is not None:
@@ -82,35 +106,42 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--batches", type=int, default=6, help="timed batches per kind (default 6)")
     ap.add_argument("--batch-size", type=int, default=32, help="pairs per batch (default 32, the recipe's)")
+    ap.add_argument("--kinds", nargs="+", choices=KINDS, default=KINDS, help="rows, in this order (default all)")
+    ap.add_argument("--device", default="cpu", choices=("cpu", "cuda"),
+                    help="where the network steps and the batched pairs are made (default cpu)")
     args = ap.parse_args(argv)
     if args.batches < 1 or args.batch_size < 1:
         ap.error("--batches and --batch-size must be >= 1")
     torch.manual_seed(0)
-    model = pose_update_net(backbone="tiny")
+    model = pose_update_net(backbone="tiny").to(args.device)
     opt = torch.optim.Adam(model.parameters(), lr=1e-4)
     rows = []
-    for kind in ("line", "realistic", "realistic, no tools"):
-        source = _source(kind)
+    sync = torch.cuda.synchronize if args.device == "cuda" else (lambda: None)
+    for kind in args.kinds:
+        source = _source(kind, args.device)
         _warm(source)
         render, step = [], []
         for k in range(1, args.batches + 1):
+            sync()
             t0 = time.perf_counter()
-            a, b, y = source.batch(k, args.batch_size)
+            a, b, y = (t.to(args.device) for t in source.batch(k, args.batch_size))
+            sync()
             t1 = time.perf_counter()
             out = model(a, b)
             loss = model.loss(out, y)
             opt.zero_grad()
             loss.backward()
             opt.step()
+            sync()
             t2 = time.perf_counter()
             render.append(t1 - t0)
             step.append(t2 - t1)
         r, s = statistics.median(render), statistics.median(step)
         rows.append((kind, r, s, r + s, args.batch_size / (r + s)))
         print(f"  {kind}: {args.batch_size / (r + s):.0f} pairs/s", file=sys.stderr)
-    line_rate = rows[0][4]
+    line_rate = rows[0][4] if rows[0][0] == "line" else float("nan")
     print(f"\n{args.batch_size} pairs per batch, median of {args.batches} batches, "
-          f"torch threads {torch.get_num_threads()}\n")
+          f"torch threads {torch.get_num_threads()}, device {args.device}\n")
     print("| pairs | render s/batch | step s/batch | total s/batch | pairs/s | line / this |")
     print("|---|---|---|---|---|---|")
     for kind, r, s, t, rate in rows:

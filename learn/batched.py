@@ -200,6 +200,21 @@ class BatchedPairs(OnlinePairs):
         return self
 
     # -- pairs ---------------------------------------------------------------------------------
+    #: The pair groups of :meth:`groups` (validation errors are logged per group).
+    GROUPS = ("near", "far", "ideal", "log", "linear", "field", "open")
+
+    def groups(self, k: int, n: int) -> dict[str, np.ndarray]:
+        """Which pairs of batch ``k`` belong to each of :data:`GROUPS`, ``(n,)`` bool each: near or
+        far (independent) current pose; ideal (a line-DRR target) or a realistic target on a log or
+        a linear display; a collimated field or an open one."""
+        _, _, _, near = self.draw(k, n, near_flags=True)
+        draws = [self.randomization.draw(self.seed, int(k) * MAX_BATCH + i) for i in range(n)]
+        ideal = np.array([bool(d["ideal"]) for d in draws])
+        log = np.array([bool(d["log"]) for d in draws])
+        field = np.array([d["field"] != "none" for d in draws])
+        return {"near": near, "far": ~near, "ideal": ideal, "log": log & ~ideal, "linear": ~log & ~ideal,
+                "field": field, "open": ~field}
+
     def batch(self, k: int, n: int):
         from learn.prepare_batched import prepare_like_registration_batched
         from sim.physics.batched import apply_image_batched, draw_tensors, gaussian_reflect

@@ -385,8 +385,9 @@ class OnlinePairs:
                                            center_lps=ctx.center, materials=TISSUE_DECOMPOSITION)
         return self._density[k]
 
-    def draw(self, k: int, n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Batch ``k``'s draws: subject per pair ``(n,)``, ``T_A`` and ``T_B`` ``(n, 4, 4)`` (mm)."""
+    def draw(self, k: int, n: int, *, near_flags: bool = False):
+        """Batch ``k``'s draws: subject per pair ``(n,)``, ``T_A`` and ``T_B`` ``(n, 4, 4)`` (mm); with
+        ``near_flags`` also which pairs are near pairs ``(n,)`` bool."""
         from sim.seeds import rng_for
         from sim.geometry import pose_from_params
 
@@ -408,7 +409,7 @@ class OnlinePairs:
         if near.any():
             # T_B = T_A o Exp(delta): apply_update moves along -g, so pass g = -delta with step 1
             T_b[near] = apply_update(T_a[near], -delta[near], 1.0)
-        return subject, T_a, T_b
+        return (subject, T_a, T_b, near) if near_flags else (subject, T_a, T_b)
 
     def batch(self, k: int, n: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """Render batch ``k`` of ``n`` pairs; see the class doc for the shapes."""

@@ -529,7 +529,9 @@ def train(cfg: TrainConfig, *, resume: bool = False, log=print, device: str = "a
             model.train()
             rate = (iteration - start_iteration) * cfg.batch_size / (time.perf_counter() - started)
             rows.append({k: last.get(k, "") for k in ("iteration", "train_loss", "val_loss", "val_rot_err_deg",
-                                                    "val_trans_err_mm", "lr")})
+                                                    "val_trans_err_mm", "lr")}
+                        | {k: v for k, v in last.items() if k.startswith(("val_rot_", "val_trans_"))
+                           and k not in ("val_rot_err_deg", "val_trans_err_mm")})
             _write_log(log_path, rows)
             log(f"iteration {iteration}/{cfg.iterations}: train {last['train_loss']:.4f}, "
                 f"val {last['val_loss']:.4f}, rotation {last['val_rot_err_deg']:.2f} deg, "
@@ -726,6 +728,15 @@ class _OnlineSource:
             self._val = [self.val.batch(k, min(size, n - start)) for k, start in enumerate(range(0, n, size))]
         return iter(self._val)
 
+    def val_groups(self) -> dict[str, np.ndarray] | None:
+        """Each pair group's ``(val_pairs,)`` bool mask over the validation pairs in order (batched
+        pairs: :meth:`learn.batched.BatchedPairs.groups`), or None."""
+        if not hasattr(self.val, "groups"):
+            return None
+        n, size = self.cfg.val_pairs, self.cfg.batch_size
+        parts = [self.val.groups(k, min(size, n - start)) for k, start in enumerate(range(0, n, size))]
+        return {g: np.concatenate([p[g] for p in parts]) for g in parts[0]}
+
     def close(self):
         pass
 
@@ -749,14 +760,24 @@ def _validate(model, source, cfg: TrainConfig, device=None) -> dict:
         preds.append(out.g)
         trues.append(label)
     n = sum(len(t) for t in trues)
-    rot, trans = _errors(torch.cat(preds).cpu(), torch.cat(trues).cpu(), LabelNormalizer())
-    return {"val_loss": sum(losses) / n, "val_rot_err_deg": rot, "val_trans_err_mm": trans}
+    pred, true = torch.cat(preds).cpu(), torch.cat(trues).cpu()
+    rot, trans = _errors(pred, true, LabelNormalizer())
+    row = {"val_loss": sum(losses) / n, "val_rot_err_deg": rot, "val_trans_err_mm": trans}
+    groups = source.val_groups() if hasattr(source, "val_groups") else None
+    for name, mask in (groups or {}).items():  # the learning curve by pair kind, field and display
+        m = torch.from_numpy(np.asarray(mask, bool))
+        rot, trans = _errors(pred[m], true[m], LabelNormalizer()) if m.any() else (float("nan"), float("nan"))
+        row[f"val_rot_{name}_deg"], row[f"val_trans_{name}_mm"] = rot, trans
+    return row
 
 
 def _write_log(path: Path, rows: list[dict]) -> None:
+    """The log rows as CSV; columns: every key of any row (a group column appears once batched
+    pairs log it; earlier rows leave it empty)."""
     from sim.atomic import write_csv
 
-    write_csv(path, rows)
+    keys = list(dict.fromkeys(k for r in rows for k in r))
+    write_csv(path, [{k: r.get(k, "") for k in keys} for r in rows])
 
 
 def _plot(rows: list[dict], path: Path) -> None:
