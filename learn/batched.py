@@ -95,6 +95,9 @@ class BatchedPairs(OnlinePairs):
         tables: a folder for the cached spectral table and tool bank (``pair_tables.npz``,
             ``tool_bank_seed<seed>_<H>x<W>.npz``): built once where spekpy, xraylib and Mitsuba are at hand, then
             read on a machine without them (a GPU machine). None: built in memory.
+        framing: ``"field"`` (default: both images cropped to the target's field and resampled, as
+            registration shows them to the network today) or ``"detector"`` (the whole detector,
+            the field masked; :data:`learn.online.FRAMINGS`).
         step_fraction: the trilinear ray march's step on a GPU, a fraction of the smallest voxel
             spacing (default 1: against Siddon it does as well as 0.5, ``tests/sim/test_raymarch.py``).
 
@@ -104,7 +107,8 @@ class BatchedPairs(OnlinePairs):
 
     def __init__(self, cfg, split: str, *, randomization, near: NearPairs | None = None, transform=None,
                  normalizer: LabelNormalizer | None = None, seed: int = 0, subjects_per_batch: int | None = None,
-                 current_field: str = "masked", device="cpu", tables=None, step_fraction: float = 1.0):
+                 current_field: str = "masked", device="cpu", tables=None, step_fraction: float = 1.0,
+                 framing: str = "field"):
         super().__init__(cfg, split, near=near, transform=transform, normalizer=normalizer, seed=seed,
                          subjects_per_batch=subjects_per_batch, current_field=current_field)
         if randomization is None:
@@ -113,6 +117,11 @@ class BatchedPairs(OnlinePairs):
         if self.current_entry.level != "line":
             raise OnlinePairsError(f"batched pairs render line DRRs as current images: the campaign's physics entry "
                                    f"{self.current_entry.name!r} is {self.current_entry.level!r}")
+        from learn.online import FRAMINGS
+
+        if framing not in FRAMINGS:
+            raise OnlinePairsError(f"framing must be one of {', '.join(FRAMINGS)}, got {framing!r}")
+        self.framing = framing
         self.randomization = randomization
         self.device = torch.device(device)
         self.tables = tables
@@ -261,7 +270,8 @@ class BatchedPairs(OnlinePairs):
         bone_dark = (p["polarity"] == 0) & ~ideal  # choice 0: "bone-dark"
         target, cur = prepare_like_registration_batched(display, field, current, log_display=log_display,
                                                         bone_dark=bone_dark,
-                                                        mask_current=self.current_field == "masked")
+                                                        mask_current=self.current_field == "masked",
+                                                        crop=self.framing == "field")
         x = torch.cat([target, cur])[:, None].to(torch.float32)
         if self.transform is not None:
             x = self.transform(x)

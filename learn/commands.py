@@ -5,7 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from sim.cliargs import opt
+from sim.cliargs import Range, opt
 
 
 @dataclass(frozen=True)
@@ -21,7 +21,7 @@ class TrainCommand:
         "torch sees one), cpu or cuda", group="run", choices=("auto", "cpu", "cuda")))
     stop_after: float | None = field(default=None, metadata=opt(
         "stop at the first iteration after this many seconds of training, with a checkpoint (then --resume)",
-        group="run", unit="s", metavar="S"))
+        group="run", unit="s", metavar="S", bounds=Range(0.0, None, lo_open=True)))
 
 
 #: What ``ctxreg train`` writes into the config's ``out`` folder, and ``ctxreg accuracy`` into ``--out``.

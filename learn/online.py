@@ -107,6 +107,14 @@ MAX_BATCH = 1 << 16
 CURRENT_FIELDS = ("masked", "open")
 
 
+#: How a pair is framed for the network: ``"field"`` (cropped to the target's collimated field and
+#: resampled to the network's size: the image scale and the CoordConv coordinates follow the field)
+#: or ``"detector"`` (the whole detector, the outside of the field filled: scale and coordinates are
+#: the detector's whatever the field). Batched pairs only (``train.framing``); registration frames
+#: the X-ray as the checkpoint records (``register.contextual.network_view``).
+FRAMINGS = ("field", "detector")
+
+
 def current_field_problem(value) -> str | None:
     """What is wrong with a ``current_field`` value (None when it is one of :data:`CURRENT_FIELDS`)."""
     return None if value in CURRENT_FIELDS else f"must be one of {', '.join(CURRENT_FIELDS)}, got {value!r}"

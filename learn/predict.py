@@ -50,6 +50,7 @@ class NetworkPredictor:
         tone: ``"ct"`` or ``"off"`` (``train.tone``; ``"off"`` when not recorded): whether the
             training targets were toned onto line integrals, so that registration shows the network
             the X-ray's toned version.
+        framing: ``"field"`` or ``"detector"`` (``train.framing``; ``"field"`` when not recorded).
         checkpoint: the loaded :class:`learn.checkpoint.Checkpoint`.
     """
 
@@ -94,6 +95,17 @@ class NetworkPredictor:
         #: whether the network was trained on targets toned onto line integrals (``train.tone``):
         #: registration then shows it the X-ray's toned version
         self.tone = tone
+        from learn.online import FRAMINGS
+
+        framing = (ckpt.config or {}).get("framing", "field")
+        if framing not in FRAMINGS:
+            from learn.checkpoint import CheckpointError
+
+            raise CheckpointError(f"{ckpt.name}: config.framing must be one of {', '.join(FRAMINGS)}, got {framing!r}")
+        #: how the network's pairs were framed (``train.framing``): ``"field"`` (cropped to the
+        #: X-ray's field, as registration crops it) or ``"detector"`` (the whole detector with the
+        #: field masked: registration shows it :func:`register.contextual.network_view`)
+        self.framing = framing
 
     def physics_mismatch(self, physics, *, advice: str = "set --physics to match") -> str | None:
         """A sentence when the moving images' :class:`~sim.physics.imaging.PhysicsSettings` (None =

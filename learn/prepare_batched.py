@@ -87,7 +87,7 @@ def _resize_boxes(x: torch.Tensor, box: tuple[torch.Tensor, ...], size: tuple[in
 
 def prepare_like_registration_batched(display: torch.Tensor, field: torch.Tensor, current: torch.Tensor, *,
                                       log_display, bone_dark, mask_current: bool, low_pct: float = 1.0,
-                                      high_pct: float = 99.0) -> tuple[torch.Tensor, torch.Tensor]:
+                                      high_pct: float = 99.0, crop: bool = True) -> tuple[torch.Tensor, torch.Tensor]:
     """:func:`learn.online.prepare_like_registration` (``raw_intensity=False``, ``tone=False``) for a batch.
 
     Args:
@@ -102,6 +102,9 @@ def prepare_like_registration_batched(display: torch.Tensor, field: torch.Tensor
         mask_current: fill the current images' pixels outside the field with their mean over
             it too (``current_field = "masked"``), as the targets'.
         low_pct, high_pct: the normalisation percentiles (%) over the field, ``0 <= low < high <= 100``.
+        crop: step 2 (crop to the field's box and resample, as registration does today); False
+            keeps the whole detector, the field masked (``train.framing = "detector"``): the image
+            scale and CoordConv coordinates then stay the detector's whatever the field.
 
     Returns:
         ``(target, current)``, ``(B, H, W)`` float32 on ``display``'s device: the target in
@@ -129,8 +132,8 @@ def prepare_like_registration_batched(display: torch.Tensor, field: torch.Tensor
                                f"got {got}")
     _bool_pairs("log_display", log_display, b, dev)
     bone_dark = _bool_pairs("bone_dark", bone_dark, b, dev)
-    if not isinstance(mask_current, bool):
-        raise OnlinePairsError(f"{where}: mask_current must be a bool, got {mask_current!r}")
+    if not isinstance(mask_current, bool) or not isinstance(crop, bool):
+        raise OnlinePairsError(f"{where}: mask_current and crop must be bools, got {mask_current!r}, {crop!r}")
     try:
         lo_q, hi_q = float(low_pct), float(high_pct)
     except (TypeError, ValueError):
@@ -158,12 +161,12 @@ def prepare_like_registration_batched(display: torch.Tensor, field: torch.Tensor
     r0, c0 = first(rows_any), first(cols_any)
     r1, c1 = h - first(rows_any.flip(1)), w - first(cols_any.flip(1))
     box = (r0, r1, c0, c1)
-    cropped = ((r0 != 0) | (r1 != h) | (c0 != 0) | (c1 != w))[:, None, None]
+    cropped = ((r0 != 0) | (r1 != h) | (c0 != 0) | (c1 != w))[:, None, None] & crop
     x = torch.where(cropped, _resize_boxes(x, box, (h, w)).to(work), x)
     cur = torch.where(cropped, _resize_boxes(cur, box, (h, w)).to(work), cur)
     rows = _nearest_source(r1 - r0, h) + r0[:, None]
     cols = _nearest_source(c1 - c0, w) + c0[:, None]
-    m = _gather2d(m, rows, cols)
+    m = torch.where(cropped, _gather2d(m, rows, cols), m)
     m = torch.where(m.flatten(1).any(1)[:, None, None], m, True)
 
     # 3. normalise over the field; 4. the outside filled with the mean over the field

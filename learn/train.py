@@ -110,6 +110,10 @@ class TrainConfig:
             per-pair only. The batched pairs' spectral table and tool bank are cached in
             ``<out>/tables`` (built once with spekpy, xraylib and Mitsuba; a GPU machine without
             them reads the cache).
+        framing: with ``pairs = "batched"``: ``"field"`` (default) or ``"detector"``
+            (:data:`learn.online.FRAMINGS`): the pair cropped to the target's field, or the whole
+            detector with the field masked; registration frames the X-ray the same way for the
+            network (the checkpoint records it: :func:`register.contextual.network_view`).
     """
 
     dataset: str
@@ -144,6 +148,7 @@ class TrainConfig:
     current_field: str = "masked"
     tone: str = "off"
     pairs: str = "per-pair"
+    framing: str = "field"
 
     @property
     def online(self) -> bool:
@@ -229,6 +234,12 @@ class TrainConfig:
             raise TrainConfigError(f"train.pairs must be one of {', '.join(PAIRS)}, got {self.pairs!r}")
         if self.pairs == "batched" and self.randomize is None:
             raise TrainConfigError("train.pairs = 'batched' needs train.randomize (it batches the realistic targets)")
+        from learn.online import FRAMINGS
+
+        if self.framing not in FRAMINGS:
+            raise TrainConfigError(f"train.framing must be one of {', '.join(FRAMINGS)}, got {self.framing!r}")
+        if self.framing != "field" and self.pairs != "batched":
+            raise TrainConfigError("train.framing = 'detector' needs train.pairs = 'batched'")
         if self.pairs == "batched" and self.tone != "off":
             raise TrainConfigError("train.pairs = 'batched' cannot tone the targets (train.tone = 'ct' is per-pair only)")
         if self.randomize is not None:
@@ -699,7 +710,7 @@ class _OnlineSource:
                 from learn.batched import BatchedPairs
 
                 del kw["physics"], kw["current_physics"], kw["tone"]
-                kw.update(device=device or "cpu", tables=Path(cfg.out) / "tables")
+                kw.update(device=device or "cpu", tables=Path(cfg.out) / "tables", framing=cfg.framing)
                 self.train = BatchedPairs(campaign, "train", seed=cfg.seed, subjects_per_batch=cfg.subjects_per_batch,
                                           **kw)
                 self.val = BatchedPairs(campaign, val_split, seed=cfg.seed + 1, **kw)

@@ -374,7 +374,10 @@ def register_xray(ct, xray, *, method: str = "contextual+cmaes", model=None, ini
                           scene=scene, model=predictor, physics=moving, label_materials=label_materials,
                           restarts=restarts if method == "cmaes" else 0, keep_drrs=True, note=remark,
                           search=grid)
-    result = engine.register(prepared.image, x0, mask=prepared.mask, toned=prepared.toned)
+    from register.contextual import network_view
+
+    view = network_view(predictor, prepared) if predictor is not None else None  # a detector-framed network
+    result = engine.register(prepared.image, x0, mask=prepared.mask, toned=prepared.toned, network_view=view)
     ran = result.search is not None and bool(result.search.get("grid_poses"))
     return XRayRegistration(method=method, result=result, prepared=prepared, volume=volume, center_lps=c,
                             init_params=x0, physics=moving, label_materials=label_materials, notes=notes,

@@ -74,6 +74,8 @@ class ContextualRegistration:
 
         self.settings = settings or ContextualSettings()
         self.predictor = predictor
+        self._view_args = dict(volume=volume, physics=physics, scene=scene, label_materials=label_materials)
+        self._view_renderers: dict = {}
         self.center_lps = np.asarray(anatomy_center(volume) if center_lps is None else center_lps, float)
         # the current image at each iteration: physics as CMAESRegistration's ``physics``
         self.renderer = moving_renderer(volume, physics, scene=scene, size=tuple(size), center_lps=self.center_lps,
@@ -96,8 +98,22 @@ class ContextualRegistration:
                                             center_lps=self.center_lps, physics=physics,
                                             label_materials=label_materials)
 
+    def _view_renderer(self, geometry):
+        """The moving-image renderer of a network view's detector (made once per geometry)."""
+        from sim.physics.imaging import moving_renderer
+
+        key = (geometry.height, geometry.width, geometry.pixel_spacing_mm, geometry.principal_point,
+               geometry.sdd_mm, geometry.sod_mm)
+        if key not in self._view_renderers:
+            a = self._view_args
+            self._view_renderers[key] = moving_renderer(a["volume"], a["physics"], scene=a["scene"],
+                                                        size=(geometry.height, geometry.width),
+                                                        center_lps=self.center_lps, geometry=geometry,
+                                                        label_materials=a["label_materials"])
+        return self._view_renderers[key]
+
     def register(self, fixed: np.ndarray, init_params=np.zeros(6), *, mask: np.ndarray | None = None,
-                 toned: np.ndarray | None = None) -> RegistrationResult:
+                 toned: np.ndarray | None = None, network_view: "NetworkView | None" = None) -> RegistrationResult:
         """Register ``fixed`` ``(H, W)`` (preprocessed like the DRRs: bone bright) from ``init_params``
         (deg, mm). ``mask`` ``(H, W)`` bool: the valid pixels (collimated field). The predictor then
         sees the X-ray with the pixels outside the mask filled by the valid pixels' mean
@@ -107,7 +123,12 @@ class ContextualRegistration:
         around the field); CMA-ES and the final similarity use the valid pixels only. ``toned``
         ``(H, W)``: the X-ray's toned version (:attr:`register.prepare.PreparedXRay.toned`) or None;
         the global search ranks its grid on it too, and a network trained on toned targets (its
-        checkpoint's ``tone`` is ``"ct"``) sees it instead of ``fixed``."""
+        checkpoint's ``tone`` is ``"ct"``) sees it instead of ``fixed``. ``network_view``: what a
+        network framed by the detector (its ``framing`` is ``"detector"``) sees instead of
+        ``fixed``: the X-ray's whole detector at the network's size with its field
+        (:class:`NetworkView`, :func:`network_view`); the network's DRRs are then rendered for that
+        detector, and ``fixed``, ``mask`` and the renderer of this registration serve CMA-ES and
+        the similarity only."""
         from learn.labels import apply_update
         from register.prepare import masked_fill
         from sim.geometry import params_from_pose, pose_from_params
@@ -123,6 +144,11 @@ class ContextualRegistration:
             raise RegistrationError(f"toned: expected the X-ray's shape {fixed.shape}, got {np.shape(toned)}")
         toned_net = toned is not None and getattr(self.predictor, "tone", "off") == "ct"
         net_fixed = masked_fill(np.asarray(toned, np.float64) if toned_net else fixed, mask)
+        net_mask, view_renderer = mask, None
+        if network_view is not None:  # a detector-framed network: the whole detector, the field masked
+            net_mask = network_view.mask
+            net_fixed = masked_fill(network_view.image, net_mask)
+            view_renderer = self._view_renderer(network_view.geometry)
         # a network trained on open current images sees the DRR's anatomy around the field too
         open_current = getattr(self.predictor, "current_field", "masked") == "open"
         T = pose_from_params(np.asarray(init_params, float).reshape(6), self.geometry.sod_mm)
@@ -130,11 +156,12 @@ class ContextualRegistration:
         t0 = time.perf_counter()
         renders = 0
         for _ in range(s.max_iterations):
-            drr = self.renderer.render(T)[0]
-            renders += 1
+            drr = self.renderer.render(T)[0] if view_renderer is None or s.keep_drrs else None
+            net_drr = drr if view_renderer is None else view_renderer.render(T)[0]
+            renders += 1 + (drr is not None and view_renderer is not None)
             if s.keep_drrs:
                 drrs.append(drr)
-            g = np.asarray(self.predictor(net_fixed, drr if open_current else masked_fill(drr, mask)),
+            g = np.asarray(self.predictor(net_fixed, net_drr if open_current else masked_fill(net_drr, net_mask)),
                            float).reshape(6)
             if not np.all(np.isfinite(g)):
                 raise RegistrationError(f"the predictor returned a non-finite gradient {g.tolist()}")
@@ -209,3 +236,31 @@ class ContextualRegistration:
 #: on 50 line DRRs the tone-tolerant score lost a case (98 % against 100 %) and cost 0.5 s.
 REFINE_SETTINGS = CMAESSettings(levels=(2,), sigma_deg=3.0, sigma_mm=8.0, range_deg=10.0, range_mm=30.0,
                                 generations=(40,), metrics=("tone_tolerant_gncc",))
+
+
+@dataclass(frozen=True)
+class NetworkView:
+    """What a detector-framed network (``train.framing = "detector"``) sees of an X-ray: its whole
+    detector at the network's size. ``image`` ``(h, w)`` the preprocessed X-ray, ``mask`` ``(h, w)``
+    bool its valid pixels (the field), ``geometry`` the :class:`sim.geometry.CArmGeometry` of
+    those pixels (the network's DRRs are rendered for it)."""
+
+    image: np.ndarray
+    mask: np.ndarray
+    geometry: object
+
+
+def network_view(predictor, prepared) -> NetworkView | None:
+    """The :class:`NetworkView` of a prepared X-ray (:class:`register.prepare.PreparedXRay`) for
+    ``predictor`` when it is framed by the detector (its ``framing``); None otherwise (the network
+    sees the X-ray cropped to its field, as CMA-ES does). The whole detector is fitted into the
+    network's image size, aspect kept (:func:`register.prepare.fit_to_size`)."""
+    if getattr(predictor, "framing", "field") != "detector":
+        return None
+    from register.prepare import fit_to_size
+
+    size = getattr(predictor, "size", None) or (64, 64)
+    image, mask, geometry = fit_to_size(prepared.full_image, prepared.full_mask, prepared.full_geometry, size)
+    if mask is None or not mask.any():
+        raise RegistrationError("the X-ray's field holds no valid pixel at the network's size")
+    return NetworkView(np.asarray(image, np.float64), np.asarray(mask, bool), geometry)

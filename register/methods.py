@@ -69,12 +69,13 @@ class _Method:
         self.name = name
         self.engine = engine
 
-    def register(self, fixed, init_params, *, mask=None, toned=None) -> RegistrationResult:
+    def register(self, fixed, init_params, *, mask=None, toned=None, network_view=None) -> RegistrationResult:
         """``toned``: the X-ray's toned version (:attr:`register.prepare.PreparedXRay.toned`), used by
         the contextual methods (their search's grid, a network trained on toned targets); CMA-ES
-        alone registers ``fixed``."""
-        if toned is not None and hasattr(self.engine, "search"):
-            return self.engine.register(fixed, init_params, mask=mask, toned=toned)
+        alone registers ``fixed``. ``network_view``: what a detector-framed network sees
+        (:func:`register.contextual.network_view`), contextual methods only."""
+        if hasattr(self.engine, "search"):
+            return self.engine.register(fixed, init_params, mask=mask, toned=toned, network_view=network_view)
         return self.engine.register(fixed, init_params, mask=mask)
 
 

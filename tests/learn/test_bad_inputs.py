@@ -53,6 +53,8 @@ TYPE_CASES = [
     ("randomize", "3", "a table, got the integer 3"),
     ("current_field", "2", "a string, got the integer 2"),
     ("tone", "true", "a string, got true (a boolean)"),
+    ("pairs", "1", "a string, got the integer 1"),
+    ("framing", "true", "a string, got true (a boolean)"),
 ]
 
 
@@ -305,3 +307,22 @@ def test_an_output_that_cannot_be_written_is_refused_before_any_work(tmp_path, c
     err = capsys.readouterr().err.strip()
     assert err.startswith(f"ctxreg {command}: error: ") and "\n" not in err and str(out) in err, err
     assert ("existing file" if where == "file" else "existing folder") in err
+
+
+@pytest.mark.parametrize("args, words", [
+    (["--stop-after", "-3"], "--stop-after -3: must be > 0 s"),
+    (["--device", "tpu"], "invalid choice: 'tpu'"),
+] + ([] if torch.cuda.is_available() else [(["--device", "cuda"], "torch sees no CUDA GPU")]))
+def test_train_run_options_are_refused_in_one_line_before_any_work(tmp_path, capsys, args, words):
+    from register.cli import main
+
+    cfg = tmp_path / "train.toml"
+    cfg.write_text(f'[train]\ndataset = "campaign.toml"\nout = "{tmp_path / "out"}"\n')
+    try:
+        code = main(["train", str(cfg), *args])
+    except SystemExit as e:  # argparse's own refusal (a choice)
+        code = e.code
+    assert code == 2
+    err = capsys.readouterr().err.strip().splitlines()[-1]
+    assert err.startswith("ctxreg train: error:") and words in err, err
+    assert not (tmp_path / "out").exists()
