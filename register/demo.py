@@ -139,10 +139,9 @@ def run_demo(cmd: DemoCommand) -> list[Path]:
 
     stages.start("figures", "writing the overlay, checkerboard, trajectory GIF and convergence plot")
     points = bone_points(volume, 2000, 0)
-    P_true = imager.renderer.projection_matrix(T_true)
 
     def err(T) -> dict:
-        return pose_errors(T, T_true, points, center, imager.renderer.projection_matrix(T), P_true, g.pixel_spacing_mm)
+        return pose_errors(T, T_true, points, center, g)
 
     traj = outcome.result.trajectory
     visited = [pose_from_params(p, g.sod_mm) for p in traj["params"]] if traj is not None else []

@@ -96,21 +96,45 @@ def sample_cases(settings: EvaluationSettings, distribution=None) -> tuple[np.nd
 
 
 def pose_errors(T_est: np.ndarray, T_true: np.ndarray, points_lps: np.ndarray, center_lps: np.ndarray,
-                projection_est: np.ndarray, projection_true: np.ndarray, pixel_spacing_mm: float) -> dict:
-    """Rotation (deg), translation (mm), mTRE (mm) and mPD (mm at the detector) of one estimate."""
-    from sim.geometry import project_points
+                geometry=None, *legacy, projection_est: np.ndarray | None = None) -> dict:
+    """The pose errors of one estimate, the one function every command and study scores with.
+
+    * ``rot_err_deg``: the geodesic angle of ``R_est^T R_true`` (deg);
+    * ``trans_err_mm``: ``|t_est - t_true|``, the anatomy centre's displacement (mm);
+    * ``mtre_mm``: the mean 3-D distance between ``points_lps`` (``(N, 3)`` LPS mm, e.g.
+      :func:`bone_points`) placed by the two poses (mm);
+    * ``mpd_mm``: the mean distance between their projections on the detector, both through
+      ``geometry`` (a :class:`sim.geometry.CArmGeometry`: ``K [R | t - R c]`` of each pose), in mm
+      at the detector plane (pixels x the pixel spacing); points without an image are left out.
+
+    ``projection_est``: the estimate's own ``(3, 4)`` projection where a method reports one (None:
+    from ``geometry``, the usual case; the truth's is always ``geometry``'s). The older form
+    ``pose_errors(T_est, T_true, points, centre, P_est, P_true, pixel_spacing_mm)`` still works
+    (scripts); it is the same arithmetic.
+    """
+    from sim.geometry import CArmGeometry, project_points, projection_matrix
     from sim.se3 import rotation_error_deg, translation_error_mm
 
-    x = points_lps - center_lps
+    if isinstance(geometry, CArmGeometry) and not legacy:
+        P_est = projection_matrix(geometry, T_est, center_lps) if projection_est is None else projection_est
+        P_true = projection_matrix(geometry, T_true, center_lps)
+        spacing = geometry.pixel_spacing_mm
+    elif len(legacy) == 2 and geometry is not None:
+        P_est, (P_true, spacing) = geometry, legacy
+    else:
+        raise TypeError("pose_errors(T_est, T_true, points_lps, center_lps, geometry): geometry is a CArmGeometry")
+    x = np.asarray(points_lps, float) - center_lps
     cam_est = x @ T_est[:3, :3].T + T_est[:3, 3]
     cam_true = x @ T_true[:3, :3].T + T_true[:3, 3]
-    uv_est = project_points(projection_est, points_lps)
-    uv_true = project_points(projection_true, points_lps)
+    uv_est = project_points(P_est, points_lps)
+    uv_true = project_points(P_true, points_lps)
+    distances = np.linalg.norm(uv_est - uv_true, axis=1)
+    distances = distances[np.isfinite(distances)]
     return {
         "rot_err_deg": float(rotation_error_deg(T_est, T_true)),
         "trans_err_mm": float(translation_error_mm(T_est, T_true)),
         "mtre_mm": float(np.linalg.norm(cam_est - cam_true, axis=1).mean()),
-        "mpd_mm": float(np.nanmean(np.linalg.norm(uv_est - uv_true, axis=1)) * pixel_spacing_mm),
+        "mpd_mm": float(distances.mean() * spacing) if distances.size else float("nan"),
     }
 
 
@@ -187,7 +211,7 @@ def evaluate(volume, methods: dict[str, RegistrationMethod], settings: Evaluatio
     after the last case (a run that fails leaves nothing). ``record`` (e.g. the targets' and the
     methods' physics) is stored in ``summary.json``."""
     from sim.atomic import atomic_path, write_csv, write_json
-    from sim.geometry import pose_from_params, projection_matrix
+    from sim.geometry import pose_from_params
 
     out = Path(out)
     targets, starts = sample_cases(settings)
@@ -199,13 +223,11 @@ def evaluate(volume, methods: dict[str, RegistrationMethod], settings: Evaluatio
     bar = Progress(settings.cases * len(methods), 0, f"evaluate {out.name}", "registrations", rate_unit="reg/s")
     for i, (target, start, image) in enumerate(zip(targets, starts, target_images)):
         T_true = pose_from_params(target, geometry.sod_mm)
-        P_true = projection_matrix(geometry, T_true, center_lps)
         for name, method in methods.items():
             t0 = time.perf_counter()
             result = method.register(image, start)
             elapsed = time.perf_counter() - t0
-            err = pose_errors(result.pose, T_true, points, center_lps, result.projection, P_true,
-                              geometry.pixel_spacing_mm)
+            err = pose_errors(result.pose, T_true, points, center_lps, geometry)
             row = {"case": i, "method": name, "start": settings.start, **err,
                    "success": err["mtre_mm"] < settings.success_mtre_mm and err["rot_err_deg"] < settings.success_rot_deg,
                    "time_s": elapsed, "renders": result.renders, "similarity": result.similarity,

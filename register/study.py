@@ -448,7 +448,6 @@ def _evaluate_xray(study: Study, target: Target, volume, center, predictor, fold
     for i, (target_params, start) in enumerate(zip(targets, starts)):
         T_true = pose_from_params(target_params, g.sod_mm)
         path = frame.write(frames / f"case_{i:03d}.dcm", T_true, i)
-        P_true = frame.imager.renderer.projection_matrix(T_true)
         for method in study.methods:
             t0 = time.perf_counter()
             try:
@@ -459,7 +458,7 @@ def _evaluate_xray(study: Study, target: Target, volume, center, predictor, fold
                 pose = pose_from_params(np.asarray(start, float), g.sod_mm)  # the user keeps the start pose
                 similarity, refused = float("nan"), str(e)
             elapsed = time.perf_counter() - t0
-            err = pose_errors(pose, T_true, points, center, P_true, P_true, g.pixel_spacing_mm)
+            err = pose_errors(pose, T_true, points, center, g)  # the frame's geometry: both poses projected
             rows.append({"case": i, "method": method, "start": study.start, **err,
                          "success": not refused and err["mtre_mm"] < settings.success_mtre_mm
                          and err["rot_err_deg"] < settings.success_rot_deg,

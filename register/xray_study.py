@@ -125,8 +125,7 @@ def run_study(ct: str, out: str | Path, *, cases: int = 10, size: int = 256, see
                 if code == 0:
                     res = json.loads((reg_dir / "result.json").read_text())
                     T_est = np.array(res["pose_4x4"])
-                    P = imager.renderer.projection_matrix(T_true)
-                    err = pose_errors(T_est, T_true, points, center, P, P, g.pixel_spacing_mm)
+                    err = pose_errors(T_est, T_true, points, center, g)
                     truth_field = frame["field_mask"]
                     inp = res["xray_input"]
                     row.update({k2: err[k2] for k2 in ("rot_err_deg", "trans_err_mm", "mtre_mm")},
