@@ -50,9 +50,14 @@ Outputs in ``--out``: ``variants/<name>/`` (the training run: ``train.toml``, ``
 ``log.csv``), ``results/<variant>/<target>/summary.json`` (and ``cases.csv``), ``table.md``,
 ``results.json``, ``study.png`` and ``commands.sh``. **Resumable**: a run continues where the
 last one stopped: finished trainings (their checkpoint reached ``iterations``) and finished
-evaluations (their ``summary.json``) are kept, an interrupted training resumes from its
-checkpoint (``ctxreg train --resume``). ``study.json`` records the study; a changed study file is
-refused, naming the keys that changed, unless the changes only add variants or targets.
+evaluations (their ``summary.json``) are kept **when they were made with the settings the study
+now asks for** (``variants/<name>/settings.json``: :func:`training_settings`; ``summary.json``'s
+``study_settings``: :func:`evaluation_settings`), an interrupted training resumes from its
+checkpoint (``ctxreg train --resume``). A part made with other settings is redone, the changed
+keys named, the old one moved to ``replaced/`` (docs/domain_gap.md). A damaged state file stops
+the run in one line ("remove it to redo that evaluation"). ``study.json`` records the study; a
+changed study file is refused, naming the keys that changed, unless the changes only add variants
+or targets.
 """
 
 from __future__ import annotations
@@ -192,6 +197,7 @@ def load_study(path: str | Path) -> Study:
     if (not isinstance(size, list) or len(size) != 2
             or any(isinstance(s, bool) or not isinstance(s, int) or s not in IMAGE_SIDE_PX for s in size)):
         raise StudyError(f"{path}: study.size: [H, W] in {IMAGE_SIDE_PX} px, got {size!r}")
+    _check_aspect(size, f"{path}: study.size")
     moving = head.get("moving_physics", "line")
     if moving not in ("line", "poly"):
         raise StudyError(f"{path}: study.moving_physics: 'line' or 'poly', got {moving!r}")
@@ -275,6 +281,19 @@ def load_study(path: str | Path) -> Study:
     return Study(variants=tuple(variants), targets=tuple(targets), **study_kw)
 
 
+def _check_aspect(size, where: str, scene: str = "cios_fusion") -> None:
+    """Refuse a registration size that does not keep the scene detector's aspect (square pixels):
+    every target and DRR of the study is rendered at it, so this is refused before any training."""
+    from sim.scene import SceneError, load_scene
+
+    try:
+        load_scene(scene).geometry_at(int(size[0]), int(size[1]))
+    except (SceneError, ValueError) as e:
+        g = load_scene(scene).geometry
+        raise StudyError(f"{where}: {list(size)} does not keep the {scene} detector's aspect {g.height} x {g.width} "
+                         f"(square pixels), e.g. {[size[0], round(size[0] * g.width / g.height)]}") from None
+
+
 def _checked(build, args: dict, where: str, *, unpack: bool = True):
     """``build(**args)`` (or ``build(args)``), its refusal (a wrong key or value) as one StudyError
     line naming ``where``."""
@@ -329,20 +348,169 @@ def variant_config(variant: Variant, folder: Path) -> Path:
     return config
 
 
-def _train_variant(variant: Variant, folder: Path, log) -> Path:
-    """Train (or resume) one variant; returns its checkpoint. A finished training is kept; a
-    ``model`` variant is its model."""
-    from learn.checkpoint import load_checkpoint
+#: The record of a variant's training settings in its folder (:func:`training_settings`).
+TRAINING_RECORD = "settings.json"
+#: Where a training or an evaluation made with other settings is moved before it is redone.
+REPLACED = "replaced"
+
+
+def _sha256(path: Path) -> str:
+    import hashlib
+
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+def _fingerprint(value: str) -> str:
+    """What identifies an input file's content: a file's sha256; a campaign folder's
+    ``manifest.json``'s (it holds every shard's sha256); another folder's file names and sizes."""
+    import hashlib
+
+    path = Path(value)
+    if path.is_file():
+        return "sha256:" + _sha256(path)
+    if (path / "manifest.json").is_file():
+        return "manifest sha256:" + _sha256(path / "manifest.json")
+    if path.is_dir():
+        listing = sorted((str(p.relative_to(path)), p.stat().st_size) for p in path.rglob("*") if p.is_file())
+        return "listing sha256:" + hashlib.sha256(json.dumps(listing).encode()).hexdigest()
+    return "missing"
+
+
+def _plain(obj: Any) -> Any:
+    """``obj`` as JSON gives it back (tuples as lists): what a record compares against."""
+    return json.loads(json.dumps(obj, sort_keys=True, default=str))
+
+
+def _digest(settings: dict) -> str:
+    import hashlib
+
+    return hashlib.sha256(json.dumps(settings, sort_keys=True, default=str).encode()).hexdigest()
+
+
+def training_settings(variant: Variant) -> dict:
+    """The settings a variant's training is made with: its ``[variant.train]`` table (paths
+    resolved) and its inputs' content (``dataset``, ``init_from``, ``weights_path``:
+    :func:`_fingerprint`); for a ``model`` variant the model file's sha256."""
+    if variant.model is not None:
+        return _plain({"model": variant.model, "inputs": {"model": _fingerprint(variant.model)}})
+    inputs = {key: _fingerprint(variant.train[key]) for key in ("dataset", "init_from", "weights_path")
+              if isinstance(variant.train.get(key), str)}
+    return _plain({"train": dict(variant.train), "inputs": inputs})
+
+
+def evaluation_settings(study: Study, target: Target, network: dict) -> dict:
+    """The settings an evaluation of one variant on one target is made with: the network's
+    (``{"training_sha256": ...}``: the digest of :func:`training_settings`), the target's (kind,
+    physics, collimator, display, cases: its frames) and the study's protocol (CT, start, seed,
+    methods, size, moving physics)."""
+    return _plain({"network": network,
+                   "target": {"kind": target.kind, "physics": target.physics, "collimator": target.collimator,
+                              "display": target.display, "cases": study.cases_of(target)},
+                   "protocol": {"ct": study.ct, "start": study.start, "seed": study.seed,
+                                "methods": list(study.methods), "size": list(study.size),
+                                "moving_physics": study.moving_physics}})
+
+
+def _diff(old: Any, new: Any, key: str = "") -> list[str]:
+    """``key: old -> new`` for every leaf that differs (dicts compared key by key); an input
+    file's fingerprint as ``key: its content changed``."""
+    if isinstance(old, dict) and isinstance(new, dict):
+        out = []
+        for k in sorted(set(old) | set(new), key=str):
+            out += _diff(old.get(k), new.get(k), f"{key}.{k}" if key else str(k))
+        return out
+    if old == new:
+        return []
+    if key.startswith("inputs.") and old is not None and new is not None:
+        return [f"{key}: its content changed"]
+    if key.startswith("network."):
+        return [f"{key}: the variant's network changed"]
+    return [f"{key}: {json.dumps(old, default=str)} -> {json.dumps(new, default=str)}"]
+
+
+def _damaged(path: Path, why: str, what: str = "that part") -> StudyError:
+    return StudyError(f"{path} is damaged ({why}): remove it to redo {what}")
+
+
+def _read_json(path: Path, what: str) -> dict:
+    try:
+        data = json.loads(path.read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
+        raise _damaged(path, f"not JSON: {str(e).splitlines()[0] if str(e) else type(e).__name__}", what) from None
+    if not isinstance(data, dict):
+        raise _damaged(path, f"a JSON {type(data).__name__}, not an object", what)
+    return data
+
+
+def _replace(out: Path, folder: Path, kind: str, old_digest: str | None) -> Path:
+    """Move ``folder`` (a training or an evaluation made with other settings) to
+    ``out/replaced/<kind>/<relative path>-<old digest>`` and return where it went."""
+    import os
+
+    rel = folder.relative_to(out / kind)
+    dest = out / REPLACED / kind / f"{rel}-{(old_digest or 'unrecorded')[:12]}"
+    n = 1
+    while dest.exists():
+        n += 1
+        dest = dest.with_name(f"{dest.name.rsplit('~', 1)[0]}~{n}")
+    dest.parent.mkdir(parents=True, exist_ok=True)
+    os.replace(folder, dest)
+    return dest
+
+
+def _train_variant(variant: Variant, folder: Path, log, out: Path | None = None) -> Path:
+    """Train (or resume) one variant; returns its checkpoint. A finished training is kept only if
+    it was made with the variant's settings (:data:`TRAINING_RECORD`, :func:`training_settings`);
+    one made with other settings is moved to ``out/replaced/variants/`` and redone, the changed
+    keys named. A ``model`` variant is its model."""
+    from learn.checkpoint import CheckpointError, load_checkpoint
     from learn.train import load_train_config, train
+    from sim.atomic import write_json
 
     if variant.model is not None:
         log(f"variant {variant.name}: the model {variant.model}, as it is")
         return Path(variant.model)
-    folder.mkdir(parents=True, exist_ok=True)
-    cfg = load_train_config(variant_config(variant, folder))
+    out = folder.parent.parent if out is None else out
+    settings = training_settings(variant)
+    digest = _digest(settings)
+    record = folder / TRAINING_RECORD
     ckpt = folder / "checkpoint.pt"
     if ckpt.is_file():
-        done = load_checkpoint(ckpt).iteration or 0
+        changes: list[str] = []
+        old_digest = None
+        if record.is_file():
+            old = _read_json(record, "that training's check (the checkpoint is then checked against its config)")
+            if not isinstance(old.get("settings"), dict) or not isinstance(old.get("sha256"), str):
+                raise _damaged(record, "no settings and sha256", "that training's check")
+            old_digest = old["sha256"]
+            if old_digest != digest:
+                changes = _diff(old["settings"], settings) or ["(the recorded settings' digest)"]
+        else:  # a training from before the record: its checkpoint's config is the record
+            from learn.train import TrainConfig, _config_changes
+
+            try:
+                state = load_checkpoint(ckpt)
+            except CheckpointError as e:
+                raise _damaged(ckpt, str(e).splitlines()[0], "that training") from None
+            stored = state.config if isinstance(state.config, dict) else {}
+            out_now = stored.get("out", str(folder.resolve()))  # a study folder moved as a whole is the same
+            changes = _config_changes(stored, TrainConfig(**{**variant.train, "out": out_now}))
+        if changes:
+            moved = _replace(out, folder, "variants", old_digest)
+            log(f"variant {variant.name}: trained with other settings ({'; '.join(changes)}): training again "
+                f"(the old training moved to {moved})")
+    folder.mkdir(parents=True, exist_ok=True)
+    cfg = load_train_config(variant_config(variant, folder))
+    write_json(record, {"settings": settings, "sha256": digest})
+    if ckpt.is_file():
+        try:
+            done = load_checkpoint(ckpt).iteration or 0
+        except CheckpointError as e:
+            raise _damaged(ckpt, str(e).splitlines()[0], "that training") from None
         if done >= cfg.iterations:
             log(f"variant {variant.name}: trained ({done} iterations), kept")
             return ckpt
@@ -353,7 +521,38 @@ def _train_variant(variant: Variant, folder: Path, log) -> Path:
     return ckpt
 
 
-def _evaluate_drr(study: Study, target: Target, volume, center, predictor, folder: Path, log) -> dict:
+#: What each method's summary must hold for the table (a summary.json without it is damaged).
+_SUMMARY_KEYS = ("cases", "success", "rot_err_deg", "trans_err_mm", "mtre_mm", "time_s")
+
+
+def _finished_evaluation(path: Path, study: Study, settings: dict) -> tuple[dict | None, list[str]]:
+    """``(summary, [])`` of a finished evaluation made with ``settings``; ``(None, changes)`` for
+    one made with other settings (``changes``: the keys; one line where it predates the record);
+    ``(None, [])`` where there is none. A damaged ``summary.json`` is refused in one line."""
+    if not path.is_file():
+        return None, []
+    data = _read_json(path, "that evaluation")
+    summary = data.get("summary")
+    if not isinstance(summary, dict):
+        raise _damaged(path, "no 'summary' table", "that evaluation")
+    for method in study.methods:
+        stats = summary.get(method)
+        if stats is None and data.get("study_settings") != settings:
+            continue  # another method list: a change, named below
+        if not isinstance(stats, dict) or any(k not in stats for k in _SUMMARY_KEYS) or any(
+                not isinstance(stats[k], dict) or not {"mean", "median"} <= set(stats[k])
+                for k in _SUMMARY_KEYS if k not in ("cases", "success")):
+            raise _damaged(path, f"summary.{method} lacks its statistics", "that evaluation")
+    if "study_settings" not in data:
+        return None, ["made before the study recorded each evaluation's settings"]
+    if data.get("study_settings") != settings:
+        old = data["study_settings"]
+        return None, _diff(old, settings) if isinstance(old, dict) else ["study_settings: not a table"]
+    return summary, []
+
+
+def _evaluate_drr(study: Study, target: Target, volume, center, predictor, folder: Path, log,
+                  stamp: dict | None = None) -> dict:
     from dataclasses import asdict
 
     from register.evaluate import EvaluationSettings, evaluate
@@ -372,7 +571,7 @@ def _evaluate_drr(study: Study, target: Target, volume, center, predictor, folde
                for m in study.methods}
     result = evaluate(volume, methods, settings, folder, center_lps=center, geometry=renderer.geometry,
                       target_renderer=renderer, log=lambda s: log(f"  {s}"),
-                      record={"target_physics": asdict(physics)})
+                      record={"target_physics": asdict(physics), **(stamp or {})})
     return result["summary"]
 
 
@@ -426,7 +625,8 @@ class XRayFrames:
                                 bits_stored=min(16, max(8, self.chain.bits)), modality="RF")
 
 
-def _evaluate_xray(study: Study, target: Target, volume, center, predictor, folder: Path, log) -> dict:
+def _evaluate_xray(study: Study, target: Target, volume, center, predictor, folder: Path, log,
+                   stamp: dict | None = None) -> dict:
     """Realistic frames through :func:`register.api.register_xray`, scored like the evaluation."""
     from register.api import register_xray
     from register.evaluate import EvaluationSettings, bone_points, pose_errors, sample_cases, summarize
@@ -468,7 +668,7 @@ def _evaluate_xray(study: Study, target: Target, volume, center, predictor, fold
             bar.update(1)
     summary = summarize(rows, settings)
     write_csv(folder / "cases.csv", rows)
-    write_json(folder / "summary.json", {"summary": summary, "target": target.name})
+    write_json(folder / "summary.json", {"summary": summary, "target": target.name, **(stamp or {})})
     return summary
 
 
@@ -486,9 +686,6 @@ def run_study(study: Study, out: str | Path, *, log: Callable[[str], None] = pri
     from sim.ct_io import load_ct_spec
     from sim.outputs import check_output_dir
 
-    out = check_output_dir(out, STUDY_FILES)
-    out.mkdir(parents=True, exist_ok=True)
-    _check_record(out, study)
     names = [v.name for v in study.variants]
     unknown = sorted(set(only or ()) - set(names))
     if unknown:
@@ -497,6 +694,9 @@ def run_study(study: Study, out: str | Path, *, log: Callable[[str], None] = pri
     unknown = sorted(set(targets or ()) - set(target_names))
     if unknown:
         raise StudyError(f"--targets {' '.join(unknown)}: not a target of the study (it has {', '.join(target_names)})")
+    out = check_output_dir(out, STUDY_FILES)
+    out.mkdir(parents=True, exist_ok=True)
+    _check_record(out, study)
     volume = load_ct_spec(study.ct)
     center = anatomy_center(volume)
     results: dict[str, dict[str, dict]] = {}
@@ -505,29 +705,43 @@ def run_study(study: Study, out: str | Path, *, log: Callable[[str], None] = pri
     parts = len(chosen) * (1 + len(study.targets))
     done = 0
     for variant in study.variants:
-        if variant not in chosen:  # another process's: its finished evaluations only
+        network = {"training_sha256": _digest(training_settings(variant))}
+        if variant not in chosen:  # another process's: its finished evaluations (made with these settings) only
             for target in study.targets:
                 summary_file = out / "results" / variant.name / target.name / "summary.json"
-                if summary_file.is_file():
-                    results.setdefault(variant.name, {})[target.name] = json.loads(summary_file.read_text())["summary"]
+                summary, changes = _finished_evaluation(summary_file, study, evaluation_settings(study, target, network))
+                if summary is not None:
+                    results.setdefault(variant.name, {})[target.name] = summary
+                elif changes:
+                    log(f"{variant.name} on {target.name}: made with other settings ({'; '.join(changes)}), left "
+                        f"out (--only {variant.name} redoes it)")
             continue
-        ckpt = _train_variant(variant, out / "variants" / variant.name, log)
+        ckpt = _train_variant(variant, out / "variants" / variant.name, log, out)
         done += 1
         predictor = None
         results[variant.name] = {}
         for target in study.targets:
             folder = out / "results" / variant.name / target.name
-            summary_file = folder / "summary.json"
-            if summary_file.is_file():
-                results[variant.name][target.name] = json.loads(summary_file.read_text())["summary"]
+            settings = evaluation_settings(study, target, network)
+            summary, changes = _finished_evaluation(folder / "summary.json", study, settings)
+            if summary is not None:
+                results[variant.name][target.name] = summary
                 log(f"{variant.name} on {target.name}: evaluated, kept")
             elif targets is not None and target.name not in targets:
-                log(f"{variant.name} on {target.name}: not in --targets, skipped")
+                log(f"{variant.name} on {target.name}: not in --targets, skipped"
+                    + (f" (its evaluation was made with other settings: {'; '.join(changes)})" if changes else ""))
             else:
+                if changes:
+                    old = _read_json(folder / "summary.json", "that evaluation").get("study_settings_sha256")
+                    moved = _replace(out, folder, "results", old if isinstance(old, str) else None)
+                    log(f"{variant.name} on {target.name}: evaluated with other settings ({'; '.join(changes)}): "
+                        f"evaluating again (the old evaluation moved to {moved})")
                 predictor = predictor or NetworkPredictor(ckpt)
                 log(f"{variant.name} on {target.name}: {study.cases_of(target)} cases ({target.kind})")
                 evaluate = _evaluate_drr if target.kind == "drr" else _evaluate_xray
-                results[variant.name][target.name] = evaluate(study, target, volume, center, predictor, folder, log)
+                stamp = {"study_settings": settings, "study_settings_sha256": _digest(settings)}
+                results[variant.name][target.name] = evaluate(study, target, volume, center, predictor, folder, log,
+                                                              stamp=stamp)
             done += 1
             rate = done / max(time.perf_counter() - t_start, 1e-9)
             log(f"study: {done}/{parts} parts, ETA {(parts - done) / rate:.0f} s")
