@@ -52,6 +52,21 @@ SEARCH_METHODS = ("contextual+cmaes",)
 #: network measured on its own), ``"always"`` runs the grid whatever the network's pose scored.
 SEARCH_MODES = ("auto", "off", "always")
 
+#: The smallest side (px) of the optimiser's image box (``size``, ``--size``): the registration's
+#: coarsest level works at 1/4 (CMA-ES's first level, the global search's grid and the polarity
+#: check) and needs 8 px per side there and a field left after erosion (at 16 x 16 and 24 x 24 the
+#: masked gradient similarity has no pixel left: "mask: empty after erosion").
+REGISTER_MIN_SIDE_PX = 32
+
+#: The field pixels the coarsest level (1/4) must keep after erosion by one pixel, the global
+#: search's own minimum (:meth:`register.search.GlobalSearch._field`).
+MIN_COARSE_FIELD_PX = 16
+
+#: Bytes per pixel of the global search's grid of padded DRRs at its peak (float32 DRRs, their
+#: float32 Sobel, a float64 copy): the largest allocation a registration makes (the polarity check
+#: and the search score on it). ~2000 grid poses: 4096 x 4096 on a 64 x 64 X-ray asked for 27 GiB.
+GRID_BYTES_PER_PX = 16
+
 #: The files :meth:`XRayRegistration.write` writes (the trajectory files for the contextual methods only).
 OUTPUT_FILES = ("result.json", "overlay.png", "checkerboard.png", "convergence.png", "trajectory.npz", "trajectory.png",
                 "trajectory.gif")
@@ -274,7 +289,9 @@ def register_xray(ct, xray, *, method: str = "contextual+cmaes", model=None, ini
         sdd_mm, sod_mm, pixel_spacing_mm: explicit geometry (override the DICOM tags and the scene).
         size: ``(H, W)``: the optimiser's image is the X-ray (cropped to its field) scaled, aspect
             kept, to the largest size that fits inside ``H x W`` with sides multiples of 4 (the
-            default 128 x 128: the longer side 128 px). Each side in [8, 4096].
+            default 128 x 128: the longer side 128 px). Each side in [32, 4096]
+            (:data:`REGISTER_MIN_SIDE_PX`); the largest allocation it implies is checked against
+            the memory available (:func:`check_registration_memory`) before any work.
         physics: the moving images: ``"line"`` DRRs, ``"poly"`` / ``"full"`` (noise-free
             ``-log(I/I0)``), or a :class:`sim.physics.imaging.PhysicsSettings`.
         preprocess: the preprocessing step names (default
@@ -341,6 +358,10 @@ def register_xray(ct, xray, *, method: str = "contextual+cmaes", model=None, ini
         raise RegistrationError("--intensity / --polarity / --tone: meaningful with the 'intensity' preprocessing step only; "
                                 f"this run's steps are {' '.join(steps) or 'none'}")
     box = fit_box(size)
+    if min(box) < REGISTER_MIN_SIDE_PX:
+        raise RegistrationError(f"--size {box[0]} {box[1]}: the registration needs at least {REGISTER_MIN_SIDE_PX} px "
+                                f"per side (its coarsest level works at 1/4 and must keep a field there); give e.g. "
+                                f"--size 128 128")
     moving = _moving_physics(physics)
     predictor = load_predictor(model) if needs_model(method) else None
     # -- the CT, the X-ray and its geometry, the view at the start
@@ -352,11 +373,13 @@ def register_xray(ct, xray, *, method: str = "contextual+cmaes", model=None, ini
     full_geometry, _ = resolve_geometry(xr, scene, sdd_mm=sdd_mm, sod_mm=sod_mm, pixel_spacing_mm=pixel_spacing_mm)
     check_in_view(volume, full_geometry, pose_from_params(x0, full_geometry.sod_mm), c,
                   what="the start pose (--init, with the anatomy centre --center)")
+    check_registration_memory(box, (xr.pixels.shape[0], xr.pixels.shape[1]), full_geometry)
     # -- the work
     prepared = prepare_xray(xr, volume=volume, center_lps=c, init_params=x0, scene=scene, steps=steps,
                             scale=intensity, polarity=polarity, tone=tone, size=box, sdd_mm=sdd_mm, sod_mm=sod_mm,
                             pixel_spacing_mm=pixel_spacing_mm)
     geometry = prepared.geometry
+    _check_coarse_field(prepared, box, need=MIN_COARSE_FIELD_PX if method in SEARCH_METHODS and search != "off" else 1)
     grid = None  # contextual+cmaes's global search, built once: the polarity check scores on its grid
     if method in SEARCH_METHODS and search != "off":
         grid = GlobalSearch(volume, GlobalSearchSettings(always_grid=search == "always"),
@@ -382,6 +405,54 @@ def register_xray(ct, xray, *, method: str = "contextual+cmaes", model=None, ini
     return XRayRegistration(method=method, result=result, prepared=prepared, volume=volume, center_lps=c,
                             init_params=x0, physics=moving, label_materials=label_materials, notes=notes,
                             search_mode=search if method in SEARCH_METHODS else None, search_ran=ran)
+
+
+def grid_bytes(box, shape, geometry) -> float:
+    """The bytes of the largest allocation of a registration into ``box`` ``(H, W)`` of an X-ray of
+    ``shape`` ``(h, w)`` px and full ``geometry`` (:class:`sim.geometry.CArmGeometry`): the global
+    search's grid of padded DRRs at 1/4 resolution (every grid pose at once, padded by the largest
+    in-plane shift), :data:`GRID_BYTES_PER_PX` each. The polarity check scores on it even for
+    ``method="cmaes"``. The field's crop is not known yet: the X-ray is taken whole."""
+    from register.prepare import _fit_plan
+    from register.search import GlobalSearchSettings
+
+    s = GlobalSearchSettings()
+    _, _, _, g = _fit_plan(tuple(shape), geometry, tuple(box))
+    h, w = g.height // s.factor, g.width // s.factor
+    spacing = g.pixel_spacing_mm * s.factor
+    pad = int(np.ceil(s.range_mm * g.sdd_mm / max(g.sod_mm - s.range_mm, 1e-6) / spacing))
+    return float(len(s.grid_offsets())) * (h + 2 * pad) * (w + 2 * pad) * GRID_BYTES_PER_PX
+
+
+def check_registration_memory(box, shape, geometry, *, available: int | None = None) -> None:
+    """Refuse (one line naming ``--size``) a registration whose largest allocation
+    (:func:`grid_bytes`) exceeds the memory available now, before it is made."""
+    from sim.cliargs import check_memory
+
+    check_memory(grid_bytes(box, shape, geometry), f"--size {box[0]} {box[1]}",
+                 f"registering this {shape[0]} x {shape[1]} px X-ray at {box[0]} x {box[1]} px (the global search's "
+                 "grid of DRRs, which the polarity check uses too)",
+                 advice="give a smaller --size (the default 128 128 is the tested one)", available=available)
+
+
+def _check_coarse_field(prepared, box, need: int) -> None:
+    """Refuse, naming ``--size``, an X-ray whose field fitted into ``box`` leaves fewer than ``need``
+    pixels at the registration's coarsest level (1/4, eroded by one pixel, as the global search and
+    the masked gradient similarity see it): the registration would fail deep inside with "mask:
+    empty after erosion" or "too few to search"."""
+    from scipy import ndimage
+
+    from register.metrics import downsample
+    from register.preprocess import PreprocessError
+
+    mask = prepared.mask
+    h, w = prepared.image.shape
+    m = np.ones((h // 4, w // 4), bool) if mask is None else downsample(np.asarray(mask, np.float64), 4) > 0.999
+    left = int(ndimage.binary_erosion(m, np.ones((3, 3)), border_value=0).sum())
+    if left < need:
+        raise PreprocessError(f"--size {box[0]} {box[1]}: the X-ray's field, fitted into it ({h} x {w} px), leaves "
+                              f"{left} pixels at the registration's coarsest level (1/4), fewer than {need}: give a "
+                              f"larger --size")
 
 
 def _polarity_unchecked(prepared):

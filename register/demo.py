@@ -64,13 +64,59 @@ class DemoCommand:
         "the network: a shipped model's name (ctxreg models) or a ctxreg train checkpoint (default: the shipped "
         "default model)", group="input", metavar="NAME|CKPT"))
     pose: tuple[float, float, float, float, float, float] = field(default=DEMO_POSE, metadata=opt(
-        "the X-ray's true pose PHI THETA PSI TX TY TZ", group="protocol", unit="deg deg deg mm mm mm", nargs=6,
+        "the X-ray's true pose PHI THETA PSI TX TY TZ: the anatomy centre between the source and the detector "
+        "and on the detector", group="protocol", unit="deg deg deg mm mm mm", nargs=6,
         metavar="P"))
     seed: int = field(default=0, metadata=opt("noise and Monte Carlo seed of the X-ray", group="protocol",
                                               bounds=Range(0)))
     size: tuple[int, int] = field(default=(256, 256), metadata=opt(
-        "X-ray rows and columns (the registration works at 128 px on the longer side)", group="protocol",
+        "X-ray rows and columns, at least 32 and square like the detector (the registration works at 128 px on "
+        "the longer side)", group="protocol",
         unit="pixels", nargs=2, metavar=("H", "W"), bounds=IMAGE_SIDE_PX))
+
+
+#: The smallest side (px) of the demo's X-ray (``--size``): its field detection needs 16 px and its
+#: round collimator a field of some pixels across; the registration then works at 128 px.
+DEMO_MIN_SIDE_PX = 32
+
+
+def demo_geometry(cmd: DemoCommand):
+    """The demo X-ray's detector (the scene's at ``--size``); a size off the detector's aspect is
+    refused naming ``--size``."""
+    from sim.cliargs import OptionError
+    from sim.scene import SceneError, load_scene
+
+    try:
+        return load_scene().geometry_at(int(cmd.size[0]), int(cmd.size[1]))
+    except SceneError as e:
+        raise OptionError(f"--size {cmd.size[0]} {cmd.size[1]}: {e}") from None
+
+
+def check_demo_options(cmd: DemoCommand) -> None:
+    """Refuse, naming the option, a ``--size`` the demo cannot register (below
+    :data:`DEMO_MIN_SIDE_PX`, off the detector's aspect) and a ``--pose`` whose anatomy centre is
+    not between the source and the detector or does not project onto the detector: before the CT
+    is loaded and anything simulated. (Whether the CT itself is in view is checked once it is
+    loaded, still before the simulation.)"""
+    from sim.cliargs import OptionError
+
+    if min(cmd.size) < DEMO_MIN_SIDE_PX:
+        raise OptionError(f"--size {cmd.size[0]} {cmd.size[1]}: the demo's X-ray needs at least {DEMO_MIN_SIDE_PX} px "
+                          f"per side (its field detection and registration); the default is 256 256")
+    g = demo_geometry(cmd)
+    tx, ty, tz = (float(v) for v in cmd.pose[3:])
+    shown = "--pose " + " ".join(f"{v:g}" for v in cmd.pose)
+    depth = g.sod_mm + tz  # the anatomy centre's distance from the source along the principal ray
+    if not 0.1 * g.sod_mm <= depth <= 0.9 * g.sdd_mm:
+        raise OptionError(f"{shown}: TZ {tz:g} mm puts the anatomy centre {depth:g} mm from the source; it must lie "
+                          f"between the source and the detector ({0.1 * g.sod_mm:g} to {0.9 * g.sdd_mm:g} mm, TZ "
+                          f"{0.1 * g.sod_mm - g.sod_mm:g} to {0.9 * g.sdd_mm - g.sod_mm:g})")
+    cx, cy = g.principal_point
+    u = tx / depth * g.sdd_mm / g.pixel_spacing_mm + cx
+    v = ty / depth * g.sdd_mm / g.pixel_spacing_mm + cy
+    if not (-0.5 <= u <= g.width - 0.5 and -0.5 <= v <= g.height - 0.5):
+        raise OptionError(f"{shown}: TX {tx:g} / TY {ty:g} mm move the anatomy centre off the detector (it would "
+                          f"project at column {u:.0f}, row {v:.0f} of {g.width} x {g.height})")
 
 
 class _Stages:
@@ -104,8 +150,10 @@ def run_demo(cmd: DemoCommand) -> list[Path]:
     from sim.outputs import check_output_dir
     from sim.physics.display import Collimator, DisplayChain
     from sim.physics.imaging import PhysicsSettings, XRayImager
+    from sim.render import check_in_view
 
     out = check_output_dir(cmd.out, OUTPUT_FILES + DEMO_FILES)
+    check_demo_options(cmd)  # --size and --pose, before the CT is loaded or anything simulated
     model = resolve_model(cmd.model)  # a bad --model is refused before any work
     stages = _Stages(4)
     ct = cmd.ct or default_ct()
@@ -118,9 +166,10 @@ def run_demo(cmd: DemoCommand) -> list[Path]:
                                    "(full physics, scatter, grid, noise, round collimator, fluoroscopy display)")
     physics = PhysicsSettings(level="full", kvp=85.0, mas=1.0, grid_ratio=10.0, noise=True, seed=cmd.seed,
                               scatter_photons=200_000)
-    imager = XRayImager(volume, physics, size=tuple(cmd.size), center_lps=center)
-    g = imager.geometry
+    g = demo_geometry(cmd)
     T_true = pose_from_params(np.asarray(cmd.pose, float), g.sod_mm)
+    check_in_view(volume, g, T_true, center, what=f"--pose {' '.join(f'{v:g}' for v in cmd.pose)}")
+    imager = XRayImager(volume, physics, size=tuple(cmd.size), center_lps=center)
     raw = imager.render(T_true, seed=cmd.seed)["raw"][0].astype(np.float64)
     collimator = Collimator(shape="circle", radius=0.46, center=(0.53, 0.47), transmission=0.02)
     chain = DisplayChain(log=True, polarity="bone-dark", gamma=0.8, unsharp_sigma_px=4.0, unsharp_amount=0.6,

@@ -274,6 +274,11 @@ def load_study(path: str | Path) -> Study:
             _checked(cls.from_dict, value, f"{where}.{key}", unpack=False)
         cases = _int(row, "cases", 0, 1, 10000, where) if "cases" in row else None
         targets.append(Target(name, kind, physics, coll, disp, cases))
+    from register.api import REGISTER_MIN_SIDE_PX
+
+    if any(t.kind == "xray" for t in targets) and min(study_kw["size"]) < REGISTER_MIN_SIDE_PX:
+        raise StudyError(f"{path}: study.size: {list(study_kw['size'])}: kind 'xray' targets are registered as "
+                         f"ctxreg register does, which needs at least {REGISTER_MIN_SIDE_PX} px per side")
     for what, items in (("variant", variants), ("target", targets)):
         names = [x.name for x in items]
         if len(set(names)) < len(names):

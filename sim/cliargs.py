@@ -192,3 +192,33 @@ def refuse_unused(cmd, names: typing.Iterable[str], *, applies: bool, why: str) 
     given = [fields[n] for n in names if getattr(cmd, n) != _default(fields[n])]
     if given:
         raise OptionError(f"{', '.join(flag_of(f) for f in given)}: {why}")
+
+
+def available_memory_bytes() -> int | None:
+    """The memory a new allocation can take now: ``MemAvailable`` of ``/proc/meminfo`` (Linux),
+    else the physical memory (``os.sysconf``); None where neither is known."""
+    import os
+
+    try:
+        with open("/proc/meminfo") as f:
+            for line in f:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except (OSError, ValueError, IndexError):
+        pass
+    try:
+        return int(os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES"))
+    except (AttributeError, ValueError, OSError):
+        return None
+
+
+def check_memory(nbytes: float, option: str, what: str, *, advice: str = "", available: int | None = None) -> None:
+    """Refuse, in one :class:`OptionError` line naming ``option``, work whose largest allocation
+    (``nbytes``, ``what`` it is) exceeds the memory available now (:func:`available_memory_bytes`;
+    ``available`` overrides it). Nothing is refused where the available memory is unknown."""
+    free = available_memory_bytes() if available is None else available
+    if free is None or nbytes <= free:
+        return
+    gib = 1024 ** 3
+    raise OptionError(f"{option}: {what} would need about {nbytes / gib:.1f} GiB, more than the "
+                      f"{free / gib:.1f} GiB of memory available{'; ' + advice if advice else ''}")
