@@ -15,7 +15,8 @@ class TrainCommand:
     config: str = field(metadata=opt("training config (TOML with a [train] table; see learn/train.py)",
                                      group="input", positional=True, metavar="CONFIG.toml"))
     resume: bool = field(default=False, metadata=opt(
-        "continue from the output folder's checkpoint (same config)", group="run"))
+        "continue from the output folder's checkpoint (same config); refused where the folder holds none (run "
+        "without --resume to start)", group="run"))
     device: str = field(default="auto", metadata=opt(
         "where the network trains and batched pairs (train.pairs = 'batched') are made: auto (a CUDA GPU when "
         "torch sees one), cpu or cuda", group="run", choices=("auto", "cpu", "cuda")))
@@ -39,6 +40,11 @@ def run_train(cmd: TrainCommand) -> list[Path]:
     cfg = load_train_config(cmd.config)
     resolve_device(cmd.device)  # refused before any work
     out = check_output_dir(cfg.out, TRAIN_FILES, flag=f"{cmd.config}: [train] out")
+    if cmd.resume and not (out / "checkpoint.pt").is_file():
+        from learn.train import TrainConfigError
+
+        raise TrainConfigError(f"--resume: {out} holds no checkpoint.pt to resume from (train.out of {cmd.config}); "
+                               f"run without --resume to start the training")
     train(cfg, resume=cmd.resume, device=cmd.device, stop_after_s=cmd.stop_after)
     return [out / name for name in TRAIN_FILES]
 
@@ -47,7 +53,8 @@ def run_train(cmd: TrainCommand) -> list[Path]:
 class AccuracyCommand:
     """Defaults of ``ctxreg accuracy``."""
 
-    model: str = field(metadata=opt("the network: a shipped model's name (ctxreg models) or a ctxreg train checkpoint",
+    model: str = field(metadata=opt("the network: a shipped model's name (ctxreg models), a model folder or a ctxreg "
+                                    "train checkpoint",
                                     group="input", metavar="NAME|CKPT"))
     ct: str | None = field(default=None, metadata=opt(
         "CT to evaluate on (NIfTI, DICOM folder or phantom[:SEED]); or use --campaign", group="input",

@@ -108,12 +108,18 @@ def shipped_models(root: str | Path = MODELS_DIR) -> dict[str, Path]:
 
 
 def resolve_model(value: str | Path | None = None, root: str | Path = MODELS_DIR) -> Path:
-    """The checkpoint file of ``--model VALUE``: an existing file as it is, or the name of a
-    shipped model (its ``model.pt``, after its card is checked against it, :func:`load_card`);
+    """The checkpoint file of ``--model VALUE``: an existing file as it is (a model folder's
+    weights file after its card is checked against it), a model folder (its weights, card checked;
+    or a ``ctxreg train`` output folder's ``checkpoint.pt``), or the name of a shipped model (its
+    ``model.pt``, after its card is checked against it, :func:`load_card`);
     None: the default shipped model (:data:`DEFAULT_MODEL`). Raises :class:`ModelCardError`
     naming the value and the shipped names otherwise."""
     shipped = shipped_models(root)
     name = DEFAULT_MODEL if value is None else str(value)
+    if value is not None and Path(name).is_dir():
+        return _model_in_folder(Path(name))
+    if value is not None and Path(name).is_file() and (Path(name).parent / CARD).is_file():
+        return _checked_against_card(Path(name))
     if value is not None and (Path(name).is_file() or name not in shipped and ("/" in name or "\\" in name
                                                                              or name.endswith(".pt"))):
         return Path(name)  # a path: load_checkpoint names a missing or damaged file
@@ -126,6 +132,34 @@ def resolve_model(value: str | Path | None = None, root: str | Path = MODELS_DIR
                              f"(shipped: {names})")
     raise ModelCardError(f"--model {name}: neither a checkpoint file nor a shipped model (shipped: {names}; "
                          f"`ctxreg models` lists them)")
+
+
+def _model_in_folder(folder: Path) -> Path:
+    """``--model FOLDER``: a model folder's weights (its card checked, :func:`load_card`), or a
+    ``ctxreg train`` output folder's ``checkpoint.pt``."""
+    if (folder / CARD).is_file():
+        return folder / load_card(folder)["model"]["file"]
+    if (folder / "checkpoint.pt").is_file():
+        return folder / "checkpoint.pt"
+    raise ModelCardError(f"--model {folder}: a folder without {CARD} (a model folder, `ctxreg models`) or "
+                         f"checkpoint.pt (a ctxreg train output folder)")
+
+
+def _checked_against_card(path: Path) -> Path:
+    """``--model .../model.pt`` inside a model folder: the file its card names is checked against
+    the card (sha256, architecture, :func:`load_card`) as the folder or the name would be; another
+    file of that folder is taken as it is."""
+    card = load_card(path.parent) if path.name == _card_file(path.parent) else None
+    return path if card is None else path.parent / card["model"]["file"]
+
+
+def _card_file(folder: Path) -> str | None:
+    """The weights file the card of ``folder`` names (None where the card does not say)."""
+    try:
+        model = read_toml(folder / CARD, ModelCardError, "model card").get("model")
+    except ModelCardError:
+        return WEIGHTS  # a damaged card: load_card names it
+    return model.get("file") if isinstance(model, dict) and isinstance(model.get("file"), str) else WEIGHTS
 
 
 def describe_models(root: str | Path = MODELS_DIR) -> str:

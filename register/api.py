@@ -12,8 +12,8 @@ Example (README "Python API")::
     result.write("out/reg")           # result.json, overlay.png, checkerboard.png, convergence.png
 
 :func:`register_xray` checks every input before the work starts (the method and its model,
-the start pose, the preprocessing steps, the size; then the CT and the X-ray, its geometry, and
-that the CT is in the view at the start pose), prepares the X-ray
+the start pose, the preprocessing steps, the size; then the X-ray, its geometry, the memory the
+size asks for, the CT, and that the CT is in the view at the start pose), prepares the X-ray
 (:func:`register.prepare.prepare_xray`: geometry with its sources, field mask, intensity, size),
 checks the polarity against the CT (:func:`register.prepare.confirm_polarity`), builds the
 method (:func:`register.methods.build_method`) and registers. ``ctxreg register``
@@ -364,16 +364,17 @@ def register_xray(ct, xray, *, method: str = "contextual+cmaes", model=None, ini
                                 f"--size 128 128")
     moving = _moving_physics(physics)
     predictor = load_predictor(model) if needs_model(method) else None
-    # -- the CT, the X-ray and its geometry, the view at the start
-    volume = load_ct(ct, label_map=label_map)
-    c = np.asarray(center, float) if center is not None else anatomy_center(volume)
+    # -- the X-ray and its geometry (a quick read: its refusals come first), the memory the size
+    # asks for, the CT, the view at the start
     xr = (xray if isinstance(xray, XRayImage) else load_xray(xray)).reoriented(orient)
     if not xr.attenuation_bright and not {"intensity", "log", "invert"} & set(steps):
         raise RegistrationError(f"{xr.source}: raw detector data (bone dark): add 'intensity' or 'log' to --preprocess")
     full_geometry, _ = resolve_geometry(xr, scene, sdd_mm=sdd_mm, sod_mm=sod_mm, pixel_spacing_mm=pixel_spacing_mm)
+    check_registration_memory(box, (xr.pixels.shape[0], xr.pixels.shape[1]), full_geometry)
+    volume = load_ct(ct, label_map=label_map)
+    c = np.asarray(center, float) if center is not None else anatomy_center(volume)
     check_in_view(volume, full_geometry, pose_from_params(x0, full_geometry.sod_mm), c,
                   what="the start pose (--init, with the anatomy centre --center)")
-    check_registration_memory(box, (xr.pixels.shape[0], xr.pixels.shape[1]), full_geometry)
     # -- the work
     prepared = prepare_xray(xr, volume=volume, center_lps=c, init_params=x0, scene=scene, steps=steps,
                             scale=intensity, polarity=polarity, tone=tone, size=box, sdd_mm=sdd_mm, sod_mm=sod_mm,

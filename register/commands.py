@@ -44,7 +44,8 @@ class EvaluateCommand:
     method: tuple[str, ...] = field(default=("cmaes",), metadata=opt(
         "registration methods to compare", group="protocol", nargs="+", choices=METHOD_NAMES))
     model: str | None = field(default=None, metadata=opt(
-        "the contextual methods' network: a shipped model's name (ctxreg models) or a ctxreg train checkpoint "
+        "the contextual methods' network: a shipped model's name (ctxreg models), a model folder or a ctxreg train "
+        "checkpoint "
         "(default: the shipped default model)", group="protocol", metavar="NAME|CKPT"))
     start: str = field(default="ap", metadata=opt(
         "start every case at AP, or near the truth (--local-rot / --local-trans)", group="protocol",
@@ -148,7 +149,8 @@ class RegisterCommand:
         unit="deg deg deg mm mm mm", metavar="ap|P"))
     method: str = field(default="contextual+cmaes", metadata=opt("registration method", group="pose", choices=METHOD_NAMES))
     model: str | None = field(default=None, metadata=opt(
-        "the contextual methods' network: a shipped model's name (ctxreg models) or a ctxreg train checkpoint "
+        "the contextual methods' network: a shipped model's name (ctxreg models), a model folder or a ctxreg train "
+        "checkpoint "
         "(default: the shipped default model)", group="pose", metavar="NAME|CKPT"))
     restarts: int = field(default=REGISTER_RESTARTS, metadata=opt(
         "CMA-ES restarts (new seed, twice the population) while the final gradient NCC is below "

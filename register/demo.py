@@ -61,7 +61,8 @@ class DemoCommand:
         "CT (NIfTI, DICOM folder or phantom[:SEED]); default: ../shared/data's pelvis CT beside the repository, "
         "else the built-in phantom", group="input", metavar="PATH|phantom"))
     model: str | None = field(default=None, metadata=opt(
-        "the network: a shipped model's name (ctxreg models) or a ctxreg train checkpoint (default: the shipped "
+        "the network: a shipped model's name (ctxreg models), a model folder or a ctxreg train checkpoint "
+        "(default: the shipped "
         "default model)", group="input", metavar="NAME|CKPT"))
     pose: tuple[float, float, float, float, float, float] = field(default=DEMO_POSE, metadata=opt(
         "the X-ray's true pose PHI THETA PSI TX TY TZ: the anatomy centre between the source and the detector "

@@ -221,13 +221,11 @@ def load_study(path: str | Path) -> Study:
             from learn.models import ModelCardError, resolve_model, shipped_models
 
             model = row["model"]
-            if isinstance(model, str) and model in shipped_models():
-                try:
-                    model = str(resolve_model(model))
+            if isinstance(model, str) and model:
+                try:  # a shipped model's name, a model folder or its model.pt: the card checked
+                    model = str(resolve_model(model if model in shipped_models() else resolve(model)))
                 except ModelCardError as e:
                     raise StudyError(f"{where}.model: {e}") from None
-            elif isinstance(model, str):
-                model = resolve(model)
             if not isinstance(model, str) or not Path(model).is_file():
                 raise StudyError(f"{where}.model: an existing checkpoint file or a shipped model's name, got "
                                  f"{row['model']!r}")
@@ -714,7 +712,8 @@ def run_study(study: Study, out: str | Path, *, log: Callable[[str], None] = pri
         if variant not in chosen:  # another process's: its finished evaluations (made with these settings) only
             for target in study.targets:
                 summary_file = out / "results" / variant.name / target.name / "summary.json"
-                summary, changes = _finished_evaluation(summary_file, study, evaluation_settings(study, target, network))
+                expected = evaluation_settings(study, target, network)
+                summary, changes = _finished_evaluation(summary_file, study, expected)
                 if summary is not None:
                     results.setdefault(variant.name, {})[target.name] = summary
                 elif changes:

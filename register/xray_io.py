@@ -303,6 +303,27 @@ def load_xray(path: str | os.PathLike) -> XRayImage:
             raise pil_error from None
 
 
+def _tiff_planes(im) -> str | None:
+    """What a TIFF whose samples are stored plane by plane (PlanarConfiguration 2) holds, in words
+    (e.g. a stack of 3 images that ``tifffile.imwrite`` of a ``(3, H, W)`` array stores as RGB
+    planes); None for anything else."""
+    import json
+
+    tags = getattr(im, "tag_v2", None)
+    if tags is None or tags.get(284) != 2:
+        return None
+    n = int(tags.get(277, 0) or 0)
+    shape = ""
+    try:
+        described = json.loads(str(tags.get(270, "")))
+        if isinstance(described, dict) and isinstance(described.get("shape"), list):
+            shape = f", shape {described['shape']} in its description"
+    except ValueError:
+        pass
+    return (f"a TIFF of {n} separate planes of {im.height} x {im.width} px (PlanarConfiguration 2{shape}): a "
+            f"stack of {n} images, or a colour image stored plane by plane")
+
+
 def _load_npy(p: Path) -> XRayImage:
     src = str(p)
     try:
@@ -339,7 +360,14 @@ def _load_pillow(p: Path) -> XRayImage:
             if mode in ("LA",):
                 a = np.asarray(im.getchannel("L"))
             else:
-                a = _rgb_to_grey(np.asarray(im.convert("RGB")), src)
+                try:
+                    a = _rgb_to_grey(np.asarray(im.convert("RGB")), src)
+                except XRayInputError:
+                    planes = _tiff_planes(im)
+                    if planes is None:
+                        raise
+                    raise XRayInputError(f"{src}: {planes}; a single 2-D grey image is needed (save one image "
+                                         f"per file)") from None
                 rgb_to_grey = True
         else:
             raise XRayInputError(f"{src}: unsupported image mode {mode!r}; a grey image is needed")

@@ -419,7 +419,8 @@ def _load_dicom_series(folder: Path, *, series_uid: str | None) -> tuple[np.ndar
     elif len(series) > 1:
         raise CTInputError(
             f"{folder}: the folder holds {len(series)} DICOM series (SeriesInstanceUID: {_list_series(series)}); "
-            "pick one with series_uid= or give a folder holding one series"
+            "give a folder holding one series (copy one series' files into a folder of their own), or in Python "
+            "sim.load_ct(folder, series_uid=UID)"
         )
     else:
         slices = next(iter(series.values()))

@@ -5,7 +5,11 @@ from __future__ import annotations
 
 import pytest
 
+from pathlib import Path
+
 from tests.test_bad_inputs import _run, inputs  # noqa: F401  (the module's fixture, reused)
+
+ROOT = Path(__file__).resolve().parents[1]
 
 #: (command line after ``ctxreg``, words the error line must hold, words it must not hold)
 BAD = {
@@ -21,12 +25,61 @@ BAD = {
                                 ["--pose", "TZ -700"]),
     "demo pose off the detector": ("demo --ct phantom --size 32 32 --pose 0 0 0 900 0 0 --out demo",
                                    ["--pose", "off the detector"]),
+    "register a stack of 3 images in one TIFF": ("register --ct phantom --xray {planes} --size 32 32 --out reg",
+                                                 ["3 separate planes", "a stack of 3 images"]),
+    "register 3 TIFF pages": ("register --ct phantom --xray {pages} --size 32 32 --out reg", ["3 frames/pages"]),
+    "render a folder of two series": ("render --ct {twoseries} --size 16 16 --out x.npy",
+                                      ["2 DICOM series", "give a folder holding one series"]),
+    "train --resume without a checkpoint": ("train {config} --resume", ["--resume", "no checkpoint.pt",
+                                                                      "run without --resume"]),
+    "register model folder without a card": ("register --ct phantom --xray {xray} --model {emptydir} --out reg",
+                                             ["--model", "without model.toml"]),
+    "register model.pt changed after its card": ("register --ct phantom --xray {xray} --model {tampered} --out reg",
+                                                 ["model.sha256 does not match"]),
+    "demo model.pt changed after its card": ("demo --ct phantom --model {tampered} --out demo",
+                                             ["model.sha256 does not match"]),
 }
+
+#: The rows refused by reading the CT (the rest before it is read).
+READ_THE_CT = {"render a folder of two series"}
+
+
+@pytest.fixture(scope="module")
+def inputs29(inputs, tmp_path_factory):  # noqa: F811
+    """The inputs of tests/test_bad_inputs.py and this issue's: a TIFF holding a (3, H, W) stack as
+    tifffile writes it (three planes, 'RGB'), a 3-page TIFF, a folder of two DICOM series, a train
+    config whose out holds no checkpoint, an empty folder, a model folder whose model.pt changed."""
+    import shutil
+
+    import numpy as np
+    from PIL import Image
+
+    from tests.sim.test_ct_io import write_series
+
+    d = tmp_path_factory.mktemp("inputs29")
+    rng = np.random.default_rng(0)
+    stack = (rng.random((3, 40, 40)) * 4000).astype(np.uint16)
+    tifffile = pytest.importorskip("tifffile")
+    tifffile.imwrite(d / "planes.tif", stack, photometric="rgb", planarconfig="separate")  # as it wrote (3, H, W)
+    pages = [Image.fromarray(p) for p in stack]
+    pages[0].save(d / "pages.tif", save_all=True, append_images=pages[1:])
+    for sub, seed in (("a", 1), ("b", 2)):
+        write_series(d / "two" / sub, n=4, seed=seed)
+        for f in (d / "two" / sub).iterdir():
+            f.rename(d / "two" / f"{sub}_{f.name}")
+    (d / "config.toml").write_text(f'[train]\ndataset = "{ROOT / "campaigns" / "smoke.toml"}"\niterations = 2\n'
+                                   f'out = "{d / "never_trained"}"\n')
+    (d / "empty").mkdir()
+    shutil.copytree(ROOT / "models" / "pelvis_line", d / "tampered")
+    with open(d / "tampered" / "model.pt", "ab") as f:
+        f.write(b"\0")
+    return {**inputs, "planes": str(d / "planes.tif"), "pages": str(d / "pages.tif"), "twoseries": str(d / "two"),
+            "config": str(d / "config.toml"), "emptydir": str(d / "empty"),
+            "tampered": str(d / "tampered" / "model.pt")}
 
 
 @pytest.mark.parametrize("name", list(BAD))
-def test_a_bad_input_is_refused_before_the_work_naming_the_option(name, inputs, tmp_path, capsys,  # noqa: F811
-                                                                  monkeypatch):
+def test_a_bad_input_is_refused_before_the_work_naming_the_option(name, inputs29, tmp_path, capsys, monkeypatch):
     import register.demo
     import sim.physics.imaging
 
@@ -34,18 +87,20 @@ def test_a_bad_input_is_refused_before_the_work_naming_the_option(name, inputs, 
         raise AssertionError("simulated or loaded before the refusal")
 
     monkeypatch.setattr(sim.physics.imaging, "XRayImager", no_work)  # the demo's simulation
-    monkeypatch.setattr("sim.ct_io.load_ct_spec", no_work)  # the demo's CT
-    monkeypatch.setattr("sim.load_ct", no_work)  # register's CT
+    if name not in READ_THE_CT:
+        monkeypatch.setattr("sim.ct_io.load_ct_spec", no_work)  # the demo's CT
+        monkeypatch.setattr("sim.load_ct", no_work)  # register's CT
     assert register.demo  # imported: its imports are made inside run_demo
     line, words = BAD[name]
-    status, new = _run(line, inputs, tmp_path)
+    status, new = _run(line, inputs29, tmp_path)
     err = capsys.readouterr().err
     lines = [ln for ln in err.splitlines() if ln.strip()]
     assert status == 2 and "Traceback" not in err, err
     assert len(lines) == 1 and lines[0].startswith(f"ctxreg {line.split()[0]}: error: "), err
     for word in words:
         assert word in lines[0], (word, lines[0])
-    assert "mask: empty" not in lines[0] and "erosion" not in lines[0]
+    assert "mask: empty" not in lines[0] and "erosion" not in lines[0] and "a colour image (RGB" not in lines[0]
+    assert "pick one with series_uid=" not in lines[0]
     assert not new, f"files written: {sorted(new)}"
 
 
@@ -62,6 +117,7 @@ def test_a_size_beyond_the_memory_is_refused_before_it_is_allocated(size, inputs
         raise AssertionError("prepared before the memory check")
 
     monkeypatch.setattr(register.prepare, "prepare_xray", no_work)
+    monkeypatch.setattr("sim.load_ct", no_work)  # the X-ray and its geometry suffice
     status, new = _run(f"register --ct phantom --xray {{xray}} --size {size} --out reg", inputs, tmp_path)
     err = capsys.readouterr().err.strip()
     assert status == 2 and "\n" not in err and "Traceback" not in err, err
@@ -111,4 +167,53 @@ def test_a_study_size_below_the_registration_s_minimum_is_refused_with_xray_targ
     path.write_text('[study]\nct = "phantom"\nsize = [16, 16]\n[[variant]]\nname = "a"\nmodel = "pelvis_line"\n'
                     '[[target]]\nname = "f"\nkind = "xray"\nphysics = { level = "full" }\n')
     with pytest.raises(StudyError, match=r"study.size: \[16, 16\]: kind 'xray' targets"):
+        load_study(path)
+
+
+def _model_folder(tmp_path) -> Path:
+    import shutil
+
+    folder = tmp_path / "my_model"
+    shutil.copytree(ROOT / "models" / "pelvis_line", folder)
+    return folder
+
+
+def test_model_takes_a_model_folder_and_checks_a_model_pt_against_its_card(tmp_path):
+    from learn.models import ModelCardError, resolve_model
+
+    folder = _model_folder(tmp_path)
+    assert resolve_model(str(folder)) == folder / "model.pt"  # the folder: it holds the card
+    assert resolve_model(str(folder / "model.pt")) == folder / "model.pt"  # checked, unchanged
+    (folder / "model.pt").write_bytes((folder / "model.pt").read_bytes() + b"\0")
+    for value in (folder, folder / "model.pt"):
+        with pytest.raises(ModelCardError, match="model.sha256 does not match"):
+            resolve_model(str(value))
+    train_out = tmp_path / "run"
+    train_out.mkdir()
+    (train_out / "checkpoint.pt").write_bytes(b"")
+    assert resolve_model(str(train_out)) == train_out / "checkpoint.pt"  # a ctxreg train output folder
+    loose = tmp_path / "loose.pt"
+    loose.write_bytes(b"")
+    assert resolve_model(str(loose)) == loose  # a checkpoint outside a model folder: as it is
+
+
+def test_a_model_folder_runs_where_a_model_name_does(tmp_path):
+    from learn.predict import NetworkPredictor
+
+    folder = _model_folder(tmp_path)
+    assert NetworkPredictor(str(folder)).size == NetworkPredictor("pelvis_line").size
+
+
+def test_a_study_variant_s_model_may_be_a_folder_and_its_card_is_checked(tmp_path):
+    from register.study import StudyError, load_study
+
+    folder = _model_folder(tmp_path)
+    text = ('[study]\nct = "phantom"\nsize = [32, 32]\n[[variant]]\nname = "a"\nmodel = "{m}"\n'
+            '[[target]]\nname = "line"\n')
+    path = tmp_path / "s.toml"
+    path.write_text(text.format(m="my_model"))  # relative to the study file
+    assert load_study(path).variants[0].model == str(folder / "model.pt")
+    (folder / "model.pt").write_bytes((folder / "model.pt").read_bytes() + b"\0")
+    path.write_text(text.format(m="my_model/model.pt"))
+    with pytest.raises(StudyError, match="variant\\[0\\].model: .*model.sha256 does not match"):
         load_study(path)

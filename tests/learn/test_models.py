@@ -121,8 +121,13 @@ def test_a_model_folder_whose_weights_pickle_an_object_is_refused_by_name(tmp_pa
         resolve_model("bad", tmp_path / "models")
     from learn.checkpoint import CheckpointError
 
+    with pytest.raises(ModelCardError, match="sha256 does not match"):  # by path inside its folder too (issue 29)
+        NetworkPredictor(str(weights))
+    import shutil
+
+    loose = shutil.copy(weights, tmp_path / "loose.pt")
     with pytest.raises(CheckpointError, match="contains objects other than tensors and plain data"):
-        NetworkPredictor(str(weights))  # the file itself, card or not
+        NetworkPredictor(str(loose))  # the file itself, without a card
     assert "this ran" not in capsys.readouterr().out
 
 
