@@ -52,7 +52,7 @@ class TrainConfig:
         dataset: campaign folder (written by ``ctxreg simulate``), or a campaign ``.toml`` file to
             render pairs on the fly (:class:`learn.online.OnlinePairs`).
         out: output folder for checkpoints and logs.
-        backbone: "tiny", "densenet121" or "densenet161" (:class:`learn.model.Backbone`).
+        backbone: "tiny", "small", "densenet121" or "densenet161" (:class:`learn.model.Backbone`).
         weights: "none" or "imagenet_local" (needs ``weights_path``).
         weights_path: local torchvision DenseNet checkpoint (no download is possible).
         freeze_backbone: train the heads only.

@@ -127,12 +127,7 @@ class TorchVolumes:
         import torch
         import torch.nn.functional as F
 
-        subject = np.asarray(subject.cpu() if hasattr(subject, "cpu") else subject).astype(np.int64).ravel()
-        poses = np.asarray(poses.cpu() if hasattr(poses, "cpu") else poses, dtype=np.float64)
-        if poses.ndim != 3 or poses.shape[1:] != (4, 4) or len(poses) != len(subject):
-            raise RaymarchError(f"poses must be (B, 4, 4) with B = {len(subject)} subjects, got {poses.shape}")
-        if len(subject) and (subject.min() < 0 or subject.max() >= self.n_subjects):
-            raise RaymarchError(f"subject indices must be in [0, {self.n_subjects}), got {subject.min()}..{subject.max()}")
+        subject, poses = _checked(subject, poses, self.n_subjects)
         b = len(subject)
         h, w = self.geometry.height, self.geometry.width
         chans = _channels(channels, self.n_channels)
@@ -182,6 +177,18 @@ class TorchVolumes:
             v = v[0, :, :, :, 0].sum(dim=2).reshape(nc, nb, p).permute(1, 0, 2)
             out[sl] = v * (chord[sl] / n_s).to(self.dtype)[:, None, :]
         return out.reshape(b, nc, h, w)
+
+
+def _checked(subject, poses, n_subjects: int) -> tuple[np.ndarray, np.ndarray]:
+    """``subject`` ``(B,)`` int64 and ``poses`` ``(B, 4, 4)`` float64 as numpy (from numpy or torch),
+    refused in one line when their shapes or the subject indices do not fit."""
+    subject = np.asarray(subject.cpu() if hasattr(subject, "cpu") else subject).astype(np.int64).ravel()
+    poses = np.asarray(poses.cpu() if hasattr(poses, "cpu") else poses, dtype=np.float64)
+    if poses.ndim != 3 or poses.shape[1:] != (4, 4) or len(poses) != len(subject):
+        raise RaymarchError(f"poses must be (B, 4, 4) with B = {len(subject)} subjects, got {poses.shape}")
+    if len(subject) and (subject.min() < 0 or subject.max() >= n_subjects):
+        raise RaymarchError(f"subject indices must be in [0, {n_subjects}), got {subject.min()}..{subject.max()}")
+    return subject, poses
 
 
 def _channels(channels, n: int) -> tuple[int, ...]:
@@ -257,12 +264,7 @@ class DrJitVolumes:
         """See :meth:`TorchVolumes.line_integrals`."""
         import torch
 
-        subject = np.asarray(subject.cpu() if hasattr(subject, "cpu") else subject).astype(np.int64).ravel()
-        poses = np.asarray(poses.cpu() if hasattr(poses, "cpu") else poses, dtype=np.float64)
-        if poses.ndim != 3 or poses.shape[1:] != (4, 4) or len(poses) != len(subject):
-            raise RaymarchError(f"poses must be (B, 4, 4) with B = {len(subject)} subjects, got {poses.shape}")
-        if len(subject) and (subject.min() < 0 or subject.max() >= self.n_subjects):
-            raise RaymarchError(f"subject indices must be in [0, {self.n_subjects}), got {subject.min()}..{subject.max()}")
+        subject, poses = _checked(subject, poses, self.n_subjects)
         chans = _channels(channels, self.n_channels)
         h, w = self.geometry.height, self.geometry.width
         out = np.zeros((len(subject), len(chans), h, w), np.float32)

@@ -26,3 +26,15 @@ def pelvis_ct_path() -> Path:
 @pytest.fixture(scope="session")
 def chest_ct_path() -> Path:
     return shared_file("ct/chest_0p7x2p5mm.nii.gz")
+
+
+@pytest.fixture(scope="module")
+def one_torch_thread():
+    """One torch CPU thread for a module (``pytestmark = pytest.mark.usefixtures("one_torch_thread")``):
+    small batches gain nothing from more, and lose much on a busy machine."""
+    import torch
+
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)

@@ -3,7 +3,7 @@
 # lent GPU machine (Python 3.12 with torch, torchvision, numpy and scipy; no Mitsuba, Dr.Jit,
 # xraylib, spekpy or nibabel, no internet). Batched pairs need none of the first four there: the
 # spectral table and tool bank are cached in runs/batched_gpu/tables, built here first.
-#   bash scripts/device/batched_bundle.sh          # bundle + tables (and the simulated device run with --check)
+#   bash scripts/device/batched_bundle.sh [CONFIG]     # bundle + the config's tables (default configs/train_batched_gpu.toml)
 # Device calls (run tool; the tree travels, so do .devbundle_batched and runs/batched_gpu when carried):
 #   run(command="bash scripts/device/batched.sh 540 2>&1", carry=[".devbundle_batched", "runs/batched_gpu"],
 #       timeout_s=600)
@@ -21,12 +21,13 @@ find "$B/site" -name __pycache__ -prune -exec rm -rf {} +
 find "$B/site/nibabel" -type d -name tests -prune -exec rm -rf {} +
 cp "$REPO/../shared/data/ct/pelvis_abdomen_3mm.nii.gz" "$B/"
 # the cached tables: the spectral table (spekpy, xraylib) and both tool banks (Mitsuba)
-(cd "$REPO" && $PY - <<'PY'
+(cd "$REPO" && $PY - "${1:-configs/train_batched_gpu.toml}" <<'PY'
 from pathlib import Path
 from learn.train import load_train_config
 from learn.batched import BatchedPairs
 from sim.campaign.config import load_campaign
-cfg = load_train_config("configs/train_batched_gpu.toml")
+import sys
+cfg = load_train_config(sys.argv[1])
 campaign = load_campaign(cfg.dataset)
 tables = Path(cfg.out) / "tables"
 for split, seed in (("train", cfg.seed), ("val", cfg.seed + 1)):
@@ -35,4 +36,4 @@ for split, seed in (("train", cfg.seed), ("val", cfg.seed + 1)):
 print("tables:", sorted(x.name for x in tables.iterdir()))
 PY
 )
-du -sh "$B" "$REPO/runs/batched_gpu"
+du -sh "$B"

@@ -365,3 +365,17 @@ def test_densenet161_builds_and_runs():
     assert bool(torch.isfinite(out.g).all()), f"non-finite output; {n_total:,} params"
     assert model.backbone.channels == (768, 2112, 2208), f"{n_total:,} params"
     assert time.perf_counter() - t0 < 10, f"{n_total:,} params, took {time.perf_counter() - t0:.1f} s"
+
+
+def test_the_small_backbone_is_the_tiny_one_wider_and_deeper():
+    """``small`` (growth 16, blocks 3-4-6-4): more parameters than ``tiny``, the same outputs' shapes
+    and taps at the same strides, so checkpoints record it and heads fit it like the others."""
+    import torch
+
+    from learn.model import pose_update_net
+
+    tiny, small = pose_update_net(backbone="tiny"), pose_update_net(backbone="small")
+    assert sum(p.numel() for p in small.parameters()) > 1.4 * sum(p.numel() for p in tiny.parameters())
+    x = torch.randn(2, 1, 64, 64)
+    out = small(x, x)
+    assert out.g.shape == (2, 6) and out.g_levels.shape == (2, 3, 6)

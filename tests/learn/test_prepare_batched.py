@@ -23,13 +23,7 @@ from sim.randomize import DomainRandomization, image_rng
 TOL = 1e-4
 
 
-@pytest.fixture(autouse=True, scope="module")
-def one_thread():
-    """One CPU thread: these small batches gain nothing from more, and lose much on a busy machine."""
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 @pytest.mark.parametrize("size", [(64, 64), (48, 80)], ids=["64x64", "48x80"])

@@ -23,13 +23,7 @@ from sim.randomize import DECLARATION, DomainRandomization, RandomizeError, _ker
 SEED = 5
 
 
-@pytest.fixture(autouse=True, scope="module")
-def one_thread():
-    """One CPU thread: these small batches gain nothing from more, and lose much on a busy machine."""
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 def smooth_raw(rng: np.random.Generator, h: int, w: int, i0: float) -> np.ndarray:
