@@ -16,13 +16,12 @@ reads a card and checks it against its weights (the file's hash and what the che
 
 from __future__ import annotations
 
-import hashlib
 from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
 from learn.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
-from sim.atomic import read_toml
+from sim.atomic import read_toml, sha256_file
 
 __all__ = ["MODELS_DIR", "DEFAULT_MODEL", "export_model", "load_card", "shipped_models", "resolve_model",
            "describe_models", "ModelCardError"]
@@ -39,14 +38,6 @@ class ModelCardError(CheckpointError):
     """A model folder or its card cannot be used; the message names the file and the key."""
 
 
-def _sha256(path: Path) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            h.update(block)
-    return h.hexdigest()
-
-
 def export_model(checkpoint: str | Path, folder: str | Path, *, name: str, description: str,
                  training: dict[str, Any], accuracy: dict[str, Any]) -> Path:
     """Write ``folder/model.pt`` (the checkpoint's weights and what they need: architecture,
@@ -61,7 +52,7 @@ def export_model(checkpoint: str | Path, folder: str | Path, *, name: str, descr
     weights = folder / WEIGHTS
     save_checkpoint(weights, replace(ckpt, optimizer=None, scheduler=None, rng=None, path=None))
     card = {
-        "model": {"name": name, "description": description, "file": WEIGHTS, "sha256": _sha256(weights),
+        "model": {"name": name, "description": description, "file": WEIGHTS, "sha256": sha256_file(weights),
                   "backbone": ckpt.backbone, "head_channels": ckpt.head_channels,
                   "image_size": list(ckpt.image_size) if ckpt.image_size else None,
                   "preprocess": list(ckpt.preprocess), "physics": ckpt.physics,
@@ -89,7 +80,7 @@ def load_card(folder: str | Path) -> dict[str, Any]:
     weights = folder / model["file"]
     if not weights.is_file():
         raise ModelCardError(f"{path}: model.file {model['file']!r} not found in {folder}")
-    if _sha256(weights) != model.get("sha256"):
+    if sha256_file(weights) != model.get("sha256"):
         raise ModelCardError(f"{path}: model.sha256 does not match {weights} (the weights changed after the card)")
     ckpt = load_checkpoint(weights)
     recorded = {"backbone": ckpt.backbone, "head_channels": ckpt.head_channels,

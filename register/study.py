@@ -70,6 +70,7 @@ from typing import Any, Callable
 
 import numpy as np
 
+from sim.atomic import sha256_file
 from sim.errors import InputError
 
 __all__ = ["StudyError", "Variant", "Target", "Study", "load_study", "run_study", "format_study_table",
@@ -357,16 +358,6 @@ TRAINING_RECORD = "settings.json"
 REPLACED = "replaced"
 
 
-def _sha256(path: Path) -> str:
-    import hashlib
-
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            h.update(block)
-    return h.hexdigest()
-
-
 def _fingerprint(value: str) -> str:
     """What identifies an input file's content: a file's sha256; a campaign folder's
     ``manifest.json``'s (it holds every shard's sha256); another folder's file names and sizes."""
@@ -374,9 +365,9 @@ def _fingerprint(value: str) -> str:
 
     path = Path(value)
     if path.is_file():
-        return "sha256:" + _sha256(path)
+        return "sha256:" + sha256_file(path)
     if (path / "manifest.json").is_file():
-        return "manifest sha256:" + _sha256(path / "manifest.json")
+        return "manifest sha256:" + sha256_file(path / "manifest.json")
     if path.is_dir():
         listing = sorted((str(p.relative_to(path)), p.stat().st_size) for p in path.rglob("*") if p.is_file())
         return "listing sha256:" + hashlib.sha256(json.dumps(listing).encode()).hexdigest()

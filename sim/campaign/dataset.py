@@ -41,7 +41,6 @@ across shards lazily and verifies each shard when it first opens it.
 
 from __future__ import annotations
 
-import hashlib
 import json
 import os
 from dataclasses import dataclass
@@ -50,7 +49,7 @@ from typing import Iterator
 
 import numpy as np
 
-from sim.atomic import atomic_path, remove_stale_temps, write_json
+from sim.atomic import atomic_path, remove_stale_temps, sha256_file, write_json
 from sim.errors import InputError
 
 FORMAT = "ctxreg-campaign"
@@ -65,14 +64,6 @@ class DatasetError(InputError):
 
 def shard_name(subject: int, shard: int) -> str:
     return f"s{subject:04d}_{shard:05d}.h5"
-
-
-def sha256_file(path: Path, chunk: int = 1 << 20) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        while block := f.read(chunk):
-            h.update(block)
-    return h.hexdigest()
 
 
 #: (real path, inode, size, mtime ns, ctime ns) -> SHA-256 of the files this process has hashed.
