@@ -202,6 +202,14 @@ class BatchedPairs(OnlinePairs):
                     np.savez_compressed(f, density=arrangements)
         return tool_looks(arrangements)
 
+    def cache_tables(self) -> None:
+        """Build the spectral table and this seed's tool bank into ``tables`` now (where spekpy,
+        xraylib and Mitsuba are at hand), so that a machine without them can train from the cache."""
+        if self.tables is None:
+            raise OnlinePairsError("cache_tables needs a tables folder (BatchedPairs(..., tables=FOLDER))")
+        self._table()
+        self._tool_bank()
+
     def prepare(self):
         """Build the subjects' volumes, the spectral table and the tool bank now (else on the first batch)."""
         if self._volumes is None:

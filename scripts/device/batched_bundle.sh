@@ -32,7 +32,7 @@ campaign = load_campaign(cfg.dataset)
 tables = Path(cfg.out) / "tables"
 for split, seed in (("train", cfg.seed), ("val", cfg.seed + 1)):
     p = BatchedPairs(campaign, split, randomization=cfg.randomization(), seed=seed, tables=tables)
-    p._table(); p._tool_bank()
+    p.cache_tables()
 print("tables:", sorted(x.name for x in tables.iterdir()))
 PY
 )

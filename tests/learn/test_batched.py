@@ -144,3 +144,19 @@ def test_batched_config_refusals_name_the_key(tmp_path):
     if not torch.cuda.is_available():
         with pytest.raises(TrainConfigError, match="torch sees no CUDA GPU"):
             resolve_device("cuda")
+
+
+def test_the_cached_tables_serve_a_new_run_unchanged(both, campaign):
+    """A second run reads the spectral table and tool bank its first one cached (what a GPU machine
+    without spekpy, xraylib and Mitsuba does) and makes the same pairs."""
+    from learn.batched import BatchedPairs
+
+    r, _, batched = both
+    batched.cache_tables()
+    names = sorted(p.name for p in Path(batched.tables).iterdir())
+    assert names == ["pair_tables.npz", "tool_bank_seed3_64x64.npz"]
+    again = BatchedPairs(campaign, "train", seed=3, randomization=r, tables=batched.tables)
+    for u, v in zip(again.batch(7, 4), batched.batch(7, 4)):
+        torch.testing.assert_close(u, v, rtol=0, atol=0)
+    with pytest.raises(OnlinePairsError, match="needs a tables folder"):
+        BatchedPairs(campaign, "train", seed=3, randomization=r).cache_tables()
