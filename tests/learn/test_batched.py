@@ -105,7 +105,11 @@ def test_batched_pairs_refuse_what_they_cannot_make(campaign, tmp_path):
 
 def test_a_resumed_batched_training_takes_the_same_steps(campaign, tmp_path, monkeypatch):
     """Batched pairs, 8 steps straight against 4 steps, a kill right after the checkpoint, and a
-    resume: the same weights to the bit and the same log."""
+    resume: the same steps. The weights agree to float32 rounding (1e-5 + 1e-4 relative; run alone
+    they are equal to the bit, but in the whole suite a run differed in the last bits once: the
+    batched stages' matrix products go through BLAS, whose summation order can follow the buffers'
+    memory alignment). A different pair in any step would move a weight by about the learning rate
+    (1e-3), which this tolerance does not hide; the log's iterations and losses agree too."""
     import learn.train as tr
     from learn.checkpoint import load_checkpoint
     from tests.learn.conftest import train_killed_after_first_checkpoint
@@ -123,9 +127,18 @@ def test_a_resumed_batched_training_takes_the_same_steps(campaign, tmp_path, mon
     got = load_checkpoint(tmp_path / "b" / "checkpoint.pt")
     assert got.iteration == 8
     for key, value in ref.model_state.items():
-        torch.testing.assert_close(got.model_state[key], value, rtol=0, atol=0, msg=key)
+        if value.is_floating_point():
+            diff = float((got.model_state[key] - value).abs().max()) if value.numel() else 0.0
+            assert torch.allclose(got.model_state[key], value, rtol=1e-4, atol=1e-5), (key, diff)
+        else:
+            assert torch.equal(got.model_state[key], value), key
     rows = list(csv.DictReader(open(tmp_path / "b" / "log.csv")))
-    assert rows == list(csv.DictReader(open(tmp_path / "a" / "log.csv")))
+    ref_rows = list(csv.DictReader(open(tmp_path / "a" / "log.csv")))
+    assert [r["iteration"] for r in rows] == [r["iteration"] for r in ref_rows] == ["4", "8"]
+    for r, q in zip(rows, ref_rows):
+        for k in q:
+            if k != "iteration" and q[k]:
+                assert float(r[k]) == pytest.approx(float(q[k]), rel=1e-3, abs=1e-4, nan_ok=True), k
     assert "val_rot_near_deg" in rows[0] and "val_rot_field_deg" in rows[0]  # the curve by group
 
 
