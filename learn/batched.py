@@ -33,6 +33,8 @@ agree to the tolerance stated in ``tests/sim/test_raymarch.py``; on a CPU the Si
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import torch
 
@@ -124,7 +126,7 @@ class BatchedPairs(OnlinePairs):
         self.framing = framing
         self.randomization = randomization
         self.device = torch.device(device)
-        self.tables = tables
+        self.tables = None if tables is None else Path(tables)
         self.step_fraction = step_fraction
         from sim.scene import load_scene
 
@@ -133,7 +135,6 @@ class BatchedPairs(OnlinePairs):
         self._volumes = None
         self._imager = None
         self._tools = None
-        self._subject_rows = None
 
     # -- built on first use --------------------------------------------------------------------
     def _build(self):
@@ -161,9 +162,7 @@ class BatchedPairs(OnlinePairs):
 
         if self.tables is None:
             return SpectralTable.for_randomization(self.randomization)
-        from pathlib import Path
-
-        path = Path(self.tables) / "pair_tables.npz"
+        path = self.tables / "pair_tables.npz"
         if path.exists():  # a draw outside it is refused by SpectralTable.index, naming the setting
             return SpectralTable.load(path)
         path.parent.mkdir(parents=True, exist_ok=True)
@@ -178,9 +177,7 @@ class BatchedPairs(OnlinePairs):
         h, w = self.geometry.height, self.geometry.width
         path = None
         if self.tables is not None:
-            from pathlib import Path
-
-            path = Path(self.tables) / f"tool_bank_seed{self.seed}_{h}x{w}.npz"
+            path = self.tables / f"tool_bank_seed{self.seed}_{h}x{w}.npz"
             if path.exists():
                 try:
                     with np.load(path, allow_pickle=False) as z:

@@ -21,7 +21,8 @@ class TrainCommand:
         "where the network trains and batched pairs (train.pairs = 'batched') are made: auto (a CUDA GPU when "
         "torch sees one), cpu or cuda", group="run", choices=("auto", "cpu", "cuda")))
     stop_after: float | None = field(default=None, metadata=opt(
-        "stop at the first iteration after this many seconds of training, with a checkpoint (then --resume)",
+        "stop at the first iteration after this many seconds of training, with a checkpoint (then --resume); "
+        "default: no limit, the run goes to train.iterations",
         group="run", unit="s", metavar="S", bounds=Range(0.0, None, lo_open=True)))
 
 
