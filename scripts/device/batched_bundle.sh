@@ -3,11 +3,13 @@
 # lent GPU machine (Python 3.12 with torch, torchvision, numpy and scipy; no Mitsuba, Dr.Jit,
 # xraylib, spekpy or nibabel, no internet). Batched pairs need none of the first four there: the
 # spectral table and tool bank are cached in runs/batched_gpu/tables, built here first.
-#   bash scripts/device/batched_bundle.sh [CONFIG]     # bundle + the config's tables (default configs/train_batched_gpu.toml)
+#   bash scripts/device/batched_bundle.sh [CONFIG ...]  # bundle + each config's tables (default configs/train_batched_gpu.toml)
 # Device calls (run tool; the tree travels, so do .devbundle_batched and runs/batched_gpu when carried):
 #   run(command="bash scripts/device/batched.sh 540 2>&1", carry=[".devbundle_batched", "runs/batched_gpu"],
 #       timeout_s=600)
-#   then: cp $files_at/checkpoint.pt $files_at/log.csv runs/batched_gpu/ (keep runs/batched_gpu small: it travels)
+#   then: cp $files_at/batched_gpu/{checkpoint.pt,log.csv} runs/batched_gpu/ (keep runs/ small: it travels)
+# Several configs train at once on the one GPU (sharing its time and the 16 cores):
+#   bash scripts/device/batched.sh 540 configs/train_batched_gpu.toml configs/train_batched_small_gpu.toml
 set -euo pipefail
 REPO=$(cd "$(dirname "${BASH_SOURCE[0]}")/../.." && pwd)
 B=$REPO/.devbundle_batched
@@ -21,19 +23,20 @@ find "$B/site" -name __pycache__ -prune -exec rm -rf {} +
 find "$B/site/nibabel" -type d -name tests -prune -exec rm -rf {} +
 cp "$REPO/../shared/data/ct/pelvis_abdomen_3mm.nii.gz" "$B/"
 # the cached tables: the spectral table (spekpy, xraylib) and both tool banks (Mitsuba)
-(cd "$REPO" && $PY - "${1:-configs/train_batched_gpu.toml}" <<'PY'
+(cd "$REPO" && $PY - "${@:-configs/train_batched_gpu.toml}" <<'PY'
 from pathlib import Path
 from learn.train import load_train_config
 from learn.batched import BatchedPairs
 from sim.campaign.config import load_campaign
 import sys
-cfg = load_train_config(sys.argv[1])
-campaign = load_campaign(cfg.dataset)
-tables = Path(cfg.out) / "tables"
-for split, seed in (("train", cfg.seed), ("val", cfg.seed + 1)):
-    p = BatchedPairs(campaign, split, randomization=cfg.randomization(), seed=seed, tables=tables)
-    p.cache_tables()
-print("tables:", sorted(x.name for x in tables.iterdir()))
+for path in sys.argv[1:]:
+    cfg = load_train_config(path)
+    campaign = load_campaign(cfg.dataset)
+    tables = Path(cfg.out) / "tables"
+    for split, seed in (("train", cfg.seed), ("val", cfg.seed + 1)):
+        p = BatchedPairs(campaign, split, randomization=cfg.randomization(), seed=seed, tables=tables)
+        p.cache_tables()
+    print(path, "tables:", sorted(x.name for x in tables.iterdir()))
 PY
 )
 du -sh "$B"
