@@ -1,0 +1,180 @@
+"""Do two checkouts make the same outputs? A refactoring's check (issue 30: bit-identical images,
+registrations and trainings).
+
+    .venv/bin/python scripts/same_outputs.py make OUT        # in a checkout: its outputs into OUT
+    .venv/bin/python scripts/same_outputs.py compare A B     # every output of A against B's
+
+``make`` runs, in the checkout the script lies in (its code first on ``PYTHONPATH``, ``register.cli:main``): the demo (a realistic
+DICOM frame registered from AP), a 10-case ``ctxreg evaluate`` (contextual+cmaes on line DRRs of the
+pelvis CT), a line and a full-physics ``ctxreg render``, and two short trainings (3 steps of 4 pairs,
+batched and per-pair realistic pairs, from ``configs/train_batched_gpu.toml``). Without
+``../shared/data`` the built-in phantom stands in for the CT.
+
+``compare`` checks every file of A against B: images, DICOM and arrays byte for byte; checkpoints
+tensor by tensor (``torch.load(weights_only=True)``); JSON, TOML and CSV value by value, leaving out
+what a run measures of itself (keys naming seconds, times, dates and paths). It prints one line per
+file and exits 1 when anything differs or is missing.
+"""
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import math
+import os
+import subprocess
+import sys
+import tomllib
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parent.parent
+CT = ROOT.parent / "shared" / "data" / "ct" / "pelvis_abdomen_3mm.nii.gz"
+# keys a run records of itself, not of its result
+VOLATILE = ("time", "seconds", "_s", "date", "path", "elapsed", "duration", "rate", "eta", "out", "command",
+            "host", "machine", "version", "created", "config", "wall")
+
+
+def _run(args: list[str], log) -> None:
+    print("$", " ".join(args), flush=True)
+    # this checkout's code, also where the virtual environment's editable install points elsewhere
+    env = dict(os.environ, PYTHONPATH=str(ROOT))
+    r = subprocess.run(args, cwd=ROOT, stdout=log, stderr=subprocess.STDOUT, env=env)
+    if r.returncode != 0:
+        sys.exit(f"same_outputs: {' '.join(args)} failed (exit {r.returncode}); see the log")
+
+
+def make(out: Path) -> None:
+    out = out.resolve()
+    out.mkdir(parents=True, exist_ok=True)
+    ctxreg = [sys.executable, "-c", "import sys; from register.cli import main; sys.exit(main())"]
+    ct = str(CT) if CT.is_file() else "phantom"
+    with open(out / "make.log", "w") as log:
+        _run([*ctxreg, "demo", "--out", str(out / "demo"), "--ct", ct], log)
+        _run([*ctxreg, "evaluate", "--ct", ct, "--cases", "10", "--method", "contextual+cmaes", "--out",
+              str(out / "evaluate")], log)
+        pose = ["-10", "5", "3", "4", "-6", "8"]
+        _run([*ctxreg, "render", "--ct", ct, "--size", "96", "96", "--pose", *pose, "--out",
+              str(out / "render" / "line.npy")], log)
+        _run([*ctxreg, "render", "--ct", ct, "--size", "64", "64", "--pose", *pose, "--physics", "full",
+              "--scatter-photons", "20000", "--seed", "3", "--out", str(out / "render" / "full.npy")], log)
+        base = tomllib.loads((ROOT / "configs" / "train_batched_gpu.toml").read_text())
+        for pairs in ("batched", "per-pair"):
+            folder = out / f"train_{pairs}"
+            folder.mkdir(exist_ok=True)
+            cfg = dict(base["train"])
+            cfg.update(dataset=str(ROOT / "campaigns" / "pelvis_vp.toml"), out=str(folder / "run"),
+                       init_from=str(ROOT / "models" / "pelvis_line" / "model.pt"), pairs=pairs, batch_size=4,
+                       iterations=3, val_pairs=4, val_every=3, checkpoint_every=3, subjects_per_batch=2)
+            from sim.atomic import toml_value
+
+            lines = ["[train]"] + [f"{k} = {toml_value(v)}" for k, v in cfg.items() if not isinstance(v, dict)]
+            lines += ["[train.randomize]"] + [f"{k} = {toml_value(v)}" for k, v in cfg["randomize"].items()]
+            (folder / "config.toml").write_text("\n".join(lines) + "\n")
+            _run([*ctxreg, "train", str(folder / "config.toml"), "--device", "cpu"], log)
+    print(f"outputs in {out}")
+
+
+def _volatile(key: str) -> bool:
+    k = key.lower()
+    return any(v in k for v in VOLATILE)
+
+
+def _same(a, b, where: str, diffs: list[str]) -> None:
+    if isinstance(a, dict) and isinstance(b, dict):
+        for k in sorted(set(a) | set(b)):
+            if _volatile(str(k)):
+                continue
+            if k not in a or k not in b:
+                diffs.append(f"{where}.{k}: only in {'B' if k not in a else 'A'}")
+            else:
+                _same(a[k], b[k], f"{where}.{k}", diffs)
+    elif isinstance(a, list) and isinstance(b, list):
+        if len(a) != len(b):
+            diffs.append(f"{where}: {len(a)} against {len(b)} items")
+        for i, (x, y) in enumerate(zip(a, b)):
+            _same(x, y, f"{where}[{i}]", diffs)
+    elif isinstance(a, float) and isinstance(b, float) and math.isnan(a) and math.isnan(b):
+        pass
+    elif a != b:
+        diffs.append(f"{where}: {a!r} against {b!r}")
+
+
+def _load(path: Path):
+    if path.suffix == ".json":
+        return json.loads(path.read_text())
+    if path.suffix == ".toml":
+        return tomllib.loads(path.read_text())
+    if path.suffix == ".csv":
+        with open(path) as f:
+            return list(csv.DictReader(f))
+    return None
+
+
+def _compare_file(a: Path, b: Path) -> list[str]:
+    if a.suffix == ".pt":
+        import torch
+
+        sa, sb = torch.load(a, weights_only=True, map_location="cpu"), torch.load(b, weights_only=True,
+                                                                                map_location="cpu")
+        diffs: list[str] = []
+
+        def walk(x, y, where):
+            if isinstance(x, torch.Tensor) and isinstance(y, torch.Tensor):
+                if x.shape != y.shape or not torch.equal(x, y):
+                    diffs.append(f"{where}: tensors differ")
+            elif isinstance(x, dict) and isinstance(y, dict):
+                for k in sorted(set(x) | set(y), key=str):
+                    if not _volatile(str(k)):
+                        walk(x.get(k), y.get(k), f"{where}.{k}")
+            elif isinstance(x, (list, tuple)) and isinstance(y, (list, tuple)) and len(x) == len(y):
+                for i, (u, v) in enumerate(zip(x, y)):
+                    walk(u, v, f"{where}[{i}]")
+            elif x != y:
+                diffs.append(f"{where}: {x!r} against {y!r}"[:300])
+
+        walk(sa, sb, "")
+        return diffs
+    data = _load(a)
+    if data is not None:
+        diffs = []
+        _same(data, _load(b), "", diffs)
+        return diffs
+    if a.suffix in (".log", ".txt", ".gif"):  # progress logs carry rates and times; the GIF its frame times
+        return []
+    return [] if a.read_bytes() == b.read_bytes() else ["bytes differ"]
+
+
+def compare(a_dir: Path, b_dir: Path) -> int:
+    files_a = {p.relative_to(a_dir) for p in a_dir.rglob("*") if p.is_file()}
+    files_b = {p.relative_to(b_dir) for p in b_dir.rglob("*") if p.is_file()}
+    bad = 0
+    for rel in sorted(files_a | files_b):
+        if rel not in files_a or rel not in files_b:
+            print(f"MISSING {rel}: only in {'A' if rel in files_a else 'B'}")
+            bad += 1
+            continue
+        diffs = _compare_file(a_dir / rel, b_dir / rel)
+        print(f"{'same   ' if not diffs else 'DIFFERS'} {rel}" + (f": {'; '.join(diffs[:5])}" if diffs else ""))
+        bad += bool(diffs)
+    print(f"{len(files_a | files_b) - bad} of {len(files_a | files_b)} files the same")
+    return 1 if bad else 0
+
+
+def main() -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    sub = p.add_subparsers(dest="cmd", required=True)
+    m = sub.add_parser("make", help="this checkout's outputs into OUT")
+    m.add_argument("out", type=Path)
+    c = sub.add_parser("compare", help="the outputs of A against B's")
+    c.add_argument("a", type=Path)
+    c.add_argument("b", type=Path)
+    args = p.parse_args()
+    if args.cmd == "make":
+        sys.path.insert(0, str(ROOT))
+        make(args.out)
+        return 0
+    return compare(args.a, args.b)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
