@@ -24,6 +24,8 @@ from typing import Any
 import numpy as np
 from scipy import ndimage
 
+from sim.prepare import invert, masked_fill, normalize, percentile_bounds
+
 __all__ = ["PreparedXRay", "prepare_xray", "confirm_polarity", "fit_to_size", "fit_box", "masked_fill", "reference_drrs",
            "REFERENCE_POSES", "REFERENCE_SIZE", "POLARITY_FLIP_MARGIN"]
 
@@ -251,24 +253,11 @@ def toned_image(image: np.ndarray, mask: np.ndarray | None, curve) -> np.ndarray
     if curve is None:
         return None
     out = apply_tone(image, mask, curve)
-    m = np.ones(out.shape, bool) if mask is None else mask
-    lo, hi = np.percentile(out[m], [1.0, 99.0])
+    lo, hi = percentile_bounds(out, mask, 1.0, 99.0)
     if not hi > lo:
         return np.full(out.shape, 0.5)
-    return np.clip((out - lo) / (hi - lo), 0.0, 1.0)
+    return normalize(out, lo, hi)
 
-
-def masked_fill(image: np.ndarray, mask: np.ndarray | None) -> np.ndarray:
-    """``image`` with the pixels outside ``mask`` set to the mean of the valid pixels.
-
-    The neutral fill for a network's input: it adds no contrast of its own (the valid pixels'
-    mean), does not move a min-max normalisation, and, applied with the same mask to both images
-    of a pair, makes the field edge a feature they share rather than one that depends on the pose.
-    """
-    if mask is None:
-        return np.asarray(image, np.float64)
-    img = np.asarray(image, np.float64)
-    return np.where(mask, img, float(img[mask].mean()) if mask.any() else 0.0)
 
 
 
@@ -333,12 +322,9 @@ def confirm_polarity(prepared: PreparedXRay, volume, center_lps, init_params, *,
     record = [*prepared.record, {"step": "polarity_check", "params": params, "measured": measured}]
     if not flip:
         return replace(prepared, record=record)
-    lo, hi = (float(v) for v in np.percentile(prepared.image if prepared.mask is None else prepared.image[prepared.mask],
-                                               [0, 100]))
-    inverse = (hi + lo) - prepared.image
-    m = prepared.full_mask
-    flo, fhi = (float(v) for v in np.percentile(prepared.full_image[m] if m.any() else prepared.full_image, [0, 100]))
-    return replace(prepared, image=inverse, full_image=(fhi + flo) - prepared.full_image, record=record,
+    inverse = invert(prepared.image, prepared.mask)[0]
+    full_inverse = invert(prepared.full_image, prepared.full_mask if prepared.full_mask.any() else None)[0]
+    return replace(prepared, image=inverse, full_image=full_inverse, record=record,
                    toned=toned_image(inverse, prepared.mask, _tone_of(prepared.record)))
 
 

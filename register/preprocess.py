@@ -38,6 +38,7 @@ from typing import Any, ClassVar, Iterable, Sequence
 import numpy as np
 from scipy import ndimage
 
+from sim import prepare
 from sim.errors import InputError
 from sim.geometry import CArmGeometry
 
@@ -75,10 +76,6 @@ def _num(value: object, name: str, *, lo: float | None = None, hi: float | None 
     if hi is not None and v > hi:
         raise PreprocessError(f"{name}: must be <= {hi:g}, got {v:g}")
     return v
-
-
-def _valid_values(image: np.ndarray, mask: np.ndarray | None) -> np.ndarray:
-    return image.ravel() if mask is None else image[mask]
 
 
 class Step:
@@ -142,13 +139,7 @@ class Crop(Step):
 
     def apply(self, image, mask):
         H, W = image.shape
-        if mask is None:
-            box = [0, H, 0, W]
-        else:
-            rows, cols = np.nonzero(mask.any(axis=1))[0], np.nonzero(mask.any(axis=0))[0]
-            m = int(self.margin_px)
-            box = [max(0, int(rows[0]) - m), min(H, int(rows[-1]) + 1 + m),
-                   max(0, int(cols[0]) - m), min(W, int(cols[-1]) + 1 + m)]
+        box = [0, H, 0, W] if mask is None else list(prepare.field_box(mask, self.margin_px))
         r0, r1, c0, c1 = box
         out_mask = None if mask is None else mask[r0:r1, c0:c1]
         return image[r0:r1, c0:c1], out_mask, {"crop_box": box, "input_shape": [H, W]}
@@ -267,7 +258,7 @@ class LogCorrect(Step):
 
     def apply(self, image, mask):
         if self.i0 is None:
-            i0 = float(np.percentile(_valid_values(image, mask), self.percentile))
+            i0 = prepare.i0_percentile(image, mask, self.percentile)
             source = "percentile"
         else:
             i0, source = float(self.i0), "given"
@@ -276,9 +267,8 @@ class LogCorrect(Step):
                 f"log: I0 = {i0:g} (the {self.percentile:g}th percentile) is not positive; LogCorrect needs "
                 f"a transmitted-intensity image with positive values"
             )
-        floor = self.floor_frac * i0
-        clipped = int(np.count_nonzero(image < floor))
-        out = -np.log(np.maximum(image, floor) / i0)
+        clipped = int(np.count_nonzero(image < self.floor_frac * i0))
+        out = prepare.log_correct(image, i0, self.floor_frac)
         return out, mask, {"i0": i0, "i0_source": source, "clipped_pixels": clipped}
 
 
@@ -300,14 +290,13 @@ class Normalize(Step):
             raise PreprocessError(f"normalize: low_pct ({lo:g}) must be < high_pct ({hi:g})")
 
     def apply(self, image, mask):
-        lo, hi = (float(v) for v in np.percentile(_valid_values(image, mask), [self.low_pct, self.high_pct]))
+        lo, hi = (float(v) for v in prepare.percentile_bounds(image, mask, self.low_pct, self.high_pct))
         if not hi > lo:
             raise PreprocessError(
                 f"normalize: the {self.low_pct:g}th and {self.high_pct:g}th percentiles are equal ({lo:g}); "
                 f"the image is flat and cannot be normalised"
             )
-        out = np.clip((image - lo) / (hi - lo), 0.0, 1.0)
-        return out, mask, {"low": lo, "high": hi}
+        return prepare.normalize(image, lo, hi), mask, {"low": lo, "high": hi}
 
 
 @dataclass(frozen=True)
@@ -317,9 +306,8 @@ class Invert(Step):
     name: ClassVar[str] = "invert"
 
     def apply(self, image, mask):
-        v = _valid_values(image, mask)
-        mn, mx = float(v.min()), float(v.max())
-        return (mx + mn) - image, mask, {"min": mn, "max": mx}
+        out, mn, mx = prepare.invert(image, mask)
+        return out, mask, {"min": mn, "max": mx}
 
 
 #: Step names for :meth:`Pipeline.from_names` -> step classes (built with their defaults).

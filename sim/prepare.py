@@ -1,0 +1,89 @@
+"""The preparation an X-ray image gets before the network or the similarity measure sees it (NumPy).
+
+One home for the arithmetic that registration (``register.preprocess``, ``register.prepare``)
+and training (``learn.online.prepare_like_registration``) both apply to an X-ray, so that a
+training target is prepared exactly as registration prepares a user's frame. Each function is
+one step over the *field* (the valid pixels, a ``(H, W)`` bool ``mask``; ``None``: every pixel):
+
+* :func:`field_values`: the pixels the statistics of every step are taken over;
+* :func:`invert`: ``max + min - x`` over the field's extremes (bone dark <-> bone bright);
+* :func:`i0_percentile`, :func:`log_correct`: ``-ln(max(I, floor_frac I0) / I0)``, transmitted
+  intensity -> line-integral-like values, ``I0`` a high percentile over the field;
+* :func:`field_box`: the field's bounding box (the crop of the field);
+* :func:`percentile_bounds`, :func:`normalize`: the ``low`` / ``high`` percentiles over the field
+  to 0 / 1, clipped to ``[0, 1]``;
+* :func:`masked_fill`: the pixels outside the field set to the mean over it.
+
+Callers decide what a degenerate input means (registration raises, training substitutes), so the
+functions return the measured values (extremes, percentiles) and leave that to them. The batched
+torch twins (and the resampling of a field's crop) are :mod:`sim.prepare_batched`. The operations
+(and their order, dtypes and ``np.percentile`` calls) are those the callers made before they
+shared them: results are bit-identical.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+__all__ = ["field_values", "invert", "i0_percentile", "log_correct", "field_box", "percentile_bounds",
+           "normalize", "masked_fill"]
+
+
+def field_values(image: np.ndarray, mask: np.ndarray | None) -> np.ndarray:
+    """The pixels of ``image`` inside ``mask`` (all of them, flattened, without a mask)."""
+    return image.ravel() if mask is None else image[mask]
+
+
+def invert(image: np.ndarray, mask: np.ndarray | None) -> tuple[np.ndarray, float, float]:
+    """``(max + min - image, min, max)`` with ``min`` / ``max`` over the field: the range is kept,
+    reversed; inverting twice with the same field gives the image back."""
+    v = field_values(image, mask)
+    mn, mx = float(v.min()), float(v.max())
+    return (mx + mn) - image, mn, mx
+
+
+def i0_percentile(image: np.ndarray, mask: np.ndarray | None, percentile: float) -> float:
+    """The unattenuated intensity ``I0`` of a transmission image: the ``percentile``-th percentile
+    of the field (the brightest, least attenuated part stands for the direct beam)."""
+    return float(np.percentile(field_values(image, mask), percentile))
+
+
+def log_correct(image: np.ndarray, i0: float, floor_frac: float = 1e-6) -> np.ndarray:
+    """``-ln(max(image, floor_frac * i0) / i0)``: transmitted intensity -> line-integral-like values
+    (bone bright, the direct beam ~ 0; pixels above ``i0`` get small negative values)."""
+    floor = floor_frac * i0
+    return -np.log(np.maximum(image, floor) / i0)
+
+
+def field_box(mask: np.ndarray, margin: int = 0) -> tuple[int, int, int, int]:
+    """The bounding box ``(row0, row1, col0, col1)`` (half-open) of the ``True`` pixels of ``mask``
+    (``(H, W)`` bool, at least one ``True``), ``margin`` pixels wider on each side, clipped to the image."""
+    H, W = mask.shape
+    rows, cols = np.flatnonzero(mask.any(axis=1)), np.flatnonzero(mask.any(axis=0))
+    m = int(margin)
+    return (max(0, int(rows[0]) - m), min(H, int(rows[-1]) + 1 + m),
+            max(0, int(cols[0]) - m), min(W, int(cols[-1]) + 1 + m))
+
+
+def percentile_bounds(image: np.ndarray, mask: np.ndarray | None, low_pct: float, high_pct: float) -> np.ndarray:
+    """``(2,)``: the ``low_pct`` and ``high_pct`` percentiles (%) of the field (``np.percentile``, linear)."""
+    return np.percentile(field_values(image, mask), [low_pct, high_pct])
+
+
+def normalize(image: np.ndarray, lo, hi) -> np.ndarray:
+    """``lo`` -> 0 and ``hi`` -> 1 linearly, clipped to ``[0, 1]`` (``hi > lo``: the caller checks)."""
+    return np.clip((image - lo) / (hi - lo), 0.0, 1.0)
+
+
+def masked_fill(image: np.ndarray, mask: np.ndarray | None) -> np.ndarray:
+    """``image`` (as float64) with the pixels outside ``mask`` set to the mean of the valid pixels.
+
+    The neutral fill for a network's input: it adds no contrast of its own (the valid pixels'
+    mean), does not move a min-max normalisation, and, applied with the same mask to both images
+    of a pair, makes the field edge a feature they share rather than one that depends on the pose.
+    An empty mask fills with 0; no mask returns the image.
+    """
+    if mask is None:
+        return np.asarray(image, np.float64)
+    img = np.asarray(image, np.float64)
+    return np.where(mask, img, float(img[mask].mean()) if mask.any() else 0.0)
