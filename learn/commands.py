@@ -137,7 +137,7 @@ def _accuracy_renderers(cmd: AccuracyCommand, size) -> tuple[list, tuple[str, st
     """Per subject ``(target renderer, current renderer)``; the two images' physics names; the
     current images' :class:`~sim.physics.imaging.PhysicsSettings` (None for line DRRs)."""
     from learn.evaluate import AccuracyError
-    from sim.render import DRRRenderer, RenderSettings
+    from sim.drr import DRRRenderer, RenderSettings
 
     if cmd.ct is not None:
         from sim.anatomy import anatomy_center
@@ -174,12 +174,25 @@ def _accuracy_renderers(cmd: AccuracyCommand, size) -> tuple[list, tuple[str, st
 
 @dataclass(frozen=True)
 class ModelsCommand:
-    """``ctxreg models``: no options."""
+    """Defaults of ``ctxreg models``."""
+
+    name: str | None = field(default=None, metadata=opt(
+        "a shipped model: print its whole card (JSON); without it, a short block per model", group="output",
+        positional=True, nargs="?", metavar="NAME"))
+    json: bool = field(default=False, metadata=opt("print every shipped model's whole card as one JSON object "
+                                                   "(name -> card)", group="output"))
 
 
 def run_models(cmd: ModelsCommand) -> list[Path]:
     """Print the shipped models (``models/<name>/``, each checked against its card)."""
-    from learn.models import describe_models
+    import json
 
-    print(describe_models())
+    from learn.models import describe_model, describe_models, shipped_models
+
+    if cmd.name is not None:
+        print(json.dumps(describe_model(cmd.name), indent=2))
+    elif cmd.json:
+        print(json.dumps({name: describe_model(name) for name in shipped_models()}, indent=2))
+    else:
+        print(describe_models())
     return []

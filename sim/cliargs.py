@@ -113,8 +113,9 @@ def add_options(parser: argparse.ArgumentParser, cls) -> None:
             shown = " ".join(str(v) for v in default) if isinstance(default, tuple) else default
             help_text += f" (default: {shown})"
         tp = _base_type(hints[f.name])
-        if meta["positional"]:
-            group.add_argument(f.name, type=tp, help=help_text, metavar=meta["metavar"] or f.name.upper())
+        if meta["positional"]:  # nargs="?": an optional positional, its default the dataclass's
+            extra = {"nargs": meta["nargs"], "default": default} if meta["nargs"] is not None else {}
+            group.add_argument(f.name, type=tp, help=help_text, metavar=meta["metavar"] or f.name.upper(), **extra)
             continue
         flag = meta["flag"] or "--" + f.name.replace("_", "-")
         if tp is bool:

@@ -22,14 +22,25 @@ def _trained(tmp_path):
     return path, net
 
 
+TRAINING = {"trained_on": "a few test pairs", "data": "none", "images": "32 x 32 line DRRs", "physics": "line",
+            "randomization": "none", "init_from": "random weights", "config": "x.toml", "command": "ctxreg train x.toml",
+            "iterations": 3, "batch_size": 4, "pairs_seen": 12, "seed": 0, "duration_s": 1.5, "machine": "a test"}
+
+
+def _accuracy(success=0.5):
+    return {"protocol": "the network alone", "headline": ["line_drrs"],
+            "line_drrs": {"what": "line DRRs, 2 poses from AP", "command": "ctxreg evaluate", "measured": "today",
+                          "cases": 2, "success": success, "rotation_deg_mean": 1.5, "translation_mm_mean": 12.0}}
+
+
 def test_export_keeps_the_weights_drops_the_training_state_and_writes_a_checked_card(tmp_path):
     src, net = _trained(tmp_path)
-    card_path = export_model(src, tmp_path / "m", name="m", description="test",
-                             training={"command": "ctxreg train x.toml"}, accuracy={"success": 0.5})
+    card_path = export_model(src, tmp_path / "m", name="m", summary="test", training=TRAINING,
+                             accuracy=_accuracy())
     card = load_card(tmp_path / "m")
     assert card["model"]["image_size"] == [32, 32] and card["model"]["preprocess"] == ["normalize"]
     assert card["model"]["current_field"] == "masked"  # the default of a checkpoint that does not record it
-    assert card["training"]["command"] == "ctxreg train x.toml" and card["accuracy"]["success"] == 0.5
+    assert card["training"]["command"] == "ctxreg train x.toml" and card["accuracy"]["line_drrs"]["success"] == 0.5
     out = load_checkpoint(tmp_path / "m" / "model.pt")
     assert out.optimizer is None and out.rng is None and out.iteration == 3
     for k, v in net.state_dict().items():
@@ -57,7 +68,9 @@ def test_every_shipped_model_loads_and_matches_its_card(name):
     folder = shipped_models()[name]
     card = load_card(folder)
     assert card["model"]["name"] == name
-    assert {"command", "config"} <= set(card["training"]) and "command" in card["accuracy"]
+    assert {"command", "config", "trained_on"} <= set(card["training"]) and card["accuracy"]["headline"]
+    # the network's own accuracy only: no pipeline (refinement, global search) numbers on a card
+    assert not [k for k in card["accuracy"] if "cmaes" in k or k.startswith("register")]
     assert (folder / card["model"]["file"]).stat().st_size < 20 * 2**20  # weights only: a few MB
 
 
@@ -66,9 +79,8 @@ def test_a_model_is_named_or_a_path_and_the_default_is_shipped(tmp_path):
     from learn.predict import NetworkPredictor
 
     src, _ = _trained(tmp_path)
-    export_model(src, tmp_path / "models" / "mine", name="mine", description="a test model",
-                 training={"command": "c", "config": "x.toml", "images": "tiny"},
-                 accuracy={"command": "e", "contextual_success": 0.5})
+    export_model(src, tmp_path / "models" / "mine", name="mine", summary="a test model", training=TRAINING,
+                 accuracy=_accuracy())
     root = tmp_path / "models"
     assert resolve_model("mine", root) == root / "mine" / "model.pt"
     assert resolve_model(str(src), root) == src  # a file is a file
@@ -77,8 +89,11 @@ def test_a_model_is_named_or_a_path_and_the_default_is_shipped(tmp_path):
         resolve_model("yours", root)
     with pytest.raises(ModelCardError, match=f"the default model '{DEFAULT_MODEL}' is not in"):
         resolve_model(None, root)
-    table = describe_models(root)
-    assert "| mine | 32 x 32 | normalize | tiny | contextual_success = 0.5 | a test model |" in table
+    text = describe_models(root, width=80)
+    assert text.startswith("mine: a test model\n  image 32 x 32 px, preprocessing normalize, backbone tiny\n"
+                           "  trained on a few test pairs\n"
+                           "  alone: line DRRs, 2 poses from AP: 50 % with success, 1.50 deg / 12.0 mm mean")
+    assert max(len(line) for line in text.splitlines()) <= 80
     # the repository's default model exists, and a predictor takes a name
     assert DEFAULT_MODEL in shipped_models()
     assert NetworkPredictor(DEFAULT_MODEL).size == tuple(load_card(shipped_models()[DEFAULT_MODEL])["model"]
@@ -90,13 +105,57 @@ def test_a_model_is_named_or_a_path_and_the_default_is_shipped(tmp_path):
         NetworkPredictor(str(tmp_path / "none.pt"))
 
 
-def test_ctxreg_models_lists_the_shipped_models(capsys):
+def test_ctxreg_models_lists_the_shipped_models_and_prints_a_whole_card(capsys):
+    import json
+
     from register.cli import main
 
     assert main(["models"]) == 0
     out = capsys.readouterr().out
     for name in shipped_models():
-        assert f"| {name}" in out
+        assert f"\n{name}" in f"\n{out}"
+    assert max(len(line) for line in out.splitlines()) <= 100  # a terminal's width
+    assert "issue" not in out.lower()
+    assert main(["models", "pelvis_line"]) == 0
+    card = json.loads(capsys.readouterr().out)
+    assert card["model"]["name"] == "pelvis_line" and "line_drrs" in card["accuracy"]
+    assert main(["models", "--json"]) == 0
+    assert set(json.loads(capsys.readouterr().out)) == set(shipped_models())
+    assert main(["models", "no_such_model"]) != 0
+    assert "no shipped model 'no_such_model' (shipped: " in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("edit, message", [
+    (lambda c: c["model"].pop("summary"), "model.summary is missing"),
+    (lambda c: c["model"].update(summary="trained for issue 28"), "without issue numbers"),
+    (lambda c: c["training"].update(pairs_seen="many"), "training.pairs_seen must be int"),
+    (lambda c: c["training"].update(colour="red"), "training.colour is not a key of the card's schema"),
+    (lambda c: c.update(results={}), r"unknown section\(s\) \['results'\]"),
+    (lambda c: c["accuracy"]["line_drrs"].update(success=1.5), "success: must be a fraction in"),
+    (lambda c: c["accuracy"]["line_drrs"].update(contextual_cmaes_success=1.0),
+     "contextual_cmaes_success: not a key of a measurement"),
+    (lambda c: c["accuracy"]["line_drrs"].pop("command"), "line_drrs.command: missing"),
+    (lambda c: c["accuracy"].update(headline=["grid"]), "headline names 'grid'"),
+    (lambda c: c["accuracy"]["line_drrs"].update(rotation_deg_mean=float("nan")), "must be a number >= 0"),
+])
+def test_a_card_outside_the_schema_is_refused_naming_the_key(tmp_path, edit, message):
+    import copy
+
+    from learn.models import check_card
+
+    card = {"model": {"name": "m", "summary": "s", "file": "model.pt", "sha256": "0", "backbone": "tiny",
+                      "head_channels": 8, "image_size": [32, 32], "preprocess": ["normalize"], "physics": {},
+                      "current_physics": {}, "current_field": "masked", "iterations": 3},
+            "training": dict(TRAINING), "accuracy": _accuracy()}
+    check_card(copy.deepcopy(card))
+    edit(card)
+    with pytest.raises(ModelCardError, match=message):
+        check_card(card)
+    src, _ = _trained(tmp_path)  # export_model refuses such tables before writing anything
+    with pytest.raises(ModelCardError):
+        export_model(src, tmp_path / "x", name="x", summary="trained for issue 28", training=TRAINING,
+                     accuracy=_accuracy())
+    assert not (tmp_path / "x").exists()
 
 
 class _Payload:
@@ -111,8 +170,7 @@ def test_a_model_folder_whose_weights_pickle_an_object_is_refused_by_name(tmp_pa
     from learn.predict import NetworkPredictor
 
     src, _ = _trained(tmp_path)
-    export_model(src, tmp_path / "models" / "bad", name="bad", description="x", training={"command": "c"},
-                 accuracy={"command": "e"})
+    export_model(src, tmp_path / "models" / "bad", name="bad", summary="x", training=TRAINING, accuracy=_accuracy())
     weights = tmp_path / "models" / "bad" / "model.pt"
     state = torch.load(weights, weights_only=True)
     state["extra"] = _Payload()
