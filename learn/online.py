@@ -42,6 +42,8 @@ from learn.labels import LabelNormalizer, apply_update, geodesic_label
 from sim.errors import InputError
 from sim.randomize import DomainRandomization
 from sim.physics.display import TONES, apply_tone, quantile_curve
+from sim.prepare import field_box, i0_percentile, invert, log_correct, masked_fill, normalize, percentile_bounds
+from sim.prepare_batched import crop_resize
 from sim.seeds import KIND_BATCH, KIND_BATCH_NOISE  # batch k: (KIND_BATCH, k); its noise: (KIND_BATCH_NOISE, k, u[, 1])
 
 
@@ -120,18 +122,6 @@ def current_field_problem(value) -> str | None:
     return None if value in CURRENT_FIELDS else f"must be one of {', '.join(CURRENT_FIELDS)}, got {value!r}"
 
 
-def _crop_resize(image: np.ndarray, box: tuple[int, int, int, int], shape: tuple[int, int], mode: str) -> np.ndarray:
-    """``image[r0:r1, c0:c1]`` resampled to ``shape`` (``bilinear`` or ``nearest``), float64."""
-    import torch.nn.functional as F
-
-    r0, r1, c0, c1 = box
-    if (r0, r1, c0, c1) == (0, shape[0], 0, shape[1]):
-        return np.asarray(image, np.float64)
-    x = torch.from_numpy(np.ascontiguousarray(image[r0:r1, c0:c1], np.float32))[None, None]
-    kw = {"align_corners": False} if mode == "bilinear" else {}
-    return F.interpolate(x, size=shape, mode=mode, **kw)[0, 0].double().numpy()
-
-
 def prepare_like_registration(display: np.ndarray, field: np.ndarray, current: np.ndarray, *, log_display: bool,
                               bone_dark: bool, raw_intensity: bool = False, low_pct: float = 1.0,
                               high_pct: float = 99.0, i0_pct: float = 99.5, mask_current: bool = True,
@@ -152,14 +142,14 @@ def prepare_like_registration(display: np.ndarray, field: np.ndarray, current: n
        linear bone-bright, ``["invert"]`` for linear bone-dark). ``log_display`` is kept for the
        record and for callers that log-correct raw intensity (``raw_intensity=True``:
        ``-ln(max(x, 1e-6 I0) / I0)`` with ``I0`` the ``i0_pct`` percentile over the field, as
-       ``register.preprocess.LogCorrect``);
+       ``register.preprocess.LogCorrect``; the steps are :mod:`sim.prepare`'s, which registration calls too);
     2. both images cropped to the field's bounding box and resampled to ``(H, W)`` (registration
        crops the X-ray to its field and renders the moving images for the cropped detector; the
        predictor resamples both to the network's size);
     3. the target normalised: the ``low_pct`` / ``high_pct`` percentiles over the field to 0 / 1,
        clipped (``register.preprocess.Normalize``);
     4. the target's pixels outside the field set to the mean over the field
-       (``register.prepare.masked_fill``), and the current image's too unless ``mask_current`` is
+       (:func:`sim.prepare.masked_fill`), and the current image's too unless ``mask_current`` is
        False (a network trained with ``current_field = "open"`` sees the whole current image:
        the anatomy around the target's field, :data:`CURRENT_FIELDS`).
 
@@ -177,28 +167,23 @@ def prepare_like_registration(display: np.ndarray, field: np.ndarray, current: n
         raise OnlinePairsError("prepare_like_registration: the field holds no pixel")
     if raw_intensity and not log_display:  # transmitted intensity (bone dark): log-correct, bone bright
         if not bone_dark:
-            v = x[m]
-            x = (v.max() + v.min()) - x
-        i0 = float(np.percentile(x[m], i0_pct))
-        i0 = i0 if i0 > 0 else 1.0
-        x = -np.log(np.maximum(x, 1e-6 * i0) / i0)
+            x = invert(x, m)[0]
+        i0 = i0_percentile(x, m, i0_pct)
+        x = log_correct(x, i0 if i0 > 0 else 1.0)
     elif bone_dark:
-        v = x[m]
-        x = (v.max() + v.min()) - x
+        x = invert(x, m)[0]
     if tone and not raw_intensity:
         x = apply_tone(x, m, quantile_curve(np.asarray(current, np.float64)[m]))
-    rows, cols = np.flatnonzero(m.any(axis=1)), np.flatnonzero(m.any(axis=0))
-    box = (int(rows[0]), int(rows[-1]) + 1, int(cols[0]), int(cols[-1]) + 1)
-    x = _crop_resize(x, box, (h, w), "bilinear")
-    cur = _crop_resize(current, box, (h, w), "bilinear")
-    m = _crop_resize(m.astype(np.float32), box, (h, w), "nearest") > 0.5
+    box = field_box(m)
+    x = crop_resize(x, box, (h, w), "bilinear")
+    cur = crop_resize(current, box, (h, w), "bilinear")
+    m = crop_resize(m.astype(np.float32), box, (h, w), "nearest") > 0.5
     if not m.any():
         m = np.ones((h, w), bool)
-    lo, hi = np.percentile(x[m], [low_pct, high_pct])
-    x = np.clip((x - lo) / (hi - lo), 0.0, 1.0) if hi > lo else np.zeros_like(x)
-    x = np.where(m, x, x[m].mean())
+    lo, hi = percentile_bounds(x, m, low_pct, high_pct)
+    x = masked_fill(normalize(x, lo, hi) if hi > lo else np.zeros_like(x), m)
     if mask_current:
-        cur = np.where(m, cur, cur[m].mean())
+        cur = masked_fill(cur, m)
     return x.astype(np.float32), cur.astype(np.float32)
 
 

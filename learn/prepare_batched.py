@@ -12,12 +12,9 @@ for the display images training makes (``raw_intensity=False``) without the CT t
 image, and the tone maps each pair by rank onto its own current image (a per-pair sort and
 interpolation; use the numpy function for them).
 
-The crop and resample of each pair (``learn.online._crop_resize``: ``F.interpolate`` of the
-bounding box of the field to ``(H, W)``, bilinear with ``align_corners=False`` for the images,
-nearest for the field) are computed here with ``F.interpolate``'s own source indices and
-weights (float32, as torch computes them) per pair and gathered, so a batch of different boxes
-is one gather: the images equal ``F.interpolate`` on the crop up to float32 rounding, the
-resampled field exactly.
+Each step is :mod:`sim.prepare_batched`'s twin of :mod:`sim.prepare`'s (the crop and resample
+of each pair equals ``F.interpolate`` on its crop up to float32 rounding, the resampled field
+exactly); this module checks the inputs and composes the steps in registration's order.
 """
 
 from __future__ import annotations
@@ -25,7 +22,8 @@ from __future__ import annotations
 import torch
 
 from learn.online import OnlinePairsError
-from sim.physics.batched import masked_percentile
+from sim.prepare_batched import (crop_resize_batched, field_box_batched, invert_batched, masked_fill_batched,
+                                 normalize_batched)
 
 __all__ = ["prepare_like_registration_batched"]
 
@@ -37,52 +35,6 @@ def _bool_pairs(name: str, v, b: int, device) -> torch.Tensor:
         got = f"{v.dtype} {tuple(v.shape)}" if isinstance(v, torch.Tensor) else type(v).__name__
         raise OnlinePairsError(f"prepare_like_registration_batched: {name} must be a ({b},) bool tensor, got {got}")
     return v.to(device)
-
-
-def _bilinear_source(in_size: torch.Tensor, out_size: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """``F.interpolate(..., mode="bilinear", align_corners=False)``'s source indices and weight
-    along one axis: crop lengths ``in_size`` ``(B,)`` -> ``(i0, i1, lambda1)`` ``(B, out_size)``
-    (output pixel ``o`` is ``(1 - lambda1) in[i0] + lambda1 in[i1]``), in float32 as torch."""
-    scale = in_size.to(torch.float32) / torch.tensor(float(out_size), dtype=torch.float32, device=in_size.device)
-    o = torch.arange(out_size, dtype=torch.float32, device=in_size.device)
-    # scale (o + 0.5) - 0.5 rounded once, as torch's kernels compute it (a fused multiply-add;
-    # the float32 product is exact in float64): without, lambda differs by up to ~1e-5
-    src = (scale[:, None].double() * (o[None, :] + 0.5).double() - 0.5).float().clamp_min(0.0)
-    last = (in_size - 1)[:, None]
-    i0 = torch.minimum(torch.floor(src).to(torch.int64), last)
-    lam = (src - i0.to(torch.float32)).clamp(0.0, 1.0)
-    i1 = torch.where(i0 < last, i0 + 1, i0)
-    return i0, i1, lam
-
-
-def _nearest_source(in_size: torch.Tensor, out_size: int) -> torch.Tensor:
-    """``F.interpolate(..., mode="nearest")``'s source indices ``(B, out_size)`` for crop lengths
-    ``in_size`` ``(B,)``: ``min(floor(o * (float)in / out), in - 1)`` in float32, as torch."""
-    scale = in_size.to(torch.float32) / torch.tensor(float(out_size), dtype=torch.float32, device=in_size.device)
-    o = torch.arange(out_size, dtype=torch.float32, device=in_size.device)
-    return torch.minimum(torch.floor(o[None, :] * scale[:, None]).to(torch.int64), (in_size - 1)[:, None])
-
-
-def _gather2d(x: torch.Tensor, rows: torch.Tensor, cols: torch.Tensor) -> torch.Tensor:
-    """``x[b, rows[b, i], cols[b, j]]``: ``(B, H, W)`` from ``(B, Hin, Win)``, rows ``(B, H)``, cols ``(B, W)``."""
-    b, _, win = x.shape
-    r = x.gather(1, rows[:, :, None].expand(b, rows.shape[1], win))
-    return r.gather(2, cols[:, None, :].expand(b, rows.shape[1], cols.shape[1]))
-
-
-def _resize_boxes(x: torch.Tensor, box: tuple[torch.Tensor, ...], size: tuple[int, int]) -> torch.Tensor:
-    """Each pair's ``x[b, r0:r1, c0:c1]`` resampled bilinearly (``align_corners=False``) to
-    ``size``, as ``F.interpolate`` in float32: ``(B, Hin, Win)`` -> ``(B, H, W)`` float32."""
-    r0, r1, c0, c1 = box
-    h0, h1, lh = _bilinear_source(r1 - r0, size[0])
-    w0, w1, lw = _bilinear_source(c1 - c0, size[1])
-    h0, h1, w0, w1 = h0 + r0[:, None], h1 + r0[:, None], w0 + c0[:, None], w1 + c0[:, None]
-    x = x.to(torch.float32)
-    lw1, lw0 = lw[:, None, :], (1.0 - lw)[:, None, :]
-    lh1, lh0 = lh[:, :, None], (1.0 - lh)[:, :, None]
-    top = _gather2d(x, h0, w0) * lw0 + _gather2d(x, h0, w1) * lw1
-    bottom = _gather2d(x, h1, w0) * lw0 + _gather2d(x, h1, w1) * lw1
-    return top * lh0 + bottom * lh1
 
 
 def prepare_like_registration_batched(display: torch.Tensor, field: torch.Tensor, current: torch.Tensor, *,
@@ -113,7 +65,7 @@ def prepare_like_registration_batched(display: torch.Tensor, field: torch.Tensor
         resampled to ``(H, W)``, the pixels outside the resampled field set to the mean over it.
 
     As the numpy function, a pair whose box is the whole image is not resampled, and a cropped
-    pair is resampled in float32 (``_crop_resize``); the rest runs in float64 where ``display``
+    pair is resampled in float32 (:func:`sim.prepare_batched.crop_resize`); the rest runs in float64 where ``display``
     or ``current`` is float64, else in float32.
     """
     where = "prepare_like_registration_batched"
@@ -121,7 +73,7 @@ def prepare_like_registration_batched(display: torch.Tensor, field: torch.Tensor
         if not isinstance(t, torch.Tensor) or t.ndim != 3 or t.is_complex() or t.dtype == torch.bool:
             shape = tuple(t.shape) if isinstance(t, torch.Tensor) else type(t).__name__
             raise OnlinePairsError(f"{where}: {name} must be a real (B, H, W) tensor, got {shape}")
-    b, h, w = display.shape
+    b = display.shape[0]
     dev = display.device
     if current.shape != display.shape:
         raise OnlinePairsError(f"{where}: current must have display's shape {tuple(display.shape)}, "
@@ -143,7 +95,7 @@ def prepare_like_registration_batched(display: torch.Tensor, field: torch.Tensor
         raise OnlinePairsError(f"{where}: low_pct and high_pct must satisfy 0 <= low < high <= 100 (%), got "
                                f"{lo_q:g}, {hi_q:g}")
     m = field.to(dev)
-    rows_any, cols_any = m.any(2), m.any(1)  # (B, H), (B, W)
+    rows_any = m.any(2)  # (B, H)
     if b and not bool(rows_any.any(1).all()):
         empty = torch.nonzero(~rows_any.any(1)).flatten().tolist()[:10]
         raise OnlinePairsError(f"{where}: the fields of pairs {empty} hold no pixel")
@@ -152,31 +104,13 @@ def prepare_like_registration_batched(display: torch.Tensor, field: torch.Tensor
     cur = current.to(device=dev, dtype=work)
 
     # 1. bone bright: a bone-dark display inverted over the field
-    vmax = torch.where(m, x, -torch.inf).amax(dim=(1, 2))
-    vmin = torch.where(m, x, torch.inf).amin(dim=(1, 2))
-    x = torch.where(bone_dark[:, None, None], (vmax + vmin)[:, None, None] - x, x)
+    x = invert_batched(x, m, bone_dark)
 
     # 2. crop to the field's bounding box, resample to (H, W)
-    first = lambda a: a.to(torch.uint8).argmax(1)  # noqa: E731 (the first True of each row)
-    r0, c0 = first(rows_any), first(cols_any)
-    r1, c1 = h - first(rows_any.flip(1)), w - first(cols_any.flip(1))
-    box = (r0, r1, c0, c1)
-    cropped = ((r0 != 0) | (r1 != h) | (c0 != 0) | (c1 != w))[:, None, None] & crop
-    x = torch.where(cropped, _resize_boxes(x, box, (h, w)).to(work), x)
-    cur = torch.where(cropped, _resize_boxes(cur, box, (h, w)).to(work), cur)
-    rows = _nearest_source(r1 - r0, h) + r0[:, None]
-    cols = _nearest_source(c1 - c0, w) + c0[:, None]
-    m = torch.where(cropped, _gather2d(m, rows, cols), m)
-    m = torch.where(m.flatten(1).any(1)[:, None, None], m, True)
+    x, cur, m = crop_resize_batched((x, cur), m, field_box_batched(m), crop)
 
     # 3. normalise over the field; 4. the outside filled with the mean over the field
-    lohi = masked_percentile(x, m, [lo_q, hi_q])
-    lo, hi = lohi[:, 0, None, None], lohi[:, 1, None, None]
-    span = hi - lo
-    x = torch.where(span > 0, ((x - lo) / torch.where(span > 0, span, 1.0)).clamp(0.0, 1.0), 0.0)
-    count = m.sum(dim=(1, 2))[:, None, None].to(work)
-    mean = lambda a: torch.where(m, a, 0.0).sum(dim=(1, 2))[:, None, None] / count  # noqa: E731
-    x = torch.where(m, x, mean(x))
+    x = masked_fill_batched(normalize_batched(x, m, lo_q, hi_q), m)
     if mask_current:
-        cur = torch.where(m, cur, mean(cur))
+        cur = masked_fill_batched(cur, m)
     return x.to(torch.float32), cur.to(torch.float32)

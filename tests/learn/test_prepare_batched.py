@@ -5,7 +5,8 @@ Tolerance: targets (in [0, 1]) and currents (here in [0, 3]) within 1e-4 absolut
 ~3e-7 and ~7e-7). The numpy function resamples a cropped pair with F.interpolate in float32;
 the batched one gathers with F.interpolate's own float32 source indices and weights, so the
 two differ by float32 rounding of the interpolation sums only, and the resampled field is the
-same (the percentiles and means are over the same pixels).
+same (the percentiles and means are over the same pixels). The resample itself is tested in
+tests/sim/test_prepare.py.
 """
 
 from __future__ import annotations
@@ -13,10 +14,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
-import torch.nn.functional as F
 
 from learn.online import OnlinePairsError, prepare_like_registration
-from learn.prepare_batched import _gather2d, _nearest_source, _resize_boxes, prepare_like_registration_batched
+from learn.prepare_batched import prepare_like_registration_batched
 from sim.physics.batched import apply_image_batched, draw_tensors, field_masks
 from sim.randomize import DomainRandomization, image_rng
 
@@ -24,29 +24,6 @@ TOL = 1e-4
 
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
-
-
-@pytest.mark.parametrize("size", [(64, 64), (48, 80)], ids=["64x64", "48x80"])
-def test_box_resampling_equals_interpolate_on_the_crop(size):
-    h, w = size
-    rng = np.random.default_rng(0)
-    n = 40
-    r0, c0 = rng.integers(0, h, n), rng.integers(0, w, n)
-    r1, c1 = r0 + 1 + rng.integers(0, h - r0), c0 + 1 + rng.integers(0, w - c0)
-    x = torch.from_numpy(rng.random((n, h, w)).astype(np.float32))
-    mask = torch.from_numpy(rng.random((n, h, w)) < 0.5)
-    box = tuple(torch.from_numpy(a) for a in (r0, r1, c0, c1))
-    got = _resize_boxes(x, box, size)
-    rows = _nearest_source(box[1] - box[0], h) + box[0][:, None]
-    cols = _nearest_source(box[3] - box[2], w) + box[2][:, None]
-    got_mask = _gather2d(mask, rows, cols)
-    for i in range(n):
-        crop = x[i, r0[i]:r1[i], c0[i]:c1[i]][None, None]
-        ref = F.interpolate(crop, size=size, mode="bilinear", align_corners=False)[0, 0]
-        assert (got[i] - ref).abs().max() <= 1e-6
-        ref_mask = F.interpolate(mask[i, r0[i]:r1[i], c0[i]:c1[i]][None, None].float(), size=size,
-                                 mode="nearest")[0, 0] > 0.5
-        assert torch.equal(got_mask[i], ref_mask)
 
 
 def _check(display, field, current, log_display, bone_dark, mask_current, dtype):
