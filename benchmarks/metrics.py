@@ -26,7 +26,7 @@ REPO = Path(__file__).resolve().parents[1]
 if str(REPO) not in sys.path:
     sys.path.insert(0, str(REPO))
 
-from register.metrics import (  # noqa: E402
+from register.engines.metrics import (  # noqa: E402
     gradient_ncc,
     multiscale,
     ncc,

@@ -36,8 +36,8 @@ def main(argv=None) -> int:
     sys.path.insert(0, str(REPO))
     import numpy as np
 
-    from register.cmaes import CMAESRegistration, CMAESSettings
-    from register.evaluate import EvaluationSettings, sample_cases
+    from register.engines.cmaes import CMAESRegistration, CMAESSettings
+    from register.evaluation.evaluate import EvaluationSettings, sample_cases
     from sim.anatomy import anatomy_center
     from sim.ct_io import load_ct_spec
     from register.commands import REGISTER_SCATTER_PHOTONS

@@ -1,4 +1,4 @@
-"""The global search (register/search.py) on realistic frames, against the CMA-ES restarts it replaced.
+"""The global search (register/engines/search.py) on realistic frames, against the CMA-ES restarts it replaced.
 
 Frames: the first ``--cases`` poses of a study ``xray`` target (``--study``, default
 ``studies/domain_gap.toml`` and its ``fluoro-65kV``: full physics, round iris, fluoroscopy display chain, 12-bit DICOM; the
@@ -84,7 +84,7 @@ def main() -> int:
         print(f"search: --cases must be >= 1, got {a.cases}", file=sys.stderr)
         return 2
 
-    from register.study import load_study
+    from register.evaluation.study import load_study
     from sim import load_ct
     from sim.anatomy import anatomy_center
 
@@ -166,8 +166,8 @@ def _measure(a, study, target, volume, center):
     seconds, NaN where it did not run), ``skipped`` (whether the grid was skipped; None for a method
     without the search in auto or always), ``search_mode``, ``refused``."""
     from register.api import SEARCH_METHODS, register_xray
-    from register.evaluate import EvaluationSettings, bone_points, pose_errors, sample_cases
-    from register.study import XRayFrames, frame_refusals
+    from register.evaluation.evaluate import EvaluationSettings, bone_points, pose_errors, sample_cases
+    from register.evaluation.study import XRayFrames, frame_refusals
     from sim.geometry import pose_from_params
 
     frames = XRayFrames(study, target, volume, center)
@@ -239,7 +239,7 @@ def _measure(a, study, target, volume, center):
         return rows, refused
     s = np.array([(x[1], x[2]) for x in split])
     n = split[0][0]
-    from register.search import GlobalSearchSettings
+    from register.engines.search import GlobalSearchSettings
 
     k = GlobalSearchSettings().rescore
     print(f"\n| grid ({n} poses at 1/4 resolution) and rescoring ({k} at 1/2), padded detectors | median ms | "

@@ -1,7 +1,7 @@
 """Realistic C-arm frames of the pelvis CT registered through ``ctxreg register``: collimated vs open.
 
 Prints a Markdown table (success mTRE < 10 mm, errors, seconds per registration) per frame kind
-and start, and writes every row to ``--out``/rows.json. See register/xray_study.py for the frames
+and start, and writes every row to ``--out``/rows.json. See register/evaluation/xray_study.py for the frames
 (full physics at 4 tube/grid/exposure settings, round collimator, fluoroscopy display chain,
 12-bit RF DICOM) and docs/results.md for the numbers.
 
@@ -19,7 +19,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from register.xray_study import format_study, run_study, summarize_study  # noqa: E402
+from register.evaluation.xray_study import format_study, run_study, summarize_study  # noqa: E402
 from sim.atomic import write_json  # noqa: E402
 
 

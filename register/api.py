@@ -16,7 +16,7 @@ the start pose, the preprocessing steps, the size; then the X-ray, its geometry,
 size asks for, the CT, and that the CT is in the view at the start pose), prepares the X-ray
 (:func:`register.prepare.prepare_xray`: geometry with its sources, field mask, intensity, size),
 checks the polarity against the CT (:func:`register.prepare.confirm_polarity`), builds the
-method (:func:`register.methods.build_method`) and registers. ``ctxreg register``
+method (:func:`register.engines.methods.build_method`) and registers. ``ctxreg register``
 (:func:`register.commands.run_register`) is this call plus :meth:`XRayRegistration.write`.
 """
 
@@ -35,19 +35,19 @@ __all__ = ["register_xray", "XRayRegistration", "parse_init", "REGISTER_RESTARTS
 #: of images, and the smoothed scatter of 10^5 histories differs from that of 10^6 by a few %.
 REGISTER_SCATTER_PHOTONS = 100_000
 
-#: CMA-ES restarts of a registration (IPOP, see :class:`register.cmaes.CMAESSettings`): a user's
+#: CMA-ES restarts of a registration (IPOP, see :class:`register.engines.cmaes.CMAESSettings`): a user's
 #: X-ray is registered once, so spending up to 4x the time on a lost search is worth it.
 REGISTER_RESTARTS = 3
 
 #: The methods that take ``restarts``: CMA-ES's own. contextual+cmaes runs the global search
-#: (:mod:`register.search`, default settings) where the network's pose is lost instead.
+#: (:mod:`register.engines.search`, default settings) where the network's pose is lost instead.
 RESTART_METHODS = ("cmaes",)
 
-#: The methods with the global search (:mod:`register.search`), the ones ``search`` (``--search``) applies to.
+#: The methods with the global search (:mod:`register.engines.search`), the ones ``search`` (``--search``) applies to.
 SEARCH_METHODS = ("contextual+cmaes",)
 
 #: ``search`` (``--search``) of contextual+cmaes: ``"auto"`` runs the global search's grid where the
-#: network's pose scores below :attr:`register.search.GlobalSearchSettings.found_above` (the default),
+#: network's pose scores below :attr:`register.engines.search.GlobalSearchSettings.found_above` (the default),
 #: ``"off"`` never builds the search (the network's pose goes straight to the CMA-ES refinement: the
 #: network measured on its own), ``"always"`` runs the grid whatever the network's pose scored.
 SEARCH_MODES = ("auto", "off", "always")
@@ -59,7 +59,7 @@ SEARCH_MODES = ("auto", "off", "always")
 REGISTER_MIN_SIDE_PX = 32
 
 #: The field pixels the coarsest level (1/4) must keep after erosion by one pixel, the global
-#: search's own minimum (:meth:`register.search.GlobalSearch._field`).
+#: search's own minimum (:meth:`register.engines.search.GlobalSearch._field`).
 MIN_COARSE_FIELD_PX = 16
 
 #: Bytes per pixel of the global search's grid of padded DRRs at its peak (float32 DRRs, their
@@ -74,8 +74,8 @@ OUTPUT_FILES = ("result.json", "overlay.png", "checkerboard.png", "convergence.p
 
 def parse_init(init) -> np.ndarray:
     """The start pose ``(6,)`` (deg, mm) from ``"ap"`` (zeros), six numbers, or their strings
-    (``--init``). Raises :class:`register.cmaes.RegistrationError`."""
-    from register.cmaes import RegistrationError
+    (``--init``). Raises :class:`register.engines.cmaes.RegistrationError`."""
+    from register.engines.cmaes import RegistrationError
 
     values = [init] if isinstance(init, str) else list(np.ravel(np.asarray(init, dtype=object)))
     if len(values) == 1 and str(values[0]) == "ap":
@@ -99,7 +99,7 @@ class XRayRegistration:
             parameters (``docs/conventions.md``).
         pose: ``(4, 4)`` the pose T (``X_cam = R (X_lps - c) + t``, c = ``center_lps``).
         similarity: the final gradient NCC at the optimiser's size (1 = identical edges).
-        result: the method's :class:`register.cmaes.RegistrationResult` (projection, renders,
+        result: the method's :class:`register.engines.cmaes.RegistrationResult` (projection, renders,
             stage times, history, trajectory).
         prepared: the :class:`register.prepare.PreparedXRay` (geometry and its sources, field,
             intensity decision and its check, images at full and at the optimiser's size).
@@ -142,7 +142,7 @@ class XRayRegistration:
 
     @property
     def params(self) -> dict[str, float]:
-        from register.cmaes import PARAM_NAMES
+        from register.engines.cmaes import PARAM_NAMES
 
         return dict(zip(PARAM_NAMES, map(float, self.result.params)))
 
@@ -168,8 +168,8 @@ class XRayRegistration:
     def summary(self) -> str:
         """Similarity, renders and the pose (deg, mm) in one line; for a method with the global
         search two lines before it: ``search: ran|skipped (...)|off`` (:attr:`search_status`) and,
-        where it was built, what it did (:func:`register.search.describe_search`)."""
-        from register.search import describe_search
+        where it was built, what it did (:func:`register.engines.search.describe_search`)."""
+        from register.engines.search import describe_search
 
         r = self.result
         line = (f"similarity {r.similarity:.4f} after {r.renders} renders; pose: "
@@ -254,7 +254,7 @@ class XRayRegistration:
 def _moving_physics(physics):
     """The :class:`PhysicsSettings` of the moving images: a level name gets the defaults of a
     registration (noise-free, :data:`REGISTER_SCATTER_PHOTONS`)."""
-    from register.cmaes import RegistrationError
+    from register.engines.cmaes import RegistrationError
     from sim.physics.imaging import PhysicsSettings
     from sim.physics.settings import LEVELS
 
@@ -279,8 +279,8 @@ def register_xray(ct, xray, *, method: str = "contextual+cmaes", model=None, ini
         ct: a :class:`sim.volume.CTVolume` (:func:`sim.load_ct`) or what :func:`sim.load_ct` takes
             (a NIfTI file, a DICOM series folder, ``"phantom"``).
         xray: a file (DICOM: geometry from its tags where present; PNG / TIFF / JPEG / ``.npy``) or
-            a :class:`register.xray_io.XRayImage`.
-        method: ``"cmaes"``, ``"contextual"`` or ``"contextual+cmaes"`` (:mod:`register.methods`).
+            a :class:`register.xray.io.XRayImage`.
+        method: ``"cmaes"``, ``"contextual"`` or ``"contextual+cmaes"`` (:mod:`register.engines.methods`).
         model: the ``ctxreg train`` checkpoint (path or loaded predictor) of the contextual methods.
         init: the start pose: ``"ap"`` or six numbers (phi theta psi deg, tx ty tz mm).
         center: ``(3,)`` anatomy centre c in LPS mm; None = the label map's or the bone centroid.
@@ -300,14 +300,14 @@ def register_xray(ct, xray, *, method: str = "contextual+cmaes", model=None, ini
             ``"ct"`` maps a display image's values onto the CT's line integrals in its field,
             ``"off"`` keeps them (:class:`register.preprocess.Intensity`).
         orient: how the stored X-ray is turned into the CT's view first (a name of
-            :data:`register.xray_io.ORIENTATIONS`: ``"none"``, ``"flip-left-right"``, ...); the
+            :data:`register.xray.io.ORIENTATIONS`: ``"none"``, ``"flip-left-right"``, ...); the
             figures show the X-ray so turned.
         restarts: CMA-ES restarts for ``method="cmaes"`` (default :data:`REGISTER_RESTARTS`);
-            ``"contextual+cmaes"`` runs the global search instead (:mod:`register.search`: a grid over
+            ``"contextual+cmaes"`` runs the global search instead (:mod:`register.engines.search`: a grid over
             the prior box around ``init`` where the network's pose is lost).
         search: ``"contextual+cmaes"``'s global search (:data:`SEARCH_MODES`): ``"auto"`` (the
             default) runs its grid where the network's pose scores below
-            :attr:`register.search.GlobalSearchSettings.found_above`; ``"off"`` never builds it
+            :attr:`register.engines.search.GlobalSearchSettings.found_above`; ``"off"`` never builds it
             (the network's pose goes straight to the CMA-ES refinement, and the polarity check,
             which scores on the search's grid, is not run: the intensity step's decision stands);
             ``"always"`` runs the grid whatever the network's pose scored. Another value than
@@ -321,12 +321,12 @@ def register_xray(ct, xray, *, method: str = "contextual+cmaes", model=None, ini
     the work where the input allows it (everything but the image's contents).
     """
     from sim import load_ct
-    from register.cmaes import RegistrationError
-    from register.methods import build_method, check_method, load_predictor, needs_model
+    from register.engines.cmaes import RegistrationError
+    from register.engines.methods import build_method, check_method, load_predictor, needs_model
     from register.prepare import confirm_polarity, fit_box, prepare_xray
     from register.preprocess import DEFAULT_STEPS, Pipeline
-    from register.search import GlobalSearch, GlobalSearchSettings
-    from register.xray_io import XRayImage, check_orientation, load_xray, resolve_geometry
+    from register.engines.search import GlobalSearch, GlobalSearchSettings
+    from register.xray.io import XRayImage, check_orientation, load_xray, resolve_geometry
     from sim.anatomy import anatomy_center
     from sim.geometry import pose_from_params
     from sim.render import check_in_view
@@ -398,7 +398,7 @@ def register_xray(ct, xray, *, method: str = "contextual+cmaes", model=None, ini
                           scene=scene, model=predictor, physics=moving, label_materials=label_materials,
                           restarts=restarts if method == "cmaes" else 0, keep_drrs=True, note=remark,
                           search=grid)
-    from register.contextual import network_view
+    from register.engines.contextual import network_view
 
     view = network_view(predictor, prepared) if predictor is not None else None  # a detector-framed network
     result = engine.register(prepared.image, x0, mask=prepared.mask, toned=prepared.toned, network_view=view)
@@ -415,7 +415,7 @@ def grid_bytes(box, shape, geometry) -> float:
     in-plane shift), :data:`GRID_BYTES_PER_PX` each. The polarity check scores on it even for
     ``method="cmaes"``. The field's crop is not known yet: the X-ray is taken whole."""
     from register.prepare import _fit_plan
-    from register.search import GlobalSearchSettings
+    from register.engines.search import GlobalSearchSettings
 
     s = GlobalSearchSettings()
     _, _, _, g = _fit_plan(tuple(shape), geometry, tuple(box))
@@ -443,7 +443,7 @@ def _check_coarse_field(prepared, box, need: int) -> None:
     empty after erosion" or "too few to search"."""
     from scipy import ndimage
 
-    from register.metrics import downsample
+    from register.engines.metrics import downsample
     from register.preprocess import PreprocessError
 
     mask = prepared.mask

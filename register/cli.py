@@ -16,7 +16,7 @@ import sys
 from sim.cliargs import HelpFormatter, add_options, from_namespace
 from learn.commands import AccuracyCommand, ModelsCommand, TrainCommand
 from register.commands import EvaluateCommand, RegisterCommand, StudyCommand
-from register.demo import DemoCommand
+from register.evaluation.demo import DemoCommand
 from sim.cli import RenderCommand, SimulateCommand
 
 COMMANDS = {
@@ -36,7 +36,7 @@ COMMANDS = {
     "study": (StudyCommand, "train network variants and evaluate each on several target domains (resumable)",
               "register.commands:run_study"),
     "demo": (DemoCommand, "register a simulated realistic X-ray of the pelvis from AP; show the error",
-             "register.demo:run_demo"),
+             "register.evaluation.demo:run_demo"),
 }
 
 

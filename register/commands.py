@@ -1,7 +1,7 @@
 """``ctxreg evaluate`` and ``ctxreg register``: defaults (one dataclass each) and their runs.
 
 Both check their options and output folder before any work; ``register`` is a thin layer over
-:func:`register.api.register_xray`, and both build their methods with :mod:`register.methods`.
+:func:`register.api.register_xray`, and both build their methods with :mod:`register.engines.methods`.
 """
 
 from __future__ import annotations
@@ -13,12 +13,12 @@ import numpy as np
 
 from register.api import (REGISTER_RESTARTS, REGISTER_SCATTER_PHOTONS, RESTART_METHODS, SEARCH_METHODS, SEARCH_MODES,
                           parse_init)
-from register.cmaes import CMAESSettings
-from register.evaluate import LOCAL_ROT_DEG, LOCAL_TRANS_MM
-from register.intensity import POLARITIES, SCALES, TONES
-from register.methods import METHOD_NAMES
-from register.search import GlobalSearchSettings
-from register.xray_io import ORIENTATIONS
+from register.engines.cmaes import CMAESSettings
+from register.evaluation.evaluate import LOCAL_ROT_DEG, LOCAL_TRANS_MM
+from register.xray.intensity import POLARITIES, SCALES, TONES
+from register.engines.methods import METHOD_NAMES
+from register.engines.search import GlobalSearchSettings
+from register.xray.io import ORIENTATIONS
 from sim.cli import CT_HELP
 from sim.cliargs import IMAGE_SIDE_PX, Range, opt
 from sim.physics.options import level_field, physics_option
@@ -79,12 +79,12 @@ class EvaluateCommand:
 
 
 def run_evaluate(cmd: EvaluateCommand) -> list[Path]:
-    """Check the options and the output folder, then run the protocol (:func:`register.evaluate.evaluate`)."""
+    """Check the options and the output folder, then run the protocol (:func:`register.evaluation.evaluate.evaluate`)."""
     import sys
     from dataclasses import asdict
 
-    from register.evaluate import EvaluationError, EvaluationSettings, evaluate
-    from register.methods import build_method, load_predictor, needs_model
+    from register.evaluation.evaluate import EvaluationError, EvaluationSettings, evaluate
+    from register.engines.methods import build_method, load_predictor, needs_model
     from sim.anatomy import anatomy_center
     from sim.cliargs import refuse_unused, refuse_unused_label_map
     from sim.ct_io import load_ct_spec
@@ -267,7 +267,7 @@ class StudyCommand:
 
     study: str = field(metadata=opt(
         "study file: [study] (evaluation CT, cases, start, methods), [[variant]] (name, [variant.train]) and "
-        "[[target]] (name, kind drr|xray, physics, collimator, display); see register/study.py",
+        "[[target]] (name, kind drr|xray, physics, collimator, display); see register/evaluation/study.py",
         group="input", metavar="STUDY.toml", positional=True))
     out: str = field(default="out/study", metadata=opt(
         "folder for variants/, results/, table.md, results.json, study.png, commands.sh; a run continues a "
@@ -281,9 +281,9 @@ class StudyCommand:
 
 
 def run_study(cmd: StudyCommand) -> list[Path]:
-    """Train every variant and evaluate it on every target domain (resumable: register/study.py)."""
-    from register.study import STUDY_FILES, load_study
-    from register.study import run_study as run
+    """Train every variant and evaluate it on every target domain (resumable: register/evaluation/study.py)."""
+    from register.evaluation.study import STUDY_FILES, load_study
+    from register.evaluation.study import run_study as run
 
     study = load_study(cmd.study)
     run(study, cmd.out, only=cmd.only, targets=cmd.targets)

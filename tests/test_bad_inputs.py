@@ -120,7 +120,7 @@ def inputs(tmp_path_factory) -> dict[str, str]:
     import torch
 
     from learn.model import pose_update_net
-    from register.xray_io import write_xray_dicom
+    from register.xray.io import write_xray_dicom
     from sim.phantom import make_pelvis_phantom
     from sim.render import DRRRenderer, RenderSettings
 

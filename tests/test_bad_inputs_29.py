@@ -80,7 +80,7 @@ def inputs29(inputs, tmp_path_factory):  # noqa: F811
 
 @pytest.mark.parametrize("name", list(BAD))
 def test_a_bad_input_is_refused_before_the_work_naming_the_option(name, inputs29, tmp_path, capsys, monkeypatch):
-    import register.demo
+    import register.evaluation.demo
     import sim.physics.imaging
 
     def no_work(*args, **kwargs):
@@ -90,7 +90,7 @@ def test_a_bad_input_is_refused_before_the_work_naming_the_option(name, inputs29
     if name not in READ_THE_CT:
         monkeypatch.setattr("sim.ct_io.load_ct_spec", no_work)  # the demo's CT
         monkeypatch.setattr("sim.load_ct", no_work)  # register's CT
-    assert register.demo  # imported: its imports are made inside run_demo
+    assert register.evaluation.demo  # imported: its imports are made inside run_demo
     line, words = BAD[name]
     status, new = _run(line, inputs29, tmp_path)
     err = capsys.readouterr().err
@@ -127,8 +127,8 @@ def test_a_size_beyond_the_memory_is_refused_before_it_is_allocated(size, inputs
 
 def test_the_memory_estimate_is_the_grid_s_and_the_default_size_passes(inputs):  # noqa: F811
     from register.api import GRID_BYTES_PER_PX, check_registration_memory, grid_bytes
-    from register.search import GlobalSearchSettings
-    from register.xray_io import load_xray, resolve_geometry
+    from register.engines.search import GlobalSearchSettings
+    from register.xray.io import load_xray, resolve_geometry
 
     xray = load_xray(inputs["xray"])
     g, _ = resolve_geometry(xray, "cios_fusion")
@@ -161,7 +161,7 @@ def test_a_field_too_small_at_the_coarsest_level_names_size():
 
 
 def test_a_study_size_below_the_registration_s_minimum_is_refused_with_xray_targets(tmp_path):
-    from register.study import StudyError, load_study
+    from register.evaluation.study import StudyError, load_study
 
     path = tmp_path / "s.toml"
     path.write_text('[study]\nct = "phantom"\nsize = [16, 16]\n[[variant]]\nname = "a"\nmodel = "pelvis_line"\n'
@@ -205,7 +205,7 @@ def test_a_model_folder_runs_where_a_model_name_does(tmp_path):
 
 
 def test_a_study_variant_s_model_may_be_a_folder_and_its_card_is_checked(tmp_path):
-    from register.study import StudyError, load_study
+    from register.evaluation.study import StudyError, load_study
 
     folder = _model_folder(tmp_path)
     text = ('[study]\nct = "phantom"\nsize = [32, 32]\n[[variant]]\nname = "a"\nmodel = "{m}"\n'

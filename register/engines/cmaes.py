@@ -5,7 +5,7 @@ the patient's S, L, P axes through the anatomy centre; tx, ty, tz in mm in the c
 ``docs/conventions.md``), coarse to fine:
 
 1. for each resolution level (the detector downsampled by a factor), CMA-ES (the ``cma``
-   package) maximises an image similarity (:mod:`register.metrics`) between the X-ray and DRRs;
+   package) maximises an image similarity (:mod:`register.engines.metrics`) between the X-ray and DRRs;
    each generation's whole population is rendered in one kernel launch;
 2. at the finest level an optional local polish (scipy's Powell) refines the best pose.
 
@@ -43,7 +43,7 @@ class CMAESSettings:
         range_deg / range_mm: the search box: start +- range (rotations, translations).
         popsize: CMA-ES population per generation (rendered as one batch).
         generations: the most generations per level (one number for all levels, or one per level).
-        metrics: similarity per level (names of :data:`register.metrics.METRICS`); one name for
+        metrics: similarity per level (names of :data:`register.engines.metrics.METRICS`); one name for
             all levels, or one per level.
         polish: run a Powell polish at the finest level after CMA-ES (its first directions: each
             angle, tx, ty, and depth along the view ray through the anatomy centre, the direction an
@@ -93,7 +93,7 @@ class CMAESSettings:
             v = getattr(self, name)
             if len(v) not in (1, len(self.levels)):
                 raise RegistrationError(f"{name} needs 1 or {len(self.levels)} entries (one per level), got {v}")
-        from register.metrics import get_metric
+        from register.engines.metrics import get_metric
 
         for m in self.metrics:
             try:
@@ -121,7 +121,7 @@ class RegistrationResult:
             the pose before each prediction and then the pose it ended at; "g": (K, 6) rad/mm, the
             predicted gradients; "drrs": (K, H, W), each prediction's DRR, when kept}``; None for
             CMA-ES alone.
-        search: the global search's record (:meth:`register.search.GlobalSearch.register`,
+        search: the global search's record (:meth:`register.engines.search.GlobalSearch.register`,
             contextual+cmaes with the search): the network's pose's local similarity, whether the
             grid ran, where the refinement started; None without a search.
     """
@@ -334,7 +334,7 @@ class CMAESRegistration:
         """The polish alone (Powell at full resolution, ``settings.polish_evals``) from ``params``
         ``(6,)`` (deg, mm), inside the box around ``start`` (default ``params``): the result of a
         :meth:`register` run with ``polish=False``, finished. ``stage_seconds`` has ``"polish"``."""
-        from register.metrics import get_metric
+        from register.engines.metrics import get_metric
         from sim.geometry import pose_from_params
 
         s = self.settings
@@ -388,7 +388,7 @@ class CMAESRegistration:
         ``histories[k]`` search k's rows."""
         import cma
 
-        from register.metrics import downsample, get_metric
+        from register.engines.metrics import downsample, get_metric
 
         s = self.settings
         K = len(x0s)

@@ -6,7 +6,7 @@ current pose T and the X-ray go to a predictor that returns ``g`` = -2 log_T(T_t
 ``T <- T o Exp(-step g)`` (:func:`learn.labels.apply_update`, rotation about the anatomy centre,
 so the anatomy stays in view). The iteration stops when the predicted step is below
 ``stop_rot_deg`` and ``stop_trans_mm``, or after ``max_iterations``. ``contextual+cmaes`` then
-hands the pose to CMA-ES in a narrowed box, after a global search (:mod:`register.search`) where
+hands the pose to CMA-ES in a narrowed box, after a global search (:mod:`register.engines.search`) where
 the network's pose is lost.
 
 Predictors: :class:`learn.predict.NetworkPredictor` (a trained :class:`learn.model.PoseUpdateNet`
@@ -21,9 +21,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from register.cmaes import CMAESRegistration, CMAESSettings, RegistrationError, RegistrationResult
-from register.metrics import plain_equivalent
-from register.search import GlobalSearch, GlobalSearchSettings
+from register.engines.cmaes import CMAESRegistration, CMAESSettings, RegistrationError, RegistrationResult
+from register.engines.metrics import plain_equivalent
+from register.engines.search import GlobalSearch, GlobalSearchSettings
 
 
 @dataclass(frozen=True)
@@ -51,7 +51,7 @@ class ContextualRegistration:
 
     ``refine``: the CMA-ES settings of the hand-over (narrowed box around the network's pose), or
     None for the contextual iteration alone. ``search`` (with ``refine`` only): the global search
-    (:class:`register.search.GlobalSearch`, built from its settings, or one the caller built for
+    (:class:`register.engines.search.GlobalSearch`, built from its settings, or one the caller built for
     the same detector and physics, e.g. to share its grid's DRRs with the polarity check
     :func:`register.prepare.confirm_polarity`) between the iteration and the refinement: the
     network's pose is searched locally first and kept when its similarity reaches
@@ -218,7 +218,7 @@ class ContextualRegistration:
                 res.search = {**found.search, "refined": finals, "chosen": int(np.argmax(finals)),
                               "refined_params": [np.asarray(r.params, float).tolist() for r in refined]}
             return res
-        from register.metrics import gradient_ncc
+        from register.engines.metrics import gradient_ncc
 
         sim_value = float(gradient_ncc(fixed, self.renderer.render(T), mask=mask)[0])
         return RegistrationResult(params=params, pose=T, projection=self.renderer.projection_matrix(T),
@@ -231,7 +231,7 @@ class ContextualRegistration:
 #: pulled right starts away on realistic frames, whose coarse gradients mislead (scatter, display
 #: chain): 5 of 7 lost ``fluoro-65kV`` frames were right before the refinement and kept with this one.
 #: The similarity of a display image (one registered with its toned version) is the tone-tolerant
-#: gradient NCC (:func:`register.metrics.tone_tolerant_gradient_ncc`): half of it blind to the
+#: gradient NCC (:func:`register.engines.metrics.tone_tolerant_gradient_ncc`): half of it blind to the
 #: display's curve. An image of line integrals (a raw or log X-ray, a DRR) is scored by gradient NCC:
 #: on 50 line DRRs the tone-tolerant score lost a case (98 % against 100 %) and cost 0.5 s.
 REFINE_SETTINGS = CMAESSettings(levels=(2,), sigma_deg=3.0, sigma_mm=8.0, range_deg=10.0, range_mm=30.0,

@@ -2,12 +2,12 @@
 evaluate`` and the Python API (:func:`register.api.register_xray`).
 
 ``cmaes``
-    Multi-resolution CMA-ES from the start pose (:class:`register.cmaes.CMAESRegistration`).
+    Multi-resolution CMA-ES from the start pose (:class:`register.engines.cmaes.CMAESRegistration`).
 ``contextual``
-    The trained pose-update network's iteration (:class:`register.contextual.ContextualRegistration`).
+    The trained pose-update network's iteration (:class:`register.engines.contextual.ContextualRegistration`).
 ``contextual+cmaes``
-    The contextual iteration, then CMA-ES in a narrowed box (:data:`register.contextual.REFINE_SETTINGS`);
-    with ``search``, the global search (:mod:`register.search`) between the two where the network's
+    The contextual iteration, then CMA-ES in a narrowed box (:data:`register.engines.contextual.REFINE_SETTINGS`);
+    with ``search``, the global search (:mod:`register.engines.search`) between the two where the network's
     pose is lost.
 
 :func:`check_method` validates a method name with its model before any work;
@@ -21,7 +21,7 @@ from typing import Callable, Protocol
 
 import numpy as np
 
-from register.cmaes import RegistrationError, RegistrationResult
+from register.engines.cmaes import RegistrationError, RegistrationResult
 
 __all__ = ["METHOD_NAMES", "RegistrationMethod", "check_method", "load_predictor", "build_method"]
 
@@ -73,7 +73,7 @@ class _Method:
         """``toned``: the X-ray's toned version (:attr:`register.prepare.PreparedXRay.toned`), used by
         the contextual methods (their search's grid, a network trained on toned targets); CMA-ES
         alone registers ``fixed``. ``network_view``: what a detector-framed network sees
-        (:func:`register.contextual.network_view`), contextual methods only."""
+        (:func:`register.engines.contextual.network_view`), contextual methods only."""
         if hasattr(self.engine, "search"):
             return self.engine.register(fixed, init_params, mask=mask, toned=toned, network_view=network_view)
         return self.engine.register(fixed, init_params, mask=mask)
@@ -94,15 +94,15 @@ def build_method(method: str, volume, *, center_lps, size: tuple[int, int], geom
         model: a checkpoint path or a loaded predictor (:func:`load_predictor`) for the contextual methods.
         physics: :class:`sim.physics.imaging.PhysicsSettings` of the moving images (None = line DRRs);
             label_materials: ``{label: material}`` overrides for poly / full.
-        restarts: CMA-ES restarts of ``cmaes`` (:class:`register.cmaes.CMAESSettings`).
-        search: :class:`register.search.GlobalSearchSettings` of ``contextual+cmaes``'s global
-            search (:class:`register.contextual.ContextualRegistration`), or a
-            :class:`register.search.GlobalSearch` built for these images (``geometry``, ``physics``);
+        restarts: CMA-ES restarts of ``cmaes`` (:class:`register.engines.cmaes.CMAESSettings`).
+        search: :class:`register.engines.search.GlobalSearchSettings` of ``contextual+cmaes``'s global
+            search (:class:`register.engines.contextual.ContextualRegistration`), or a
+            :class:`register.engines.search.GlobalSearch` built for these images (``geometry``, ``physics``);
             None = none.
         keep_drrs: keep the contextual iteration's DRRs in the result's trajectory (for figures).
         note: called with a sentence when the network's training physics differ from ``physics``.
     """
-    from register.cmaes import CMAESRegistration, CMAESSettings
+    from register.engines.cmaes import CMAESRegistration, CMAESSettings
 
     check_method(method, model)
     if search is not None and method != "contextual+cmaes":
@@ -114,7 +114,7 @@ def build_method(method: str, volume, *, center_lps, size: tuple[int, int], geom
         return _Method(method, engine)
     from dataclasses import replace
 
-    from register.contextual import REFINE_SETTINGS, ContextualRegistration, ContextualSettings
+    from register.engines.contextual import REFINE_SETTINGS, ContextualRegistration, ContextualSettings
 
     predictor = load_predictor(model)
     mismatch = getattr(predictor, "physics_mismatch", lambda _: None)(physics)

@@ -6,14 +6,14 @@ The search covers the prior box of the poses around a start (by default the orig
 1. **grid** (``factor``, 1/4 resolution): rotations ``(phi, theta, psi)`` on a regular grid
    (``step_deg``) and depths ``tz`` on ``depths`` values, each rendered once on a detector padded
    by the largest in-plane shift; the in-plane translation ``(tx, ty)`` of each grid pose is the
-   shift that maximises the gradient NCC (:func:`register.metrics.gradient_ncc`'s score, the
+   shift that maximises the gradient NCC (:func:`register.engines.metrics.gradient_ncc`'s score, the
    X-ray's field only) against the padded DRR, computed for every shift at once by FFT (masked
    normalized cross-correlation, Padfield, IEEE TIP 2012). A shift of ``d`` pixels is a
    translation of ``d * s * z / SDD`` mm at the anatomy centre's depth ``z`` (the anatomy-centred
    parameters, docs/conventions.md);
 2. **rescoring** (``local_factor``, 1/2 resolution): the ``rescore`` best grid poses scored again,
    their shifts refined, which ranks realistic frames more sharply;
-3. **local**: a short CMA-ES (:class:`register.cmaes.CMAESRegistration`, one level at
+3. **local**: a short CMA-ES (:class:`register.engines.cmaes.CMAESRegistration`, one level at
    ``local_factor``, no polish) from ``candidates`` poses apart from each other, half the best of
    the rescoring and the rest the best of the grid, and from any poses given (the network's);
    the best distinct results are the ``finalists`` a refinement starts from.
@@ -26,7 +26,7 @@ Use (``volume`` a CT, ``xray`` ``(128, 128)`` prepared bone-bright, ``field`` it
 
     search = GlobalSearch(volume, GlobalSearchSettings(), size=(128, 128))
     start = search.register(xray, np.zeros(6), mask=field).params   # (6,) deg, mm
-    # then a local registration from ``start``: register.contextual.REFINE_SETTINGS
+    # then a local registration from ``start``: register.engines.contextual.REFINE_SETTINGS
 """
 
 from __future__ import annotations
@@ -36,7 +36,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from register.cmaes import CMAESRegistration, CMAESSettings, RegistrationError, RegistrationResult
+from register.engines.cmaes import CMAESRegistration, CMAESSettings, RegistrationError, RegistrationResult
 from sim.errors import InputError
 
 __all__ = ["GlobalSearchSettings", "GlobalSearch", "masked_ncc_shifts", "describe_search"]
@@ -79,9 +79,9 @@ class GlobalSearchSettings:
             result is not always the right one (on ``fluoro-65kV`` frames a wrong one scored
             0.22-0.56 where the right one, refined, reached 0.51-0.60). 1 when the grid is skipped.
         metric: the similarity of the local searches and of the finalists' ranking for a display
-            image, one registered with its toned version (a name of :data:`register.metrics.METRICS`;
+            image, one registered with its toned version (a name of :data:`register.engines.metrics.METRICS`;
             default ``"tone_tolerant_gncc"``: half gradient NCC, half tone-free gradient NCC,
-            :func:`register.metrics.tone_tolerant_gradient_ncc`); an image without one (raw or log
+            :func:`register.engines.metrics.tone_tolerant_gradient_ncc`); an image without one (raw or log
             X-rays, DRRs: line integrals already) by its plain equivalent (gradient NCC), and the grid's FFT
             correlation is gradient NCC whatever it is.
         found_above: the given poses' (the network's) best local similarity (gradient NCC at full
@@ -134,7 +134,7 @@ class GlobalSearchSettings:
             raise RegistrationError(f"always_grid must be True or False, got {self.always_grid!r}")
         if not (np.isfinite(self.found_above) and -1.0 <= self.found_above <= 1.0):
             raise RegistrationError(f"found_above must be a similarity in [-1, 1], got {self.found_above}")
-        from register.metrics import get_metric
+        from register.engines.metrics import get_metric
 
         try:
             get_metric(self.metric)
@@ -223,7 +223,7 @@ class GlobalSearch:
         scene / geometry: the C-arm (an X-ray's own :class:`sim.geometry.CArmGeometry` at ``size``
             overrides the scene's detector); center_lps: ``(3,)`` anatomy centre (LPS mm).
         physics / label_materials: the moving images' physics of the local search (as
-            :class:`register.cmaes.CMAESRegistration`); the grid renders line DRRs whatever they are.
+            :class:`register.engines.cmaes.CMAESRegistration`); the grid renders line DRRs whatever they are.
     """
 
     def __init__(self, volume, settings: GlobalSearchSettings | None = None, *, size=(128, 128),
@@ -274,7 +274,7 @@ class GlobalSearch:
         rounding) and, where ``physics`` is given, its local search's moving images are of that
         physics (None: line DRRs), so that a caller may hand it on
         (:func:`register.prepare.confirm_polarity`, which uses the grid's line DRRs alone;
-        :class:`register.contextual.ContextualRegistration`)."""
+        :class:`register.engines.contextual.ContextualRegistration`)."""
         g = self.local.geometry
         same = (g.height, g.width) == (geometry.height, geometry.width) and np.allclose(
             [g.sdd_mm, g.sod_mm, g.pixel_spacing_mm, *g.principal_point],
@@ -303,7 +303,7 @@ class GlobalSearch:
         """``fixed`` downsampled by ``factor`` and its field eroded by one pixel (as gradient_ncc)."""
         from scipy import ndimage
 
-        from register.metrics import downsample
+        from register.engines.metrics import downsample
 
         f = downsample(np.asarray(fixed, np.float64), factor)
         m = np.ones(f.shape, bool) if mask is None else downsample(np.asarray(mask, np.float64), factor) > 0.999
@@ -431,7 +431,7 @@ class GlobalSearch:
         forgives any display curve, so it is more lenient than the threshold was set for."""
         if metric == "gncc":
             return float(result.similarity)
-        from register.metrics import gradient_ncc
+        from register.engines.metrics import gradient_ncc
 
         return float(gradient_ncc(fixed, self.local.render(np.asarray(result.params, float).reshape(1, 6), 1),
                                   mask=mask)[0])
@@ -457,7 +457,7 @@ class GlobalSearch:
         skipped), "finalists": the best distinct local results, best first (the first is the
         result), at most ``settings.finalists`` when the grid ran and 1 otherwise: ``[{"params":
         (6,) deg/mm, "similarity", "start": "given" or "grid"}, ...]``}``; the refinement starts
-        from each (:class:`register.contextual.ContextualRegistration`)."""
+        from each (:class:`register.engines.contextual.ContextualRegistration`)."""
         s = self.settings
         fixed = np.asarray(fixed, np.float64)
         if mask is not None:
@@ -471,7 +471,7 @@ class GlobalSearch:
         renders = 0
         best = None
         results: list[RegistrationResult] = []
-        from register.metrics import plain_equivalent
+        from register.engines.metrics import plain_equivalent
 
         metric = s.metric if toned is not None else plain_equivalent(s.metric)  # GlobalSearchSettings.metric
         coarse_engine, fine_engine = (e.scored_by((metric,)) for e in (self.local, self.local_fine))
@@ -561,7 +561,7 @@ class GlobalSearch:
 def describe_search(record: dict) -> str:
     """One line for a user from a search record (:meth:`GlobalSearch.register`, with the network's
     pose as the given one; with ``"refined"`` and ``"chosen"`` when the refinement ran from its
-    finalists, :class:`register.contextual.ContextualRegistration`)."""
+    finalists, :class:`register.engines.contextual.ContextualRegistration`)."""
     net = record["given_similarity"]
     head = "global search: " + ("no network pose" if net is None else f"the network's pose scored {net:.2f}")
     if not record["grid_poses"]:

@@ -41,7 +41,7 @@ DEMO_POSE = (-22.0, 10.0, -6.0, -15.0, 12.0, 15.0)
 #: What ``ctxreg demo`` writes besides the registration's own files.
 DEMO_FILES = ("xray.dcm", "demo.json")
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 
 
 def default_ct() -> str:
@@ -142,8 +142,8 @@ def run_demo(cmd: DemoCommand) -> list[Path]:
     """Simulate, register, write and report (module doc)."""
     from learn.models import resolve_model
     from register.api import OUTPUT_FILES, register_xray
-    from register.evaluate import bone_points, pose_errors
-    from register.xray_io import write_xray_dicom
+    from register.evaluation.evaluate import bone_points, pose_errors
+    from register.xray.io import write_xray_dicom
     from sim.anatomy import anatomy_center
     from sim.atomic import write_json
     from sim.ct_io import load_ct_spec

@@ -13,8 +13,8 @@ Errors per case:
 * mPD: mean distance between their projections on the detector (mm at the detector plane);
 * success: mTRE < ``success_mtre_mm`` and rotation error < ``success_rot_deg``.
 
-Methods are plug-ins (:class:`register.methods.RegistrationMethod`, built by
-:func:`register.methods.build_method`): anything with ``name`` and
+Methods are plug-ins (:class:`register.engines.methods.RegistrationMethod`, built by
+:func:`register.engines.methods.build_method`): anything with ``name`` and
 ``register(fixed (H, W), init_params (6,)) -> RegistrationResult``.
 """
 
@@ -26,7 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
-from register.methods import RegistrationMethod
+from register.engines.methods import RegistrationMethod
 from sim.cliargs import Range
 from sim.errors import InputError
 

@@ -38,7 +38,7 @@ Target kinds:
 
 * ``"drr"`` (default): targets rendered with ``physics`` (a :class:`sim.physics.imaging.PhysicsSettings`
   table; ``-log(I/I0)`` for poly / full) and registered directly
-  (:func:`register.evaluate.evaluate`), as ``ctxreg evaluate`` does;
+  (:func:`register.evaluation.evaluate.evaluate`), as ``ctxreg evaluate`` does;
 * ``"xray"``: full-physics detector signal, then a :class:`sim.physics.display.Collimator` and a
   :class:`sim.physics.display.DisplayChain`, written as 12-bit DICOM with geometry tags and
   registered through :func:`register.api.register_xray` with its default preprocessing, as
@@ -159,8 +159,8 @@ def _int(table: dict, key: str, default: int, lo: int, hi: int, where: str) -> i
 def load_study(path: str | Path) -> Study:
     """Read and check a study file; relative paths in it are relative to the file."""
     from learn.train import TrainConfig
-    from register.evaluate import START_MODES
-    from register.methods import METHOD_NAMES, needs_model
+    from register.evaluation.evaluate import START_MODES
+    from register.engines.methods import METHOD_NAMES, needs_model
     from sim.cliargs import IMAGE_SIDE_PX
     from sim.physics.display import Collimator, DisplayChain
     from sim.physics.imaging import PhysicsSettings
@@ -549,8 +549,8 @@ def _evaluate_drr(study: Study, target: Target, volume, center, predictor, folde
                   stamp: dict | None = None) -> dict:
     from dataclasses import asdict
 
-    from register.evaluate import EvaluationSettings, evaluate
-    from register.methods import build_method
+    from register.evaluation.evaluate import EvaluationSettings, evaluate
+    from register.engines.methods import build_method
     from sim.physics.imaging import LogImageRenderer, PhysicsSettings
     from sim.render import DRRRenderer, RenderSettings
 
@@ -581,8 +581,8 @@ def frame_refusals() -> tuple[type, ...]:
     """The errors a frame's own content can make registration raise (no valid pixel left, no
     intensity decision): a failed case of a study, not a stop. Anything else (a bad setting, a bug)
     stops the study as it should."""
-    from register.field import FieldError
-    from register.intensity import IntensityError
+    from register.xray.field import FieldError
+    from register.xray.intensity import IntensityError
     from register.preprocess import PreprocessError
 
     return FieldError, PreprocessError, IntensityError
@@ -608,7 +608,7 @@ class XRayFrames:
         self.collimator = None if target.collimator is None else Collimator.from_dict(target.collimator)
 
     def write(self, path: Path, T_true: np.ndarray, case: int) -> Path:
-        from register.xray_io import write_xray_dicom
+        from register.xray.io import write_xray_dicom
 
         g = self.imager.geometry
         raw = self.imager.render(T_true, seed=self.seed * 100003 + case)["raw"][0].astype(np.float64)
@@ -623,7 +623,7 @@ def _evaluate_xray(study: Study, target: Target, volume, center, predictor, fold
                    stamp: dict | None = None) -> dict:
     """Realistic frames through :func:`register.api.register_xray`, scored like the evaluation."""
     from register.api import register_xray
-    from register.evaluate import EvaluationSettings, bone_points, pose_errors, sample_cases, summarize
+    from register.evaluation.evaluate import EvaluationSettings, bone_points, pose_errors, sample_cases, summarize
 
     FRAME_REFUSALS = frame_refusals()
     from sim.atomic import write_csv, write_json

@@ -81,8 +81,8 @@ def run_study(ct: str, out: str | Path, *, cases: int = 10, size: int = 256, see
     ``out/case_NNN/<kind>_<start>/``. ``size``: detector pixels per side of the frames.
     """
     from register.cli import main as ctxreg
-    from register.evaluate import EvaluationSettings, bone_points, pose_errors, sample_cases
-    from register.xray_io import write_xray_dicom
+    from register.evaluation.evaluate import EvaluationSettings, bone_points, pose_errors, sample_cases
+    from register.xray.io import write_xray_dicom
     from sim.anatomy import anatomy_center
     from sim.ct_io import load_ct_spec
     from sim.geometry import pose_from_params

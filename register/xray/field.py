@@ -75,7 +75,7 @@ y = row, pixel centres at integers; kind ``"none"``: ``reason``, why no field wa
 ``excluded`` pixel counts (disjoint, inside ``field_mask``): ``overlay``, ``saturated``, ``empty``;
 :meth:`Field.to_dict` for the record.
 
-Errors (:class:`FieldError`, a :class:`~register.xray_io.XRayInputError`): input not 2-D, not
+Errors (:class:`FieldError`, a :class:`~register.xray.io.XRayInputError`): input not 2-D, not
 real, smaller than 16 x 16, NaN / inf, constant, or valid pixels under ``min_fraction``.
 
 Known limits: text must reach the extreme value (anti-aliased glyphs whose strokes stay below
@@ -99,7 +99,7 @@ from scipy import ndimage
 from scipy.spatial import ConvexHull, QhullError
 from skimage import measure
 
-from register.xray_io import XRayInputError
+from register.xray.io import XRayInputError
 from sim.atomic import jsonable
 
 __all__ = ["FieldError", "FieldSettings", "Field", "detect_field"]

@@ -9,7 +9,7 @@ X-ray arrives in one of three **scales** and either **polarity**:
 * ``display``: a vendor's look-up table (window, gamma, edge enhancement) on top of a log image
   (``DISP``, a VOI LUT, fluoroscopy frames, JPEG/PNG exports). Monotone but unknown.
 
-Polarity is stated for :attr:`register.xray_io.XRayImage.pixels` (which are already display-like:
+Polarity is stated for :attr:`register.xray.io.XRayImage.pixels` (which are already display-like:
 MONOCHROME1 and an INVERSE presentation LUT are undone by the reader): ``bone-bright`` (a
 radiograph) or ``bone-dark`` (a fluoroscopy frame, a raw image).
 
@@ -144,7 +144,7 @@ class PolarityReference:
 
     def scores(self, image: np.ndarray, mask: np.ndarray) -> tuple[float, float]:
         """``(best NCC, best NCC of the inverted image)`` over the DRRs, within the mask."""
-        from register.metrics import ncc
+        from register.engines.metrics import ncc
 
         small, small_mask = self.resample(image, mask)
         if small_mask is None or small_mask.sum() < 16:

@@ -39,11 +39,11 @@ def test_a_trained_checkpoint_drives_the_contextual_predictor(campaign, trained)
 
 def test_registration_uses_the_one_predictor():
     """The methods load the network through learn.predict (one predictor, no second home)."""
-    import register.contextual
-    import register.methods
+    import register.engines.contextual
+    import register.engines.methods
 
-    assert not hasattr(register.contextual, "NetworkPredictor")
-    assert "NetworkPredictor" in register.methods.load_predictor.__code__.co_names
+    assert not hasattr(register.engines.contextual, "NetworkPredictor")
+    assert "NetworkPredictor" in register.engines.methods.load_predictor.__code__.co_names
 
 
 def test_predictor_resamples_other_image_sizes_to_the_training_size(campaign, trained):

@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from register.cmaes import CMAESRegistration, CMAESSettings, RegistrationError
-from register.evaluate import EvaluationError, EvaluationSettings, pose_errors, sample_cases, summarize
+from register.engines.cmaes import CMAESRegistration, CMAESSettings, RegistrationError
+from register.evaluation.evaluate import EvaluationError, EvaluationSettings, pose_errors, sample_cases, summarize
 from sim.geometry import pose_from_params, projection_matrix
 from sim.render import DRRRenderer, RenderSettings
 
@@ -76,7 +76,7 @@ def test_restarts_run_only_while_lost_and_keep_the_best_similarity(phantom):
 
 
 def test_along_the_view_ray_the_centre_keeps_its_pixel_and_the_depth_moves(phantom):
-    from register.cmaes import along_view_ray
+    from register.engines.cmaes import along_view_ray
 
     vol, c = phantom
     engine = CMAESRegistration(vol, SMALL, center_lps=c)
@@ -107,7 +107,7 @@ def test_the_polish_recovers_a_depth_error_along_the_view_ray(phantom):
     ray, lands on the truth's depth; without the polish the depth error stays."""
     from dataclasses import replace
 
-    from register.cmaes import along_view_ray
+    from register.engines.cmaes import along_view_ray
 
     vol, c = phantom
     truth = np.array([6.0, -4.0, 3.0, 25.0, -15.0, 10.0])

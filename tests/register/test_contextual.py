@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 import torch
 
-from register.contextual import ContextualRegistration, ContextualSettings
-from register.cmaes import RegistrationError
+from register.engines.contextual import ContextualRegistration, ContextualSettings
+from register.engines.cmaes import RegistrationError
 
 
 @pytest.fixture(scope="module")
@@ -79,8 +79,8 @@ def test_a_lost_network_pose_goes_through_the_global_search(phantom):
     recovers from. A network that is right skips the grid."""
     from dataclasses import replace
 
-    from register.contextual import REFINE_SETTINGS
-    from register.search import GlobalSearchSettings, describe_search
+    from register.engines.contextual import REFINE_SETTINGS
+    from register.engines.search import GlobalSearchSettings, describe_search
     from sim.geometry import pose_from_params
     from sim.se3 import rotation_error_deg
 

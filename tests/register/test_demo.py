@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from register.demo import default_ct
+from register.evaluation.demo import default_ct
 
 PELVIS = Path(default_ct())
 NEEDS_PELVIS = pytest.mark.skipif(not PELVIS.is_file(), reason="the pelvis CT of ../shared/data is absent")

@@ -1,4 +1,4 @@
-"""register.field: collimated field detection and the valid-pixel mask, checked against truth.
+"""register.xray.field: collimated field detection and the valid-pixel mask, checked against truth.
 
 Synthetic anatomy-like images (smooth random texture, blobs, noise) inside a known field (circle,
 rectangle, polygon; clipped by the image edges or not), with the outside painted black or white
@@ -16,8 +16,8 @@ import pytest
 from PIL import Image, ImageDraw, ImageFont
 from scipy import ndimage
 
-from register.field import Field, FieldError, FieldSettings, detect_field
-from register.xray_io import XRayInputError
+from register.xray.field import Field, FieldError, FieldSettings, detect_field
+from register.xray.io import XRayInputError
 
 PAD = 12
 
@@ -258,7 +258,7 @@ def test_a_blade_cuts_off_only_the_outside():
     """A candidate missing a circular segment behind a straight rim: a blade when the segment is
     the outside region (grown from the border over the flat outside level), not when it is
     anatomy the candidate lost (dark anatomy near the outside level, as on a dark cine display)."""
-    from register.field import _contour, _fit_iris_blades
+    from register.xray.field import _contour, _fit_iris_blades
 
     circle = _circle(128, 128, 115)(S)
     yy, xx = np.mgrid[:256, :256]

@@ -1,4 +1,4 @@
-"""The scale / polarity decision (register.intensity) against images whose truth is known.
+"""The scale / polarity decision (register.xray.intensity) against images whose truth is known.
 
 Raw frames are Poisson counts of ``I0 exp(-L)`` for an analytic line-integral image ``L`` (a thick
 body with bone-like blobs); log, fluoroscopy and radiograph frames are that raw frame through
@@ -10,7 +10,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from register.intensity import IntensityError, PolarityReference, centre_contrast, decide, noise_trend
+from register.xray.intensity import IntensityError, PolarityReference, centre_contrast, decide, noise_trend
 from sim.physics.display import Collimator, DisplayChain
 
 
@@ -128,11 +128,11 @@ def test_linear_needs_positive_values():
         decide(-np.ones((32, 32)) - np.random.default_rng(0).random((32, 32)), scale="linear")
 
 
-# ------------------------------------------------------------------ the tone (register.intensity.tone_curve)
+# ------------------------------------------------------------------ the tone (register.xray.intensity.tone_curve)
 
 
 def _grad_ncc(a, b, mask):
-    from register.metrics import gradient_ncc
+    from register.engines.metrics import gradient_ncc
 
     return float(np.asarray(gradient_ncc(a, b[None], mask=mask)).reshape(-1)[0])
 
@@ -148,7 +148,7 @@ def test_the_tone_undoes_a_monotone_display_against_its_own_line_integrals(displ
     quantiles it gives L back: correlation > 0.99 within the field (the window's clipping and the
     quantisation merge values into ties; 257 quantiles interpolate the rest), and where the display
     bent the values it was far from L (0.91-0.94 here: below 0.95)."""
-    from register.intensity import apply_tone
+    from register.xray.intensity import apply_tone
 
     L = _line_integrals(seed=7)
     i0 = 1000.0
@@ -161,7 +161,7 @@ def test_the_tone_undoes_a_monotone_display_against_its_own_line_integrals(displ
 
 
 def test_the_reversed_tone_is_the_tone_of_the_inverted_image():
-    from register.intensity import apply_tone
+    from register.xray.intensity import apply_tone
 
     L = _line_integrals(seed=8)
     curve = np.quantile(L[FIELD], np.linspace(0, 1, 257))
@@ -173,7 +173,7 @@ def test_a_reference_tone_brings_a_gamma_display_closer_to_the_true_view():
     """The curve from DRRs at *other* poses (shifted views, as the reference's poses around the
     start are) still undoes a strong display curve: the gradient NCC of the frame against the true
     line integrals rises (0.86 -> 0.98 here; asserted with margin)."""
-    from register.intensity import tone_curve, apply_tone
+    from register.xray.intensity import tone_curve, apply_tone
 
     L = _line_integrals(seed=9)
     drrs = np.stack([np.roll(L, s, axis=a) for s in (-10, 10) for a in (0, 1)])
@@ -186,7 +186,7 @@ def test_a_reference_tone_brings_a_gamma_display_closer_to_the_true_view():
 
 
 def test_a_field_with_too_few_reference_pixels_gets_no_tone_and_bad_curves_are_named():
-    from register.intensity import apply_tone, tone_curve
+    from register.xray.intensity import apply_tone, tone_curve
 
     ref = PolarityReference(drrs=np.ones((2, 8, 8)), resample=lambda im, m: (im, m))
     assert tone_curve(ref, np.ones((8, 8), bool), (8, 8)) is None  # 128 < TONE_MIN_PIXELS

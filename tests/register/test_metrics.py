@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 from scipy import ndimage
 
-from register.metrics import (
+from register.engines.metrics import (
     METRICS,
     MetricError,
     downsample,
@@ -379,7 +379,7 @@ def test_patch_option_errors(rng):
 
 
 def test_plain_equivalent_maps_the_display_tolerant_metrics_to_gradient_ncc():
-    from register.metrics import METRICS, plain_equivalent
+    from register.engines.metrics import METRICS, plain_equivalent
 
     assert plain_equivalent("tone_tolerant_gncc") == "gncc" and plain_equivalent("tone_free_gncc") == "gncc"
     for name in METRICS:

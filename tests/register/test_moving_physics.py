@@ -10,7 +10,7 @@ import sys
 import numpy as np
 import pytest
 
-from register.cmaes import CMAESRegistration, CMAESSettings
+from register.engines.cmaes import CMAESRegistration, CMAESSettings
 from sim.physics import PhysicsError
 from sim.physics.imaging import LogImageRenderer, PhysicsSettings, XRayImager, moving_renderer
 from tests.conftest import REPO
@@ -111,7 +111,7 @@ def test_a_checkpoint_reports_a_physics_mismatch(tmp_path):
 @pytest.fixture(scope="module")
 def poly_case(tmp_path_factory):
     """A phantom CT and a noisy 120 kVp image of it at a known pose, stored as a DICOM with geometry tags."""
-    from register.xray_io import write_xray_dicom
+    from register.xray.io import write_xray_dicom
     from sim.ct_io import save_nifti
     from sim.geometry import pose_from_params
     from sim.anatomy import anatomy_center

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import torch
 
-from register.contextual import ContextualRegistration, ContextualSettings, NetworkView, network_view
+from register.engines.contextual import ContextualRegistration, ContextualSettings, NetworkView, network_view
 
 
 @pytest.fixture(scope="module")

@@ -62,7 +62,7 @@ def test_masked_fill_is_the_valid_mean_and_changes_nothing_inside():
 def test_contextual_iteration_ignores_what_lies_outside_the_mask():
     """The predictor, CMA-ES refinement and final similarity see nothing of the pixels outside
     the field: any values there give the same trajectory and result."""
-    from register.contextual import ContextualRegistration, ContextualSettings
+    from register.engines.contextual import ContextualRegistration, ContextualSettings
     from sim.phantom import make_pelvis_phantom
 
     vol = make_pelvis_phantom(3, spacing_mm=6.0)
@@ -138,7 +138,7 @@ def test_polarity_check_overturns_only_by_a_clear_margin(tone):
     from dataclasses import replace
 
     from register.prepare import POLARITY_FLIP_MARGIN, confirm_polarity, prepare_xray
-    from register.xray_io import XRayImage
+    from register.xray.io import XRayImage
     from sim.anatomy import anatomy_center
     from sim.phantom import make_pelvis_phantom
 
@@ -177,8 +177,8 @@ def test_polarity_scores_of_an_inverse_are_swapped_and_a_tiny_image_is_left_alon
     swaps the pair exactly (to rounding). An image too small for the grid (under 32 px) keeps its
     decision, with the reason recorded."""
     from register.prepare import confirm_polarity, prepare_xray
-    from register.search import GlobalSearch, GlobalSearchSettings
-    from register.xray_io import XRayImage
+    from register.engines.search import GlobalSearch, GlobalSearchSettings
+    from register.xray.io import XRayImage
     from sim.anatomy import anatomy_center
     from sim.phantom import make_pelvis_phantom
 
@@ -203,8 +203,8 @@ def test_polarity_check_and_search_render_the_grid_once_with_the_same_result():
     the grid no second time, and finds what a fresh search finds (the DRRs are the same poses'),
     to the last digit. A search built for another detector is refused."""
     from register.prepare import confirm_polarity, prepare_xray
-    from register.search import GlobalSearch, GlobalSearchSettings
-    from register.xray_io import XRayImage
+    from register.engines.search import GlobalSearch, GlobalSearchSettings
+    from register.xray.io import XRayImage
     from sim.anatomy import anatomy_center
     from sim.phantom import make_pelvis_phantom
 
@@ -233,8 +233,8 @@ def test_polarity_check_and_search_render_the_grid_once_with_the_same_result():
                          geometry=CArmGeometry(g.sdd_mm, g.sod_mm, g.height, g.width, g.pixel_spacing_mm * 1.1))
     with pytest.raises(ValueError, match="another detector"):
         confirm_polarity(prepared, vol, c, np.zeros(6), search=other)
-    from register.cmaes import RegistrationError
-    from register.contextual import REFINE_SETTINGS, ContextualRegistration
+    from register.engines.cmaes import RegistrationError
+    from register.engines.contextual import REFINE_SETTINGS, ContextualRegistration
 
     with pytest.raises(RegistrationError, match="another detector or physics"):
         ContextualRegistration(vol, lambda fixed, drr: np.zeros(6), size=(g.height, g.width), geometry=g,

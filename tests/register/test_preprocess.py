@@ -88,7 +88,7 @@ def test_crop_follows_the_mask_and_leaves_an_image_without_one_alone():
 
 
 def test_field_finds_a_frame_added_to_a_real_radiograph():
-    from register.xray_io import load_xray
+    from register.xray.io import load_xray
 
     x = load_xray(shared_file("xray/paediatric_ap_pelvis/dicoms/331_DDH_10.dcm")).pixels
     padded = np.pad(x, ((14, 6), (25, 0)), constant_values=255.0)  # white collimator shadow top/bottom/left
@@ -247,7 +247,7 @@ def test_intensity_step_records_a_tone_curve_for_display_images_only():
     image made from it (register.prepare.toned_image) is the line integral again (correlation >
     0.99, where the display is not); ``tone="off"``, a log image or no reference get no curve. A bad
     tone name is refused."""
-    from register.intensity import TONE_LEVELS, PolarityReference
+    from register.xray.intensity import TONE_LEVELS, PolarityReference
     from register.prepare import toned_image
 
     L = 1.0 + (_anatomy() - 500.0) / 200.0

@@ -32,7 +32,7 @@ def _assert_recovered(out, truth) -> dict:
 @pytest.fixture(scope="module")
 def synthetic_case(tmp_path_factory):
     """A phantom CT (NIfTI) and its DRR at a known pose, stored as a DX DICOM with geometry tags."""
-    from register.xray_io import write_xray_dicom
+    from register.xray.io import write_xray_dicom
     from sim.anatomy import anatomy_center
     from sim.ct_io import save_nifti
     from sim.phantom import make_pelvis_phantom
@@ -77,7 +77,7 @@ def test_register_recovers_the_pose_of_a_synthetic_dicom(synthetic_case, tmp_pat
 def fluoro_case(synthetic_case, tmp_path_factory):
     """The synthetic case as a C-arm shows it: Poisson noise, round collimator black outside,
     fluoroscopy display (log, bone dark, gamma 0.8, edge enhancement), 12-bit RF DICOM."""
-    from register.xray_io import load_xray, write_xray_dicom
+    from register.xray.io import load_xray, write_xray_dicom
     from sim.physics.display import Collimator, DisplayChain
 
     ct, xray, truth, center = synthetic_case
@@ -111,7 +111,7 @@ def test_register_handles_a_collimated_fluoroscopy_frame_by_default(fluoro_case,
 
 
 def test_register_says_which_geometry_it_assumed(synthetic_case, tmp_path):
-    from register.xray_io import load_xray
+    from register.xray.io import load_xray
 
     ct, xray, truth, center = synthetic_case
     png = tmp_path / "plain.png"
@@ -130,7 +130,7 @@ def test_register_says_which_geometry_it_assumed(synthetic_case, tmp_path):
                       np.random.default_rng(0).integers(500, 900, (128, 128)), 0).astype(np.uint16), "%"),
 ])
 def test_register_refuses_a_flat_image_or_a_tiny_field(synthetic_case, tmp_path, make, words):
-    from register.xray_io import write_xray_dicom
+    from register.xray.io import write_xray_dicom
 
     ct, *_ = synthetic_case
     path = write_xray_dicom(tmp_path / "bad.dcm", make(), pixel_spacing_mm=1.0, sdd_mm=1020.0, sod_mm=700.0)
@@ -199,7 +199,7 @@ def test_size_is_the_box_the_optimisers_image_fits_inside(size, expect):
     aspect and becomes the largest image inside H x W with sides multiples of 4; the detector's
     extent is kept (spacing x width). The default 128 x 128 is the former longer side 128."""
     from register.prepare import prepare_xray
-    from register.xray_io import XRayImage
+    from register.xray.io import XRayImage
 
     pixels = np.random.default_rng(0).random((100, 200)).astype(np.float32)
     x = XRayImage(pixels, pixel_spacing_mm=0.3, sdd_mm=1000.0, sod_mm=600.0, source="wide")
@@ -213,7 +213,7 @@ def test_size_is_the_box_the_optimisers_image_fits_inside(size, expect):
 def test_sizes_outside_the_declared_range_are_refused(size):
     from register.prepare import prepare_xray
     from register.preprocess import PreprocessError
-    from register.xray_io import XRayImage
+    from register.xray.io import XRayImage
 
     x = XRayImage(np.ones((16, 16), np.float32), pixel_spacing_mm=0.3, sdd_mm=1000.0, sod_mm=600.0, source="x")
     with pytest.raises(PreprocessError, match=r"\[8, 4096\]"):
@@ -223,7 +223,7 @@ def test_sizes_outside_the_declared_range_are_refused(size):
 def test_orientations_are_pillows_transposes_and_keep_the_geometry():
     """Each --orient name turns the pixels as Pillow's transpose of the same name does, keeps the
     geometry values, records itself, and swaps an anisotropic (row, column) spacing on a quarter turn."""
-    from register.xray_io import ORIENTATIONS, XRayImage, XRayInputError
+    from register.xray.io import ORIENTATIONS, XRayImage, XRayInputError
 
     a = np.arange(12, dtype=np.uint8).reshape(3, 4) * 20
     x = XRayImage(a.astype(np.float32), pixel_spacing_mm=0.3, sdd_mm=1000.0, sod_mm=600.0, source="a",
@@ -247,7 +247,7 @@ def test_register_undoes_a_stored_mirror_or_rotation_with_orient(synthetic_case,
     """The synthetic DRR stored mirrored (left-right) and rotated a quarter turn: --orient undoes
     each and the pose comes back as from the unturned file; the mirrored file registered as it is
     ends elsewhere (so the option is what does it)."""
-    from register.xray_io import load_xray, write_xray_dicom
+    from register.xray.io import load_xray, write_xray_dicom
 
     ct, xray, truth, center = synthetic_case
     x = load_xray(xray)

@@ -1,4 +1,4 @@
-"""The global pose search (register/search.py): the FFT masked NCC against its definition, the grid's
+"""The global pose search (register/engines/search.py): the FFT masked NCC against its definition, the grid's
 in-plane shift against a known translation, and the search against a known pose of the phantom."""
 
 from __future__ import annotations
@@ -6,8 +6,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from register.cmaes import RegistrationError
-from register.search import GlobalSearch, GlobalSearchSettings, describe_search, masked_ncc_shifts
+from register.engines.cmaes import RegistrationError
+from register.engines.search import GlobalSearch, GlobalSearchSettings, describe_search, masked_ncc_shifts
 
 
 @pytest.fixture(scope="module")
@@ -173,7 +173,7 @@ def test_the_search_finds_a_far_pose_and_skips_the_grid_for_a_good_one(phantom):
 
 
 def test_only_contextual_cmaes_takes_the_search(phantom):
-    from register.methods import build_method
+    from register.engines.methods import build_method
 
     vol, c = phantom
     for method in ("cmaes", "contextual"):

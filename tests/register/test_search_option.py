@@ -9,7 +9,7 @@ import json
 import numpy as np
 import pytest
 
-from register.cmaes import RegistrationError
+from register.engines.cmaes import RegistrationError
 
 
 @pytest.fixture(scope="module")
@@ -23,7 +23,7 @@ def phantom():
 
 def xray_at(phantom, truth):
     """A 64 x 64 line DRR of the phantom at ``truth`` (deg, mm) as an X-ray with its geometry."""
-    from register.xray_io import XRayImage
+    from register.xray.io import XRayImage
     from sim.render import DRRRenderer, RenderSettings
 
     vol, c = phantom
@@ -50,15 +50,15 @@ def register_drr(phantom, truth, **kw):
 
 
 def test_search_off_never_builds_the_global_search(phantom, monkeypatch, tmp_path):
-    import register.contextual
-    import register.search
+    import register.engines.contextual
+    import register.engines.search
 
     class NoSearch:
         def __init__(self, *args, **kwargs):
             raise AssertionError("the global search was built with search='off'")
 
-    monkeypatch.setattr(register.search, "GlobalSearch", NoSearch)
-    monkeypatch.setattr(register.contextual, "GlobalSearch", NoSearch)
+    monkeypatch.setattr(register.engines.search, "GlobalSearch", NoSearch)
+    monkeypatch.setattr(register.engines.contextual, "GlobalSearch", NoSearch)
     res = register_drr(phantom, NEAR, search="off")
     assert res.search_ran is False and res.search_mode == "off" and res.result.search is None
     assert res.search_status == "off" and res.summary().splitlines()[0] == "search: off"

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-from register.study import StudyError, load_study
+from register.evaluation.study import StudyError, load_study
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -89,7 +89,7 @@ def test_a_tiny_study_runs_end_to_end_and_resumes(tmp_path, capsys, monkeypatch)
 
     # a frame the registration refuses (its one-line input error) is a failed case, not a failed study
     import register.api
-    from register.field import FieldError
+    from register.xray.field import FieldError
     from sim.errors import InputError
 
     def refuse(*args, **kwargs):
@@ -191,7 +191,7 @@ def test_the_shipped_study_files_load(path):
 @pytest.mark.parametrize("kw, words", [({"only": ("nope",)}, "--only nope: not a variant of the study"),
                                        ({"targets": ("nope",)}, "--targets nope: not a target of the study")])
 def test_unknown_variant_or_target_filters_are_named(tmp_path, kw, words):
-    from register.study import run_study
+    from register.evaluation.study import run_study
 
     path = tmp_path / "s.toml"
     path.write_text(TINY)

@@ -13,8 +13,8 @@ from types import SimpleNamespace
 
 import pytest
 
-from register import study as S
-from register.study import StudyError, load_study
+from register.evaluation import study as S
+from register.evaluation.study import StudyError, load_study
 
 ROOT = Path(__file__).resolve().parents[2]
 SMOKE = ROOT / "campaigns" / "smoke.toml"
@@ -71,7 +71,7 @@ class Fakes:
 
         def evaluate(kind):
             def run(study, target, volume, center, predictor, folder, log, stamp=None):
-                from register.evaluate import EvaluationSettings, summarize
+                from register.evaluation.evaluate import EvaluationSettings, summarize
 
                 self.calls.append(("evaluate", folder.parent.name, target.name))
                 rows = [{"case": 0, "method": m, "rot_err_deg": 1.0, "trans_err_mm": 2.0, "mtre_mm": 3.0,

@@ -11,7 +11,7 @@ import pydicom
 import pytest
 from PIL import Image
 
-from register.xray_io import (
+from register.xray.io import (
     INTENSITY_TAG_KEYS,
     GeometrySources,
     XRayImage,

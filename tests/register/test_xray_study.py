@@ -9,7 +9,7 @@ import json
 import numpy as np
 import pytest
 
-from register.xray_study import run_study, summarize_study
+from register.evaluation.xray_study import run_study, summarize_study
 
 
 @pytest.mark.slow

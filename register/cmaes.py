@@ -1,0 +1,2 @@
+"""Temporary: the old path of :mod:`register.engines.cmaes` until prepare.py moves (issue 30)."""
+from register.engines.cmaes import RegistrationError  # noqa: F401

@@ -1,0 +1,7 @@
+"""Registration engines: a prepared X-ray to a pose.
+
+``result`` (what every engine returns, its error), ``metrics`` (image similarity), ``cmaes``
+(multi-resolution CMA-ES), ``search`` (the global search), ``contextual`` (the network's pose
+iteration), ``pipeline`` (contextual + global search + CMA-ES refinement), ``methods`` (the
+methods by name, built in one place).
+"""
