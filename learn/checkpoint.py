@@ -44,9 +44,7 @@ old file or the new one. A process killed hard during the write leaves its hidde
 
 from __future__ import annotations
 
-import pickle
 import re
-import zipfile
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -55,10 +53,12 @@ from typing import Any
 import numpy as np
 import torch
 
+from learn.model import _BACKBONE_CONFIG, Backbone, pose_update_net
+from learn.torch_file import first_line, read_plain_torch_file
 from sim.errors import InputError
 
 __all__ = ["FORMAT", "FORMAT_VERSION", "Checkpoint", "CheckpointError", "capture_rng", "load_checkpoint",
-           "load_weights", "read_plain_torch_file", "remove_stale_temps", "restore_rng", "save_checkpoint"]
+           "load_weights", "remove_stale_temps", "restore_rng", "save_checkpoint"]
 
 #: The ``format`` value of a ctxreg checkpoint.
 FORMAT = "ctxreg pose-update network"
@@ -102,8 +102,6 @@ class Checkpoint:
     def build_model(self):
         """A :class:`learn.model.PoseUpdateNet` of this architecture with these weights (train mode,
         as built; call ``.eval()`` to predict)."""
-        from learn.model import pose_update_net
-
         model = pose_update_net(backbone=self.backbone, head_channels=self.head_channels)
         load_weights(model, self.model_state, source=self.name)
         return model
@@ -144,7 +142,7 @@ def restore_rng(state: Mapping, *, source: str = "the checkpoint") -> None:
         torch.set_rng_state(state["torch"])
         np.random.set_state(st)
     except (KeyError, TypeError, ValueError, RuntimeError) as e:  # what torch / NumPy say to a damaged state
-        raise CheckpointError(f"{source}: its random state is damaged ({_first_line(e)})") from None
+        raise CheckpointError(f"{source}: its random state is damaged ({first_line(e)})") from None
 
 
 # --------------------------------------------------------------------------------------------
@@ -204,90 +202,6 @@ def save_checkpoint(path: str | Path, checkpoint: Checkpoint) -> None:
 # Reading
 # --------------------------------------------------------------------------------------------
 
-_ZIP_MAGIC = b"PK\x03\x04"
-#: First bytes of a torch.save file in the format before PyTorch 1.6 (a pickled magic number)
-_LEGACY_MAGIC = b"\x80\x02\x8a\x0a"
-
-
-def _numpy_array_globals() -> list:
-    """What a version-0 file's NumPy random state needs besides tensors and plain data (arrays
-    of numbers only: a NumPy array's pickle names these and nothing that runs code)."""
-    reconstruct = np._core.multiarray._reconstruct if hasattr(np, "_core") else np.core.multiarray._reconstruct
-    return [(reconstruct, "numpy._core.multiarray._reconstruct"),
-            (reconstruct, "numpy.core.multiarray._reconstruct"), np.ndarray, np.dtype,
-            *(type(np.dtype(t)) for t in ("uint32", "int64", "float64"))]
-
-
-_ALLOWED_NUMPY = {"numpy._core.multiarray._reconstruct", "numpy.core.multiarray._reconstruct", "numpy.ndarray",
-                  "numpy.dtype", "numpy.dtypes.UInt32DType", "numpy.dtypes.Int64DType", "numpy.dtypes.Float64DType"}
-
-
-def read_plain_torch_file(path: str | Path, what: str = "checkpoint", *, error=CheckpointError,
-                          allow_numpy: bool = False):
-    """``torch.load(path, weights_only=True)`` with one-line errors.
-
-    Refuses (raising ``error`` with a message that starts with ``"<what> <path>"``): a missing
-    file, a folder, an empty file, a truncated or corrupt one, a file that is not a PyTorch
-    file, and a file that pickles any object other than tensors and plain data (such a file
-    could run code when loaded; nothing of it is executed here). ``allow_numpy`` also accepts
-    NumPy arrays of numbers (version-0 checkpoints).
-    """
-    path = Path(path)
-    name = f"{what} {path}"
-    if not path.exists():
-        raise error(f"{name} not found")
-    if not path.is_file():
-        raise error(f"{name} is not a file")
-    size = path.stat().st_size
-    if size == 0:
-        raise error(f"{name} is empty (0 bytes): was its write interrupted?")
-    with open(path, "rb") as f:
-        head = f.read(4)
-    unsafe: set[str] = set()
-    if head == _ZIP_MAGIC:  # torch.save's format since PyTorch 1.6
-        if not zipfile.is_zipfile(path):
-            raise error(f"{name} is truncated or corrupt ({size} bytes, an incomplete zip archive): was its write "
-                        f"interrupted? Use an intact copy")
-        try:
-            unsafe = set(torch.serialization.get_unsafe_globals_in_checkpoint(path))
-        except ValueError as e:  # a zip archive, but no torch.save pickle in it (e.g. TorchScript)
-            raise error(f"{name} is not a torch.save file ({_first_line(e)})") from None
-        except (RuntimeError, KeyError, EOFError, zipfile.BadZipFile, pickle.UnpicklingError) as e:
-            raise error(f"{name} is corrupt ({_first_line(e)})") from None
-    elif head != _LEGACY_MAGIC:  # the format before 1.6 (e.g. torchvision's ImageNet files): torch.load checks
-        raise error(f"{name} is not a PyTorch file (torch.save writes a zip archive; this one starts with "
-                    f"{head!r})")
-    if allow_numpy:
-        unsafe -= _ALLOWED_NUMPY
-    if unsafe:
-        shown = ", ".join(sorted(unsafe)[:3]) + (f" and {len(unsafe) - 3} more" if len(unsafe) > 3 else "")
-        raise error(f"{name} contains objects other than tensors and plain data ({shown}); refused: loading it "
-                    f"could run code. Only load files whose source you trust, re-saved as tensors and plain data")
-    try:
-        if allow_numpy:
-            with torch.serialization.safe_globals(_numpy_array_globals()):
-                return torch.load(path, map_location="cpu", weights_only=True)
-        return torch.load(path, map_location="cpu", weights_only=True)
-    except pickle.UnpicklingError as e:  # weights_only's refusal (never executed) or a broken pickle stream
-        detail = re.search(r"WeightsUnpickler error: ([^\n]*)", str(e))
-        detail = detail.group(1).strip() if detail else _first_line(e)
-        if re.search(r"Unsupported (global|class)|allowed global", detail):
-            # (in the pre-1.6 format a cut stream can also end in a cut, unknown name)
-            damaged = "" if head == _ZIP_MAGIC else ", or it is damaged"
-            raise error(f"{name} contains objects other than tensors and plain data{damaged}; refused: loading it "
-                        f"could run code ({detail[:200]})") from None
-        raise error(f"{name} is truncated or corrupt ({detail[:200]})") from None
-    # torch raises these for a damaged archive (bad CRC, missing record, cut pickle stream)
-    except (RuntimeError, EOFError, KeyError, ValueError, zipfile.BadZipFile) as e:
-        raise error(f"{name} is truncated or corrupt ({_first_line(e)})") from None
-
-
-def _first_line(e: BaseException) -> str:
-    text = str(e).strip().splitlines()
-    line = text[0] if text else ""
-    line = line[:200] + ("..." if len(line) > 200 else "")
-    return f"{type(e).__name__}: {line}" if line else type(e).__name__
-
 
 def _check_finite(state: Mapping[str, torch.Tensor], lead: str, advice: str) -> None:
     bad = [k for k, v in state.items() if isinstance(v, torch.Tensor) and v.is_floating_point()
@@ -314,7 +228,7 @@ def load_checkpoint(path: str | Path) -> Checkpoint:
     """
     path = Path(path)
     name = f"checkpoint {path}"
-    state = read_plain_torch_file(path, allow_numpy=True)
+    state = read_plain_torch_file(path, "checkpoint", error=CheckpointError, allow_numpy=True)
     if not isinstance(state, dict):
         raise CheckpointError(f"{name} is not a ctxreg checkpoint (it holds a {type(state).__name__}, not the dict "
                               f"ctxreg train writes)")
@@ -371,8 +285,6 @@ def _model_state(state: Mapping, name: str) -> Mapping[str, torch.Tensor]:
 
 
 def _architecture(backbone, head_channels, name: str) -> tuple[str, int]:
-    from learn.model import Backbone
-
     names = [b.value for b in Backbone]
     if backbone not in names:
         raise CheckpointError(f"{name} is corrupt: backbone {backbone!r} is not one of {names}")
@@ -443,8 +355,6 @@ def _architecture_of(state: Mapping[str, Any]) -> dict[str, Any] | None:
 
 
 def _backbone_name(arch: dict) -> str | None:
-    from learn.model import _BACKBONE_CONFIG
-
     for kind, (growth, blocks, init) in _BACKBONE_CONFIG.items():
         if (growth, tuple(blocks), init) == (arch["growth_rate"], arch["block_config"], arch["num_init_features"]):
             return kind.value

@@ -41,6 +41,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 from torchvision.models import DenseNet
 
+from learn.torch_file import read_plain_torch_file  # tensors and plain data only; one-line refusals
 from sim.errors import InputError
 
 __all__ = [
@@ -178,7 +179,7 @@ def load_backbone_weights(model: PoseUpdateNet, path: str | Path) -> None:
     Raises:
         WeightsNotFoundError: no file at ``path`` (this machine cannot download weights).
         WeightsMismatchError: not a readable PyTorch file of tensors and plain data
-            (:func:`learn.checkpoint.read_plain_torch_file`), not a state dict, or its keys or
+            (:func:`learn.torch_file.read_plain_torch_file`), not a state dict, or its keys or
             shapes do not match the backbone (the message names up to 5 missing / unexpected /
             mismatched keys).
     """
@@ -190,8 +191,6 @@ def load_backbone_weights(model: PoseUpdateNet, path: str | Path) -> None:
             f"ImageNet weights for {backbone.value} not found at {path}; this machine cannot download "
             f"them: copy torchvision's {file} there, or use weights=Weights.NONE"
         )
-    from learn.checkpoint import read_plain_torch_file  # tensors and plain data only; one-line refusals
-
     state = read_plain_torch_file(path, "weights file", error=WeightsMismatchError)
     if not isinstance(state, Mapping) or not all(isinstance(v, Tensor) for v in state.values()):
         raise WeightsMismatchError(f"{path}: expected a state dict (str -> tensor), got {type(state).__name__}")
