@@ -109,7 +109,7 @@ def single_prediction_errors(checkpoint: str, volume, *, pairs: int = 200, size=
     on ``pairs`` pairs of ``kind`` for one CT volume. ``size``: image size (default: the model's)."""
     from learn.predict import NetworkPredictor
     from sim.anatomy import anatomy_center
-    from sim.render import DRRRenderer, RenderSettings
+    from sim.drr import DRRRenderer, RenderSettings
 
     predictor = NetworkPredictor(checkpoint)
     center = anatomy_center(volume) if center_lps is None else np.asarray(center_lps, float)

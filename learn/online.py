@@ -369,7 +369,7 @@ class OnlinePairs:
         """Density-integral renderer (:data:`sim.materials.TISSUE_DECOMPOSITION`) of subject ``k`` (cached)."""
         if k not in self._density:
             from sim.materials import TISSUE_DECOMPOSITION
-            from sim.render import DRRRenderer, RenderSettings
+            from sim.drr import DRRRenderer, RenderSettings
 
             ctx = self.context(k)
             self._density[k] = DRRRenderer(ctx.volume, RenderSettings(scene=self.cfg.scene.name,

@@ -119,7 +119,7 @@ class NetworkPredictor:
         trained = ref.get("level", "line")
         differ = level != trained
         if not differ and level in ("poly", "full"):
-            from sim.physics.spectrum import parse_filters
+            from sim.physics.filters import parse_filters
 
             filters = parse_filters(ref.get("filters", ()))  # stored as "SYMBOL:MM" strings
             differ = (abs(float(ref.get("kvp", physics.kvp)) - physics.kvp) > 1e-9

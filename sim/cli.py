@@ -15,7 +15,7 @@ import numpy as np
 from sim.cliargs import IMAGE_SIDE_PX, Range, opt
 from sim.errors import InputError
 from sim.physics.options import level_field, physics_option
-from sim.render import QUANTITIES, RAY_MODELS, STEP_FRACTION, RenderSettings
+from sim.drr import QUANTITIES, RAY_MODELS, STEP_FRACTION, RenderSettings
 
 _DEFAULTS = RenderSettings()  # the renderer's defaults are the command line's
 

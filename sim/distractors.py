@@ -53,7 +53,7 @@ Attenuation:
   only: the tools attenuate the primary, they do not scatter.
 
 :class:`RendererWithDistractors` and :func:`imager_with_distractors` wrap a
-:class:`sim.render.DRRRenderer` or a :class:`sim.physics.imaging.XRayImager` so that their
+:class:`sim.drr.DRRRenderer` or a :class:`sim.physics.imaging.XRayImager` so that their
 ``render`` includes the tools; without tools the wrapped objects are untouched.
 
 Units: mm, g/cm^3, g/cm^2, 1/mm, keV.
@@ -645,7 +645,7 @@ class DistractorField:
             return
         import mitsuba as mi
 
-        from sim.render import camera_from_sensor
+        from sim.drr import camera_from_sensor
         from sim.scene import load_mitsuba_scene, load_scene
 
         self._sensor_scene = load_mitsuba_scene(load_scene(self.scene_name), self.geometry)
@@ -715,7 +715,7 @@ class DistractorField:
     def chords(self, poses) -> np.ndarray:
         """Path lengths (mm) inside the tools, per channel: ``(B, C, H, W)`` float32 for poses
         ``(4, 4)`` or ``(B, 4, 4)`` (volume poses T, as the renderer's; ``B = 1`` for one)."""
-        from sim.render import MAX_RAYS_PER_LAUNCH, DRRRenderer
+        from sim.drr import MAX_RAYS_PER_LAUNCH, DRRRenderer
 
         poses = DRRRenderer._check_poses(poses)
         b, h, w = len(poses), self.geometry.height, self.geometry.width
@@ -824,7 +824,7 @@ def add_to_density_integrals(L, names: Sequence[str], chords, channels) -> tuple
 
 
 class RendererWithDistractors:
-    """A :class:`sim.render.DRRRenderer` whose images include tools in the field.
+    """A :class:`sim.drr.DRRRenderer` whose images include tools in the field.
 
     ``render(poses)`` is the renderer's, plus the tools: ``line-integral`` adds
     ``mu * chord``, ``intensity`` multiplies by ``exp(-mu * chord)``, ``density`` adds
@@ -847,7 +847,7 @@ class RendererWithDistractors:
         return getattr(renderer, name)
 
     def render(self, poses) -> np.ndarray:
-        """As :meth:`sim.render.DRRRenderer.render`, with the tools."""
+        """As :meth:`sim.drr.DRRRenderer.render`, with the tools."""
         poses = self.renderer._check_poses(poses)
         img = self.renderer.render(poses)
         if not self.field.tools:

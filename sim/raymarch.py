@@ -1,6 +1,6 @@
 """Line integrals of many CT volumes at many poses in one torch call (CPU or CUDA).
 
-The Dr.Jit renderer (:mod:`sim.render`) is the reference and registration's renderer; this is
+The Dr.Jit renderer (:mod:`sim.drr`) is the reference and registration's renderer; this is
 its batched twin for training pairs, where thousands of images per second of several subjects
 must come from the device that trains the network. :class:`TorchVolumes` holds the channels of
 several subjects (e.g. ``mu`` and the two basis densities of :mod:`sim.physics.two_basis`) on one
@@ -9,7 +9,7 @@ device, stacked along the first voxel axis with empty slabs between them, so one
 
 On a CPU, ``grid_sample`` over a 3-D volume is about 80x slower than the Dr.Jit renderer's compiled
 Siddon kernel, so :func:`volumes_for` gives :class:`DrJitVolumes` there (the same interface over
-:class:`sim.render.DRRRenderer`) and :class:`TorchVolumes` on a GPU.
+:class:`sim.drr.DRRRenderer`) and :class:`TorchVolumes` on a GPU.
 
 Rays (``docs/conventions.md``): the source is the camera origin, pixel ``(i, j)``'s centre is
 ``((j - cx) s, (i - cy) s, SDD)``; a camera point ``X`` is the patient point
@@ -212,7 +212,7 @@ class _Channels:
 
 
 class DrJitVolumes:
-    """:class:`TorchVolumes`'s interface on the Dr.Jit renderer (:class:`sim.render.DRRRenderer`,
+    """:class:`TorchVolumes`'s interface on the Dr.Jit renderer (:class:`sim.drr.DRRRenderer`,
     exact Siddon traversal, many poses per kernel launch): the fast path on a CPU, where
     ``grid_sample`` over 3-D volumes is about 80x slower than Dr.Jit's compiled kernel. Same
     arguments (``step_fraction`` unused: Siddon has no step) and results, returned as torch
@@ -249,7 +249,7 @@ class DrJitVolumes:
     def _renderer(self, u: int, chans: tuple[int, ...]):
         key = (u, chans)
         if key not in self._renderers:
-            from sim.render import DRRRenderer, RenderSettings
+            from sim.drr import DRRRenderer, RenderSettings
 
             h, w = self.geometry.height, self.geometry.width
             # the density quantity divides by 10 (g/cm^3 mm -> g/cm^2): channels go in x 10 so the

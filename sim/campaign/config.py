@@ -34,7 +34,7 @@ import numpy as np
 from sim.campaign.poses import ORIGINAL_PROTOCOL, PoseDistribution, PoseDistributionError
 from sim.errors import InputError
 from sim.materials import MU_WATER_60KEV_PER_MM
-from sim.render import RAY_MODELS, STEP_FRACTION
+from sim.drr import RAY_MODELS, STEP_FRACTION
 from sim.physics import PhysicsError
 from sim.physics.settings import (FORMER_NAMES, LEVELS, SETTINGS, PhysicsSettings, campaign_settings,
                                   with_campaign_settings)
@@ -119,7 +119,7 @@ class PhysicsConfig:
             (``poly`` + Monte Carlo scatter, :mod:`sim.physics.scatter`).
         ray_model: ``"siddon"`` (exact voxel traversal) or ``"trilinear"``.
         step_fraction: trilinear step as a fraction of the smallest voxel spacing, in
-            :data:`sim.render.STEP_FRACTION` ([0.05, 1]).
+            :data:`sim.drr.STEP_FRACTION` ([0.05, 1]).
         mu_water_per_mm: attenuation of water in 1/mm (HU -> mu; line level).
         kvp, anode_angle_deg, filters, bins, mas, detector_mm, detector_mode, noise, blur_mm,
             electronic_noise, scatter_photons, scatter_voxel_mm, grid_ratio: the physics settings

@@ -331,7 +331,7 @@ class SubjectContext:
 
     def __init__(self, cfg, subject):
         from sim.anatomy import bone_mask
-        from sim.render import DRRRenderer, RenderSettings
+        from sim.drr import DRRRenderer, RenderSettings
         from sim.volume import CTVolume
 
         entry = cfg.cts[subject.ct_index]

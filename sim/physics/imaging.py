@@ -1,10 +1,10 @@
 """Realistic X-ray images of a CT: density line integrals once per pose, then spectrum, detector, noise.
 
-:class:`XRayImager` wraps a :class:`sim.render.DRRRenderer` with ``quantity="density"`` over
+:class:`XRayImager` wraps a :class:`sim.drr.DRRRenderer` with ``quantity="density"`` over
 :data:`sim.materials.TISSUE_DECOMPOSITION`, and a :class:`sim.physics.poly.Polychromatic`
 model. Physics levels (:data:`sim.physics.settings.LEVELS`):
 
-* ``line``: line integrals of mu at one effective energy (the plain DRR of :mod:`sim.render`);
+* ``line``: line integrals of mu at one effective energy (the plain DRR of :mod:`sim.drr`);
 * ``poly``: spectral polychromatic attenuation, energy-integrating CsI detector, and optionally
   quantum and electronic noise with detector blur;
 * ``full``: ``poly`` plus Monte Carlo scatter (:mod:`sim.physics.scatter`), added to the
@@ -35,8 +35,8 @@ class XRayImager:
     Args:
         volume: :class:`sim.volume.CTVolume`.
         physics: :class:`PhysicsSettings`.
-        scene, size, ray_model: as :class:`sim.render.RenderSettings`.
-        center_lps, geometry: as :class:`sim.render.DRRRenderer`.
+        scene, size, ray_model: as :class:`sim.drr.RenderSettings`.
+        center_lps, geometry: as :class:`sim.drr.DRRRenderer`.
         label_materials: ``{label: material}``: the CT's label map overrides the HU-based
             materials there (:class:`sim.materials.LabelOverride`), e.g. an implant
             segmented as titanium.
@@ -52,7 +52,7 @@ class XRayImager:
         from sim.materials import TISSUE_DECOMPOSITION, LabelOverride
         from sim.physics.poly import Detector, Polychromatic
         from sim.physics.spectrum import tube_spectrum
-        from sim.render import DRRRenderer, RenderSettings
+        from sim.drr import DRRRenderer, RenderSettings
 
         self.physics = physics or PhysicsSettings()
         self.label_materials = dict(label_materials or {})
@@ -75,11 +75,11 @@ class XRayImager:
         self.scatter = None
         self.gain = 1.0
         if p.level == "full":
-            from sim.physics.scatter import MonteCarloScatter
+            from sim.physics.scatter import MonteCarloScatter, ScatterSettings
 
             self.scatter = MonteCarloScatter(materials.partial_densities(volume.hu), volume.affine,
                                              TISSUE_DECOMPOSITION.names, self.spectrum, self.detector,
-                                             p.scatter_settings())
+                                             ScatterSettings.of(p))
             self.gain = self.scatter.settings.grid_transmission if p.grid_ratio > 0 else 1.0
         self.flat = self.model.flat_field(**self.exposure) * self.gain
 
@@ -135,7 +135,7 @@ class XRayImager:
 class LogImageRenderer:
     """An :class:`XRayImager` seen as a DRR renderer: ``render(poses, seed=None)`` returns the
     ``-log(I/I0)`` images ``(B, H, W)``; ``geometry``, ``center_lps`` and ``projection_matrix``
-    as :class:`sim.render.DRRRenderer`. Used for realistic targets and campaign images."""
+    as :class:`sim.drr.DRRRenderer`. Used for realistic targets and campaign images."""
 
     def __init__(self, volume, physics: PhysicsSettings | None = None, **kwargs):
         self.imager = XRayImager(volume, physics, **kwargs)
@@ -154,7 +154,7 @@ def moving_renderer(volume, physics: PhysicsSettings | None = None, *, scene: st
                     label_materials: dict[int, str] | None = None):
     """The renderer of a registration's moving images ("DRRs") at a physics level.
 
-    ``line`` (or ``physics=None``): a :class:`sim.render.DRRRenderer` of line integrals of mu.
+    ``line`` (or ``physics=None``): a :class:`sim.drr.DRRRenderer` of line integrals of mu.
     ``poly`` / ``full``: a :class:`LogImageRenderer` of ``-log(I/I0)`` with the settings'
     spectrum and detector, without noise (a moving image is an expected image: noise would
     only make the similarity noisy), and for ``full`` with the same Monte Carlo seed for every
@@ -165,7 +165,7 @@ def moving_renderer(volume, physics: PhysicsSettings | None = None, *, scene: st
     from dataclasses import replace
 
     if physics is None or physics.level == "line":
-        from sim.render import DRRRenderer, RenderSettings
+        from sim.drr import DRRRenderer, RenderSettings
 
         if label_materials:
             raise PhysicsError("label materials need physics poly or full (line DRRs use mu from HU)")

@@ -109,6 +109,12 @@ class ScatterSettings:
             if not (isinstance(v, (int, float)) and math.isfinite(v) and lo < v <= hi):
                 raise PhysicsError(f"scatter {name} must be in ({max(lo, 0.0)}, {hi}], got {v!r}")
 
+    @classmethod
+    def of(cls, physics) -> ScatterSettings:
+        """The Monte Carlo settings of a :class:`sim.physics.settings.PhysicsSettings` (its
+        ``scatter_photons``, ``scatter_voxel_mm`` and ``grid_ratio``; the rest default)."""
+        return cls(photons=physics.scatter_photons, voxel_mm=physics.scatter_voxel_mm, grid_ratio=physics.grid_ratio)
+
 
 def block_average(densities: np.ndarray, spacing_mm, voxel_mm: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Mass-conserving block average of ``(M, I, J, K)`` densities to about ``voxel_mm``.

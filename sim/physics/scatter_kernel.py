@@ -528,13 +528,13 @@ def monte_carlo_maps(imager, poses: np.ndarray, *, cell_px: int = 4, photons: in
 
     from sim.geometry import extrinsic_lps_to_camera
     from sim.materials import TISSUE_DECOMPOSITION
-    from sim.physics.scatter import MonteCarloScatter, upsample_cells
+    from sim.physics.scatter import MonteCarloScatter, ScatterSettings, upsample_cells
 
     p = imager.physics
     g = imager.geometry
     poses = imager.renderer._check_poses(poses)
     seeds = list(range(len(poses))) if seeds is None else [int(s) for s in seeds]
-    settings = _replace(p.scatter_settings(), cell_px=int(cell_px))
+    settings = _replace(ScatterSettings.of(p), cell_px=int(cell_px))
     gain = settings.grid_transmission if p.grid_ratio > 0 else 1.0
     if mc is None:
         mc = MonteCarloScatter(imager.renderer.materials.partial_densities(imager.renderer.volume.hu),

@@ -19,7 +19,8 @@ A value outside its range is refused with a :class:`sim.physics.PhysicsError` th
 setting (as the field, the campaign key path or the option), its unit and the range.
 
 This module imports no numpy, no Dr.Jit (the filters' element symbols are checked against
-sim.physics.spectrum.ELEMENT_SYMBOLS when filters are given).
+sim.physics.filters.ELEMENT_SYMBOLS). The Monte Carlo's own settings are built from these by
+:meth:`sim.physics.scatter.ScatterSettings.of`.
 """
 
 from __future__ import annotations
@@ -30,6 +31,7 @@ from dataclasses import dataclass, field, fields
 from typing import Any
 
 from sim.physics import PhysicsError
+from sim.physics.filters import parse_filters
 
 #: Physics levels: line integrals, polychromatic, polychromatic + Monte Carlo scatter.
 LEVELS: tuple[str, ...] = ("line", "poly", "full")
@@ -153,8 +155,6 @@ class Setting:
     def _check_filters(self, value: Any, where: str) -> tuple[tuple[str, float], ...]:
         if isinstance(value, (str, bytes)) or not isinstance(value, (list, tuple)):
             raise PhysicsError(f"{where}: must be {self.allowed()}, got {value!r}")
-        from sim.physics.spectrum import parse_filters
-
         try:
             return parse_filters(value)
         except PhysicsError as e:
@@ -236,15 +236,6 @@ class PhysicsSettings:
     def __post_init__(self) -> None:
         for s in SETTINGS.values():
             object.__setattr__(self, s.name, s.check(getattr(self, s.name)))
-        if self.level == "full":
-            self.scatter_settings()  # the Monte Carlo's own checks
-
-    def scatter_settings(self):
-        """The :class:`sim.physics.scatter.ScatterSettings` of these settings."""
-        from sim.physics.scatter import ScatterSettings
-
-        return ScatterSettings(photons=self.scatter_photons, voxel_mm=self.scatter_voxel_mm,
-                               grid_ratio=self.grid_ratio)
 
 
 #: Every setting by name, in the field order of :class:`PhysicsSettings`.

@@ -426,7 +426,7 @@ def test_ranges_from_dict_validates_keys_and_values():
 def test_virtual_patient_of_the_real_pelvis_ct_is_a_plausible_ct(pelvis_ct_path):
     from sim.anatomy import bone_mask
     from sim.ct_io import check_hu_plausible, load_ct
-    from sim.render import DRRRenderer, RenderSettings
+    from sim.drr import DRRRenderer, RenderSettings
 
     ct = load_ct(pelvis_ct_path)
     centre = anatomy_center(ct)

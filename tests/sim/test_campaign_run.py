@@ -252,7 +252,7 @@ def test_poses_stay_in_their_ranges_and_the_histogram_is_written(reference):
 def test_reader_round_trip_against_a_direct_render(reference, small_cts):
     from sim.ct_io import load_ct
     from sim.geometry import pose_from_params, project_points
-    from sim.render import DRRRenderer, RenderSettings
+    from sim.drr import DRRRenderer, RenderSettings
 
     cfg, out, manifest = reference
     with ds.open_dataset(out) as data:
@@ -516,7 +516,7 @@ def test_view_check_matches_the_renderer(small_cts):
     from sim.campaign.runner import ct_box_from_header, visible_poses
     from sim.ct_io import load_ct
     from sim.geometry import pose_from_params
-    from sim.render import DRRRenderer, RenderSettings
+    from sim.drr import DRRRenderer, RenderSettings
 
     from sim.phantom import make_pelvis_phantom
 

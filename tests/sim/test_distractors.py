@@ -245,7 +245,7 @@ def test_line_and_density_attenuation_of_the_chords():
 
 def test_renderers_with_tools_add_them_and_without_tools_are_unchanged():
     from sim.physics.imaging import PhysicsSettings, XRayImager
-    from sim.render import DRRRenderer, RenderSettings
+    from sim.drr import DRRRenderer, RenderSettings
     from sim.volume import CTVolume
 
     hu = np.zeros((12, 12, 12), np.float32)

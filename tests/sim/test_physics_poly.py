@@ -10,7 +10,8 @@ import xraylib as xr
 from sim.materials import TISSUE_DECOMPOSITION, MaterialError, mass_attenuation, mu_linear
 from sim.physics import PhysicsError
 from sim.physics.poly import Detector, Polychromatic, compton_mean_energy_fraction
-from sim.physics.spectrum import Spectrum, fine_spectrum, parse_filters, tube_spectrum
+from sim.physics.filters import parse_filters
+from sim.physics.spectrum import Spectrum, fine_spectrum, tube_spectrum
 from tests.sim.test_render import box_chords, rays_lps
 
 EXPOSURE = dict(mas=1.0, sdd_mm=1020.0, pixel_area_mm2=0.194**2)
@@ -26,7 +27,7 @@ def test_monochromatic_signal_is_beer_lambert_with_xraylib_on_a_box():
     equals exp(-mu chord) with mu from xraylib called here, within 0.5 % (the chord of the
     voxelised box is exact for rays through faces away from edges; air adds < 0.01 %)."""
     from sim.geometry import pose_from_params
-    from sim.render import DRRRenderer, RenderSettings
+    from sim.drr import DRRRenderer, RenderSettings
     from sim.volume import CTVolume
 
     hu = np.full((40, 30, 24), -1000.0, np.float32)
@@ -170,7 +171,7 @@ def test_imager_log_image_tracks_the_line_integral_and_noise_is_reproducible():
     energy is near 60 keV), and noise is reproducible for a seed and differs between seeds."""
     from sim.phantom import make_pelvis_phantom
     from sim.physics.imaging import PhysicsSettings, XRayImager
-    from sim.render import DRRRenderer, RenderSettings
+    from sim.drr import DRRRenderer, RenderSettings
 
     vol = make_pelvis_phantom(0, spacing_mm=4.0)
     imager = XRayImager(vol, PhysicsSettings(noise=False), size=(32, 32))

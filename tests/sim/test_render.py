@@ -11,7 +11,7 @@ import pytest
 
 from sim.geometry import pose_from_params, project_points
 from sim.materials import MU_WATER_60KEV_PER_MM, MaterialDecomposition
-from sim.render import DRRRenderer, RenderError, RenderSettings
+from sim.drr import DRRRenderer, RenderError, RenderSettings
 from sim.volume import CTVolume
 
 MU = MU_WATER_60KEV_PER_MM
@@ -452,7 +452,7 @@ def test_render_function_is_the_renderer_at_one_pose(box):
 
 
 def test_step_fraction_has_a_lower_bound():
-    from sim.render import STEP_FRACTION
+    from sim.drr import STEP_FRACTION
 
     assert RenderSettings(step_fraction=STEP_FRACTION.lo).step_fraction == 0.05
     for bad in (0.049, 1e-9, 0.0, 1.5, float("nan")):
@@ -464,7 +464,7 @@ def test_check_in_view_agrees_with_dense_ray_box_chords(box):
     """The view check (a 33 x 33 ray grid and the box corners) against 161 x 161 analytic rays
     spanning the detector: a pose whose rays all miss the CT's box is refused; one whose rays hit
     it for more than 1 % is accepted (in between, a sliver, either verdict is right)."""
-    from sim.render import check_in_view
+    from sim.drr import check_in_view
 
     vol, *_ = box
     r = DRRRenderer(vol, RenderSettings(size=(16, 16)), center_lps=[0, 0, 0])

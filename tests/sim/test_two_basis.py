@@ -36,7 +36,7 @@ def _pelvis_views(pelvis_ct_path, n=6):
     from sim.anatomy import anatomy_center
     from sim.ct_io import load_ct_spec
     from sim.geometry import pose_from_params
-    from sim.render import DRRRenderer, RenderSettings
+    from sim.drr import DRRRenderer, RenderSettings
     from sim.scene import load_scene
 
     v = load_ct_spec(str(pelvis_ct_path))
