@@ -40,3 +40,105 @@ def test_the_scan_sees_imports_inside_functions(tmp_path):
     f = tmp_path / "m.py"
     f.write_text("def f():\n    from register.cli import main\n    import learn.model\n")
     assert [n for _, n in _imports(f)] == ["register.cli", "learn.model"]
+
+
+# --------------------------------------------------------------------------------------------
+# No import cycle: the module graph of each package, imports inside functions included
+# --------------------------------------------------------------------------------------------
+
+PACKAGES = ("sim", "learn", "register")
+
+
+def _module_name(root: Path, path: Path) -> str:
+    parts = list(path.relative_to(root).with_suffix("").parts)
+    return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
+
+
+def import_graph(root: Path, packages=PACKAGES) -> dict[str, set[str]]:
+    """``module -> the modules it imports`` over every ``.py`` file of ``packages`` under ``root``.
+
+    Every import statement counts, at module level or inside a function: ``import a.b.c`` names
+    the longest of ``a.b.c``, ``a.b``, ``a`` that is a module of the packages; ``from a.b import
+    c`` names ``a.b.c`` when that is a module (a submodule imported by name), else ``a.b``;
+    relative imports are resolved. Imports of other packages and of a module itself are left out.
+    """
+    paths = {_module_name(root, p): p for pkg in packages for p in sorted((root / pkg).rglob("*.py"))}
+
+    def known(name: str) -> str | None:
+        while name and name not in paths:
+            name = name.rpartition(".")[0]
+        return name or None
+
+    graph = {}
+    for mod, path in paths.items():
+        package = mod.split(".") if path.name == "__init__.py" else mod.split(".")[:-1]
+        out = set()
+        for node in ast.walk(ast.parse(path.read_text(), filename=str(path))):
+            if isinstance(node, ast.Import):
+                out.update(known(a.name) for a in node.names)
+            elif isinstance(node, ast.ImportFrom):
+                base = node.module or ""
+                if node.level:
+                    base = ".".join(package[:len(package) - node.level + 1] + ([node.module] if node.module else []))
+                out.update(f"{base}.{a.name}" if f"{base}.{a.name}" in paths else known(base) for a in node.names)
+        graph[mod] = out - {None, mod}
+    return graph
+
+
+def cycles(graph: dict[str, set[str]]) -> list[list[str]]:
+    """One shortest cycle through each module that lies on a cycle, as ``[m, ..., m]``, deduplicated
+    (the strongly connected components' members, each with a path back to itself)."""
+    found, seen = [], set()
+    for start in sorted(graph):
+        parent, frontier = {start: None}, [start]
+        path = None
+        while frontier and path is None:  # breadth first: the shortest way back to start
+            nxt = []
+            for v in frontier:
+                for w in sorted(graph.get(v, ())):
+                    if w == start:
+                        chain = []
+                        while v is not None:
+                            chain.append(v)
+                            v = parent[v]
+                        path = [*reversed(chain), start]
+                        break
+                    if w not in parent:
+                        parent[w] = v
+                        nxt.append(w)
+                if path is not None:
+                    break
+            frontier = nxt
+        if path is not None:
+            i = path.index(min(path[:-1]))  # one spelling per cycle: start at its smallest module
+            key = tuple(path[i:-1] + path[:i])
+            if key not in seen:
+                seen.add(key)
+                found.append([*key, key[0]])
+    return found
+
+
+@pytest.mark.parametrize("package", PACKAGES)
+def test_no_import_cycle(package):
+    graph = import_graph(ROOT)
+    assert any(m.startswith(package + ".") for m in graph), f"no modules found under {package}/"
+    mine = [c for c in cycles(graph) if c[0].split(".")[0] == package]
+    assert not mine, (f"import cycles in {package} (imports inside functions count: move the shared concept "
+                      f"down into a module both import):\n" + "\n".join(" -> ".join(c) for c in mine))
+
+
+def test_the_graph_sees_every_kind_of_import_and_names_each_cycle(tmp_path):
+    pkg = tmp_path / "sim"
+    (pkg / "sub").mkdir(parents=True)
+    (pkg / "__init__.py").write_text("")
+    (pkg / "sub" / "__init__.py").write_text("")
+    (pkg / "a.py").write_text("import sim.b\n")
+    (pkg / "b.py").write_text("def f():\n    from sim.sub import c\n")  # inside a function; a submodule
+    (pkg / "sub" / "c.py").write_text("from .. import a\nfrom sim.sub.d import X\n")  # relative
+    (pkg / "sub" / "d.py").write_text("import os\nX = 1\n")
+    (pkg / "e.py").write_text("import sim.f\n")
+    (pkg / "f.py").write_text("from sim import e\n")
+    graph = import_graph(tmp_path, ("sim",))
+    assert graph["sim.b"] == {"sim.sub.c"} and graph["sim.sub.c"] == {"sim.a", "sim.sub.d"}
+    assert graph["sim.sub.d"] == set()
+    assert cycles(graph) == [["sim.a", "sim.b", "sim.sub.c", "sim.a"], ["sim.e", "sim.f", "sim.e"]]
