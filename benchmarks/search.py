@@ -166,11 +166,12 @@ def _measure(a, study, target, volume, center):
     seconds, NaN where it did not run), ``skipped`` (whether the grid was skipped; None for a method
     without the search in auto or always), ``search_mode``, ``refused``."""
     from register.api import SEARCH_METHODS, register_xray
-    from register.evaluation.evaluate import EvaluationSettings, bone_points, pose_errors, sample_cases
-    from register.evaluation.study import XRayFrames, frame_refusals
+    from register.evaluation.errors import bone_points, pose_errors
+    from register.evaluation.evaluate import EvaluationSettings, sample_cases
+    from register.evaluation.study import frame_refusals, frame_seed, study_frames
     from sim.geometry import pose_from_params
 
-    frames = XRayFrames(study, target, volume, center)
+    frames = study_frames(study, target, volume, center)
     sod = frames.imager.geometry.sod_mm
     poses, _ = sample_cases(EvaluationSettings(cases=a.cases, seed=study.seed, size=study.size, start="ap"))
     points = bone_points(volume, 2000, 0)
@@ -189,7 +190,7 @@ def _measure(a, study, target, volume, center):
         T_true = pose_from_params(params, sod)
         path = folder / f"case_{i:03d}.dcm"
         if not path.exists():
-            frames.write(path, T_true, i)
+            frames.simulate(path, T_true, frame_seed(study, i))
         refused_frame = False
         for name, (key, kw) in methods.items():
             t0 = time.perf_counter()

@@ -19,7 +19,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from register.evaluation.xray_study import format_study, run_study, summarize_study  # noqa: E402
+from register.evaluation.xray_study import format_xray_study, run_xray_study, summarize_xray_study  # noqa: E402
 from sim.atomic import write_json  # noqa: E402
 
 
@@ -36,11 +36,11 @@ def main() -> int:
         print(f"xray_input: CT {a.ct} not found (see ../shared/data/README.md)", file=sys.stderr)
         return 2
     t0 = time.perf_counter()
-    rows = run_study(a.ct, a.out, cases=a.cases, size=a.size, seed=a.seed, scatter_photons=a.scatter_photons,
+    rows = run_xray_study(a.ct, a.out, cases=a.cases, size=a.size, seed=a.seed, scatter_photons=a.scatter_photons,
                      progress=lambda s: print(s, file=sys.stderr, flush=True))
-    summary = summarize_study(rows)
+    summary = summarize_xray_study(rows)
     write_json(Path(a.out) / "rows.json", {"rows": rows, "summary": summary})
-    print(format_study(summary))
+    print(format_xray_study(summary))
     print(f"\n{a.cases} cases in {time.perf_counter() - t0:.0f} s")
     return 0
 

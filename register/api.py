@@ -74,8 +74,8 @@ OUTPUT_FILES = ("result.json", "overlay.png", "checkerboard.png", "convergence.p
 
 def parse_init(init) -> np.ndarray:
     """The start pose ``(6,)`` (deg, mm) from ``"ap"`` (zeros), six numbers, or their strings
-    (``--init``). Raises :class:`register.engines.cmaes.RegistrationError`."""
-    from register.engines.cmaes import RegistrationError
+    (``--init``). Raises :class:`register.engines.result.RegistrationError`."""
+    from register.engines.result import RegistrationError
 
     values = [init] if isinstance(init, str) else list(np.ravel(np.asarray(init, dtype=object)))
     if len(values) == 1 and str(values[0]) == "ap":
@@ -99,7 +99,7 @@ class XRayRegistration:
             parameters (``docs/conventions.md``).
         pose: ``(4, 4)`` the pose T (``X_cam = R (X_lps - c) + t``, c = ``center_lps``).
         similarity: the final gradient NCC at the optimiser's size (1 = identical edges).
-        result: the method's :class:`register.engines.cmaes.RegistrationResult` (projection, renders,
+        result: the method's :class:`register.engines.result.RegistrationResult` (projection, renders,
             stage times, history, trajectory).
         prepared: the :class:`register.prepare.PreparedXRay` (geometry and its sources, field,
             intensity decision and its check, images at full and at the optimiser's size).
@@ -142,7 +142,7 @@ class XRayRegistration:
 
     @property
     def params(self) -> dict[str, float]:
-        from register.engines.cmaes import PARAM_NAMES
+        from sim.campaign.poses import PARAM_NAMES
 
         return dict(zip(PARAM_NAMES, map(float, self.result.params)))
 
@@ -254,7 +254,7 @@ class XRayRegistration:
 def _moving_physics(physics):
     """The :class:`PhysicsSettings` of the moving images: a level name gets the defaults of a
     registration (noise-free, :data:`REGISTER_SCATTER_PHOTONS`)."""
-    from register.engines.cmaes import RegistrationError
+    from register.engines.result import RegistrationError
     from sim.physics.imaging import PhysicsSettings
     from sim.physics.settings import LEVELS
 
@@ -321,7 +321,7 @@ def register_xray(ct, xray, *, method: str = "contextual+cmaes", model=None, ini
     the work where the input allows it (everything but the image's contents).
     """
     from sim import load_ct
-    from register.engines.cmaes import RegistrationError
+    from register.engines.result import RegistrationError
     from register.engines.methods import build_method, check_method, load_predictor, needs_model
     from register.prepare import confirm_polarity, fit_box, prepare_xray
     from register.preprocess import DEFAULT_STEPS, Pipeline
@@ -398,7 +398,7 @@ def register_xray(ct, xray, *, method: str = "contextual+cmaes", model=None, ini
                           scene=scene, model=predictor, physics=moving, label_materials=label_materials,
                           restarts=restarts if method == "cmaes" else 0, keep_drrs=True, note=remark,
                           search=grid)
-    from register.engines.contextual import network_view
+    from register.xray.network_view import network_view
 
     view = network_view(predictor, prepared) if predictor is not None else None  # a detector-framed network
     result = engine.register(prepared.image, x0, mask=prepared.mask, toned=prepared.toned, network_view=view)

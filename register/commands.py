@@ -282,10 +282,9 @@ class StudyCommand:
 
 def run_study(cmd: StudyCommand) -> list[Path]:
     """Train every variant and evaluate it on every target domain (resumable: register/evaluation/study.py)."""
-    from register.evaluation.study import STUDY_FILES, load_study
-    from register.evaluation.study import run_study as run
+    from register.evaluation.study import STUDY_FILES, load_study, run_domain_study
 
     study = load_study(cmd.study)
-    run(study, cmd.out, only=cmd.only, targets=cmd.targets)
+    run_domain_study(study, cmd.out, only=cmd.only, targets=cmd.targets)
     return [Path(cmd.out) / name for name in STUDY_FILES]
 

@@ -41,11 +41,12 @@ def main(argv=None) -> int:
         print(f"field_probe: no CT at {args.ct} (the shared data is absent)", file=sys.stderr)
         return 2
 
-    from register.evaluate import EvaluationSettings, bone_points, pose_errors, sample_cases
-    from register.methods import build_method, load_predictor
+    from register.evaluation.errors import bone_points, pose_errors
+    from register.evaluation.evaluate import EvaluationSettings, sample_cases
+    from register.engines.methods import build_method, load_predictor
     from register.prepare import prepare_xray
-    from register.study import XRayFrames, load_study
-    from register.xray_io import load_xray
+    from register.evaluation.study import frame_seed, load_study, study_frames
+    from register.xray.io import load_xray
     from sim import load_ct
     from sim.anatomy import anatomy_center
     from sim.geometry import pose_from_params
@@ -60,7 +61,7 @@ def main(argv=None) -> int:
     volume = load_ct(args.ct)
     center = anatomy_center(volume)
     poses, _ = sample_cases(EvaluationSettings(cases=args.cases, seed=0, size=(128, 128), start="ap"))
-    frames = XRayFrames(study, target, volume, center)  # the study's frames (its seed, 128 px)
+    frames = study_frames(study, target, volume, center)  # the study's frames (its seed, 128 px)
     imager = frames.imager
     folder = Path(args.frames) / args.target
     folder.mkdir(parents=True, exist_ok=True)
@@ -70,7 +71,7 @@ def main(argv=None) -> int:
         T_true = pose_from_params(params, imager.geometry.sod_mm)
         path = folder / f"case_{i:03d}.dcm"
         if not path.exists():
-            frames.write(path, T_true, i)
+            frames.simulate(path, T_true, frame_seed(study, i))
         prep = prepare_xray(load_xray(path), volume=volume, center_lps=center, init_params=np.zeros(6),
                             size=(128, 128))
         g = prep.geometry

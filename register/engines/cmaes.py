@@ -16,17 +16,13 @@ inside a box around the start. Everything is seeded.
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 
+from register.engines.metrics import downsample, get_metric
+from register.engines.result import RegistrationError, RegistrationResult
 from sim.errors import InputError
-
-PARAM_NAMES = ("phi", "theta", "psi", "tx", "ty", "tz")
-
-
-class RegistrationError(InputError):
-    """Bad registration settings or inputs; the message names the setting."""
 
 
 @dataclass(frozen=True)
@@ -93,8 +89,6 @@ class CMAESSettings:
             v = getattr(self, name)
             if len(v) not in (1, len(self.levels)):
                 raise RegistrationError(f"{name} needs 1 or {len(self.levels)} entries (one per level), got {v}")
-        from register.engines.metrics import get_metric
-
         for m in self.metrics:
             try:
                 get_metric(m)
@@ -104,49 +98,6 @@ class CMAESSettings:
     def per_level(self, name: str, level: int):
         v = getattr(self, name)
         return v[0] if len(v) == 1 else v[level]
-
-
-@dataclass
-class RegistrationResult:
-    """A registration's outcome.
-
-    Attributes:
-        params: ``(6,)`` pose parameters (deg, mm); pose: ``(4, 4)``; projection: ``(3, 4)``
-            LPS mm -> pixels of the finest geometry.
-        similarity: the final similarity at the finest level.
-        renders: DRRs rendered in all.
-        stage_seconds: wall time per stage (``"level0"``, ``"level1"``, ..., ``"polish"``).
-        history: one row per generation / polish step: (stage, best similarity so far, params).
-        trajectory: for the contextual iteration's K predictions, ``{"params": (K + 1, 6) deg/mm,
-            the pose before each prediction and then the pose it ended at; "g": (K, 6) rad/mm, the
-            predicted gradients; "drrs": (K, H, W), each prediction's DRR, when kept}``; None for
-            CMA-ES alone.
-        search: the global search's record (:meth:`register.engines.search.GlobalSearch.register`,
-            contextual+cmaes with the search): the network's pose's local similarity, whether the
-            grid ran, where the refinement started; None without a search.
-    """
-
-    params: np.ndarray
-    pose: np.ndarray
-    projection: np.ndarray
-    similarity: float
-    renders: int
-    stage_seconds: dict[str, float]
-    history: list[tuple[str, float, list[float]]] = field(default_factory=list)
-    trajectory: dict | None = None
-    search: dict | None = None
-
-    def to_dict(self) -> dict:
-        return {
-            **({} if self.search is None else {"search": self.search}),
-            "params": dict(zip(PARAM_NAMES, map(float, self.params))),
-            "params_units": "phi theta psi in degrees, tx ty tz in mm (docs/conventions.md)",
-            "pose_4x4": self.pose.tolist(),
-            "projection_3x4_lps_to_pixels": self.projection.tolist(),
-            "similarity": self.similarity,
-            "renders": self.renders,
-            "stage_seconds": self.stage_seconds,
-        }
 
 
 def along_view_ray(params: np.ndarray, depths_mm: np.ndarray, sod_mm: float) -> np.ndarray:
@@ -334,7 +285,6 @@ class CMAESRegistration:
         """The polish alone (Powell at full resolution, ``settings.polish_evals``) from ``params``
         ``(6,)`` (deg, mm), inside the box around ``start`` (default ``params``): the result of a
         :meth:`register` run with ``polish=False``, finished. ``stage_seconds`` has ``"polish"``."""
-        from register.engines.metrics import get_metric
         from sim.geometry import pose_from_params
 
         s = self.settings
@@ -388,7 +338,6 @@ class CMAESRegistration:
         ``histories[k]`` search k's rows."""
         import cma
 
-        from register.engines.metrics import downsample, get_metric
 
         s = self.settings
         K = len(x0s)

@@ -6,9 +6,9 @@ evaluate`` and the Python API (:func:`register.api.register_xray`).
 ``contextual``
     The trained pose-update network's iteration (:class:`register.engines.contextual.ContextualRegistration`).
 ``contextual+cmaes``
-    The contextual iteration, then CMA-ES in a narrowed box (:data:`register.engines.contextual.REFINE_SETTINGS`);
+    The contextual iteration, then CMA-ES in a narrowed box (:data:`register.engines.pipeline.REFINE_SETTINGS`);
     with ``search``, the global search (:mod:`register.engines.search`) between the two where the network's
-    pose is lost.
+    pose is lost (:class:`register.engines.pipeline.ContextualPipeline`).
 
 :func:`check_method` validates a method name with its model before any work;
 :func:`build_method` returns a :class:`RegistrationMethod`: anything with ``name`` and
@@ -17,11 +17,15 @@ evaluate`` and the Python API (:func:`register.api.register_xray`).
 
 from __future__ import annotations
 
+from dataclasses import replace
 from typing import Callable, Protocol
 
 import numpy as np
 
-from register.engines.cmaes import RegistrationError, RegistrationResult
+from register.engines.cmaes import CMAESRegistration, CMAESSettings
+from register.engines.contextual import ContextualRegistration, ContextualSettings
+from register.engines.pipeline import REFINE_SETTINGS, ContextualPipeline
+from register.engines.result import RegistrationError, RegistrationResult
 
 __all__ = ["METHOD_NAMES", "RegistrationMethod", "check_method", "load_predictor", "build_method"]
 
@@ -73,8 +77,8 @@ class _Method:
         """``toned``: the X-ray's toned version (:attr:`register.prepare.PreparedXRay.toned`), used by
         the contextual methods (their search's grid, a network trained on toned targets); CMA-ES
         alone registers ``fixed``. ``network_view``: what a detector-framed network sees
-        (:func:`register.engines.contextual.network_view`), contextual methods only."""
-        if hasattr(self.engine, "search"):
+        (:func:`register.xray.network_view.network_view`), contextual methods only."""
+        if not isinstance(self.engine, CMAESRegistration):
             return self.engine.register(fixed, init_params, mask=mask, toned=toned, network_view=network_view)
         return self.engine.register(fixed, init_params, mask=mask)
 
@@ -96,14 +100,12 @@ def build_method(method: str, volume, *, center_lps, size: tuple[int, int], geom
             label_materials: ``{label: material}`` overrides for poly / full.
         restarts: CMA-ES restarts of ``cmaes`` (:class:`register.engines.cmaes.CMAESSettings`).
         search: :class:`register.engines.search.GlobalSearchSettings` of ``contextual+cmaes``'s global
-            search (:class:`register.engines.contextual.ContextualRegistration`), or a
+            search (:class:`register.engines.pipeline.ContextualPipeline`), or a
             :class:`register.engines.search.GlobalSearch` built for these images (``geometry``, ``physics``);
             None = none.
         keep_drrs: keep the contextual iteration's DRRs in the result's trajectory (for figures).
         note: called with a sentence when the network's training physics differ from ``physics``.
     """
-    from register.engines.cmaes import CMAESRegistration, CMAESSettings
-
     check_method(method, model)
     if search is not None and method != "contextual+cmaes":
         raise RegistrationError(f"the global search is part of contextual+cmaes; this method is {method}")
@@ -112,16 +114,16 @@ def build_method(method: str, volume, *, center_lps, size: tuple[int, int], geom
         engine = CMAESRegistration(volume, CMAESSettings(size=size, restarts=restarts), scene=scene, geometry=geometry,
                                    center_lps=center_lps, physics=physics, label_materials=label_materials)
         return _Method(method, engine)
-    from dataclasses import replace
-
-    from register.engines.contextual import REFINE_SETTINGS, ContextualRegistration, ContextualSettings
-
     predictor = load_predictor(model)
     mismatch = getattr(predictor, "physics_mismatch", lambda _: None)(physics)
     if mismatch and note is not None:
         note(mismatch)
-    refine = replace(REFINE_SETTINGS, size=size) if method == "contextual+cmaes" else None
-    engine = ContextualRegistration(volume, predictor, ContextualSettings(keep_drrs=keep_drrs), size=size,
-                                    scene=scene, geometry=geometry, center_lps=center_lps, refine=refine,
-                                    search=search, physics=physics, label_materials=label_materials)
+    settings = ContextualSettings(keep_drrs=keep_drrs)
+    if method == "contextual+cmaes":
+        engine = ContextualPipeline(volume, predictor, settings, refine=replace(REFINE_SETTINGS, size=size), size=size,
+                                    scene=scene, geometry=geometry, center_lps=center_lps, search=search,
+                                    physics=physics, label_materials=label_materials)
+    else:
+        engine = ContextualRegistration(volume, predictor, settings, size=size, scene=scene, geometry=geometry,
+                                        center_lps=center_lps, physics=physics, label_materials=label_materials)
     return _Method(method, engine)

@@ -26,7 +26,7 @@ Use (``volume`` a CT, ``xray`` ``(128, 128)`` prepared bone-bright, ``field`` it
 
     search = GlobalSearch(volume, GlobalSearchSettings(), size=(128, 128))
     start = search.register(xray, np.zeros(6), mask=field).params   # (6,) deg, mm
-    # then a local registration from ``start``: register.engines.contextual.REFINE_SETTINGS
+    # then a local registration from ``start``: register.engines.pipeline.REFINE_SETTINGS
 """
 
 from __future__ import annotations
@@ -36,7 +36,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from register.engines.cmaes import CMAESRegistration, CMAESSettings, RegistrationError, RegistrationResult
+from register.engines.cmaes import CMAESRegistration, CMAESSettings
+from register.engines.result import RegistrationError, RegistrationResult
 from sim.errors import InputError
 
 __all__ = ["GlobalSearchSettings", "GlobalSearch", "masked_ncc_shifts", "describe_search"]
@@ -274,7 +275,7 @@ class GlobalSearch:
         rounding) and, where ``physics`` is given, its local search's moving images are of that
         physics (None: line DRRs), so that a caller may hand it on
         (:func:`register.prepare.confirm_polarity`, which uses the grid's line DRRs alone;
-        :class:`register.engines.contextual.ContextualRegistration`)."""
+        :class:`register.engines.pipeline.ContextualPipeline`)."""
         g = self.local.geometry
         same = (g.height, g.width) == (geometry.height, geometry.width) and np.allclose(
             [g.sdd_mm, g.sod_mm, g.pixel_spacing_mm, *g.principal_point],
@@ -457,7 +458,7 @@ class GlobalSearch:
         skipped), "finalists": the best distinct local results, best first (the first is the
         result), at most ``settings.finalists`` when the grid ran and 1 otherwise: ``[{"params":
         (6,) deg/mm, "similarity", "start": "given" or "grid"}, ...]``}``; the refinement starts
-        from each (:class:`register.engines.contextual.ContextualRegistration`)."""
+        from each (:class:`register.engines.pipeline.ContextualPipeline`)."""
         s = self.settings
         fixed = np.asarray(fixed, np.float64)
         if mask is not None:
@@ -561,7 +562,7 @@ class GlobalSearch:
 def describe_search(record: dict) -> str:
     """One line for a user from a search record (:meth:`GlobalSearch.register`, with the network's
     pose as the given one; with ``"refined"`` and ``"chosen"`` when the refinement ran from its
-    finalists, :class:`register.engines.contextual.ContextualRegistration`)."""
+    finalists, :class:`register.engines.pipeline.ContextualPipeline`)."""
     net = record["given_similarity"]
     head = "global search: " + ("no network pose" if net is None else f"the network's pose scored {net:.2f}")
     if not record["grid_poses"]:

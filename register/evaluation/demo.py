@@ -142,8 +142,8 @@ def run_demo(cmd: DemoCommand) -> list[Path]:
     """Simulate, register, write and report (module doc)."""
     from learn.models import resolve_model
     from register.api import OUTPUT_FILES, register_xray
-    from register.evaluation.evaluate import bone_points, pose_errors
-    from register.xray.io import write_xray_dicom
+    from register.evaluation.errors import bone_points, pose_errors
+    from register.evaluation.frames import FrameSimulator
     from sim.anatomy import anatomy_center
     from sim.atomic import write_json
     from sim.ct_io import load_ct_spec
@@ -171,15 +171,11 @@ def run_demo(cmd: DemoCommand) -> list[Path]:
     T_true = pose_from_params(np.asarray(cmd.pose, float), g.sod_mm)
     check_in_view(volume, g, T_true, center, what=f"--pose {' '.join(f'{v:g}' for v in cmd.pose)}")
     imager = XRayImager(volume, physics, size=tuple(cmd.size), center_lps=center)
-    raw = imager.render(T_true, seed=cmd.seed)["raw"][0].astype(np.float64)
     collimator = Collimator(shape="circle", radius=0.46, center=(0.53, 0.47), transmission=0.02)
     chain = DisplayChain(log=True, polarity="bone-dark", gamma=0.8, unsharp_sigma_px=4.0, unsharp_amount=0.6,
                          bits=12, shutter="black")
-    field_mask = collimator.mask(*raw.shape)
-    pixels = chain.apply(collimator.apply(raw), imager.flat, field_mask)
     out.mkdir(parents=True, exist_ok=True)
-    dcm = write_xray_dicom(out / "xray.dcm", pixels, pixel_spacing_mm=g.pixel_spacing_mm, sdd_mm=g.sdd_mm,
-                           sod_mm=g.sod_mm, bits_stored=12, modality="RF")
+    dcm = FrameSimulator(imager, chain, collimator, geometry=g).simulate(out / "xray.dcm", T_true, cmd.seed)
     stages.done(f"{dcm}")
 
     stages.start("register", "registering it from AP (contextual+cmaes, shipped model), as ctxreg register does")

@@ -62,18 +62,39 @@ or targets.
 
 from __future__ import annotations
 
+import hashlib
 import json
+import os
 import time
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any, Callable
 
 import numpy as np
 
-from sim.atomic import sha256_file
+import register.api as api
+from register.engines.methods import METHOD_NAMES, build_method, needs_model
+from register.evaluation.errors import bone_points, pose_errors
+from register.evaluation.evaluate import START_MODES, EvaluationSettings, evaluate, sample_cases, summarize
+from register.evaluation.frames import FrameSimulator
+from register.preprocess import PreprocessError
+from register.xray.field import FieldError
+from register.xray.intensity import IntensityError
+from sim.anatomy import anatomy_center
+from sim.atomic import (atomic_path, read_toml, save_figure, sha256_file, toml_text, write_csv, write_json,
+                        write_toml)
+from sim.cliargs import IMAGE_SIDE_PX
+from sim.ct_io import load_ct_spec
 from sim.errors import InputError
+from sim.geometry import pose_from_params
+from sim.outputs import check_output_dir
+from sim.physics.display import Collimator, DisplayChain
+from sim.physics.imaging import LogImageRenderer, PhysicsSettings, XRayImager
+from sim.progress import Progress
+from sim.render import DRRRenderer, RenderSettings
+from sim.scene import SceneError, load_scene
 
-__all__ = ["StudyError", "Variant", "Target", "Study", "load_study", "run_study", "format_study_table",
+__all__ = ["StudyError", "Variant", "Target", "Study", "load_study", "run_domain_study", "format_study_table",
            "STUDY_FILES"]
 
 #: Files ``ctxreg study`` writes at the top of its output folder.
@@ -159,13 +180,7 @@ def _int(table: dict, key: str, default: int, lo: int, hi: int, where: str) -> i
 def load_study(path: str | Path) -> Study:
     """Read and check a study file; relative paths in it are relative to the file."""
     from learn.train import TrainConfig
-    from register.evaluation.evaluate import START_MODES
-    from register.engines.methods import METHOD_NAMES, needs_model
-    from sim.cliargs import IMAGE_SIDE_PX
-    from sim.physics.display import Collimator, DisplayChain
-    from sim.physics.imaging import PhysicsSettings
 
-    from sim.atomic import read_toml
 
     path = Path(path)
     data = read_toml(path, StudyError, "study file")
@@ -273,11 +288,10 @@ def load_study(path: str | Path) -> Study:
             _checked(cls.from_dict, value, f"{where}.{key}", unpack=False)
         cases = _int(row, "cases", 0, 1, 10000, where) if "cases" in row else None
         targets.append(Target(name, kind, physics, coll, disp, cases))
-    from register.api import REGISTER_MIN_SIDE_PX
 
-    if any(t.kind == "xray" for t in targets) and min(study_kw["size"]) < REGISTER_MIN_SIDE_PX:
+    if any(t.kind == "xray" for t in targets) and min(study_kw["size"]) < api.REGISTER_MIN_SIDE_PX:
         raise StudyError(f"{path}: study.size: {list(study_kw['size'])}: kind 'xray' targets are registered as "
-                         f"ctxreg register does, which needs at least {REGISTER_MIN_SIDE_PX} px per side")
+                         f"ctxreg register does, which needs at least {api.REGISTER_MIN_SIDE_PX} px per side")
     for what, items in (("variant", variants), ("target", targets)):
         names = [x.name for x in items]
         if len(set(names)) < len(names):
@@ -288,7 +302,6 @@ def load_study(path: str | Path) -> Study:
 def _check_aspect(size, where: str, scene: str = "cios_fusion") -> None:
     """Refuse a registration size that does not keep the scene detector's aspect (square pixels):
     every target and DRR of the study is rendered at it, so this is refused before any training."""
-    from sim.scene import SceneError, load_scene
 
     try:
         load_scene(scene).geometry_at(int(size[0]), int(size[1]))
@@ -320,7 +333,6 @@ def _changes(old: dict, new: dict) -> list[str]:
 
 def _check_record(out: Path, study: Study) -> None:
     """Refuse to continue a study whose settings changed (added variants / targets are fine)."""
-    from sim.atomic import write_json
 
     record = out / "study.json"
     new = study.to_dict()
@@ -342,7 +354,6 @@ def _check_record(out: Path, study: Study) -> None:
 def variant_config(variant: Variant, folder: Path) -> Path:
     """Write (if changed) and return the ``train.toml`` of a variant trained in ``folder``: the
     file ``ctxreg train`` runs alone (for a variant trained in another process)."""
-    from sim.atomic import toml_text, write_toml
 
     folder.mkdir(parents=True, exist_ok=True)
     config = folder / "train.toml"
@@ -361,7 +372,6 @@ REPLACED = "replaced"
 def _fingerprint(value: str) -> str:
     """What identifies an input file's content: a file's sha256; a campaign folder's
     ``manifest.json``'s (it holds every shard's sha256); another folder's file names and sizes."""
-    import hashlib
 
     path = Path(value)
     if path.is_file():
@@ -380,7 +390,6 @@ def _plain(obj: Any) -> Any:
 
 
 def _digest(settings: dict) -> str:
-    import hashlib
 
     return hashlib.sha256(json.dumps(settings, sort_keys=True, default=str).encode()).hexdigest()
 
@@ -443,7 +452,6 @@ def _read_json(path: Path, what: str) -> dict:
 def _replace(out: Path, folder: Path, kind: str, old_digest: str | None) -> Path:
     """Move ``folder`` (a training or an evaluation made with other settings) to
     ``out/replaced/<kind>/<relative path>-<old digest>`` and return where it went."""
-    import os
 
     rel = folder.relative_to(out / kind)
     dest = out / REPLACED / kind / f"{rel}-{(old_digest or 'unrecorded')[:12]}"
@@ -463,7 +471,6 @@ def _train_variant(variant: Variant, folder: Path, log, out: Path | None = None)
     keys named. A ``model`` variant is its model."""
     from learn.checkpoint import CheckpointError, load_checkpoint
     from learn.train import load_train_config, train
-    from sim.atomic import write_json
 
     if variant.model is not None:
         log(f"variant {variant.name}: the model {variant.model}, as it is")
@@ -547,12 +554,7 @@ def _finished_evaluation(path: Path, study: Study, settings: dict) -> tuple[dict
 
 def _evaluate_drr(study: Study, target: Target, volume, center, predictor, folder: Path, log,
                   stamp: dict | None = None) -> dict:
-    from dataclasses import asdict
 
-    from register.evaluation.evaluate import EvaluationSettings, evaluate
-    from register.engines.methods import build_method
-    from sim.physics.imaging import LogImageRenderer, PhysicsSettings
-    from sim.render import DRRRenderer, RenderSettings
 
     settings = EvaluationSettings(cases=study.cases_of(target), seed=study.seed, size=study.size, start=study.start)
     physics = PhysicsSettings(**{**target.physics, "seed": study.seed})
@@ -570,82 +572,59 @@ def _evaluate_drr(study: Study, target: Target, volume, center, predictor, folde
 
 
 def _moving(study: Study):
-    from register.commands import REGISTER_SCATTER_PHOTONS
-    from sim.physics.imaging import PhysicsSettings
 
     return None if study.moving_physics == "line" else PhysicsSettings(
-        level=study.moving_physics, noise=False, scatter_photons=REGISTER_SCATTER_PHOTONS)
+        level=study.moving_physics, noise=False, scatter_photons=api.REGISTER_SCATTER_PHOTONS)
 
 
 def frame_refusals() -> tuple[type, ...]:
     """The errors a frame's own content can make registration raise (no valid pixel left, no
     intensity decision): a failed case of a study, not a stop. Anything else (a bad setting, a bug)
     stops the study as it should."""
-    from register.xray.field import FieldError
-    from register.xray.intensity import IntensityError
-    from register.preprocess import PreprocessError
 
     return FieldError, PreprocessError, IntensityError
 
 
-class XRayFrames:
-    """The realistic frames of a study's ``xray`` target: full physics with noise (the target's
-    ``physics``), its collimator and display chain, written as DICOM (RF, the chain's bits).
+def study_frames(study: Study, target: Target, volume, center) -> FrameSimulator:
+    """The realistic frames of a study's ``xray`` target (:class:`register.evaluation.frames.FrameSimulator`):
+    full physics with noise (the target's ``physics``, the study's seed), its collimator and display
+    chain (default: log, bone dark, 12 bits, black shutter); frame ``case`` is drawn from
+    :func:`frame_seed`."""
+    physics = PhysicsSettings(**{**target.physics, "noise": True, "seed": study.seed})
+    imager = XRayImager(volume, physics, size=study.size, center_lps=center)
+    chain = DisplayChain.from_dict(target.display or {"log": True, "polarity": "bone-dark", "bits": 12,
+                                                       "shutter": "black"})
+    collimator = None if target.collimator is None else Collimator.from_dict(target.collimator)
+    return FrameSimulator(imager, chain, collimator)
 
-    ``write(path, T_true (4, 4), case) -> path``: frame ``case`` at the pose ``T_true``, its noise
-    and Monte Carlo drawn from the study's seed and the case. ``imager``: the
-    :class:`sim.physics.imaging.XRayImager` (its ``geometry`` is the frame's)."""
 
-    def __init__(self, study: Study, target: Target, volume, center):
-        from sim.physics.display import Collimator, DisplayChain
-        from sim.physics.imaging import PhysicsSettings, XRayImager
-
-        physics = PhysicsSettings(**{**target.physics, "noise": True, "seed": study.seed})
-        self.seed = study.seed
-        self.imager = XRayImager(volume, physics, size=study.size, center_lps=center)
-        self.chain = DisplayChain.from_dict(target.display or {"log": True, "polarity": "bone-dark", "bits": 12,
-                                                               "shutter": "black"})
-        self.collimator = None if target.collimator is None else Collimator.from_dict(target.collimator)
-
-    def write(self, path: Path, T_true: np.ndarray, case: int) -> Path:
-        from register.xray.io import write_xray_dicom
-
-        g = self.imager.geometry
-        raw = self.imager.render(T_true, seed=self.seed * 100003 + case)["raw"][0].astype(np.float64)
-        fld = None if self.collimator is None else self.collimator.mask(*raw.shape)
-        pixels = self.chain.apply(raw if self.collimator is None else self.collimator.apply(raw), self.imager.flat,
-                                  fld)
-        return write_xray_dicom(path, pixels, pixel_spacing_mm=g.pixel_spacing_mm, sdd_mm=g.sdd_mm, sod_mm=g.sod_mm,
-                                bits_stored=min(16, max(8, self.chain.bits)), modality="RF")
+def frame_seed(study: Study, case: int) -> int:
+    """The noise and Monte Carlo seed of frame ``case`` of a study's ``xray`` target."""
+    return study.seed * 100003 + case
 
 
 def _evaluate_xray(study: Study, target: Target, volume, center, predictor, folder: Path, log,
                    stamp: dict | None = None) -> dict:
     """Realistic frames through :func:`register.api.register_xray`, scored like the evaluation."""
-    from register.api import register_xray
-    from register.evaluation.evaluate import EvaluationSettings, bone_points, pose_errors, sample_cases, summarize
 
     FRAME_REFUSALS = frame_refusals()
-    from sim.atomic import write_csv, write_json
-    from sim.geometry import pose_from_params
 
     settings = EvaluationSettings(cases=study.cases_of(target), seed=study.seed, size=study.size, start=study.start)
-    frame = XRayFrames(study, target, volume, center)
+    frame = study_frames(study, target, volume, center)
     g = frame.imager.geometry
     targets, starts = sample_cases(settings)
     points = bone_points(volume, settings.max_points, settings.seed)
     rows = []
     frames = folder / "frames"
-    from sim.progress import Progress
 
     bar = Progress(settings.cases * len(study.methods), 0, f"{target.name}", "registrations", rate_unit="reg/s")
     for i, (target_params, start) in enumerate(zip(targets, starts)):
         T_true = pose_from_params(target_params, g.sod_mm)
-        path = frame.write(frames / f"case_{i:03d}.dcm", T_true, i)
+        path = frame.simulate(frames / f"case_{i:03d}.dcm", T_true, frame_seed(study, i))
         for method in study.methods:
             t0 = time.perf_counter()
             try:
-                res = register_xray(volume, path, method=method, model=predictor, init=start, center=center,
+                res = api.register_xray(volume, path, method=method, model=predictor, init=start, center=center,
                                     size=study.size, physics=_moving(study) or "line")
                 pose, similarity, refused = res.pose, res.similarity, ""
             except FRAME_REFUSALS as e:  # the frame's content refused (e.g. no valid pixel left): a failed case
@@ -666,7 +645,7 @@ def _evaluate_xray(study: Study, target: Target, volume, center, predictor, fold
     return summary
 
 
-def run_study(study: Study, out: str | Path, *, log: Callable[[str], None] = print,
+def run_domain_study(study: Study, out: str | Path, *, log: Callable[[str], None] = print,
               only: tuple[str, ...] | None = None, targets: tuple[str, ...] | None = None) -> dict:
     """Run (or continue) ``study`` into ``out``; returns ``{variant: {target: summary}}``.
 
@@ -675,10 +654,6 @@ def run_study(study: Study, out: str | Path, *, log: Callable[[str], None] = pri
     processes with disjoint ``only`` can share one output folder. ``targets``: the same for target
     domains (the others' finished evaluations are kept, unfinished ones skipped)."""
     from learn.predict import NetworkPredictor
-    from sim.anatomy import anatomy_center
-    from sim.atomic import atomic_path, write_json
-    from sim.ct_io import load_ct_spec
-    from sim.outputs import check_output_dir
 
     names = [v.name for v in study.variants]
     unknown = sorted(set(only or ()) - set(names))
@@ -780,7 +755,6 @@ def _plot(study: Study, results: dict, path: Path) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from sim.atomic import save_figure
 
     fig, axes = plt.subplots(1, len(study.methods), figsize=(4 + 2.5 * len(study.targets), 3.8), squeeze=False)
     width = 0.8 / max(len(study.variants), 1)

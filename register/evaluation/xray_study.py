@@ -1,6 +1,6 @@
 """Registering realistic C-arm frames as a user would: collimated against open, through ``ctxreg register``.
 
-For a CT, :func:`run_study` draws target poses (the evaluation protocol's distribution), renders
+For a CT, :func:`run_xray_study` draws target poses (the evaluation protocol's distribution), renders
 each with full physics (spectrum, seven materials, CsI detector, Monte Carlo scatter, quantum
 noise) at one of several tube, grid and exposure settings (:data:`CONDITIONS`), and makes two
 frames of it that differ only in the collimator:
@@ -12,21 +12,34 @@ frames of it that differ only in the collimator:
 Both go through the same fluoroscopy display chain (log, bone dark, window over the field, a
 gamma curve and edge enhancement of the condition, 12-bit) and are written as 12-bit DICOM with
 geometry tags (``DistanceSourceToDetector``, ``DistanceSourceToPatient``, ``ImagerPixelSpacing``)
-and Modality RF. Each file is registered with ``ctxreg register`` (in this process, default
-preprocessing, default method) from AP and from a local start, and the result is scored against
+and Modality RF. Each file is registered as ``ctxreg register`` does (:func:`register.api.register_xray`,
+default preprocessing, default method, its outputs written) from AP and from a local start, and the result is scored against
 the known pose: rotation and translation error, mTRE over the CT's bone voxels (mm).
 """
 
 from __future__ import annotations
 
-import json
+import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
-__all__ = ["Condition", "CONDITIONS", "run_study", "summarize_study", "format_study"]
+from register.api import OUTPUT_FILES, register_xray
+from register.evaluation.errors import bone_points, pose_errors
+from register.evaluation.evaluate import EvaluationSettings, sample_cases
+from register.evaluation.frames import FrameSimulator
+from sim.anatomy import anatomy_center
+from sim.atomic import jsonable
+from sim.ct_io import load_ct_spec
+from sim.errors import USER_OS_ERRORS, CtxregError
+from sim.geometry import pose_from_params
+from sim.outputs import check_output_dir
+from sim.physics.display import Collimator, DisplayChain
+from sim.physics.imaging import PhysicsSettings, XRayImager
+
+__all__ = ["Condition", "CONDITIONS", "run_xray_study", "summarize_xray_study", "format_xray_study"]
 
 
 @dataclass(frozen=True)
@@ -53,41 +66,48 @@ CONDITIONS = (
 )
 
 
-def _frames(imager, pose, condition: Condition, seed: int, rng) -> tuple[dict, dict]:
-    """The collimated and open 12-bit display frames of one pose, with their collimators."""
-    from sim.physics.display import Collimator, DisplayChain
-
-    out = imager.render(pose, seed=seed)
-    raw = out["raw"][0].astype(np.float64)
-    H, W = raw.shape
+def _frames(imager, pose, condition: Condition, seed: int, rng) -> tuple[FrameSimulator, dict, dict]:
+    """The collimated and open 12-bit display frames of one pose, with their collimators, and the
+    simulator that writes them."""
     chain = DisplayChain(log=True, polarity="bone-dark", window=(1.0, 99.5), gamma=condition.gamma,
                          unsharp_sigma_px=condition.unsharp_sigma_px, unsharp_amount=condition.unsharp_amount,
                          bits=12, shutter="black")
     circle = Collimator(shape="circle", center=tuple(0.5 + rng.uniform(-0.04, 0.04, 2)),
                         radius=float(rng.uniform(0.40, 0.48)), transmission=0.02)
-    field = circle.mask(H, W)
-    collimated = chain.apply(circle.apply(raw), imager.flat, field)
-    open_frame = chain.apply(raw, imager.flat, None)
-    return ({"pixels": collimated, "collimator": circle.to_dict(), "field_mask": field},
+    frames = FrameSimulator(imager, chain, circle)
+    raw = frames.raw(pose, seed)
+    H, W = raw.shape
+    collimated, field = frames.display(raw)
+    open_frame, _ = frames.display(raw, collimated=False)
+    return (frames, {"pixels": collimated, "collimator": circle.to_dict(), "field_mask": field},
             {"pixels": open_frame, "collimator": None, "field_mask": np.ones((H, W), bool)})
 
 
-def run_study(ct: str, out: str | Path, *, cases: int = 10, size: int = 256, seed: int = 0,
-              starts: tuple[str, ...] = ("ap", "local"), scatter_photons: int = 1_000_000,
-              local_rot_deg: float = 5.0, local_trans_mm: float = 10.0, progress=print) -> list[dict]:
+def _register(ct: str, path: Path, out: Path, init: np.ndarray):
+    """Register ``path`` as ``ctxreg register --ct CT --xray PATH --out OUT --init ...`` does (default
+    method, preprocessing and size; the start as the command line would receive it, 6 decimals) and
+    write its outputs into ``out``: ``(outcome, 0)``, or ``(None, 2)`` where it refuses the input
+    (the command's exit status)."""
+    try:
+        check_output_dir(out, OUTPUT_FILES)
+        outcome = register_xray(ct, path, init=[f"{v:.6f}" for v in init], log=print,
+                                note=lambda text: print(f"ctxreg register: note: {text}", file=sys.stderr))
+        outcome.write(out)
+    except (CtxregError, *USER_OS_ERRORS) as e:
+        print(f"ctxreg register: error: {e}", file=sys.stderr)
+        return None, 2
+    print(outcome.summary())
+    return outcome, 0
+
+
+def run_xray_study(ct: str, out: str | Path, *, cases: int = 10, size: int = 256, seed: int = 0,
+                   starts: tuple[str, ...] = ("ap", "local"), scatter_photons: int = 1_000_000,
+                   local_rot_deg: float = 5.0, local_trans_mm: float = 10.0, progress=print) -> list[dict]:
     """Render, write, register and score; returns one row per (case, frame kind, start).
 
     Files go to ``out/case_NNN/{collimated,open}.dcm`` and the registrations to
     ``out/case_NNN/<kind>_<start>/``. ``size``: detector pixels per side of the frames.
     """
-    from register.cli import main as ctxreg
-    from register.evaluation.evaluate import EvaluationSettings, bone_points, pose_errors, sample_cases
-    from register.xray.io import write_xray_dicom
-    from sim.anatomy import anatomy_center
-    from sim.ct_io import load_ct_spec
-    from sim.geometry import pose_from_params
-    from sim.physics.imaging import PhysicsSettings, XRayImager
-
     out = Path(out)
     volume = load_ct_spec(ct)
     center = anatomy_center(volume)
@@ -107,27 +127,23 @@ def run_study(ct: str, out: str | Path, *, cases: int = 10, size: int = 256, see
         imager = imagers[cond.name]
         g = imager.geometry
         T_true = pose_from_params(targets[k], g.sod_mm)
-        frames = _frames(imager, T_true, cond, seed=seed * 1000 + k, rng=rng)
+        simulator, *frames = _frames(imager, T_true, cond, seed=seed * 1000 + k, rng=rng)
         case_dir = out / f"case_{k:03d}"
         for kind, frame in zip(("collimated", "open"), frames):
-            path = write_xray_dicom(case_dir / f"{kind}.dcm", frame["pixels"], pixel_spacing_mm=g.pixel_spacing_mm,
-                                    sdd_mm=g.sdd_mm, sod_mm=g.sod_mm, bits_stored=12, modality="RF")
+            path = simulator.write(case_dir / f"{kind}.dcm", frame["pixels"])
             for start in starts:
                 init = np.zeros(6) if start == "ap" else local[k]
                 reg_dir = case_dir / f"{kind}_{start}"
                 t0 = time.perf_counter()
-                code = ctxreg(["register", "--ct", str(ct), "--xray", str(path), "--out", str(reg_dir),
-                               "--init", *[f"{v:.6f}" for v in init]])
+                outcome, code = _register(ct, path, reg_dir, init)
                 seconds = time.perf_counter() - t0
                 row = {"case": k, "condition": cond.name, "kind": kind, "start": start, "exit_code": code,
                        "seconds": seconds, "target_params": targets[k].tolist(), "init_params": init.tolist(),
                        "collimator": frame["collimator"]}
                 if code == 0:
-                    res = json.loads((reg_dir / "result.json").read_text())
-                    T_est = np.array(res["pose_4x4"])
-                    err = pose_errors(T_est, T_true, points, center, g)
+                    err = pose_errors(outcome.pose, T_true, points, center, g)
                     truth_field = frame["field_mask"]
-                    inp = res["xray_input"]
+                    inp = jsonable(outcome.xray_input)
                     row.update({k2: err[k2] for k2 in ("rot_err_deg", "trans_err_mm", "mtre_mm")},
                                intensity=(inp["polarity_check"] or inp["intensity"])["polarity"],
                                decided_polarity=inp["intensity"]["polarity"],
@@ -144,7 +160,7 @@ def run_study(ct: str, out: str | Path, *, cases: int = 10, size: int = 256, see
     return rows
 
 
-def summarize_study(rows: list[dict], success_mtre_mm: float = 10.0) -> dict:
+def summarize_xray_study(rows: list[dict], success_mtre_mm: float = 10.0) -> dict:
     """Per (frame kind, start): cases, successes (mTRE < 10 mm), success rate, median / mean errors,
     failed runs, median seconds."""
     summary: dict = {}
@@ -170,8 +186,8 @@ def summarize_study(rows: list[dict], success_mtre_mm: float = 10.0) -> dict:
     return summary
 
 
-def format_study(summary: dict) -> str:
-    """A Markdown table of :func:`summarize_study`."""
+def format_xray_study(summary: dict) -> str:
+    """A Markdown table of :func:`summarize_xray_study`."""
     lines = ["| frames / start | cases | mTRE < 10 mm | median rot (deg) | median mTRE (mm) | mean mTRE (mm) "
              "| polarity right | s / registration |", "|---|---|---|---|---|---|---|---|"]
     for key, s in summary.items():

@@ -5,8 +5,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from register.engines.cmaes import CMAESRegistration, CMAESSettings, RegistrationError
-from register.evaluation.evaluate import EvaluationError, EvaluationSettings, pose_errors, sample_cases, summarize
+from register.engines.cmaes import CMAESRegistration, CMAESSettings
+from register.engines.result import RegistrationError
+from register.evaluation.errors import pose_errors
+from register.evaluation.evaluate import EvaluationError, EvaluationSettings, sample_cases, summarize
 from sim.geometry import pose_from_params, projection_matrix
 from sim.render import DRRRenderer, RenderSettings
 

@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from register.engines.contextual import ContextualRegistration, ContextualSettings
-from register.engines.cmaes import RegistrationError
+from register.engines.result import RegistrationError
 
 
 @pytest.fixture(scope="module")
@@ -79,7 +79,7 @@ def test_a_lost_network_pose_goes_through_the_global_search(phantom):
     recovers from. A network that is right skips the grid."""
     from dataclasses import replace
 
-    from register.engines.contextual import REFINE_SETTINGS
+    from register.engines.pipeline import REFINE_SETTINGS, ContextualPipeline
     from register.engines.search import GlobalSearchSettings, describe_search
     from sim.geometry import pose_from_params
     from sim.se3 import rotation_error_deg
@@ -90,8 +90,8 @@ def test_a_lost_network_pose_goes_through_the_global_search(phantom):
     refine = replace(REFINE_SETTINGS, size=size, generations=(12,), polish_evals=60)
     search = GlobalSearchSettings(candidates=3)
     wrong = lambda fixed, drr: np.array([0.0, 0.0, 0.6, 0.0, 0.0, 0.0])  # noqa: E731: a steady 45 deg drift
-    reg = ContextualRegistration(vol, wrong, ContextualSettings(max_iterations=10), size=size, center_lps=c,
-                                 refine=refine, search=search)
+    reg = ContextualPipeline(vol, wrong, ContextualSettings(max_iterations=10), size=size, center_lps=c,
+                             refine=refine, search=search)
     fixed = reg.renderer.render(pose_from_params(truth, reg.geometry.sod_mm))[0]
     res = reg.register(fixed, np.zeros(6))
     assert "search_grid" in res.stage_seconds and any(h[0] == "search" for h in res.history)
@@ -118,17 +118,17 @@ def test_a_lost_network_pose_goes_through_the_global_search(phantom):
     assert [h[0] for h in chosen.history].count("polish") == 1 and chosen.history[-1][0] == "polish"
     assert "kept the second best (a grid pose" in describe_search(chosen.search)
     # without the search the same network stays lost
-    alone = ContextualRegistration(vol, wrong, ContextualSettings(max_iterations=10), size=size, center_lps=c,
-                                   refine=refine).register(fixed, np.zeros(6))
+    alone = ContextualPipeline(vol, wrong, ContextualSettings(max_iterations=10), size=size, center_lps=c,
+                               refine=refine).register(fixed, np.zeros(6))
     assert rotation_error_deg(alone.pose, T_true) > 5.0 and alone.similarity < res.similarity
     # a right network (the oracle): its pose is kept, no grid
-    good = ContextualRegistration(vol, None, ContextualSettings(), size=size, center_lps=c, refine=refine,
-                                  search=search)
-    use_oracle(good, T_true)
+    good = ContextualPipeline(vol, None, ContextualSettings(), size=size, center_lps=c, refine=refine,
+                              search=search)
+    use_oracle(good.contextual, T_true)
     found = good.register(fixed, np.zeros(6))
     assert "search_grid" not in found.stage_seconds and rotation_error_deg(found.pose, T_true) < 1.0
-    with pytest.raises(RegistrationError, match="global search needs the refinement"):
-        ContextualRegistration(vol, wrong, size=size, center_lps=c, search=search)
+    with pytest.raises(RegistrationError, match="needs the refinement"):
+        ContextualPipeline(vol, wrong, size=size, center_lps=c, refine=None, search=search)
 
 
 @pytest.mark.parametrize("current_field", ["masked", "open"])

@@ -7,7 +7,8 @@ import numpy as np
 import pytest
 import torch
 
-from register.engines.contextual import ContextualRegistration, ContextualSettings, NetworkView, network_view
+from register.engines.contextual import ContextualRegistration, ContextualSettings
+from register.xray.network_view import NetworkView, network_view
 
 
 @pytest.fixture(scope="module")

@@ -1,4 +1,4 @@
-"""Issue 29: one function scores every pose (register.evaluation.evaluate.pose_errors), checked against an
+"""Issue 29: one function scores every pose (register.evaluation.errors.pose_errors), checked against an
 independent computation (scipy's rotations, an explicit pinhole, a loop over the points) on known
 poses, each metric non-zero where it must be; and every command scores with it, the study's
 realistic-frame (xray) targets included, whose mPD was always 0.
@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from register.evaluation.evaluate import pose_errors
+from register.evaluation.errors import pose_errors
 from sim.geometry import CArmGeometry, pose_from_params
 
 GEOMETRY = CArmGeometry(sdd_mm=1000.0, sod_mm=600.0, height=48, width=64, pixel_spacing_mm=0.8, cx=30.0, cy=22.5)
@@ -114,7 +114,8 @@ def test_a_study_scores_a_known_wrong_pose_right_for_every_target_kind(tmp_path,
     pose are those of the independent computation, mPD non-zero (it was 0 for xray targets)."""
     import register.api
     from register.evaluation import study as S
-    from register.evaluation.evaluate import EvaluationSettings, bone_points, sample_cases
+    from register.evaluation.errors import bone_points
+    from register.evaluation.evaluate import EvaluationSettings, sample_cases
     from sim.anatomy import anatomy_center
     from sim.ct_io import load_ct_spec
 
@@ -148,7 +149,7 @@ def test_a_study_scores_a_known_wrong_pose_right_for_every_target_kind(tmp_path,
                 return SimpleNamespace(pose=pose, params=params_from_pose(pose, g.sod_mm), renders=0,
                                        similarity=0.5, trajectory=None)
 
-        monkeypatch.setattr("register.engines.methods.build_method", lambda *a, **k: Fake())
+        monkeypatch.setattr(S, "build_method", lambda *a, **k: Fake())
         S._evaluate_drr(study, target, volume, center, object(), tmp_path, lambda s: None)
     with open(tmp_path / "cases.csv") as f:
         rows = list(csv.DictReader(f))

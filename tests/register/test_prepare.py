@@ -233,9 +233,9 @@ def test_polarity_check_and_search_render_the_grid_once_with_the_same_result():
                          geometry=CArmGeometry(g.sdd_mm, g.sod_mm, g.height, g.width, g.pixel_spacing_mm * 1.1))
     with pytest.raises(ValueError, match="another detector"):
         confirm_polarity(prepared, vol, c, np.zeros(6), search=other)
-    from register.engines.cmaes import RegistrationError
-    from register.engines.contextual import REFINE_SETTINGS, ContextualRegistration
+    from register.engines.result import RegistrationError
+    from register.engines.pipeline import REFINE_SETTINGS, ContextualPipeline
 
     with pytest.raises(RegistrationError, match="another detector or physics"):
-        ContextualRegistration(vol, lambda fixed, drr: np.zeros(6), size=(g.height, g.width), geometry=g,
-                               center_lps=c, refine=REFINE_SETTINGS, search=other)
+        ContextualPipeline(vol, lambda fixed, drr: np.zeros(6), size=(g.height, g.width), geometry=g,
+                           center_lps=c, refine=REFINE_SETTINGS, search=other)

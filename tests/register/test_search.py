@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from register.engines.cmaes import RegistrationError
+from register.engines.result import RegistrationError
 from register.engines.search import GlobalSearch, GlobalSearchSettings, describe_search, masked_ncc_shifts
 
 

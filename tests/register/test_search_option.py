@@ -9,7 +9,7 @@ import json
 import numpy as np
 import pytest
 
-from register.engines.cmaes import RegistrationError
+from register.engines.result import RegistrationError
 
 
 @pytest.fixture(scope="module")
@@ -50,7 +50,7 @@ def register_drr(phantom, truth, **kw):
 
 
 def test_search_off_never_builds_the_global_search(phantom, monkeypatch, tmp_path):
-    import register.engines.contextual
+    import register.engines.pipeline
     import register.engines.search
 
     class NoSearch:
@@ -58,7 +58,7 @@ def test_search_off_never_builds_the_global_search(phantom, monkeypatch, tmp_pat
             raise AssertionError("the global search was built with search='off'")
 
     monkeypatch.setattr(register.engines.search, "GlobalSearch", NoSearch)
-    monkeypatch.setattr(register.engines.contextual, "GlobalSearch", NoSearch)
+    monkeypatch.setattr(register.engines.pipeline, "GlobalSearch", NoSearch)
     res = register_drr(phantom, NEAR, search="off")
     assert res.search_ran is False and res.search_mode == "off" and res.result.search is None
     assert res.search_status == "off" and res.summary().splitlines()[0] == "search: off"

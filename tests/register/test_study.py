@@ -191,9 +191,9 @@ def test_the_shipped_study_files_load(path):
 @pytest.mark.parametrize("kw, words", [({"only": ("nope",)}, "--only nope: not a variant of the study"),
                                        ({"targets": ("nope",)}, "--targets nope: not a target of the study")])
 def test_unknown_variant_or_target_filters_are_named(tmp_path, kw, words):
-    from register.evaluation.study import run_study
+    from register.evaluation.study import run_domain_study
 
     path = tmp_path / "s.toml"
     path.write_text(TINY)
     with pytest.raises(StudyError, match=words):
-        run_study(load_study(path), tmp_path / "o", log=lambda s: None, **kw)
+        run_domain_study(load_study(path), tmp_path / "o", log=lambda s: None, **kw)

@@ -95,7 +95,7 @@ class Fakes:
         path.write_text(text)
         self.calls.clear()
         lines: list[str] = []
-        S.run_study(load_study(path), tmp_path / "o", log=lines.append, **kw)
+        S.run_domain_study(load_study(path), tmp_path / "o", log=lines.append, **kw)
         return list(self.calls), lines
 
 

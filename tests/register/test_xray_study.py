@@ -9,15 +9,15 @@ import json
 import numpy as np
 import pytest
 
-from register.evaluation.xray_study import run_study, summarize_study
+from register.evaluation.xray_study import run_xray_study, summarize_xray_study
 
 
 @pytest.mark.slow
 def test_collimated_frames_register_like_open_ones_from_a_local_start(pelvis_ct_path, tmp_path):
-    rows = run_study(str(pelvis_ct_path), tmp_path, cases=2, size=192, starts=("local",),
+    rows = run_xray_study(str(pelvis_ct_path), tmp_path, cases=2, size=192, starts=("local",),
                      scatter_photons=200_000, progress=None)
     assert len(rows) == 4 and all(r["exit_code"] == 0 for r in rows)
-    s = summarize_study(rows)
+    s = summarize_xray_study(rows)
     # from a local start (<= 5 deg, 10 mm away) collimated frames succeed (mTRE < 10 mm) within one case
     # of their open twins, and at least once (measured at this size: 1-2 of 2 each)
     assert s["collimated/local"]["successes"] >= max(s["open/local"]["successes"] - 1, 1), s

@@ -1,0 +1,174 @@
+"""contextual+cmaes as one pipeline: the network's iteration, the global search, CMA-ES from each
+start, the winner polished.
+
+:class:`ContextualPipeline` runs its named steps in order (:meth:`ContextualPipeline.register`):
+
+1. :meth:`~ContextualPipeline.iterate`: the contextual iteration
+   (:class:`register.engines.contextual.ContextualRegistration`) from the start pose;
+2. :meth:`~ContextualPipeline.starts`: the global search (:class:`register.engines.search.GlobalSearch`)
+   searches the network's pose locally and keeps it when its similarity reaches
+   ``search.found_above``; otherwise a grid over the prior box supplies further starts, and the
+   search's finalists (its best distinct local results, ``search.finalists``) are the starts.
+   Without a search the network's pose is the one start;
+3. :meth:`~ContextualPipeline.refine`: CMA-ES in a narrowed box (:data:`REFINE_SETTINGS`) from each
+   start (no polish where there are several); the highest similarity at full resolution wins (ties:
+   the earlier start);
+4. :meth:`~ContextualPipeline.polish`: only the winner is polished (several starts);
+5. :meth:`~ContextualPipeline.result`: the winner with the whole run's stage times (summed over
+   the refinements), history, renders, the iteration's trajectory and the search's record (adding
+   ``"refined"``, each finalist's similarity before the polish, ``"refined_params"``, its pose (deg,
+   mm) then, and ``"chosen"``, the index of the winner).
+
+The similarity, not the truth, decides, so a user's registration can take it: a network that fails
+on an image outside its training domain costs time, not the registration.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from register.engines.cmaes import CMAESRegistration, CMAESSettings
+from register.engines.contextual import ContextualRegistration, ContextualSettings, Iteration, checked_inputs
+from register.engines.metrics import plain_equivalent
+from register.engines.result import RegistrationError, RegistrationResult
+from register.engines.search import GlobalSearch, GlobalSearchSettings
+
+__all__ = ["ContextualPipeline", "REFINE_SETTINGS"]
+
+#: The narrowed CMA-ES box after the contextual iteration (degrees, mm): one level at 1/2 resolution,
+#: then the polish at full resolution. A first level at 1/4 resolution (as CMA-ES from afar uses)
+#: pulled right starts away on realistic frames, whose coarse gradients mislead (scatter, display
+#: chain): 5 of 7 lost ``fluoro-65kV`` frames were right before the refinement and kept with this one.
+#: The similarity of a display image (one registered with its toned version) is the tone-tolerant
+#: gradient NCC (:func:`register.engines.metrics.tone_tolerant_gradient_ncc`): half of it blind to the
+#: display's curve. An image of line integrals (a raw or log X-ray, a DRR) is scored by gradient NCC:
+#: on 50 line DRRs the tone-tolerant score lost a case (98 % against 100 %) and cost 0.5 s.
+REFINE_SETTINGS = CMAESSettings(levels=(2,), sigma_deg=3.0, sigma_mm=8.0, range_deg=10.0, range_mm=30.0,
+                                generations=(40,), metrics=("tone_tolerant_gncc",))
+
+
+class ContextualPipeline:
+    """contextual+cmaes on one CT (module doc). ``refine``: the CMA-ES settings of the refinement
+    (the narrowed box around each start). ``search``: the global search
+    (:class:`register.engines.search.GlobalSearch`, built from its settings, or one the caller built
+    for the same detector and physics, e.g. to share its grid's DRRs with the polarity check
+    :func:`register.prepare.confirm_polarity`), or None: the network's pose goes straight to the
+    refinement. The other arguments are :class:`register.engines.contextual.ContextualRegistration`'s."""
+
+    def __init__(self, volume, predictor, settings: ContextualSettings | None = None, *, refine: CMAESSettings,
+                 size=(128, 128), scene: str = "cios_fusion", geometry=None, center_lps=None,
+                 search: GlobalSearchSettings | GlobalSearch | None = None, physics=None,
+                 label_materials: dict[int, str] | None = None):
+        if refine is None:
+            raise RegistrationError("refine: the pipeline needs the refinement's CMA-ES settings")
+        self.contextual = ContextualRegistration(volume, predictor, settings, size=size, scene=scene,
+                                                 geometry=geometry, center_lps=center_lps, physics=physics,
+                                                 label_materials=label_materials)
+        self.geometry = self.contextual.geometry
+        self.center_lps = self.contextual.center_lps
+        self.search = None
+        if isinstance(search, GlobalSearch):  # built by the caller (its grid shared with the polarity check)
+            if not search.built_for(self.geometry, physics):
+                raise RegistrationError("search: the given GlobalSearch was built for another detector or physics "
+                                        "than this registration's")
+            self.search = search
+        elif search is not None:
+            self.search = GlobalSearch(volume, search, size=size, scene=scene, geometry=geometry,
+                                       center_lps=self.center_lps, physics=physics, label_materials=label_materials)
+        self.refinement = CMAESRegistration(volume, refine, scene=scene, geometry=geometry,
+                                            center_lps=self.center_lps, physics=physics,
+                                            label_materials=label_materials)
+
+    @property
+    def renderer(self):
+        """The iteration's moving-image renderer (the optimiser's detector)."""
+        return self.contextual.renderer
+
+    def register(self, fixed: np.ndarray, init_params=np.zeros(6), *, mask: np.ndarray | None = None,
+                 toned: np.ndarray | None = None, network_view=None) -> RegistrationResult:
+        """Register ``fixed`` ``(H, W)`` from ``init_params`` (deg, mm): the steps of the module doc.
+        ``mask``, ``toned`` and ``network_view`` as
+        :meth:`register.engines.contextual.ContextualRegistration.register`; CMA-ES and the final
+        similarity use the valid pixels only, and the global search ranks its grid on ``toned`` too."""
+        fixed, mask = checked_inputs(fixed, mask, toned)
+        it = self.iterate(fixed, init_params, mask=mask, toned=toned, network_view=network_view)
+        found = self.starts(fixed, init_params, it, mask=mask, toned=toned)
+        starts = [it.params] if found is None else [np.asarray(f["params"], float) for f in found.search["finalists"]]
+        refine = self.scored(toned)
+        refined = self.refine(refine, fixed, starts, mask=mask)
+        won = self.winner(refined)
+        polished = self.polish(refine, fixed, refined[won], starts[won], mask=mask) if len(starts) > 1 else None
+        return self.result(it, found, refined, won, polished)
+
+    def iterate(self, fixed, init_params, *, mask=None, toned=None, network_view=None) -> Iteration:
+        """Step 1: the network's iteration."""
+        return self.contextual.iterate(fixed, init_params, mask=mask, toned=toned, network_view=network_view)
+
+    def starts(self, fixed, init_params, it: Iteration, *, mask=None, toned=None) -> RegistrationResult | None:
+        """Step 2: the global search from the network's pose (its result, whose record's
+        ``finalists`` are the refinement's starts), or None without a search."""
+        if self.search is None:
+            return None
+        return self.search.register(fixed, init_params, mask=mask, poses=[it.params], toned=toned)
+
+    def scored(self, toned) -> CMAESRegistration:
+        """The refinement's CMA-ES as it scores this X-ray: a display image (with a toned version)
+        display-tolerantly, line integrals plainly."""
+        if toned is not None:
+            return self.refinement
+        return self.refinement.scored_by(tuple(plain_equivalent(m) for m in self.refinement.settings.metrics))
+
+    @staticmethod
+    def refine(refine: CMAESRegistration, fixed, starts: list, *, mask=None) -> list[RegistrationResult]:
+        """Step 3: CMA-ES from each start (several in lockstep, unpolished; one start polished)."""
+        if len(starts) > 1:
+            return refine.register_many(fixed, starts, mask=mask, polish=False)
+        return [refine.register(fixed, starts[0], mask=mask)]
+
+    @staticmethod
+    def winner(refined: list[RegistrationResult]) -> int:
+        """The index of the highest similarity at full resolution (ties: the earlier start)."""
+        won = 0
+        for i, r in enumerate(refined):
+            if r.similarity > refined[won].similarity:
+                won = i
+        return won
+
+    @staticmethod
+    def polish(refine: CMAESRegistration, fixed, best: RegistrationResult, start, *, mask=None
+               ) -> RegistrationResult | None:
+        """Step 4: the winner of several starts polished (None where the settings have no polish)."""
+        if not refine.settings.polish:
+            return None
+        return refine.polish(fixed, best.params, start=start, mask=mask)
+
+    @staticmethod
+    def result(it: Iteration, found: RegistrationResult | None, refined: list[RegistrationResult], won: int,
+               polished: RegistrationResult | None) -> RegistrationResult:
+        """Step 5: the winner (polished where it was) with the whole run's record."""
+        stages, history, renders = dict(it.stage_seconds), list(it.history), it.renders
+        if found is not None:
+            stages.update(found.stage_seconds)
+            history += found.history
+            renders += found.renders
+        cmaes_s: dict[str, float] = {}
+        for i, r in enumerate(refined):
+            for k, v in r.stage_seconds.items():
+                cmaes_s[f"cmaes_{k}"] = cmaes_s.get(f"cmaes_{k}", 0.0) + v
+            history += [(stage if i == 0 else f"finalist{i}.{stage}", v, p) for stage, v, p in r.history]
+            renders += r.renders
+        res = refined[won]
+        if polished is not None:
+            cmaes_s["cmaes_polish"] = polished.stage_seconds["polish"]
+            history += polished.history
+            renders += polished.renders
+            res = polished
+        res.stage_seconds = {**stages, **cmaes_s}
+        res.history = history
+        res.renders = renders
+        res.trajectory = it.trajectory
+        if found is not None:
+            finals = [float(r.similarity) for r in refined]
+            res.search = {**found.search, "refined": finals, "chosen": int(np.argmax(finals)),
+                          "refined_params": [np.asarray(r.params, float).tolist() for r in refined]}
+        return res

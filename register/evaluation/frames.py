@@ -1,0 +1,59 @@
+"""Realistic C-arm frames simulated at a known pose: detector signal, collimator, display chain, DICOM.
+
+The one simulator of the frames that the demo (:mod:`register.evaluation.demo`), the study's
+``xray`` targets (:mod:`register.evaluation.study`) and the collimated-against-open study
+(:mod:`register.evaluation.xray_study`) register: an :class:`sim.physics.imaging.XRayImager`'s
+detector signal (full physics: spectrum, materials, CsI detector, scatter, noise), a
+:class:`sim.physics.display.Collimator` (or an open field) and a
+:class:`sim.physics.display.DisplayChain`, written as DICOM with its geometry tags
+(``DistanceSourceToDetector``, ``DistanceSourceToPatient``, ``ImagerPixelSpacing``), Modality RF and
+the chain's bits: a frame as a C-arm delivers it.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from register.xray.io import write_xray_dicom
+
+__all__ = ["FrameSimulator"]
+
+
+class FrameSimulator:
+    """Frames of one imager through one display chain, collimated by ``collimator`` (None: open).
+
+    ``imager``: the :class:`sim.physics.imaging.XRayImager`; ``chain``: the
+    :class:`sim.physics.display.DisplayChain`; ``geometry``: the geometry written into the DICOM
+    tags (default the imager's)."""
+
+    def __init__(self, imager, chain, collimator=None, *, geometry=None):
+        self.imager = imager
+        self.chain = chain
+        self.collimator = collimator
+        self.geometry = imager.geometry if geometry is None else geometry
+
+    def raw(self, pose: np.ndarray, seed: int) -> np.ndarray:
+        """The detector signal ``(H, W)`` float64 at ``pose`` ``(4, 4)``, its noise and Monte Carlo
+        drawn from ``seed``."""
+        return self.imager.render(pose, seed=seed)["raw"][0].astype(np.float64)
+
+    def display(self, raw: np.ndarray, *, collimated: bool = True) -> tuple[np.ndarray, np.ndarray | None]:
+        """The displayed frame of ``raw`` and its field mask (None: open): through the collimator
+        (unless ``collimated`` is False or there is none), then the display chain."""
+        collimator = self.collimator if collimated else None
+        field = None if collimator is None else collimator.mask(*raw.shape)
+        pixels = self.chain.apply(raw if collimator is None else collimator.apply(raw), self.imager.flat, field)
+        return pixels, field
+
+    def write(self, path: str | Path, pixels: np.ndarray) -> Path:
+        """``pixels`` as DICOM at ``path`` (RF, the chain's bits, the geometry's tags)."""
+        g = self.geometry
+        return write_xray_dicom(path, pixels, pixel_spacing_mm=g.pixel_spacing_mm, sdd_mm=g.sdd_mm, sod_mm=g.sod_mm,
+                                bits_stored=min(16, max(8, self.chain.bits)), modality="RF")
+
+    def simulate(self, path: str | Path, pose: np.ndarray, seed: int) -> Path:
+        """Render, display and write one frame at ``pose`` (``(4, 4)``) to ``path``; returns the path."""
+        pixels, _ = self.display(self.raw(pose, seed))
+        return self.write(path, pixels)
