@@ -14,8 +14,8 @@ Example (README "Python API")::
 :func:`register_xray` checks every input before the work starts (the method and its model,
 the start pose, the preprocessing steps, the size; then the X-ray, its geometry, the memory the
 size asks for, the CT, and that the CT is in the view at the start pose), prepares the X-ray
-(:func:`register.prepare.prepare_xray`: geometry with its sources, field mask, intensity, size),
-checks the polarity against the CT (:func:`register.prepare.confirm_polarity`), builds the
+(:func:`register.xray.prepare.prepare_xray`: geometry with its sources, field mask, intensity, size),
+checks the polarity against the CT (:func:`register.xray.prepare.confirm_polarity`), builds the
 method (:func:`register.engines.methods.build_method`) and registers. ``ctxreg register``
 (:func:`register.commands.run_register`) is this call plus :meth:`XRayRegistration.write`.
 """
@@ -101,7 +101,7 @@ class XRayRegistration:
         similarity: the final gradient NCC at the optimiser's size (1 = identical edges).
         result: the method's :class:`register.engines.result.RegistrationResult` (projection, renders,
             stage times, history, trajectory).
-        prepared: the :class:`register.prepare.PreparedXRay` (geometry and its sources, field,
+        prepared: the :class:`register.xray.prepare.PreparedXRay` (geometry and its sources, field,
             intensity decision and its check, images at full and at the optimiser's size).
         volume: the CT; center_lps: ``(3,)`` its anatomy centre (LPS mm).
         init_params: ``(6,)`` the start pose (deg, mm).
@@ -295,10 +295,10 @@ def register_xray(ct, xray, *, method: str = "contextual+cmaes", model=None, ini
         physics: the moving images: ``"line"`` DRRs, ``"poly"`` / ``"full"`` (noise-free
             ``-log(I/I0)``), or a :class:`sim.physics.imaging.PhysicsSettings`.
         preprocess: the preprocessing step names (default
-            :data:`register.preprocess.DEFAULT_STEPS`); intensity / polarity: ``"auto"`` or the
+            :data:`register.xray.preprocess.DEFAULT_STEPS`); intensity / polarity: ``"auto"`` or the
             override of the intensity step (only with ``"intensity"`` among the steps); tone:
             ``"ct"`` maps a display image's values onto the CT's line integrals in its field,
-            ``"off"`` keeps them (:class:`register.preprocess.Intensity`).
+            ``"off"`` keeps them (:class:`register.xray.preprocess.Intensity`).
         orient: how the stored X-ray is turned into the CT's view first (a name of
             :data:`register.xray.io.ORIENTATIONS`: ``"none"``, ``"flip-left-right"``, ...); the
             figures show the X-ray so turned.
@@ -323,8 +323,8 @@ def register_xray(ct, xray, *, method: str = "contextual+cmaes", model=None, ini
     from sim import load_ct
     from register.engines.result import RegistrationError
     from register.engines.methods import build_method, check_method, load_predictor, needs_model
-    from register.prepare import confirm_polarity, fit_box, prepare_xray
-    from register.preprocess import DEFAULT_STEPS, Pipeline
+    from register.xray.prepare import confirm_polarity, fit_box, prepare_xray
+    from register.xray.preprocess import DEFAULT_STEPS, Pipeline
     from register.engines.search import GlobalSearch, GlobalSearchSettings
     from register.xray.io import XRayImage, check_orientation, load_xray, resolve_geometry
     from sim.anatomy import anatomy_center
@@ -414,7 +414,7 @@ def grid_bytes(box, shape, geometry) -> float:
     search's grid of padded DRRs at 1/4 resolution (every grid pose at once, padded by the largest
     in-plane shift), :data:`GRID_BYTES_PER_PX` each. The polarity check scores on it even for
     ``method="cmaes"``. The field's crop is not known yet: the X-ray is taken whole."""
-    from register.prepare import _fit_plan
+    from register.xray.prepare import _fit_plan
     from register.engines.search import GlobalSearchSettings
 
     s = GlobalSearchSettings()
@@ -444,7 +444,7 @@ def _check_coarse_field(prepared, box, need: int) -> None:
     from scipy import ndimage
 
     from register.engines.metrics import downsample
-    from register.preprocess import PreprocessError
+    from register.xray.preprocess import PreprocessError
 
     mask = prepared.mask
     h, w = prepared.image.shape
@@ -459,12 +459,12 @@ def _check_coarse_field(prepared, box, need: int) -> None:
 def _polarity_unchecked(prepared):
     """``prepared`` with the polarity check recorded as not run (``search="off"``: the check scores
     on the global search's grid, which such a run does not build), as
-    :func:`register.prepare.confirm_polarity` records an image too small for the grid: the
+    :func:`register.xray.prepare.confirm_polarity` records an image too small for the grid: the
     decision stands. Nothing is recorded where an option or a decisive tag set the polarity (the
     check would not run either)."""
     from dataclasses import replace
 
-    from register.prepare import _DECISIVE_POLARITY
+    from register.xray.prepare import _DECISIVE_POLARITY
 
     decision = prepared.step("intensity")
     if decision is None or decision.get("polarity_source") in _DECISIVE_POLARITY:

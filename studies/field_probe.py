@@ -44,7 +44,7 @@ def main(argv=None) -> int:
     from register.evaluation.errors import bone_points, pose_errors
     from register.evaluation.evaluate import EvaluationSettings, sample_cases
     from register.engines.methods import build_method, load_predictor
-    from register.prepare import prepare_xray
+    from register.xray.prepare import prepare_xray
     from register.evaluation.study import frame_seed, load_study, study_frames
     from register.xray.io import load_xray
     from sim import load_ct

@@ -108,7 +108,7 @@ def test_a_bad_input_is_refused_before_the_work_naming_the_option(name, inputs29
 def test_a_size_beyond_the_memory_is_refused_before_it_is_allocated(size, inputs, tmp_path, capsys,  # noqa: F811
                                                                     monkeypatch):
     """register --size 4096 4096 on a 64 x 64 X-ray asked for 27 GiB in the polarity check."""
-    import register.prepare
+    import register.xray.prepare
     import sim.cliargs
 
     monkeypatch.setattr(sim.cliargs, "available_memory_bytes", lambda: 4 * 1024 ** 3)
@@ -116,7 +116,7 @@ def test_a_size_beyond_the_memory_is_refused_before_it_is_allocated(size, inputs
     def no_work(*args, **kwargs):
         raise AssertionError("prepared before the memory check")
 
-    monkeypatch.setattr(register.prepare, "prepare_xray", no_work)
+    monkeypatch.setattr(register.xray.prepare, "prepare_xray", no_work)
     monkeypatch.setattr("sim.load_ct", no_work)  # the X-ray and its geometry suffice
     status, new = _run(f"register --ct phantom --xray {{xray}} --size {size} --out reg", inputs, tmp_path)
     err = capsys.readouterr().err.strip()
@@ -148,7 +148,7 @@ def test_a_field_too_small_at_the_coarsest_level_names_size():
     import numpy as np
 
     from register.api import _check_coarse_field
-    from register.preprocess import PreprocessError
+    from register.xray.preprocess import PreprocessError
 
     class Prepared:
         image = np.zeros((32, 12))

@@ -168,7 +168,7 @@ class ContextualRegistration:
         way (the same field edge in both images, so the edge says nothing about the pose) unless
         the predictor's ``current_field`` is ``"open"`` (a network trained to see the anatomy
         around the field); the final similarity uses the valid pixels only. ``toned``
-        ``(H, W)``: the X-ray's toned version (:attr:`register.prepare.PreparedXRay.toned`) or None;
+        ``(H, W)``: the X-ray's toned version (:attr:`register.xray.prepare.PreparedXRay.toned`) or None;
         a network trained on toned targets (its checkpoint's ``tone`` is ``"ct"``) sees it instead
         of ``fixed``. ``network_view``: what a network framed by the detector (its ``framing`` is
         ``"detector"``) sees instead of ``fixed``: the X-ray's whole detector at the network's size

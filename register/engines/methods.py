@@ -74,7 +74,7 @@ class _Method:
         self.engine = engine
 
     def register(self, fixed, init_params, *, mask=None, toned=None, network_view=None) -> RegistrationResult:
-        """``toned``: the X-ray's toned version (:attr:`register.prepare.PreparedXRay.toned`), used by
+        """``toned``: the X-ray's toned version (:attr:`register.xray.prepare.PreparedXRay.toned`), used by
         the contextual methods (their search's grid, a network trained on toned targets); CMA-ES
         alone registers ``fixed``. ``network_view``: what a detector-framed network sees
         (:func:`register.xray.network_view.network_view`), contextual methods only."""

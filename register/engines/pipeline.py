@@ -52,7 +52,7 @@ class ContextualPipeline:
     (the narrowed box around each start). ``search``: the global search
     (:class:`register.engines.search.GlobalSearch`, built from its settings, or one the caller built
     for the same detector and physics, e.g. to share its grid's DRRs with the polarity check
-    :func:`register.prepare.confirm_polarity`), or None: the network's pose goes straight to the
+    :func:`register.xray.prepare.confirm_polarity`), or None: the network's pose goes straight to the
     refinement. The other arguments are :class:`register.engines.contextual.ContextualRegistration`'s."""
 
     def __init__(self, volume, predictor, settings: ContextualSettings | None = None, *, refine: CMAESSettings,

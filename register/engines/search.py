@@ -274,7 +274,7 @@ class GlobalSearch:
         to 1e-9 relative: a detector resized to its own size may move its principal point by a
         rounding) and, where ``physics`` is given, its local search's moving images are of that
         physics (None: line DRRs), so that a caller may hand it on
-        (:func:`register.prepare.confirm_polarity`, which uses the grid's line DRRs alone;
+        (:func:`register.xray.prepare.confirm_polarity`, which uses the grid's line DRRs alone;
         :class:`register.engines.pipeline.ContextualPipeline`)."""
         g = self.local.geometry
         same = (g.height, g.width) == (geometry.height, geometry.width) and np.allclose(
@@ -357,7 +357,7 @@ class GlobalSearch:
         shift. The inverse's gradients are the negated ones, so one pass gives both (the score
         surfaces' maximum, and minus their minimum). The grid covers the whole prior box, so the
         right polarity finds the anatomy wherever it lies in it (0.38-0.96 on realistic frames;
-        :data:`register.prepare.POLARITY_FLIP_MARGIN` says how far apart the two were)."""
+        :data:`register.xray.prepare.POLARITY_FLIP_MARGIN` says how far apart the two were)."""
         s = self.settings
         field = self._field(fixed, mask, s.factor)
         params = np.asarray(init_params, float).reshape(6) + s.grid_offsets()
@@ -441,7 +441,7 @@ class GlobalSearch:
                  poses=(), toned: np.ndarray | None = None) -> RegistrationResult:
         """The best pose the search finds for ``fixed`` ``(H, W)`` around ``init_params`` (deg, mm).
 
-        ``toned``: ``(H, W)`` the X-ray's toned version (:attr:`register.prepare.PreparedXRay.toned`)
+        ``toned``: ``(H, W)`` the X-ray's toned version (:attr:`register.xray.prepare.PreparedXRay.toned`)
         or None: the grid ranks both, each supplying its share of the candidates.
         ``poses``: ``(K, 6)`` parameters searched locally first (the network's pose), each clipped
         into the prior box (``init_params`` +- ``range_deg`` / ``range_mm``) first: when the best

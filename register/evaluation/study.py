@@ -77,7 +77,7 @@ from register.engines.methods import METHOD_NAMES, build_method, needs_model
 from register.evaluation.errors import bone_points, pose_errors
 from register.evaluation.evaluate import START_MODES, EvaluationSettings, evaluate, sample_cases, summarize
 from register.evaluation.frames import FrameSimulator
-from register.preprocess import PreprocessError
+from register.xray.preprocess import PreprocessError
 from register.xray.field import FieldError
 from register.xray.intensity import IntensityError
 from sim.anatomy import anatomy_center
@@ -390,7 +390,6 @@ def _plain(obj: Any) -> Any:
 
 
 def _digest(settings: dict) -> str:
-
     return hashlib.sha256(json.dumps(settings, sort_keys=True, default=str).encode()).hexdigest()
 
 
@@ -554,8 +553,6 @@ def _finished_evaluation(path: Path, study: Study, settings: dict) -> tuple[dict
 
 def _evaluate_drr(study: Study, target: Target, volume, center, predictor, folder: Path, log,
                   stamp: dict | None = None) -> dict:
-
-
     settings = EvaluationSettings(cases=study.cases_of(target), seed=study.seed, size=study.size, start=study.start)
     physics = PhysicsSettings(**{**target.physics, "seed": study.seed})
     if physics.level == "line":
@@ -572,7 +569,6 @@ def _evaluate_drr(study: Study, target: Target, volume, center, predictor, folde
 
 
 def _moving(study: Study):
-
     return None if study.moving_physics == "line" else PhysicsSettings(
         level=study.moving_physics, noise=False, scatter_photons=api.REGISTER_SCATTER_PHOTONS)
 

@@ -34,7 +34,7 @@ radiograph) or ``bone-dark`` (a fluoroscopy frame, a raw image).
    attenuates more than its rim in ~90 % of pelvis views.
 
 ``ctxreg register`` then checks the polarity against the CT unless an option or the Sign tag
-set it (:func:`register.prepare.confirm_polarity`).
+set it (:func:`register.xray.prepare.confirm_polarity`).
 
 The decision (:class:`IntensityDecision`) records every piece of evidence it saw and which one
 decided, so that ``result.json`` can say why an image was log-corrected or inverted.
@@ -135,7 +135,7 @@ class IntensityDecision:
 class PolarityReference:
     """Line-integral DRRs of the CT for the polarity decision and the tone (:func:`tone_curve`):
     ``drrs`` ``(N, h, w)`` rendered with the X-ray's own detector geometry sampled at ``h x w``
-    (see :func:`register.prepare.reference_drrs`), and ``resample(image (H, W), mask (H, W)) ->
+    (see :func:`register.xray.prepare.reference_drrs`), and ``resample(image (H, W), mask (H, W)) ->
     (image (h, w), mask (h, w))`` bringing the X-ray to that sampling."""
 
     drrs: np.ndarray

@@ -12,7 +12,7 @@ Pixel convention of :class:`XRayImage` ("display-like"):
   PRESENTATION" or absent, and every PNG / TIFF / JPEG / ``.npy``), ``False`` for DICOM "FOR
   PROCESSING" images, which hold raw detector values that grow with the transmitted radiation
   (bone dark). Registration compares ``pixels`` with DRRs (line integrals, bone bright); use
-  ``register.preprocess`` (``LogCorrect`` for transmission images, ``Invert`` where needed).
+  ``register.xray.preprocess`` (``LogCorrect`` for transmission images, ``Invert`` where needed).
 
 Colour: grey stored as RGB (three equal channels, like the paediatric test files) becomes grey
 (the channel mean); a coloured image is an error asking for a grey image.

@@ -13,7 +13,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from register.engines.result import RegistrationError
-from register.prepare import fit_to_size
+from register.xray.prepare import fit_to_size
 
 __all__ = ["NetworkView", "network_view"]
 
@@ -31,10 +31,10 @@ class NetworkView:
 
 
 def network_view(predictor, prepared) -> NetworkView | None:
-    """The :class:`NetworkView` of a prepared X-ray (:class:`register.prepare.PreparedXRay`) for
+    """The :class:`NetworkView` of a prepared X-ray (:class:`register.xray.prepare.PreparedXRay`) for
     ``predictor`` when it is framed by the detector (its ``framing``); None otherwise (the network
     sees the X-ray cropped to its field, as CMA-ES does). The whole detector is fitted into the
-    network's image size, aspect kept (:func:`register.prepare.fit_to_size`)."""
+    network's image size, aspect kept (:func:`register.xray.prepare.fit_to_size`)."""
     if getattr(predictor, "framing", "field") != "detector":
         return None
     size = getattr(predictor, "size", None) or (64, 64)

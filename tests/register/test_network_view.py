@@ -65,7 +65,7 @@ def test_a_detector_framed_network_sees_the_whole_detector_and_converges(phantom
 def test_network_view_follows_the_predictors_framing(phantom, tmp_path):
     """``network_view`` fits the prepared X-ray's whole detector (and its field) into the network's
     size for a detector-framed predictor, and is None for a field-framed one."""
-    from register.prepare import prepare_xray
+    from register.xray.prepare import prepare_xray
     from sim.geometry import pose_from_params
     from sim.physics.display import Collimator
     from sim.render import DRRRenderer, RenderSettings

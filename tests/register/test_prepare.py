@@ -9,7 +9,7 @@ import pytest
 from PIL import Image
 from scipy import ndimage
 
-from register.prepare import fit_to_size, masked_fill
+from register.xray.prepare import fit_to_size, masked_fill
 from sim.geometry import CArmGeometry, backproject_pixel
 from sim.render import DRRRenderer, RenderSettings
 
@@ -137,7 +137,7 @@ def test_polarity_check_overturns_only_by_a_clear_margin(tone):
     inverse."""
     from dataclasses import replace
 
-    from register.prepare import POLARITY_FLIP_MARGIN, confirm_polarity, prepare_xray
+    from register.xray.prepare import POLARITY_FLIP_MARGIN, confirm_polarity, prepare_xray
     from register.xray.io import XRayImage
     from sim.anatomy import anatomy_center
     from sim.phantom import make_pelvis_phantom
@@ -176,7 +176,7 @@ def test_polarity_scores_of_an_inverse_are_swapped_and_a_tiny_image_is_left_alon
     """The grid's score of the inverse is minus the surface's minimum: scoring the inverted image
     swaps the pair exactly (to rounding). An image too small for the grid (under 32 px) keeps its
     decision, with the reason recorded."""
-    from register.prepare import confirm_polarity, prepare_xray
+    from register.xray.prepare import confirm_polarity, prepare_xray
     from register.engines.search import GlobalSearch, GlobalSearchSettings
     from register.xray.io import XRayImage
     from sim.anatomy import anatomy_center
@@ -202,7 +202,7 @@ def test_polarity_check_and_search_render_the_grid_once_with_the_same_result():
     """A GlobalSearch given to the polarity check keeps the grid's DRRs: the search on it renders
     the grid no second time, and finds what a fresh search finds (the DRRs are the same poses'),
     to the last digit. A search built for another detector is refused."""
-    from register.prepare import confirm_polarity, prepare_xray
+    from register.xray.prepare import confirm_polarity, prepare_xray
     from register.engines.search import GlobalSearch, GlobalSearchSettings
     from register.xray.io import XRayImage
     from sim.anatomy import anatomy_center

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 from scipy import ndimage
 
-from register.preprocess import (
+from register.xray.preprocess import (
     STEPS,
     DEFAULT_STEPS,
     Crop,
@@ -244,11 +244,11 @@ def test_unknown_step_names_and_bad_parameters_are_errors():
 def test_intensity_step_records_a_tone_curve_for_display_images_only():
     """A display image (gamma 2.6 over the log) with a CT reference gets the tone curve (the
     reference's line-integral quantiles in the field) in its record and keeps its values; the toned
-    image made from it (register.prepare.toned_image) is the line integral again (correlation >
+    image made from it (register.xray.prepare.toned_image) is the line integral again (correlation >
     0.99, where the display is not); ``tone="off"``, a log image or no reference get no curve. A bad
     tone name is refused."""
     from register.xray.intensity import TONE_LEVELS, PolarityReference
-    from register.prepare import toned_image
+    from register.xray.prepare import toned_image
 
     L = 1.0 + (_anatomy() - 500.0) / 200.0
     shown = ((L - L.min()) / np.ptp(L)) ** 2.6

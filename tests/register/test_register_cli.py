@@ -198,7 +198,7 @@ def test_size_is_the_box_the_optimisers_image_fits_inside(size, expect):
     """``--size H W`` (and ``size=`` of prepare_xray / register_xray): a 100 x 200 X-ray keeps its
     aspect and becomes the largest image inside H x W with sides multiples of 4; the detector's
     extent is kept (spacing x width). The default 128 x 128 is the former longer side 128."""
-    from register.prepare import prepare_xray
+    from register.xray.prepare import prepare_xray
     from register.xray.io import XRayImage
 
     pixels = np.random.default_rng(0).random((100, 200)).astype(np.float32)
@@ -211,8 +211,8 @@ def test_size_is_the_box_the_optimisers_image_fits_inside(size, expect):
 
 @pytest.mark.parametrize("size", [(0, 0), (4, 128), (128, 5000), (1, 2, 3)])
 def test_sizes_outside_the_declared_range_are_refused(size):
-    from register.prepare import prepare_xray
-    from register.preprocess import PreprocessError
+    from register.xray.prepare import prepare_xray
+    from register.xray.preprocess import PreprocessError
     from register.xray.io import XRayImage
 
     x = XRayImage(np.ones((16, 16), np.float32), pixel_spacing_mm=0.3, sdd_mm=1000.0, sod_mm=600.0, source="x")

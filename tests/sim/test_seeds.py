@@ -27,7 +27,7 @@ KEYED = {
     "KIND_SPLIT": (3, ()),                      # sim/campaign/config.py: KIND_SPLIT = 3
     "KIND_NOISE": (4, (3, 1, 0)),               # runner: (4, subject, shard, entry)
     "KIND_EVALUATE_CASES": (10, ()),            # register/evaluation/evaluate.py
-    "KIND_POLARITY_POSES": (13, ()),            # register/prepare.py
+    "KIND_POLARITY_POSES": (13, ()),            # register/xray/prepare.py
     "KIND_EPOCH_PAIRS": (20, (4,)),             # learn/data.py: (20, epoch)
     "KIND_ACCURACY_PAIRS": (30, (1, 2)),        # learn/commands.py: (30, ki, si)
     "KIND_BATCH": (40, (9,)),                   # learn/online.py

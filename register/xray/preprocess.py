@@ -10,10 +10,10 @@ Steps (names for :meth:`Pipeline.from_names` in brackets), in the order of :data
 
 * :class:`Field` (``field``): detects the collimated field (circle, rectangle, polygon, off-centre;
   black or white outside) and excludes burned-in text, markers and saturated or empty plateaus;
-  the result is the valid-pixel mask that travels with the image (:mod:`register.field`).
+  the result is the valid-pixel mask that travels with the image (:mod:`register.xray.field`).
 * :class:`Median` (``median``): ``size x size`` median filter (salt-and-pepper / dead pixels).
 * :class:`Intensity` (``intensity``): decides whether the pixels are raw intensity, log or
-  display-processed, bone bright or dark (DICOM tags, the CT, the image: :mod:`register.intensity`)
+  display-processed, bone bright or dark (DICOM tags, the CT, the image: :mod:`register.xray.intensity`)
   and applies ``log`` and / or ``invert`` accordingly; the decision and its evidence are recorded.
 * :class:`LogCorrect` (``log``): ``-ln(I / I0)``; turns *transmitted intensity* (bone dark) into
   line-integral-like values (bone bright, air ~ 0), like a DRR. ``I0`` (the unattenuated intensity)
@@ -38,6 +38,8 @@ from typing import Any, ClassVar, Iterable, Sequence
 import numpy as np
 from scipy import ndimage
 
+from register.xray.field import FieldSettings, detect_field
+from register.xray.intensity import POLARITIES, SCALES, TONE_LEVELS, TONES, decide, tone_curve
 from sim import prepare
 from sim.errors import InputError
 from sim.geometry import CArmGeometry
@@ -96,12 +98,12 @@ class Step:
 
 @dataclass(frozen=True)
 class Field(Step):
-    """Detect the collimated field of view and exclude what is not anatomy (:mod:`register.field`).
+    """Detect the collimated field of view and exclude what is not anatomy (:mod:`register.xray.field`).
 
     The valid-pixel mask becomes the detected field (circle, rectangle, polygon or the whole
     image) eroded by ``margin_px``, minus burned-in text, rulers and markers and saturated or empty
     plateaus; with a mask given, the two are intersected. The image is unchanged. Run it first:
-    it reads the stored values as the vendor painted them. Measured: :meth:`register.field.Field.to_dict`
+    it reads the stored values as the vendor painted them. Measured: :meth:`register.xray.field.Field.to_dict`
     (kind, outside colour, shape parameters, excluded pixel counts, valid fraction).
     """
 
@@ -112,8 +114,6 @@ class Field(Step):
         _num(self.margin_px, "field.margin_px", lo=0.0, hi=50.0)
 
     def apply(self, image, mask):
-        from register.field import FieldSettings, detect_field
-
         found = detect_field(image, FieldSettings(margin_px=float(self.margin_px)))
         out = found.mask if mask is None else (mask & found.mask)
         if not out.any():
@@ -147,7 +147,7 @@ class Crop(Step):
 
 @dataclass(frozen=True)
 class Intensity(Step):
-    """Make the pixels line-integral-like (bone bright) from what they are (:mod:`register.intensity`).
+    """Make the pixels line-integral-like (bone bright) from what they are (:mod:`register.xray.intensity`).
 
     Decides the scale (``linear`` raw intensity, ``log``, ``display``) and the polarity
     (``bone-bright`` / ``bone-dark``) from the DICOM ``tags``, the CT ``reference`` (DRRs) and the
@@ -156,12 +156,12 @@ class Intensity(Step):
     ``meta["intensity_tags"]``; ``inverted``: whether the reader inverted the stored values;
     ``bits``: the stored bit depth.
 
-    ``tone`` (one of :data:`register.intensity.TONES`, default ``"ct"``): a ``display`` image's
+    ``tone`` (one of :data:`register.xray.intensity.TONES`, default ``"ct"``): a ``display`` image's
     values went through an unknown monotone look-up table; with ``"ct"`` and a CT ``reference``
-    the step also records the **tone curve** (``tone_curve``: :data:`register.intensity.TONE_LEVELS`
+    the step also records the **tone curve** (``tone_curve``: :data:`register.xray.intensity.TONE_LEVELS`
     quantiles of the line integrals of the CT's reference DRRs seen through the same field,
-    :func:`register.intensity.tone_curve`), from which :func:`register.prepare.prepare_xray` makes
-    the toned image (:attr:`register.prepare.PreparedXRay.toned`). The image itself is left as
+    :func:`register.xray.intensity.tone_curve`), from which :func:`register.xray.prepare.prepare_xray` makes
+    the toned image (:attr:`register.xray.prepare.PreparedXRay.toned`). The image itself is left as
     decided. ``"off"`` records no curve. Raw (``linear``) and ``log`` images are line integrals
     already and get none.
 
@@ -179,8 +179,6 @@ class Intensity(Step):
     tone: str = "ct"
 
     def __post_init__(self) -> None:
-        from register.intensity import POLARITIES, SCALES, TONES
-
         if self.tone not in TONES:
             raise PreprocessError(f"intensity.tone: one of {', '.join(TONES)}, got {self.tone!r}")
         if self.scale != "auto" and self.scale not in SCALES:
@@ -194,8 +192,6 @@ class Intensity(Step):
                 "bits": self.bits, "ct_reference": self.reference is not None, "tone": self.tone}
 
     def apply(self, image, mask):
-        from register.intensity import TONE_LEVELS, decide, tone_curve
-
         decision = decide(image, mask, tags=self.tags, inverted=self.inverted, scale=self.scale,
                           polarity=self.polarity, reference=self.reference, bits=self.bits)
         applied = []

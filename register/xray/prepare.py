@@ -4,10 +4,10 @@
 before an optimiser sees it:
 
 1. the C-arm geometry of the image, each value with its source (flag, DICOM tag, scene default:
-   :func:`register.xray_io.resolve_geometry`);
-2. the preprocessing pipeline (default :data:`register.preprocess.DEFAULT_STEPS`: field mask,
+   :func:`register.xray.io.resolve_geometry`);
+2. the preprocessing pipeline (default :data:`register.xray.preprocess.DEFAULT_STEPS`: field mask,
    median, intensity decision, normalisation over the mask, crop to the field), with DRRs of the
-   CT around the start pose as the polarity reference (:class:`register.intensity.PolarityReference`);
+   CT around the start pose as the polarity reference (:class:`register.xray.intensity.PolarityReference`);
 3. the crop's geometry (each pixel keeps its ray) and the resampling to the optimiser's size,
    where the mask follows the image (:func:`fit_to_size`): the image is scaled, its aspect kept,
    to the largest size that fits inside ``size = (H, W)`` with each side a multiple of 4 (the
@@ -24,6 +24,11 @@ from typing import Any
 import numpy as np
 from scipy import ndimage
 
+from register.engines.result import RegistrationError
+from register.engines.search import GlobalSearch, GlobalSearchSettings
+from register.xray.intensity import PolarityReference
+from register.xray.io import XRayImage, load_xray, resolve_geometry
+from register.xray.preprocess import DEFAULT_STEPS, Pipeline, PreprocessError, crop_box, cropped_geometry
 from sim.prepare import invert, masked_fill, normalize, percentile_bounds
 
 __all__ = ["PreparedXRay", "prepare_xray", "confirm_polarity", "fit_to_size", "fit_box", "masked_fill", "reference_drrs",
@@ -36,9 +41,8 @@ REFERENCE_SIZE = 48
 
 def fit_box(size) -> tuple[int, int]:
     """``(H, W)`` of the box an image is fitted into: ``size`` is ``(H, W)``, or one number for a
-    square box (the longer side). Raises :class:`register.preprocess.PreprocessError` for sides
+    square box (the longer side). Raises :class:`register.xray.preprocess.PreprocessError` for sides
     outside :data:`sim.cliargs.IMAGE_SIDE_PX`."""
-    from register.preprocess import PreprocessError
     from sim.cliargs import IMAGE_SIDE_PX
 
     try:
@@ -107,9 +111,8 @@ def reference_drrs(volume, center_lps, geometry, init_params, *, poses: int = RE
     (offsets drawn, seeded, from the original capture range :data:`sim.campaign.poses.ORIGINAL_PROTOCOL`:
     up to 40 / 20 / 20 deg and 75 mm), rendered with the X-ray's geometry sampled as
     :func:`fit_to_size` samples the X-ray to ``longer`` px. Returns a
-    :class:`register.intensity.PolarityReference`.
+    :class:`register.xray.intensity.PolarityReference`.
     """
-    from register.intensity import PolarityReference
     from sim.campaign.poses import ORIGINAL_PROTOCOL
     from sim.geometry import pose_from_params
     from sim.render import DRRRenderer, RenderSettings
@@ -136,7 +139,7 @@ class PreparedXRay:
     """An X-ray ready for an optimiser, and what was done to it.
 
     Attributes:
-        xray: the :class:`register.xray_io.XRayImage` as read.
+        xray: the :class:`register.xray.io.XRayImage` as read.
         image: ``(h, w)`` float64 at the optimiser's size: line-integral-like (bone bright),
             normalised over the valid pixels.
         mask: ``(h, w)`` bool valid pixels (the field minus exclusions), or None.
@@ -146,7 +149,7 @@ class PreparedXRay:
             median of the valid pixels).
         full_mask: ``(H, W)`` bool the valid pixels at full resolution.
         record: the preprocessing record (one entry per step).
-        sources: :class:`register.xray_io.GeometrySources` (where each geometry value came from).
+        sources: :class:`register.xray.io.GeometrySources` (where each geometry value came from).
         toned: ``(h, w)`` float64 ``image`` with its valid pixels mapped by rank onto the CT's line
             integrals in the field (the intensity step's tone curve, :func:`toned_image`) and
             normalised to [0, 1]; None when the image got no tone curve (not a display image,
@@ -185,25 +188,23 @@ def prepare_xray(xray, *, volume=None, center_lps=None, init_params=None, scene:
                  steps=None, scale: str = "auto", polarity: str = "auto", tone: str = "ct", size=(128, 128),
                  sdd_mm: float | None = None, sod_mm: float | None = None,
                  pixel_spacing_mm: float | None = None) -> PreparedXRay:
-    """Prepare ``xray`` (a path or :class:`register.xray_io.XRayImage`) for registration.
+    """Prepare ``xray`` (a path or :class:`register.xray.io.XRayImage`) for registration.
 
     Args:
         volume, center_lps, init_params: the CT, its anatomy centre (LPS mm) and the start pose
             (deg, mm); with ``volume`` given, DRRs around the start decide the polarity when the
             DICOM tags do not (:func:`reference_drrs`).
         scene: C-arm scene for geometry values the image does not give.
-        steps: preprocessing step names (default :data:`register.preprocess.DEFAULT_STEPS`).
-        scale / polarity: ``"auto"`` or an override (:data:`register.intensity.SCALES`,
-            :data:`register.intensity.POLARITIES`).
+        steps: preprocessing step names (default :data:`register.xray.preprocess.DEFAULT_STEPS`).
+        scale / polarity: ``"auto"`` or an override (:data:`register.xray.intensity.SCALES`,
+            :data:`register.xray.intensity.POLARITIES`).
         tone: ``"ct"``: a display image also gets :attr:`PreparedXRay.toned`, its values mapped
             onto the CT's line integrals in its field (with ``volume``;
-            :class:`register.preprocess.Intensity`); ``"off"``: not.
+            :class:`register.xray.preprocess.Intensity`); ``"off"``: not.
         size: ``(H, W)`` px the optimiser's image fits inside (aspect kept, sides multiples of 4;
             :func:`fit_to_size`), each side in [8, 4096]; one number is a square box.
         sdd_mm, sod_mm, pixel_spacing_mm: explicit geometry (override tags and scene).
     """
-    from register.preprocess import DEFAULT_STEPS, Pipeline, PreprocessError, cropped_geometry, crop_box
-    from register.xray_io import XRayImage, load_xray, resolve_geometry
 
     box = fit_box(size)
     if not isinstance(xray, XRayImage):
@@ -245,7 +246,7 @@ def prepare_xray(xray, *, volume=None, center_lps=None, init_params=None, scene:
 
 def toned_image(image: np.ndarray, mask: np.ndarray | None, curve) -> np.ndarray | None:
     """``image`` ``(h, w)`` (bone bright) with its valid pixels mapped by rank onto ``curve``
-    (:func:`register.intensity.tone_curve`), normalised as :class:`register.preprocess.Normalize`
+    (:func:`register.xray.intensity.tone_curve`), normalised as :class:`register.xray.preprocess.Normalize`
     does (1st / 99th percentiles of the valid pixels to 0 / 1, clipped); outside the mask the
     valid median. None when ``curve`` is None."""
     from sim.physics.display import apply_tone
@@ -265,7 +266,7 @@ def toned_image(image: np.ndarray, mask: np.ndarray | None, curve) -> np.ndarray
 _DECISIVE_POLARITY = ("option", "DICOM PixelIntensityRelationshipSign")
 
 #: The inverse must score better by this much (the best gradient NCC over the global search's grid,
-#: :meth:`register.search.GlobalSearch.polarity_scores`) to overturn the decided polarity. On
+#: :meth:`register.engines.search.GlobalSearch.polarity_scores`) to overturn the decided polarity. On
 #: realistic frames (four display chains, 22 frames) the right polarity's best was 0.38-0.96; where
 #: the decision was wrong the inverse scored 0.27-0.51 more, where it was right at most 0.04 more.
 POLARITY_FLIP_MARGIN = 0.15
@@ -275,7 +276,7 @@ def confirm_polarity(prepared: PreparedXRay, volume, center_lps, init_params, *,
                      label_materials=None, search=None) -> PreparedXRay:
     """Check the decided polarity against the CT, unless an option or a decisive tag set it.
 
-    The global search's grid (:class:`register.search.GlobalSearch`: rotations and depths over the
+    The global search's grid (:class:`register.engines.search.GlobalSearch`: rotations and depths over the
     prior box around ``init_params``, each pose at its best in-plane shift, gradient NCC at 1/4
     resolution) scores the prepared image and its inverse in one pass (an inverse's gradients are
     negated); the polarity whose best pose scores higher is kept. With the wrong polarity every
@@ -285,14 +286,12 @@ def confirm_polarity(prepared: PreparedXRay, volume, center_lps, init_params, *,
     (``reason``). The outcome goes into the record as step ``polarity_check`` (both scores, verdict,
     whether the image was inverted). About a second on 2 cores. ``physics`` and
     ``label_materials`` are accepted for the caller's convenience: the grid's DRRs are line
-    integrals, whose edges are the geometry's. ``search``: a :class:`register.search.GlobalSearch`
+    integrals, whose edges are the geometry's. ``search``: a :class:`register.engines.search.GlobalSearch`
     built for ``prepared.geometry`` (default settings) to score on; it keeps the grid's DRRs, so a
     registration that searches with it next renders the grid once (about a second saved).
     """
     from dataclasses import replace
 
-    from register.cmaes import RegistrationError
-    from register.search import GlobalSearch, GlobalSearchSettings
 
     decision = prepared.step("intensity")
     if decision is None or decision.get("polarity_source") in _DECISIVE_POLARITY:
