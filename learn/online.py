@@ -113,7 +113,7 @@ CURRENT_FIELDS = ("masked", "open")
 #: resampled to the network's size: the image scale and the CoordConv coordinates follow the field)
 #: or ``"detector"`` (the whole detector, the outside of the field filled: scale and coordinates are
 #: the detector's whatever the field). Batched pairs only (``train.framing``); registration frames
-#: the X-ray as the checkpoint records (``register.contextual.network_view``).
+#: the X-ray as the checkpoint records (``register.xray.network_view.network_view``).
 FRAMINGS = ("field", "detector")
 
 
@@ -131,8 +131,8 @@ def prepare_like_registration(display: np.ndarray, field: np.ndarray, current: n
     ``display`` ``(H, W)`` (the display chain's integers), ``field`` ``(H, W)`` bool (the
     collimated field), ``current`` ``(H, W)`` (the moving image, line integrals), ``log_display``
     and ``bone_dark`` (the display chain's log and polarity) -> ``(target, current)`` float32
-    ``(H, W)``. The steps are those of ``register.prepare.prepare_xray`` and
-    ``register.contextual`` with registration's decisions taken from the truth (the field, log or
+    ``(H, W)``. The steps are those of ``register.xray.prepare.prepare_xray`` and
+    ``register.engines.contextual`` with registration's decisions taken from the truth (the field, log or
     linear, the polarity):
 
     1. bone bright: a display shown bone dark is inverted (``max + min - x`` over the field), log
@@ -142,12 +142,12 @@ def prepare_like_registration(display: np.ndarray, field: np.ndarray, current: n
        linear bone-bright, ``["invert"]`` for linear bone-dark). ``log_display`` is kept for the
        record and for callers that log-correct raw intensity (``raw_intensity=True``:
        ``-ln(max(x, 1e-6 I0) / I0)`` with ``I0`` the ``i0_pct`` percentile over the field, as
-       ``register.preprocess.LogCorrect``; the steps are :mod:`sim.prepare`'s, which registration calls too);
+       ``register.xray.preprocess.LogCorrect``; the steps are :mod:`sim.prepare`'s, which registration calls too);
     2. both images cropped to the field's bounding box and resampled to ``(H, W)`` (registration
        crops the X-ray to its field and renders the moving images for the cropped detector; the
        predictor resamples both to the network's size);
     3. the target normalised: the ``low_pct`` / ``high_pct`` percentiles over the field to 0 / 1,
-       clipped (``register.preprocess.Normalize``);
+       clipped (``register.xray.preprocess.Normalize``);
     4. the target's pixels outside the field set to the mean over the field
        (:func:`sim.prepare.masked_fill`), and the current image's too unless ``mask_current`` is
        False (a network trained with ``current_field = "open"`` sees the whole current image:
@@ -157,7 +157,7 @@ def prepare_like_registration(display: np.ndarray, field: np.ndarray, current: n
     read as a display image (everything but ``raw_intensity``) is mapped by rank onto the current
     image's line integrals inside the field (:func:`sim.physics.display.apply_tone`), as
     registration makes the toned version of a display image on the CT's DRRs around its start
-    pose (``register.intensity.tone_curve``; a network trained so is shown that version): the
+    pose (``register.xray.intensity.tone_curve``; a network trained so is shown that version): the
     current image plays the reference, a view of the same CT at another pose.
     """
     h, w = display.shape

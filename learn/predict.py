@@ -4,7 +4,7 @@ pairs into ``g`` (rad, mm).
 :class:`NetworkPredictor` loads a ``ctxreg train`` checkpoint (:mod:`learn.checkpoint`) and
 predicts ``g = -2 log_{T_current}(T_target)`` (:func:`learn.labels.geodesic_label`: rotation in
 rad first, then translation in mm) for one pair (``predictor(fixed, drr)``, the registration's
-iteration, :mod:`register.contextual`) or for many (:meth:`NetworkPredictor.predict`, batched;
+iteration, :mod:`register.engines.contextual`) or for many (:meth:`NetworkPredictor.predict`, batched;
 ``ctxreg accuracy``, :mod:`learn.evaluate`). Images of another size than the training images are
 area-averaged to it first, then preprocessed as in training.
 """
@@ -104,7 +104,7 @@ class NetworkPredictor:
             raise CheckpointError(f"{ckpt.name}: config.framing must be one of {', '.join(FRAMINGS)}, got {framing!r}")
         #: how the network's pairs were framed (``train.framing``): ``"field"`` (cropped to the
         #: X-ray's field, as registration crops it) or ``"detector"`` (the whole detector with the
-        #: field masked: registration shows it :func:`register.contextual.network_view`)
+        #: field masked: registration shows it :func:`register.xray.network_view.network_view`)
         self.framing = framing
 
     def physics_mismatch(self, physics, *, advice: str = "set --physics to match") -> str | None:

@@ -113,7 +113,7 @@ class TrainConfig:
         framing: with ``pairs = "batched"``: ``"field"`` (default) or ``"detector"``
             (:data:`learn.online.FRAMINGS`): the pair cropped to the target's field, or the whole
             detector with the field masked; registration frames the X-ray the same way for the
-            network (the checkpoint records it: :func:`register.contextual.network_view`).
+            network (the checkpoint records it: :func:`register.xray.network_view.network_view`).
     """
 
     dataset: str

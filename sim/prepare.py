@@ -1,6 +1,6 @@
 """The preparation an X-ray image gets before the network or the similarity measure sees it (NumPy).
 
-One home for the arithmetic that registration (``register.preprocess``, ``register.prepare``)
+One home for the arithmetic that registration (``register.xray.preprocess``, ``register.xray.prepare``)
 and training (``learn.online.prepare_like_registration``) both apply to an X-ray, so that a
 training target is prepared exactly as registration prepares a user's frame. Each function is
 one step over the *field* (the valid pixels, a ``(H, W)`` bool ``mask``; ``None``: every pixel):

@@ -21,8 +21,10 @@ name                                   kind  entropy                     purpose
 :data:`KIND_SPLIT`                     3     campaign seed               CT-level split permutation ``()`` -- sim.campaign.config
 :data:`KIND_NOISE`                     4     campaign seed               noise and Monte Carlo seed of a shard's poly/full images
                                                                          ``(subject, shard, physics entry)`` -- runner
-:data:`KIND_EVALUATE_CASES`            10    evaluation seed             ``ctxreg evaluate`` targets and starts ``()`` -- register.evaluate
-:data:`KIND_POLARITY_POSES`            13    polarity seed               poses of the polarity reference DRRs ``()`` -- register.prepare
+:data:`KIND_EVALUATE_CASES`            10    evaluation seed             ``ctxreg evaluate`` targets and starts ``()``
+                                                                         -- register.evaluation.evaluate
+:data:`KIND_POLARITY_POSES`            13    polarity seed               poses of the polarity reference DRRs ``()``
+                                                                         -- register.xray.prepare
 :data:`KIND_EPOCH_PAIRS`               20    training seed               the pairs of an epoch ``(epoch)`` -- learn.data
 :data:`KIND_ACCURACY_PAIRS`            30    accuracy seed               evaluation pairs ``(kind, subject)`` -- learn.commands;
                                                                          ``()`` -- learn.evaluate
