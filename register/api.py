@@ -22,11 +22,27 @@ method (:func:`register.engines.methods.build_method`) and registers. ``ctxreg r
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any, Callable
 
 import numpy as np
+from scipy import ndimage
+
+from register.engines.methods import build_method, check_method, load_predictor, needs_model
+from register.engines.metrics import downsample
+from register.engines.result import RegistrationError
+from register.engines.search import GlobalSearch, GlobalSearchSettings, describe_search
+from register.plots import checkerboard_png, convergence_plot, overlay_png, trajectory_figure, trajectory_gif
+from register.xray.geometry import resolve_geometry
+from register.xray.io import XRayImage, check_orientation, load_xray
+from register.xray.network_view import network_view
+from register.xray.prepare import _DECISIVE_POLARITY, _fit_plan, confirm_polarity, fit_box, prepare_xray
+from register.xray.preprocess import DEFAULT_STEPS, Pipeline, PreprocessError
+from sim.atomic import atomic_path, write_json
+from sim.campaign.poses import PARAM_NAMES
+from sim.cliargs import check_memory
+from sim.outputs import check_output_dir
 
 __all__ = ["register_xray", "XRayRegistration", "parse_init", "REGISTER_RESTARTS", "REGISTER_SCATTER_PHOTONS",
            "OUTPUT_FILES", "SEARCH_MODES", "SEARCH_METHODS"]
@@ -75,7 +91,6 @@ OUTPUT_FILES = ("result.json", "overlay.png", "checkerboard.png", "convergence.p
 def parse_init(init) -> np.ndarray:
     """The start pose ``(6,)`` (deg, mm) from ``"ap"`` (zeros), six numbers, or their strings
     (``--init``). Raises :class:`register.engines.result.RegistrationError`."""
-    from register.engines.result import RegistrationError
 
     values = [init] if isinstance(init, str) else list(np.ravel(np.asarray(init, dtype=object)))
     if len(values) == 1 and str(values[0]) == "ap":
@@ -142,8 +157,6 @@ class XRayRegistration:
 
     @property
     def params(self) -> dict[str, float]:
-        from sim.campaign.poses import PARAM_NAMES
-
         return dict(zip(PARAM_NAMES, map(float, self.result.params)))
 
     @property
@@ -169,7 +182,6 @@ class XRayRegistration:
         """Similarity, renders and the pose (deg, mm) in one line; for a method with the global
         search two lines before it: ``search: ran|skipped (...)|off`` (:attr:`search_status`) and,
         where it was built, what it did (:func:`register.engines.search.describe_search`)."""
-        from register.engines.search import describe_search
 
         r = self.result
         line = (f"similarity {r.similarity:.4f} after {r.renders} renders; pose: "
@@ -185,7 +197,6 @@ class XRayRegistration:
         moving physics and the optimiser's geometry; the global search: ``search_mode`` (None for a
         method without it), ``search_ran``, ``search_status`` (:attr:`search_status`) and, where it
         was built, its record ``search``."""
-        from dataclasses import asdict
 
         g = self.geometry
         return {
@@ -209,9 +220,6 @@ class XRayRegistration:
         ``overlay.png`` (DRR edges
         and the field outline over the X-ray at its full resolution), ``checkerboard.png``,
         ``convergence.png`` and ``result.json`` (:meth:`to_dict`), each atomically. Returns the paths."""
-        from register.plots import checkerboard_png, convergence_plot, overlay_png
-        from sim.atomic import atomic_path, write_json
-        from sim.outputs import check_output_dir
         from sim.render import DRRRenderer, RenderSettings
 
         out = check_output_dir(out, OUTPUT_FILES)
@@ -219,8 +227,6 @@ class XRayRegistration:
         image = prepared.image
         written = []
         if result.trajectory is not None:
-            from register.plots import trajectory_figure, trajectory_gif
-
             with atomic_path(out / "trajectory.npz") as tmp:
                 with open(tmp, "wb") as f:
                     np.savez_compressed(f, params_deg_mm=result.trajectory["params"], g_rad_mm=result.trajectory["g"],
@@ -254,7 +260,6 @@ class XRayRegistration:
 def _moving_physics(physics):
     """The :class:`PhysicsSettings` of the moving images: a level name gets the defaults of a
     registration (noise-free, :data:`REGISTER_SCATTER_PHOTONS`)."""
-    from register.engines.result import RegistrationError
     from sim.physics.imaging import PhysicsSettings
     from sim.physics.settings import LEVELS
 
@@ -321,12 +326,6 @@ def register_xray(ct, xray, *, method: str = "contextual+cmaes", model=None, ini
     the work where the input allows it (everything but the image's contents).
     """
     from sim import load_ct
-    from register.engines.result import RegistrationError
-    from register.engines.methods import build_method, check_method, load_predictor, needs_model
-    from register.xray.prepare import confirm_polarity, fit_box, prepare_xray
-    from register.xray.preprocess import DEFAULT_STEPS, Pipeline
-    from register.engines.search import GlobalSearch, GlobalSearchSettings
-    from register.xray.io import XRayImage, check_orientation, load_xray, resolve_geometry
     from sim.anatomy import anatomy_center
     from sim.geometry import pose_from_params
     from sim.render import check_in_view
@@ -398,7 +397,6 @@ def register_xray(ct, xray, *, method: str = "contextual+cmaes", model=None, ini
                           scene=scene, model=predictor, physics=moving, label_materials=label_materials,
                           restarts=restarts if method == "cmaes" else 0, keep_drrs=True, note=remark,
                           search=grid)
-    from register.xray.network_view import network_view
 
     view = network_view(predictor, prepared) if predictor is not None else None  # a detector-framed network
     result = engine.register(prepared.image, x0, mask=prepared.mask, toned=prepared.toned, network_view=view)
@@ -414,8 +412,6 @@ def grid_bytes(box, shape, geometry) -> float:
     search's grid of padded DRRs at 1/4 resolution (every grid pose at once, padded by the largest
     in-plane shift), :data:`GRID_BYTES_PER_PX` each. The polarity check scores on it even for
     ``method="cmaes"``. The field's crop is not known yet: the X-ray is taken whole."""
-    from register.xray.prepare import _fit_plan
-    from register.engines.search import GlobalSearchSettings
 
     s = GlobalSearchSettings()
     _, _, _, g = _fit_plan(tuple(shape), geometry, tuple(box))
@@ -428,7 +424,6 @@ def grid_bytes(box, shape, geometry) -> float:
 def check_registration_memory(box, shape, geometry, *, available: int | None = None) -> None:
     """Refuse (one line naming ``--size``) a registration whose largest allocation
     (:func:`grid_bytes`) exceeds the memory available now, before it is made."""
-    from sim.cliargs import check_memory
 
     check_memory(grid_bytes(box, shape, geometry), f"--size {box[0]} {box[1]}",
                  f"registering this {shape[0]} x {shape[1]} px X-ray at {box[0]} x {box[1]} px (the global search's "
@@ -441,10 +436,7 @@ def _check_coarse_field(prepared, box, need: int) -> None:
     pixels at the registration's coarsest level (1/4, eroded by one pixel, as the global search and
     the masked gradient similarity see it): the registration would fail deep inside with "mask:
     empty after erosion" or "too few to search"."""
-    from scipy import ndimage
 
-    from register.engines.metrics import downsample
-    from register.xray.preprocess import PreprocessError
 
     mask = prepared.mask
     h, w = prepared.image.shape
@@ -462,9 +454,7 @@ def _polarity_unchecked(prepared):
     :func:`register.xray.prepare.confirm_polarity` records an image too small for the grid: the
     decision stands. Nothing is recorded where an option or a decisive tag set the polarity (the
     check would not run either)."""
-    from dataclasses import replace
 
-    from register.xray.prepare import _DECISIVE_POLARITY
 
     decision = prepared.step("intensity")
     if decision is None or decision.get("polarity_source") in _DECISIVE_POLARITY:

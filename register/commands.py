@@ -6,22 +6,26 @@ Both check their options and output folder before any work; ``register`` is a th
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+import sys
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import numpy as np
 
-from register.api import (REGISTER_RESTARTS, REGISTER_SCATTER_PHOTONS, RESTART_METHODS, SEARCH_METHODS, SEARCH_MODES,
-                          parse_init)
+from register.api import (OUTPUT_FILES, REGISTER_RESTARTS, REGISTER_SCATTER_PHOTONS, RESTART_METHODS, SEARCH_METHODS,
+                          SEARCH_MODES, parse_init, register_xray)
 from register.engines.cmaes import CMAESSettings
-from register.evaluation.evaluate import LOCAL_ROT_DEG, LOCAL_TRANS_MM
-from register.xray.intensity import POLARITIES, SCALES, TONES
-from register.engines.methods import METHOD_NAMES
+from register.engines.methods import METHOD_NAMES, build_method, load_predictor, needs_model
 from register.engines.search import GlobalSearchSettings
+from register.evaluation.evaluate import (LOCAL_ROT_DEG, LOCAL_TRANS_MM, EvaluationError, EvaluationSettings,
+                                          evaluate)
+from register.xray.intensity import POLARITIES, SCALES, TONES
 from register.xray.io import ORIENTATIONS
 from sim.cli import CT_HELP
-from sim.cliargs import IMAGE_SIDE_PX, Range, opt
-from sim.physics.options import level_field, physics_option
+from sim.cliargs import IMAGE_SIDE_PX, Range, opt, refuse_unused, refuse_unused_label_map
+from sim.outputs import check_output_dir
+from sim.physics.options import (check_level_options, label_materials, level_field, physics_option,
+                                 physics_settings)
 
 __all__ = ["EvaluateCommand", "RegisterCommand", "run_evaluate", "run_register", "REGISTER_RESTARTS",
            "REGISTER_SCATTER_PHOTONS"]
@@ -80,15 +84,8 @@ class EvaluateCommand:
 
 def run_evaluate(cmd: EvaluateCommand) -> list[Path]:
     """Check the options and the output folder, then run the protocol (:func:`register.evaluation.evaluate.evaluate`)."""
-    import sys
-    from dataclasses import asdict
-
-    from register.evaluation.evaluate import EvaluationError, EvaluationSettings, evaluate
-    from register.engines.methods import build_method, load_predictor, needs_model
     from sim.anatomy import anatomy_center
-    from sim.cliargs import refuse_unused, refuse_unused_label_map
     from sim.ct_io import load_ct_spec
-    from sim.outputs import check_output_dir
     from sim.physics.imaging import LogImageRenderer, PhysicsSettings
     from sim.render import DRRRenderer, RenderSettings
 
@@ -226,12 +223,6 @@ class RegisterCommand:
 def run_register(cmd: RegisterCommand) -> list[Path]:
     """Check the options and the output folder, register (:func:`register.api.register_xray`: it
     checks the method, model, start, CT, X-ray and geometry before the work) and write the outputs."""
-    import sys
-
-    from register.api import OUTPUT_FILES, register_xray
-    from sim.cliargs import refuse_unused, refuse_unused_label_map
-    from sim.outputs import check_output_dir
-    from sim.physics.options import check_level_options, label_materials, physics_settings
 
     parse_init(cmd.init)
     refuse_unused_label_map(cmd)
@@ -282,7 +273,7 @@ class StudyCommand:
 
 def run_study(cmd: StudyCommand) -> list[Path]:
     """Train every variant and evaluate it on every target domain (resumable: register/evaluation/study.py)."""
-    from register.evaluation.study import STUDY_FILES, load_study, run_domain_study
+    from register.evaluation.study import STUDY_FILES, load_study, run_domain_study  # on use: its CT readers
 
     study = load_study(cmd.study)
     run_domain_study(study, cmd.out, only=cmd.only, targets=cmd.targets)

@@ -108,7 +108,7 @@ def test_a_bad_input_is_refused_before_the_work_naming_the_option(name, inputs29
 def test_a_size_beyond_the_memory_is_refused_before_it_is_allocated(size, inputs, tmp_path, capsys,  # noqa: F811
                                                                     monkeypatch):
     """register --size 4096 4096 on a 64 x 64 X-ray asked for 27 GiB in the polarity check."""
-    import register.xray.prepare
+    import register.api
     import sim.cliargs
 
     monkeypatch.setattr(sim.cliargs, "available_memory_bytes", lambda: 4 * 1024 ** 3)
@@ -116,7 +116,7 @@ def test_a_size_beyond_the_memory_is_refused_before_it_is_allocated(size, inputs
     def no_work(*args, **kwargs):
         raise AssertionError("prepared before the memory check")
 
-    monkeypatch.setattr(register.xray.prepare, "prepare_xray", no_work)
+    monkeypatch.setattr(register.api, "prepare_xray", no_work)
     monkeypatch.setattr("sim.load_ct", no_work)  # the X-ray and its geometry suffice
     status, new = _run(f"register --ct phantom --xray {{xray}} --size {size} --out reg", inputs, tmp_path)
     err = capsys.readouterr().err.strip()
@@ -128,7 +128,8 @@ def test_a_size_beyond_the_memory_is_refused_before_it_is_allocated(size, inputs
 def test_the_memory_estimate_is_the_grid_s_and_the_default_size_passes(inputs):  # noqa: F811
     from register.api import GRID_BYTES_PER_PX, check_registration_memory, grid_bytes
     from register.engines.search import GlobalSearchSettings
-    from register.xray.io import load_xray, resolve_geometry
+    from register.xray.geometry import resolve_geometry
+    from register.xray.io import load_xray
 
     xray = load_xray(inputs["xray"])
     g, _ = resolve_geometry(xray, "cios_fusion")

@@ -15,14 +15,16 @@ inside a box around the start. Everything is seeded.
 
 from __future__ import annotations
 
+import copy
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
 from register.engines.metrics import downsample, get_metric
 from register.engines.result import RegistrationError, RegistrationResult
 from sim.errors import InputError
+from sim.geometry import pose_from_params
 
 
 @dataclass(frozen=True)
@@ -160,8 +162,6 @@ class CMAESRegistration:
         """This registration with another similarity per level (``settings.metrics``), sharing its
         renderers (nothing is rebuilt): e.g. plain gradient NCC for a line-integral image where the
         settings name a display-tolerant one."""
-        import copy
-        from dataclasses import replace
 
         if tuple(metrics) == tuple(self.settings.metrics):
             return self
@@ -171,7 +171,6 @@ class CMAESRegistration:
 
     def render(self, params: np.ndarray, factor: int = 1) -> np.ndarray:
         """``(B, H/f, W/f)`` DRRs for ``(B, 6)`` parameters at a level's factor."""
-        from sim.geometry import pose_from_params
 
         r = self.by_factor[factor]
         return r.render(pose_from_params(np.atleast_2d(params), r.geometry.sod_mm))
@@ -185,7 +184,6 @@ class CMAESRegistration:
         ``polish``: False leaves the polish out whatever ``settings.polish`` (a caller that compares
         several registrations first and polishes the winner, :meth:`polish`).
         """
-        from sim.geometry import pose_from_params
 
         s = self.settings
         fixed = self._checked(fixed)
@@ -224,7 +222,6 @@ class CMAESRegistration:
         launches; the same result per start as :meth:`register` without restarts). Returns K
         results, in the order of ``starts``; each one's ``stage_seconds`` is its share (1/K) of the
         lockstep's wall time. ``settings.restarts`` does not apply."""
-        from sim.geometry import pose_from_params
 
         s = self.settings
         fixed = self._checked(fixed)
@@ -285,7 +282,6 @@ class CMAESRegistration:
         """The polish alone (Powell at full resolution, ``settings.polish_evals``) from ``params``
         ``(6,)`` (deg, mm), inside the box around ``start`` (default ``params``): the result of a
         :meth:`register` run with ``polish=False``, finished. ``stage_seconds`` has ``"polish"``."""
-        from sim.geometry import pose_from_params
 
         s = self.settings
         fixed = self._checked(fixed)

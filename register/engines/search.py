@@ -37,8 +37,10 @@ from dataclasses import dataclass
 import numpy as np
 
 from register.engines.cmaes import CMAESRegistration, CMAESSettings
+from register.engines.metrics import downsample, get_metric, gradient_ncc, plain_equivalent
 from register.engines.result import RegistrationError, RegistrationResult
 from sim.errors import InputError
+from sim.geometry import CArmGeometry, pose_from_params
 
 __all__ = ["GlobalSearchSettings", "GlobalSearch", "masked_ncc_shifts", "describe_search"]
 
@@ -135,7 +137,6 @@ class GlobalSearchSettings:
             raise RegistrationError(f"always_grid must be True or False, got {self.always_grid!r}")
         if not (np.isfinite(self.found_above) and -1.0 <= self.found_above <= 1.0):
             raise RegistrationError(f"found_above must be a similarity in [-1, 1], got {self.found_above}")
-        from register.engines.metrics import get_metric
 
         try:
             get_metric(self.metric)
@@ -291,7 +292,6 @@ class GlobalSearch:
 
     def _padded_renderer(self, volume, scene, g, pad):
         """A line-DRR renderer of ``g``'s detector grown by ``pad`` pixels on every side."""
-        from sim.geometry import CArmGeometry
         from sim.physics.imaging import moving_renderer
 
         cx, cy = g.principal_point
@@ -304,7 +304,6 @@ class GlobalSearch:
         """``fixed`` downsampled by ``factor`` and its field eroded by one pixel (as gradient_ncc)."""
         from scipy import ndimage
 
-        from register.engines.metrics import downsample
 
         f = downsample(np.asarray(fixed, np.float64), factor)
         m = np.ones(f.shape, bool) if mask is None else downsample(np.asarray(mask, np.float64), factor) > 0.999
@@ -318,7 +317,6 @@ class GlobalSearch:
         """The padded DRRs ``(N, h, w)`` of ``params`` ``(N, 6)`` by ``renderer`` (of detector ``g``).
         The grid's own (``self.padded``) are kept for the next call with the same poses: the
         polarity check (:meth:`polarity_scores`) and the search then render the grid once."""
-        from sim.geometry import pose_from_params
 
         params = np.ascontiguousarray(params, np.float64)
         key = (params.shape, params.tobytes())
@@ -432,7 +430,6 @@ class GlobalSearch:
         forgives any display curve, so it is more lenient than the threshold was set for."""
         if metric == "gncc":
             return float(result.similarity)
-        from register.engines.metrics import gradient_ncc
 
         return float(gradient_ncc(fixed, self.local.render(np.asarray(result.params, float).reshape(1, 6), 1),
                                   mask=mask)[0])
@@ -472,7 +469,6 @@ class GlobalSearch:
         renders = 0
         best = None
         results: list[RegistrationResult] = []
-        from register.engines.metrics import plain_equivalent
 
         metric = s.metric if toned is not None else plain_equivalent(s.metric)  # GlobalSearchSettings.metric
         coarse_engine, fine_engine = (e.scored_by((metric,)) for e in (self.local, self.local_fine))

@@ -30,7 +30,13 @@ from pathlib import Path
 
 import numpy as np
 
-from sim.cliargs import IMAGE_SIDE_PX, Range, opt
+from register.api import OUTPUT_FILES, register_xray
+from register.evaluation.errors import bone_points, pose_errors
+from register.evaluation.frames import FrameSimulator
+from sim.atomic import write_json
+from sim.cliargs import IMAGE_SIDE_PX, OptionError, Range, opt
+from sim.geometry import pose_from_params
+from sim.outputs import check_output_dir
 
 __all__ = ["DemoCommand", "run_demo", "DEMO_POSE", "DEMO_FILES", "default_ct"]
 
@@ -84,7 +90,6 @@ DEMO_MIN_SIDE_PX = 32
 def demo_geometry(cmd: DemoCommand):
     """The demo X-ray's detector (the scene's at ``--size``); a size off the detector's aspect is
     refused naming ``--size``."""
-    from sim.cliargs import OptionError
     from sim.scene import SceneError, load_scene
 
     try:
@@ -99,7 +104,6 @@ def check_demo_options(cmd: DemoCommand) -> None:
     not between the source and the detector or does not project onto the detector: before the CT
     is loaded and anything simulated. (Whether the CT itself is in view is checked once it is
     loaded, still before the simulation.)"""
-    from sim.cliargs import OptionError
 
     if min(cmd.size) < DEMO_MIN_SIDE_PX:
         raise OptionError(f"--size {cmd.size[0]} {cmd.size[1]}: the demo's X-ray needs at least {DEMO_MIN_SIDE_PX} px "
@@ -141,14 +145,8 @@ class _Stages:
 def run_demo(cmd: DemoCommand) -> list[Path]:
     """Simulate, register, write and report (module doc)."""
     from learn.models import resolve_model
-    from register.api import OUTPUT_FILES, register_xray
-    from register.evaluation.errors import bone_points, pose_errors
-    from register.evaluation.frames import FrameSimulator
     from sim.anatomy import anatomy_center
-    from sim.atomic import write_json
     from sim.ct_io import load_ct_spec
-    from sim.geometry import pose_from_params
-    from sim.outputs import check_output_dir
     from sim.physics.display import Collimator, DisplayChain
     from sim.physics.imaging import PhysicsSettings, XRayImager
     from sim.render import check_in_view

@@ -96,8 +96,6 @@ from typing import Any
 
 import numpy as np
 from scipy import ndimage
-from scipy.spatial import ConvexHull, QhullError
-from skimage import measure
 
 from register.xray.io import XRayInputError
 from sim.atomic import jsonable
@@ -544,6 +542,8 @@ def _deviation(model: np.ndarray, cand: np.ndarray) -> float:
 
 def _contour(cand: np.ndarray) -> np.ndarray:
     """Sub-pixel outer contour (N, 2) as (row, col); runs along the image edge at -0.5 / H-0.5."""
+    from skimage import measure  # imported on use: the command line starts without it
+
     contours = measure.find_contours(np.pad(cand, 1).astype(np.float32), 0.5)
     pts = max(contours, key=len) - 1.0
     return pts
@@ -746,6 +746,8 @@ def _fit_iris_blades(cand: np.ndarray, pts: np.ndarray, s: FieldSettings,
 
 def _fit_polygon(cand: np.ndarray, pts: np.ndarray, s: FieldSettings) -> tuple[np.ndarray, dict] | None:
     """Convex polygon: hull of the boundary points, simplified and refined to straight edges."""
+    from scipy.spatial import ConvexHull, QhullError  # imported on use: the command line starts without it
+
     H, W = cand.shape
     pts = np.column_stack([np.clip(pts[:, 0], -0.5, H - 0.5), np.clip(pts[:, 1], -0.5, W - 0.5)])
     try:

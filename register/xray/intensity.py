@@ -48,6 +48,7 @@ from typing import Any
 import numpy as np
 from scipy import ndimage
 
+from register.engines.metrics import ncc
 from sim.errors import InputError
 from sim.physics.display import TONE_LEVELS, TONES, apply_tone, quantile_curve
 
@@ -144,7 +145,6 @@ class PolarityReference:
 
     def scores(self, image: np.ndarray, mask: np.ndarray) -> tuple[float, float]:
         """``(best NCC, best NCC of the inverted image)`` over the DRRs, within the mask."""
-        from register.engines.metrics import ncc
 
         small, small_mask = self.resample(image, mask)
         if small_mask is None or small_mask.sum() < 16:

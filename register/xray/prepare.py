@@ -4,7 +4,7 @@
 before an optimiser sees it:
 
 1. the C-arm geometry of the image, each value with its source (flag, DICOM tag, scene default:
-   :func:`register.xray.io.resolve_geometry`);
+   :func:`register.xray.geometry.resolve_geometry`);
 2. the preprocessing pipeline (default :data:`register.xray.preprocess.DEFAULT_STEPS`: field mask,
    median, intensity decision, normalisation over the mask, crop to the field), with DRRs of the
    CT around the start pose as the polarity reference (:class:`register.xray.intensity.PolarityReference`);
@@ -27,7 +27,8 @@ from scipy import ndimage
 from register.engines.result import RegistrationError
 from register.engines.search import GlobalSearch, GlobalSearchSettings
 from register.xray.intensity import PolarityReference
-from register.xray.io import XRayImage, load_xray, resolve_geometry
+from register.xray.geometry import resolve_geometry
+from register.xray.io import XRayImage, load_xray
 from register.xray.preprocess import DEFAULT_STEPS, Pipeline, PreprocessError, crop_box, cropped_geometry
 from sim.prepare import invert, masked_fill, normalize, percentile_bounds
 
@@ -149,7 +150,7 @@ class PreparedXRay:
             median of the valid pixels).
         full_mask: ``(H, W)`` bool the valid pixels at full resolution.
         record: the preprocessing record (one entry per step).
-        sources: :class:`register.xray.io.GeometrySources` (where each geometry value came from).
+        sources: :class:`register.xray.geometry.GeometrySources` (where each geometry value came from).
         toned: ``(h, w)`` float64 ``image`` with its valid pixels mapped by rank onto the CT's line
             integrals in the field (the intensity step's tone curve, :func:`toned_image`) and
             normalised to [0, 1]; None when the image got no tone curve (not a display image,

@@ -50,6 +50,7 @@ def register_drr(phantom, truth, **kw):
 
 
 def test_search_off_never_builds_the_global_search(phantom, monkeypatch, tmp_path):
+    import register.api
     import register.engines.pipeline
     import register.engines.search
 
@@ -59,6 +60,7 @@ def test_search_off_never_builds_the_global_search(phantom, monkeypatch, tmp_pat
 
     monkeypatch.setattr(register.engines.search, "GlobalSearch", NoSearch)
     monkeypatch.setattr(register.engines.pipeline, "GlobalSearch", NoSearch)
+    monkeypatch.setattr(register.api, "GlobalSearch", NoSearch)
     res = register_drr(phantom, NEAR, search="off")
     assert res.search_ran is False and res.search_mode == "off" and res.result.search is None
     assert res.search_status == "off" and res.summary().splitlines()[0] == "search: off"
@@ -131,7 +133,7 @@ def test_cli_refuses_search_with_a_method_without_it_in_one_line(monkeypatch, ca
 
 
 def test_cli_passes_search_on(monkeypatch, capsys, tmp_path):
-    from register import api, cli
+    from register import cli, commands
 
     seen = {}
 
@@ -142,7 +144,7 @@ def test_cli_passes_search_on(monkeypatch, capsys, tmp_path):
         seen.update(kwargs)
         raise Stop
 
-    monkeypatch.setattr(api, "register_xray", fake)
+    monkeypatch.setattr(commands, "register_xray", fake)
     with pytest.raises(Stop):
         cli.main(["register", "--ct", "phantom", "--xray", "x.png", "--search", "off", "--out", str(tmp_path / "o")])
     assert seen["search"] == "off" and seen["method"] == "contextual+cmaes"

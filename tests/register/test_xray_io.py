@@ -11,14 +11,12 @@ import pydicom
 import pytest
 from PIL import Image
 
+from register.xray.geometry import GeometrySources, geometry_for, resolve_geometry
 from register.xray.io import (
     INTENSITY_TAG_KEYS,
-    GeometrySources,
     XRayImage,
     XRayInputError,
-    geometry_for,
     load_xray,
-    resolve_geometry,
     write_xray_dicom,
 )
 from sim.scene import load_scene
