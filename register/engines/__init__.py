@@ -2,6 +2,7 @@
 
 ``result`` (what every engine returns, its error), ``metrics`` (image similarity), ``cmaes``
 (multi-resolution CMA-ES), ``search`` (the global search), ``contextual`` (the network's pose
-iteration), ``pipeline`` (contextual + global search + CMA-ES refinement), ``methods`` (the
-methods by name, built in one place).
+iteration), ``pipeline`` (contextual + global search + CMA-ES refinement as one object),
+``methods`` (the methods by name, built in one place). The bottom layer of :mod:`register`: it
+imports nothing else of it.
 """

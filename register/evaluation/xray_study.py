@@ -1,4 +1,4 @@
-"""Registering realistic C-arm frames as a user would: collimated against open, through ``ctxreg register``.
+"""Registering realistic C-arm frames as a user would: collimated against open, as ``ctxreg register`` does.
 
 For a CT, :func:`run_xray_study` draws target poses (the evaluation protocol's distribution), renders
 each with full physics (spectrum, seven materials, CsI detector, Monte Carlo scatter, quantum
