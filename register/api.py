@@ -437,7 +437,6 @@ def _check_coarse_field(prepared, box, need: int) -> None:
     the masked gradient similarity see it): the registration would fail deep inside with "mask:
     empty after erosion" or "too few to search"."""
 
-
     mask = prepared.mask
     h, w = prepared.image.shape
     m = np.ones((h // 4, w // 4), bool) if mask is None else downsample(np.asarray(mask, np.float64), 4) > 0.999
@@ -454,7 +453,6 @@ def _polarity_unchecked(prepared):
     :func:`register.xray.prepare.confirm_polarity` records an image too small for the grid: the
     decision stands. Nothing is recorded where an option or a decisive tag set the polarity (the
     check would not run either)."""
-
 
     decision = prepared.step("intensity")
     if decision is None or decision.get("polarity_source") in _DECISIVE_POLARITY:

@@ -6,6 +6,8 @@ from pathlib import Path
 
 import numpy as np
 
+from sim.atomic import atomic_path, save_figure
+
 
 def _window(img: np.ndarray, mask: np.ndarray | None = None) -> np.ndarray:
     """``img`` mapped to [0, 1] by the 0.5 / 99.5 percentiles of the valid pixels."""
@@ -44,8 +46,6 @@ def overlay_png(xray: np.ndarray, drr: np.ndarray, path: str | Path, mask: np.nd
     shape: render it with the X-ray's own geometry). Lines are 1 px per 512 px of the longer side."""
     from PIL import Image
 
-    from sim.atomic import atomic_path
-
     xray = np.asarray(xray, float)
     if drr.shape != xray.shape:
         raise ValueError(f"overlay: the DRR {drr.shape} must have the X-ray's shape {xray.shape}")
@@ -67,8 +67,6 @@ def checkerboard_png(xray: np.ndarray, drr: np.ndarray, path: str | Path, mask: 
     mean a good registration."""
     from PIL import Image
 
-    from sim.atomic import atomic_path
-
     xray = np.asarray(xray, float)
     if drr.shape != xray.shape:
         raise ValueError(f"checkerboard: the DRR {drr.shape} must have the X-ray's shape {xray.shape}")
@@ -88,8 +86,6 @@ def convergence_plot(history, path: str | Path) -> None:
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-
-    from sim.atomic import save_figure
 
     fig, ax = plt.subplots(figsize=(6, 3.5))
     stages = []
@@ -118,8 +114,6 @@ def trajectory_figure(xray: np.ndarray, drrs: np.ndarray, params: np.ndarray, pa
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
     from scipy import ndimage
-
-    from sim.atomic import save_figure
 
     k = len(drrs)
     steps = sorted(set(np.linspace(0, k - 1, min(panels, k)).round().astype(int).tolist()))
@@ -151,8 +145,6 @@ def trajectory_gif(xray: np.ndarray, drrs: np.ndarray, params: np.ndarray, path:
     pixels per image pixel; the last frame is held for 2 s. Written atomically (Pillow)."""
     from PIL import Image, ImageDraw
     from scipy import ndimage
-
-    from sim.atomic import atomic_path
 
     grey = _window(np.asarray(xray, float))
     h, w = grey.shape

@@ -334,7 +334,6 @@ class CMAESRegistration:
         ``histories[k]`` search k's rows."""
         import cma
 
-
         s = self.settings
         K = len(x0s)
         bests = [x.copy() for x in x0s]

@@ -304,7 +304,6 @@ class GlobalSearch:
         """``fixed`` downsampled by ``factor`` and its field eroded by one pixel (as gradient_ncc)."""
         from scipy import ndimage
 
-
         f = downsample(np.asarray(fixed, np.float64), factor)
         m = np.ones(f.shape, bool) if mask is None else downsample(np.asarray(mask, np.float64), factor) > 0.999
         m = ndimage.binary_erosion(m, np.ones((3, 3)), border_value=0)

@@ -28,8 +28,13 @@ import numpy as np
 
 from register.engines.methods import RegistrationMethod
 from register.evaluation.errors import bone_points, pose_errors
+from sim.atomic import atomic_path, save_figure, write_csv, write_json
+from sim.campaign.poses import ORIGINAL_PROTOCOL
 from sim.cliargs import Range
 from sim.errors import InputError
+from sim.geometry import pose_from_params
+from sim.progress import Progress
+from sim.seeds import KIND_EVALUATE_CASES, rng_for
 
 START_MODES = ("ap", "local")
 #: The largest start offsets of ``start="local"`` a protocol may ask for: rotation (deg) and
@@ -75,10 +80,8 @@ class EvaluationSettings:
 
 def sample_cases(settings: EvaluationSettings, distribution=None) -> tuple[np.ndarray, np.ndarray]:
     """``(targets (N, 6), starts (N, 6))`` pose parameters (deg, mm), seeded."""
-    from sim.campaign.poses import ORIGINAL_PROTOCOL
 
     dist = distribution or ORIGINAL_PROTOCOL
-    from sim.seeds import KIND_EVALUATE_CASES, rng_for
 
     rng = rng_for(settings.seed, KIND_EVALUATE_CASES)
     targets = dist.sample(rng, settings.cases)
@@ -138,8 +141,6 @@ def violin_plot(rows: list[dict], path: Path) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from sim.atomic import save_figure
-
     methods = sorted({r["method"] for r in rows})
     fig, axes = plt.subplots(1, 3, figsize=(12, 3.8))
     for ax, col, label in zip(axes, ("rot_err_deg", "trans_err_mm", "mtre_mm"),
@@ -158,15 +159,12 @@ def evaluate(volume, methods: dict[str, RegistrationMethod], settings: Evaluatio
     for the contextual methods, ``trajectories.json`` (every case's poses per iteration), all
     after the last case (a run that fails leaves nothing). ``record`` (e.g. the targets' and the
     methods' physics) is stored in ``summary.json``."""
-    from sim.atomic import atomic_path, write_csv, write_json
-    from sim.geometry import pose_from_params
 
     out = Path(out)
     targets, starts = sample_cases(settings)
     points = bone_points(volume, settings.max_points, settings.seed)
     target_images = target_renderer.render(pose_from_params(targets, geometry.sod_mm))
     rows, trajectories = [], []
-    from sim.progress import Progress
 
     bar = Progress(settings.cases * len(methods), 0, f"evaluate {out.name}", "registrations", rate_unit="reg/s")
     for i, (target, start, image) in enumerate(zip(targets, starts, target_images)):

@@ -181,7 +181,6 @@ def load_study(path: str | Path) -> Study:
     """Read and check a study file; relative paths in it are relative to the file."""
     from learn.train import TrainConfig
 
-
     path = Path(path)
     data = read_toml(path, StudyError, "study file")
     unknown = set(data) - {"study", "variant", "target"}
@@ -750,7 +749,6 @@ def _plot(study: Study, results: dict, path: Path) -> None:
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-
 
     fig, axes = plt.subplots(1, len(study.methods), figsize=(4 + 2.5 * len(study.targets), 3.8), squeeze=False)
     width = 0.8 / max(len(study.variants), 1)

@@ -32,9 +32,10 @@ A MONOCHROME2 image with ``PresentationLUTShape`` INVERSE is shown inverted, so 
 
 from __future__ import annotations
 
+import json
 import math
 import os
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -166,7 +167,6 @@ class XRayImage:
         check_orientation(orientation)
         if orientation == "none":
             return self
-        from dataclasses import replace
 
         meta = dict(self.meta, orientation=orientation)
         rc = meta.get("pixel_spacing_rc_mm")
@@ -264,7 +264,6 @@ def _tiff_planes(im) -> str | None:
     """What a TIFF whose samples are stored plane by plane (PlanarConfiguration 2) holds, in words
     (e.g. a stack of 3 images that ``tifffile.imwrite`` of a ``(3, H, W)`` array stores as RGB
     planes); None for anything else."""
-    import json
 
     tags = getattr(im, "tag_v2", None)
     if tags is None or tags.get(284) != 2:

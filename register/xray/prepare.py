@@ -18,7 +18,7 @@ The result keeps the full-resolution image and mask too, for figures a person ca
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -30,7 +30,11 @@ from register.xray.intensity import PolarityReference
 from register.xray.geometry import resolve_geometry
 from register.xray.io import XRayImage, load_xray
 from register.xray.preprocess import DEFAULT_STEPS, Pipeline, PreprocessError, crop_box, cropped_geometry
+from sim.campaign.poses import ORIGINAL_PROTOCOL
+from sim.cliargs import IMAGE_SIDE_PX
+from sim.geometry import pose_from_params
 from sim.prepare import invert, masked_fill, normalize, percentile_bounds
+from sim.seeds import KIND_POLARITY_POSES, rng_for
 
 __all__ = ["PreparedXRay", "prepare_xray", "confirm_polarity", "fit_to_size", "fit_box", "masked_fill", "reference_drrs",
            "REFERENCE_POSES", "REFERENCE_SIZE", "POLARITY_FLIP_MARGIN"]
@@ -44,7 +48,6 @@ def fit_box(size) -> tuple[int, int]:
     """``(H, W)`` of the box an image is fitted into: ``size`` is ``(H, W)``, or one number for a
     square box (the longer side). Raises :class:`register.xray.preprocess.PreprocessError` for sides
     outside :data:`sim.cliargs.IMAGE_SIDE_PX`."""
-    from sim.cliargs import IMAGE_SIDE_PX
 
     try:
         box = (int(size), int(size)) if np.ndim(size) == 0 else tuple(int(v) for v in size)
@@ -57,7 +60,6 @@ def fit_box(size) -> tuple[int, int]:
 
 def _fit_plan(shape: tuple[int, int], geometry, size):
     """Sampling of :func:`fit_to_size`: ``(rows, cols, f, geometry)``."""
-    from dataclasses import replace
 
     h, w = shape
     box_h, box_w = (size, size) if np.ndim(size) == 0 else size
@@ -114,12 +116,9 @@ def reference_drrs(volume, center_lps, geometry, init_params, *, poses: int = RE
     :func:`fit_to_size` samples the X-ray to ``longer`` px. Returns a
     :class:`register.xray.intensity.PolarityReference`.
     """
-    from sim.campaign.poses import ORIGINAL_PROTOCOL
-    from sim.geometry import pose_from_params
     from sim.render import DRRRenderer, RenderSettings
 
     _, _, _, small = _fit_plan((geometry.height, geometry.width), geometry, longer)
-    from sim.seeds import KIND_POLARITY_POSES, rng_for
 
     rng = rng_for(seed, KIND_POLARITY_POSES)
     x0 = np.asarray(init_params, float).reshape(1, 6)
@@ -291,8 +290,6 @@ def confirm_polarity(prepared: PreparedXRay, volume, center_lps, init_params, *,
     built for ``prepared.geometry`` (default settings) to score on; it keeps the grid's DRRs, so a
     registration that searches with it next renders the grid once (about a second saved).
     """
-    from dataclasses import replace
-
 
     decision = prepared.step("intensity")
     if decision is None or decision.get("polarity_source") in _DECISIVE_POLARITY:

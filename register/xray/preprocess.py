@@ -41,6 +41,7 @@ from scipy import ndimage
 from register.xray.field import FieldSettings, detect_field
 from register.xray.intensity import POLARITIES, SCALES, TONE_LEVELS, TONES, decide, tone_curve
 from sim import prepare
+from sim.atomic import jsonable
 from sim.errors import InputError
 from sim.geometry import CArmGeometry
 
@@ -314,8 +315,6 @@ DEFAULT_STEPS = ("field", "median", "intensity", "normalize", "crop")
 
 
 def _jsonable(obj: Any) -> Any:
-    from sim.atomic import jsonable
-
     try:
         return jsonable(obj)
     except TypeError as e:
