@@ -91,7 +91,6 @@ OUTPUT_FILES = ("result.json", "overlay.png", "checkerboard.png", "convergence.p
 def parse_init(init) -> np.ndarray:
     """The start pose ``(6,)`` (deg, mm) from ``"ap"`` (zeros), six numbers, or their strings
     (``--init``). Raises :class:`register.engines.result.RegistrationError`."""
-
     values = [init] if isinstance(init, str) else list(np.ravel(np.asarray(init, dtype=object)))
     if len(values) == 1 and str(values[0]) == "ap":
         return np.zeros(6)
@@ -182,7 +181,6 @@ class XRayRegistration:
         """Similarity, renders and the pose (deg, mm) in one line; for a method with the global
         search two lines before it: ``search: ran|skipped (...)|off`` (:attr:`search_status`) and,
         where it was built, what it did (:func:`register.engines.search.describe_search`)."""
-
         r = self.result
         line = (f"similarity {r.similarity:.4f} after {r.renders} renders; pose: "
                 + " ".join(f"{v:.2f}" for v in r.params))
@@ -197,7 +195,6 @@ class XRayRegistration:
         moving physics and the optimiser's geometry; the global search: ``search_mode`` (None for a
         method without it), ``search_ran``, ``search_status`` (:attr:`search_status`) and, where it
         was built, its record ``search``."""
-
         g = self.geometry
         return {
             **self.result.to_dict(), "method": self.method, "search_mode": self.search_mode,
@@ -412,7 +409,6 @@ def grid_bytes(box, shape, geometry) -> float:
     search's grid of padded DRRs at 1/4 resolution (every grid pose at once, padded by the largest
     in-plane shift), :data:`GRID_BYTES_PER_PX` each. The polarity check scores on it even for
     ``method="cmaes"``. The field's crop is not known yet: the X-ray is taken whole."""
-
     s = GlobalSearchSettings()
     _, _, _, g = _fit_plan(tuple(shape), geometry, tuple(box))
     h, w = g.height // s.factor, g.width // s.factor
@@ -424,7 +420,6 @@ def grid_bytes(box, shape, geometry) -> float:
 def check_registration_memory(box, shape, geometry, *, available: int | None = None) -> None:
     """Refuse (one line naming ``--size``) a registration whose largest allocation
     (:func:`grid_bytes`) exceeds the memory available now, before it is made."""
-
     check_memory(grid_bytes(box, shape, geometry), f"--size {box[0]} {box[1]}",
                  f"registering this {shape[0]} x {shape[1]} px X-ray at {box[0]} x {box[1]} px (the global search's "
                  "grid of DRRs, which the polarity check uses too)",
@@ -436,7 +431,6 @@ def _check_coarse_field(prepared, box, need: int) -> None:
     pixels at the registration's coarsest level (1/4, eroded by one pixel, as the global search and
     the masked gradient similarity see it): the registration would fail deep inside with "mask:
     empty after erosion" or "too few to search"."""
-
     mask = prepared.mask
     h, w = prepared.image.shape
     m = np.ones((h // 4, w // 4), bool) if mask is None else downsample(np.asarray(mask, np.float64), 4) > 0.999
@@ -453,7 +447,6 @@ def _polarity_unchecked(prepared):
     :func:`register.xray.prepare.confirm_polarity` records an image too small for the grid: the
     decision stands. Nothing is recorded where an option or a decisive tag set the polarity (the
     check would not run either)."""
-
     decision = prepared.step("intensity")
     if decision is None or decision.get("polarity_source") in _DECISIVE_POLARITY:
         return prepared

@@ -223,7 +223,6 @@ class RegisterCommand:
 def run_register(cmd: RegisterCommand) -> list[Path]:
     """Check the options and the output folder, register (:func:`register.api.register_xray`: it
     checks the method, model, start, CT, X-ray and geometry before the work) and write the outputs."""
-
     parse_init(cmd.init)
     refuse_unused_label_map(cmd)
     refuse_unused(cmd, ("restarts",), applies=cmd.method in RESTART_METHODS,

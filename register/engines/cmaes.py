@@ -162,7 +162,6 @@ class CMAESRegistration:
         """This registration with another similarity per level (``settings.metrics``), sharing its
         renderers (nothing is rebuilt): e.g. plain gradient NCC for a line-integral image where the
         settings name a display-tolerant one."""
-
         if tuple(metrics) == tuple(self.settings.metrics):
             return self
         other = copy.copy(self)
@@ -171,7 +170,6 @@ class CMAESRegistration:
 
     def render(self, params: np.ndarray, factor: int = 1) -> np.ndarray:
         """``(B, H/f, W/f)`` DRRs for ``(B, 6)`` parameters at a level's factor."""
-
         r = self.by_factor[factor]
         return r.render(pose_from_params(np.atleast_2d(params), r.geometry.sod_mm))
 
@@ -184,7 +182,6 @@ class CMAESRegistration:
         ``polish``: False leaves the polish out whatever ``settings.polish`` (a caller that compares
         several registrations first and polishes the winner, :meth:`polish`).
         """
-
         s = self.settings
         fixed = self._checked(fixed)
         x0 = np.asarray(init_params, dtype=np.float64).reshape(6)
@@ -222,7 +219,6 @@ class CMAESRegistration:
         launches; the same result per start as :meth:`register` without restarts). Returns K
         results, in the order of ``starts``; each one's ``stage_seconds`` is its share (1/K) of the
         lockstep's wall time. ``settings.restarts`` does not apply."""
-
         s = self.settings
         fixed = self._checked(fixed)
         x0s = np.asarray(starts, dtype=np.float64).reshape(-1, 6)
@@ -282,7 +278,6 @@ class CMAESRegistration:
         """The polish alone (Powell at full resolution, ``settings.polish_evals``) from ``params``
         ``(6,)`` (deg, mm), inside the box around ``start`` (default ``params``): the result of a
         :meth:`register` run with ``polish=False``, finished. ``stage_seconds`` has ``"polish"``."""
-
         s = self.settings
         fixed = self._checked(fixed)
         x = np.asarray(params, float).reshape(6)

@@ -316,7 +316,6 @@ class GlobalSearch:
         """The padded DRRs ``(N, h, w)`` of ``params`` ``(N, 6)`` by ``renderer`` (of detector ``g``).
         The grid's own (``self.padded``) are kept for the next call with the same poses: the
         polarity check (:meth:`polarity_scores`) and the search then render the grid once."""
-
         params = np.ascontiguousarray(params, np.float64)
         key = (params.shape, params.tobytes())
         if renderer is self.padded and self._grid_drrs is not None and self._grid_drrs[0] == key:

@@ -104,7 +104,6 @@ def check_demo_options(cmd: DemoCommand) -> None:
     not between the source and the detector or does not project onto the detector: before the CT
     is loaded and anything simulated. (Whether the CT itself is in view is checked once it is
     loaded, still before the simulation.)"""
-
     if min(cmd.size) < DEMO_MIN_SIDE_PX:
         raise OptionError(f"--size {cmd.size[0]} {cmd.size[1]}: the demo's X-ray needs at least {DEMO_MIN_SIDE_PX} px "
                           f"per side (its field detection and registration); the default is 256 256")

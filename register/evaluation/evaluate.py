@@ -80,7 +80,6 @@ class EvaluationSettings:
 
 def sample_cases(settings: EvaluationSettings, distribution=None) -> tuple[np.ndarray, np.ndarray]:
     """``(targets (N, 6), starts (N, 6))`` pose parameters (deg, mm), seeded."""
-
     dist = distribution or ORIGINAL_PROTOCOL
 
     rng = rng_for(settings.seed, KIND_EVALUATE_CASES)
@@ -159,7 +158,6 @@ def evaluate(volume, methods: dict[str, RegistrationMethod], settings: Evaluatio
     for the contextual methods, ``trajectories.json`` (every case's poses per iteration), all
     after the last case (a run that fails leaves nothing). ``record`` (e.g. the targets' and the
     methods' physics) is stored in ``summary.json``."""
-
     out = Path(out)
     targets, starts = sample_cases(settings)
     points = bone_points(volume, settings.max_points, settings.seed)

@@ -301,7 +301,6 @@ def load_study(path: str | Path) -> Study:
 def _check_aspect(size, where: str, scene: str = "cios_fusion") -> None:
     """Refuse a registration size that does not keep the scene detector's aspect (square pixels):
     every target and DRR of the study is rendered at it, so this is refused before any training."""
-
     try:
         load_scene(scene).geometry_at(int(size[0]), int(size[1]))
     except (SceneError, ValueError) as e:
@@ -332,7 +331,6 @@ def _changes(old: dict, new: dict) -> list[str]:
 
 def _check_record(out: Path, study: Study) -> None:
     """Refuse to continue a study whose settings changed (added variants / targets are fine)."""
-
     record = out / "study.json"
     new = study.to_dict()
     if record.is_file():
@@ -353,7 +351,6 @@ def _check_record(out: Path, study: Study) -> None:
 def variant_config(variant: Variant, folder: Path) -> Path:
     """Write (if changed) and return the ``train.toml`` of a variant trained in ``folder``: the
     file ``ctxreg train`` runs alone (for a variant trained in another process)."""
-
     folder.mkdir(parents=True, exist_ok=True)
     config = folder / "train.toml"
     tables = {"train": {**variant.train, "out": str(folder.resolve())}}
@@ -371,7 +368,6 @@ REPLACED = "replaced"
 def _fingerprint(value: str) -> str:
     """What identifies an input file's content: a file's sha256; a campaign folder's
     ``manifest.json``'s (it holds every shard's sha256); another folder's file names and sizes."""
-
     path = Path(value)
     if path.is_file():
         return "sha256:" + sha256_file(path)
@@ -450,7 +446,6 @@ def _read_json(path: Path, what: str) -> dict:
 def _replace(out: Path, folder: Path, kind: str, old_digest: str | None) -> Path:
     """Move ``folder`` (a training or an evaluation made with other settings) to
     ``out/replaced/<kind>/<relative path>-<old digest>`` and return where it went."""
-
     rel = folder.relative_to(out / kind)
     dest = out / REPLACED / kind / f"{rel}-{(old_digest or 'unrecorded')[:12]}"
     n = 1
@@ -576,7 +571,6 @@ def frame_refusals() -> tuple[type, ...]:
     """The errors a frame's own content can make registration raise (no valid pixel left, no
     intensity decision): a failed case of a study, not a stop. Anything else (a bad setting, a bug)
     stops the study as it should."""
-
     return FieldError, PreprocessError, IntensityError
 
 
@@ -601,7 +595,6 @@ def frame_seed(study: Study, case: int) -> int:
 def _evaluate_xray(study: Study, target: Target, volume, center, predictor, folder: Path, log,
                    stamp: dict | None = None) -> dict:
     """Realistic frames through :func:`register.api.register_xray`, scored like the evaluation."""
-
     FRAME_REFUSALS = frame_refusals()
 
     settings = EvaluationSettings(cases=study.cases_of(target), seed=study.seed, size=study.size, start=study.start)

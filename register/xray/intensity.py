@@ -145,7 +145,6 @@ class PolarityReference:
 
     def scores(self, image: np.ndarray, mask: np.ndarray) -> tuple[float, float]:
         """``(best NCC, best NCC of the inverted image)`` over the DRRs, within the mask."""
-
         small, small_mask = self.resample(image, mask)
         if small_mask is None or small_mask.sum() < 16:
             return 0.0, 0.0

@@ -264,7 +264,6 @@ def _tiff_planes(im) -> str | None:
     """What a TIFF whose samples are stored plane by plane (PlanarConfiguration 2) holds, in words
     (e.g. a stack of 3 images that ``tifffile.imwrite`` of a ``(3, H, W)`` array stores as RGB
     planes); None for anything else."""
-
     tags = getattr(im, "tag_v2", None)
     if tags is None or tags.get(284) != 2:
         return None

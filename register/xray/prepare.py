@@ -48,7 +48,6 @@ def fit_box(size) -> tuple[int, int]:
     """``(H, W)`` of the box an image is fitted into: ``size`` is ``(H, W)``, or one number for a
     square box (the longer side). Raises :class:`register.xray.preprocess.PreprocessError` for sides
     outside :data:`sim.cliargs.IMAGE_SIDE_PX`."""
-
     try:
         box = (int(size), int(size)) if np.ndim(size) == 0 else tuple(int(v) for v in size)
     except (TypeError, ValueError):
@@ -60,7 +59,6 @@ def fit_box(size) -> tuple[int, int]:
 
 def _fit_plan(shape: tuple[int, int], geometry, size):
     """Sampling of :func:`fit_to_size`: ``(rows, cols, f, geometry)``."""
-
     h, w = shape
     box_h, box_w = (size, size) if np.ndim(size) == 0 else size
     f = max(h / float(box_h), w / float(box_w))  # old pixels per new pixel
@@ -205,7 +203,6 @@ def prepare_xray(xray, *, volume=None, center_lps=None, init_params=None, scene:
             :func:`fit_to_size`), each side in [8, 4096]; one number is a square box.
         sdd_mm, sod_mm, pixel_spacing_mm: explicit geometry (override tags and scene).
     """
-
     box = fit_box(size)
     if not isinstance(xray, XRayImage):
         xray = load_xray(xray)
@@ -290,7 +287,6 @@ def confirm_polarity(prepared: PreparedXRay, volume, center_lps, init_params, *,
     built for ``prepared.geometry`` (default settings) to score on; it keeps the grid's DRRs, so a
     registration that searches with it next renders the grid once (about a second saved).
     """
-
     decision = prepared.step("intensity")
     if decision is None or decision.get("polarity_source") in _DECISIVE_POLARITY:
         return prepared
