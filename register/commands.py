@@ -1,7 +1,10 @@
-"""``ctxreg evaluate`` and ``ctxreg register``: defaults (one dataclass each) and their runs.
+"""register's commands (``ctxreg register``, ``evaluate``, ``study``): their options (one dataclass each) and runs.
 
-Both check their options and output folder before any work; ``register`` is a thin layer over
-:func:`register.api.register_xray`, and both build their methods with :mod:`register.engines.methods`.
+Each checks its options and output folder before any work; ``register`` is a thin layer over
+:func:`register.api.register_xray`, ``evaluate`` builds its methods with
+:mod:`register.engines.methods` and runs :func:`register.evaluation.evaluate.evaluate`, ``study``
+runs :func:`register.evaluation.study.run_domain_study`. (``ctxreg demo``'s are
+:mod:`register.evaluation.demo`'s.)
 """
 
 from __future__ import annotations
