@@ -84,7 +84,7 @@ class AccuracyCommand:
 def run_accuracy(cmd: AccuracyCommand) -> list[Path]:
     import numpy as np
 
-    from learn.evaluate import (AccuracyError, accuracy_figure, finite_or_none, format_accuracy_table, merge_errors,
+    from learn.accuracy import (AccuracyError, accuracy_figure, finite_or_none, format_accuracy_table, merge_errors,
                                 prediction_errors, sample_eval_pairs, summarize_errors)
     from learn.predict import NetworkPredictor
     from sim.atomic import atomic_path, write_json
@@ -136,7 +136,7 @@ def run_accuracy(cmd: AccuracyCommand) -> list[Path]:
 def _accuracy_renderers(cmd: AccuracyCommand, size) -> tuple[list, tuple[str, str], object]:
     """Per subject ``(target renderer, current renderer)``; the two images' physics names; the
     current images' :class:`~sim.physics.imaging.PhysicsSettings` (None for line DRRs)."""
-    from learn.evaluate import AccuracyError
+    from learn.accuracy import AccuracyError
     from sim.drr import DRRRenderer, RenderSettings
 
     if cmd.ct is not None:
@@ -187,7 +187,7 @@ def run_models(cmd: ModelsCommand) -> list[Path]:
     """Print the shipped models (``models/<name>/``, each checked against its card)."""
     import json
 
-    from learn.models import describe_model, describe_models, shipped_models
+    from learn.shipped import describe_model, describe_models, shipped_models
 
     if cmd.name is not None:
         print(json.dumps(describe_model(cmd.name), indent=2))

@@ -5,7 +5,7 @@ pairs into ``g`` (rad, mm).
 predicts ``g = -2 log_{T_current}(T_target)`` (:func:`learn.labels.geodesic_label`: rotation in
 rad first, then translation in mm) for one pair (``predictor(fixed, drr)``, the registration's
 iteration, :mod:`register.engines.contextual`) or for many (:meth:`NetworkPredictor.predict`, batched;
-``ctxreg accuracy``, :mod:`learn.evaluate`). Images of another size than the training images are
+``ctxreg accuracy``, :mod:`learn.accuracy`). Images of another size than the training images are
 area-averaged to it first, then preprocessed as in training.
 """
 
@@ -29,7 +29,7 @@ class NetworkPredictor:
     """A trained pose-update network (``ctxreg train`` checkpoint) as a predictor of g (rad, mm).
 
     ``NetworkPredictor(path)`` reads the checkpoint (``path``: a file, or the name of a shipped
-    model, :func:`learn.models.resolve_model`) (:func:`learn.checkpoint.load_checkpoint`:
+    model, :func:`learn.shipped.resolve_model`) (:func:`learn.checkpoint.load_checkpoint`:
     refused in one line if it is missing, damaged, foreign, pickles objects or holds NaN
     weights). ``predictor(fixed, drr)``: one pair ``(H, W)`` each -> ``g`` ``(6,)``;
     :meth:`predict`: ``(N, H, W)`` each -> :class:`Prediction`, in batches of :attr:`batch_size`
@@ -63,7 +63,7 @@ class NetworkPredictor:
         from learn.preprocess import build
 
         if not isinstance(checkpoint, Checkpoint):
-            from learn.models import resolve_model
+            from learn.shipped import resolve_model
 
             checkpoint = resolve_model(checkpoint)  # a file, or a shipped model's name
         ckpt = checkpoint if isinstance(checkpoint, Checkpoint) else load_checkpoint(checkpoint)

@@ -27,7 +27,7 @@ name                                   kind  entropy                     purpose
                                                                          -- register.xray.prepare
 :data:`KIND_EPOCH_PAIRS`               20    training seed               the pairs of an epoch ``(epoch)`` -- learn.data
 :data:`KIND_ACCURACY_PAIRS`            30    accuracy seed               evaluation pairs ``(kind, subject)`` -- learn.commands;
-                                                                         ``()`` -- learn.evaluate
+                                                                         ``()`` -- learn.accuracy
 :data:`KIND_BATCH`                     40    training seed               an online batch's draws ``(batch)`` -- learn.online
 :data:`KIND_BATCH_NOISE`               41    training seed               noise / Monte Carlo of an online batch's images
                                                                          ``(batch, subject[, 1])`` -- learn.online
@@ -83,7 +83,7 @@ KIND_POLARITY_POSES = 13
 #: The pairs of a training epoch: ``(KIND_EPOCH_PAIRS, epoch)``, training seed.
 KIND_EPOCH_PAIRS = 20
 #: Evaluation pairs of the accuracy command: ``(KIND_ACCURACY_PAIRS, kind, subject)`` (and
-#: ``(KIND_ACCURACY_PAIRS,)`` in :mod:`learn.evaluate`).
+#: ``(KIND_ACCURACY_PAIRS,)`` in :mod:`learn.accuracy`).
 KIND_ACCURACY_PAIRS = 30
 #: An online training batch's draws: ``(KIND_BATCH, batch)``, training seed.
 KIND_BATCH = 40

@@ -180,7 +180,7 @@ def _model_folder(tmp_path) -> Path:
 
 
 def test_model_takes_a_model_folder_and_checks_a_model_pt_against_its_card(tmp_path):
-    from learn.models import ModelCardError, resolve_model
+    from learn.shipped import ModelCardError, resolve_model
 
     folder = _model_folder(tmp_path)
     assert resolve_model(str(folder)) == folder / "model.pt"  # the folder: it holds the card

@@ -48,7 +48,7 @@ def needs_model(method: str) -> bool:
 def check_method(method: str, model) -> None:
     """Raise :class:`RegistrationError` for an unknown ``method`` or a model given to ``cmaes`` (it
     would be ignored). A contextual method without a ``model`` uses the default shipped model
-    (:data:`learn.models.DEFAULT_MODEL`)."""
+    (:data:`learn.shipped.DEFAULT_MODEL`)."""
     if method not in METHOD_NAMES:
         raise RegistrationError(f"--method {method}: unknown; choose one of {', '.join(METHOD_NAMES)}")
     if not needs_model(method) and model is not None:
@@ -58,7 +58,7 @@ def check_method(method: str, model) -> None:
 def load_predictor(model):
     """The network predictor of ``model``: a ``ctxreg train`` checkpoint path or a shipped model's
     name (read and checked now, before any other work; None: the default shipped model,
-    :func:`learn.models.resolve_model`) or an already loaded predictor (returned as it is)."""
+    :func:`learn.shipped.resolve_model`) or an already loaded predictor (returned as it is)."""
     if callable(model):
         return model
     from learn.predict import NetworkPredictor

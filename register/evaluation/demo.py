@@ -143,7 +143,7 @@ class _Stages:
 
 def run_demo(cmd: DemoCommand) -> list[Path]:
     """Simulate, register, write and report (module doc)."""
-    from learn.models import resolve_model
+    from learn.shipped import resolve_model
     from sim.anatomy import anatomy_center
     from sim.ct_io import load_ct_spec
     from sim.physics.display import Collimator, DisplayChain

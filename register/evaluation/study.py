@@ -233,7 +233,7 @@ def load_study(path: str | Path) -> Study:
                              f"(a checkpoint to evaluate as it is), got {row!r}")
         name = _name(row.get("name"), f"{where}.name")
         if "model" in row:
-            from learn.models import ModelCardError, resolve_model, shipped_models
+            from learn.shipped import ModelCardError, resolve_model, shipped_models
 
             model = row["model"]
             if isinstance(model, str) and model:

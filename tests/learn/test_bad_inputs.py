@@ -263,7 +263,7 @@ def test_accuracy_options_say_what_they_are():
 
 
 def test_non_finite_predictions_are_refused_and_json_has_no_bare_nan():
-    from learn.evaluate import AccuracyError, finite_or_none, prediction_errors
+    from learn.accuracy import AccuracyError, finite_or_none, prediction_errors
     from learn.predict import Prediction
 
     class Renderer:

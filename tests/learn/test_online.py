@@ -296,7 +296,7 @@ def test_a_checkpoint_records_the_current_images_physics(tmp_path):
     assert "poly" in p.physics_mismatch(None)
     # ctxreg accuracy on the same pairs as a registration sees them: full targets, poly currents
     from learn.commands import AccuracyCommand, run_accuracy
-    from learn.evaluate import AccuracyError
+    from learn.accuracy import AccuracyError
 
     def accuracy(out, **kw):
         run_accuracy(AccuracyCommand(model=str(tmp_path / "o" / "checkpoint.pt"), campaign=str(tmp_path / "two.toml"),

@@ -62,7 +62,7 @@ def test_refusals_name_the_key(campaign, tmp_path):
 def test_single_prediction_errors_have_the_zero_baseline_right(campaign, tmp_path):
     import numpy as np
 
-    from learn.evaluate import single_prediction_errors
+    from learn.accuracy import single_prediction_errors
     from learn.labels import geodesic_label
     from learn.train import train
     from sim.campaign.poses import ORIGINAL_PROTOCOL
@@ -89,7 +89,7 @@ def test_accuracy_command_writes_its_table_and_the_baseline_is_the_label_size(ca
     import numpy as np
 
     from learn.commands import AccuracyCommand, run_accuracy
-    from learn.evaluate import AccuracyError
+    from learn.accuracy import AccuracyError
     from learn.train import train
 
     cfg = config(campaign, tmp_path / "m", iterations=2, val_every=2, checkpoint_every=2)
@@ -156,7 +156,7 @@ def test_shipped_training_configs_load_and_chain_up():
             for key in ("physics", "current_physics"):
                 assert getattr(cfg, key) in entries | {None}, f"{name}: train.{key}"
         if cfg.init_from is not None:  # another config's output, or a shipped model's weights (in the repository)
-            from learn.models import resolve_model, shipped_models
+            from learn.shipped import resolve_model, shipped_models
 
             models = {str(resolve_model(m)) for m in shipped_models()}
             assert cfg.init_from in outs | models, f"{name}: init_from is no shipped config's output or model"

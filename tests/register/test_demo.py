@@ -36,7 +36,7 @@ def test_the_trajectory_gif_has_a_frame_per_iteration(tmp_path):
 def test_the_demo_registers_a_realistic_xray_of_the_pelvis_within_10_mm(tmp_path, capsys):
     """The shipped default model, through register_xray (as ctxreg register), on a full-physics,
     collimated, display-processed 12-bit frame far from AP: mTRE < 10 mm (the issue's criterion)."""
-    from learn.models import DEFAULT_MODEL, load_card, shipped_models
+    from learn.shipped import DEFAULT_MODEL, load_card, shipped_models
     from learn.predict import NetworkPredictor
     from register.cli import main
 

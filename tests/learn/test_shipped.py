@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from learn.checkpoint import Checkpoint, load_checkpoint, save_checkpoint
-from learn.models import ModelCardError, export_model, load_card, shipped_models
+from learn.shipped import ModelCardError, export_model, load_card, shipped_models
 
 
 def _trained(tmp_path):
@@ -75,7 +75,7 @@ def test_every_shipped_model_loads_and_matches_its_card(name):
 
 
 def test_a_model_is_named_or_a_path_and_the_default_is_shipped(tmp_path):
-    from learn.models import DEFAULT_MODEL, describe_models, resolve_model
+    from learn.shipped import DEFAULT_MODEL, describe_models, resolve_model
     from learn.predict import NetworkPredictor
 
     src, _ = _trained(tmp_path)
@@ -141,7 +141,7 @@ def test_ctxreg_models_lists_the_shipped_models_and_prints_a_whole_card(capsys):
 def test_a_card_outside_the_schema_is_refused_naming_the_key(tmp_path, edit, message):
     import copy
 
-    from learn.models import check_card
+    from learn.shipped import check_card
 
     card = {"model": {"name": "m", "summary": "s", "file": "model.pt", "sha256": "0", "backbone": "tiny",
                       "head_channels": 8, "image_size": [32, 32], "preprocess": ["normalize"], "physics": {},
@@ -166,7 +166,7 @@ class _Payload:
 
 
 def test_a_model_folder_whose_weights_pickle_an_object_is_refused_by_name(tmp_path, capsys):
-    from learn.models import resolve_model
+    from learn.shipped import resolve_model
     from learn.predict import NetworkPredictor
 
     src, _ = _trained(tmp_path)
