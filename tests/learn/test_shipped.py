@@ -224,3 +224,15 @@ def test_the_predictor_follows_the_tone_its_checkpoint_records(tmp_path, tone):
             NetworkPredictor(path)
     else:
         assert NetworkPredictor(path).tone == (tone or "off")  # not recorded: trained before the tone
+
+
+def test_ctxreg_models_into_a_reader_that_left_ends_quietly(monkeypatch, capsys):
+    import learn.shipped
+    from register.cli import main
+
+    def gone(*args, **kwargs):
+        raise BrokenPipeError(32, "Broken pipe")
+
+    monkeypatch.setattr(learn.shipped, "describe_models", gone)
+    assert main(["models"]) == 0  # `ctxreg models | head`: no traceback, no error line
+    assert capsys.readouterr().err == ""
