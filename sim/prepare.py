@@ -5,6 +5,7 @@ and training (``learn.online.prepare_like_registration``) both apply to an X-ray
 training target is prepared exactly as registration prepares a user's frame. Each function is
 one step over the *field* (the valid pixels, a ``(H, W)`` bool ``mask``; ``None``: every pixel):
 
+* :func:`checked_image`: an image the steps can take (numeric, ``(H, W)``, finite) as float64;
 * :func:`field_values`: the pixels the statistics of every step are taken over;
 * :func:`invert`: ``max + min - x`` over the field's extremes (bone dark <-> bone bright);
 * :func:`i0_percentile`, :func:`log_correct`: ``-ln(max(I, floor_frac I0) / I0)``, transmitted
@@ -25,8 +26,22 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["field_values", "invert", "i0_percentile", "log_correct", "field_box", "percentile_bounds",
+__all__ = ["checked_image", "field_values", "invert", "i0_percentile", "log_correct", "field_box", "percentile_bounds",
            "normalize", "masked_fill"]
+
+
+def checked_image(image, name: str, error: type[Exception]) -> np.ndarray:
+    """``image`` as a float64 ``(H, W)`` array, or ``error`` naming ``name`` and what is wrong: not
+    numeric (bool too), not two-dimensional, NaN or infinite values."""
+    a = np.asarray(image)
+    if a.dtype.kind not in "uif" or a.dtype == np.bool_:
+        raise error(f"{name}: must be numeric, got dtype {a.dtype}")
+    if a.ndim != 2:
+        raise error(f"{name}: expected shape (H, W), got {a.shape}")
+    a = a.astype(np.float64)
+    if not np.all(np.isfinite(a)):
+        raise error(f"{name}: contains NaN or infinite values")
+    return a
 
 
 def field_values(image: np.ndarray, mask: np.ndarray | None) -> np.ndarray:

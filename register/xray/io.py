@@ -43,6 +43,7 @@ import numpy as np
 
 from sim.atomic import atomic_path
 from sim.errors import InputError
+from sim.prepare import checked_image
 
 __all__ = [
     "XRayInputError",
@@ -642,15 +643,8 @@ def write_xray_dicom(
     from pydicom.uid import ExplicitVRLittleEndian, PYDICOM_IMPLEMENTATION_UID, generate_uid
 
     path = Path(path)
-    a = np.asarray(pixels)
     name = f"pixels for {path}"
-    if a.dtype.kind not in "uif" or a.dtype == np.bool_:
-        raise XRayInputError(f"{name}: must be numeric, got dtype {a.dtype}")
-    if a.ndim != 2:
-        raise XRayInputError(f"{name}: expected (H, W), got shape {a.shape}")
-    a = a.astype(np.float64)
-    if not np.all(np.isfinite(a)):
-        raise XRayInputError(f"{name}: contains NaN or infinite values")
+    a = checked_image(pixels, name, XRayInputError)
     if isinstance(bits_stored, bool) or not isinstance(bits_stored, (int, np.integer)) or not 8 <= bits_stored <= 16:
         raise XRayInputError(f"bits_stored: expected an integer 8..16 (e.g. 12 or 16), got {bits_stored!r}")
     bits_stored = int(bits_stored)

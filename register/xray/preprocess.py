@@ -361,14 +361,7 @@ class Pipeline:
         Returns ``(image (H', W') float32, mask (H', W') bool or None, record)``; ``record`` is a
         JSON-serialisable list of ``{"step", "params", "measured"}`` in step order.
         """
-        a = np.asarray(image)
-        if a.dtype.kind not in "uif" or a.dtype == np.bool_:
-            raise PreprocessError(f"image: must be numeric, got dtype {a.dtype}")
-        if a.ndim != 2:
-            raise PreprocessError(f"image: expected shape (H, W), got {a.shape}")
-        a = a.astype(np.float64)
-        if not np.all(np.isfinite(a)):
-            raise PreprocessError("image: contains NaN or infinite values")
+        a = prepare.checked_image(image, "image", PreprocessError)
         m = None
         if mask is not None:
             m = np.asarray(mask)

@@ -157,3 +157,19 @@ def test_box_resampling_equals_interpolate_on_the_crop(size):
         ref_mask = F.interpolate(mask[i, r0[i]:r1[i], c0[i]:c1[i]][None, None].float(), size=size,
                                  mode="nearest")[0, 0] > 0.5
         assert torch.equal(got_mask[i], ref_mask)
+
+
+def test_checked_image_takes_a_finite_numeric_2d_image_and_names_what_is_wrong():
+    from sim.prepare import checked_image
+
+    class Bad(ValueError):
+        pass
+
+    out = checked_image(np.arange(6, dtype=np.uint16).reshape(2, 3), "frame", Bad)
+    assert out.dtype == np.float64 and out.shape == (2, 3) and out[1, 2] == 5.0
+    for image, message in ((np.ones((2, 2), bool), "frame: must be numeric, got dtype bool"),
+                           (np.ones((2, 2, 3)), r"frame: expected shape \(H, W\), got \(2, 2, 3\)"),
+                           (np.array([[1.0, np.nan]]), "frame: contains NaN or infinite values"),
+                           (np.array([["a"]]), "frame: must be numeric")):
+        with pytest.raises(Bad, match=message):
+            checked_image(image, "frame", Bad)
