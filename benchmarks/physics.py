@@ -48,7 +48,7 @@ def main(argv=None) -> int:
     from sim.ct_io import load_ct
     from sim.geometry import pose_from_params
     from sim.physics.imaging import PhysicsSettings, XRayImager
-    from sim.render import DRRRenderer, RenderSettings
+    from sim.drr import DRRRenderer, RenderSettings
 
     ct = REPO.parent / "shared" / "data" / "ct" / "pelvis_abdomen_3mm.nii.gz"
     if not ct.is_file():

@@ -87,7 +87,7 @@ def main(argv=None) -> int:
 
     from sim.ct_io import load_ct
     from sim.geometry import extrinsic_lps_to_camera, pose_from_params
-    from sim.render import DRRRenderer, RenderSettings
+    from sim.drr import DRRRenderer, RenderSettings
 
     try:
         sys.path.insert(0, str(REPO / "benchmarks"))

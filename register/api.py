@@ -217,7 +217,7 @@ class XRayRegistration:
         ``overlay.png`` (DRR edges
         and the field outline over the X-ray at its full resolution), ``checkerboard.png``,
         ``convergence.png`` and ``result.json`` (:meth:`to_dict`), each atomically. Returns the paths."""
-        from sim.render import DRRRenderer, RenderSettings
+        from sim.drr import DRRRenderer, RenderSettings
 
         out = check_output_dir(out, OUTPUT_FILES)
         result, prepared = self.result, self.prepared
@@ -325,7 +325,7 @@ def register_xray(ct, xray, *, method: str = "contextual+cmaes", model=None, ini
     from sim import load_ct
     from sim.anatomy import anatomy_center
     from sim.geometry import pose_from_params
-    from sim.render import check_in_view
+    from sim.drr import check_in_view
 
     log = log or (lambda line: None)
     notes: list[str] = []

@@ -90,7 +90,7 @@ def run_evaluate(cmd: EvaluateCommand) -> list[Path]:
     from sim.anatomy import anatomy_center
     from sim.ct_io import load_ct_spec
     from sim.physics.imaging import LogImageRenderer, PhysicsSettings
-    from sim.render import DRRRenderer, RenderSettings
+    from sim.drr import DRRRenderer, RenderSettings
 
     contextual = [m for m in cmd.method if needs_model(m)]
     if len(set(cmd.method)) < len(cmd.method):

@@ -8,9 +8,8 @@ view (:func:`sim.drr.check_in_view`) instead of returning an empty image. Line i
 the DRR renderer (:class:`sim.drr.DRRRenderer`), poly / full ones from
 :class:`sim.physics.imaging.XRayImager`.
 
-The DRR renderer's names (:class:`~sim.drr.DRRRenderer`, :class:`~sim.drr.RenderSettings`,
-:class:`~sim.drr.RenderError`, :func:`~sim.drr.check_in_view`, ...) live in :mod:`sim.drr`; they
-are importable from here too, as before.
+The DRR renderer itself (:class:`~sim.drr.DRRRenderer`, :class:`~sim.drr.RenderSettings`,
+:class:`~sim.drr.RenderError`, :func:`~sim.drr.check_in_view`, ...) lives in :mod:`sim.drr`.
 """
 
 from __future__ import annotations
@@ -21,8 +20,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from sim.drr import (MAX_RAYS_PER_LAUNCH, QUANTITIES, RAY_MODELS, STEP_FRACTION, DRRRenderer,  # noqa: F401
-                     RenderError, RenderSettings, camera_from_sensor, check_in_view, memory_order)
+from sim.drr import DRRRenderer, RenderError, RenderSettings, check_in_view
 from sim.geometry import pose_from_params
 from sim.physics.imaging import XRayImager
 from sim.physics.settings import LEVELS, PhysicsSettings
@@ -124,7 +122,7 @@ def render(ct, pose=(0.0, 0.0, 0.0, 0.0, 0.0, 0.0), *, size: tuple[int, int] = (
             centroid (or the label map's).
         ray_model: ``"siddon"`` (exact voxel traversal) or ``"trilinear"`` (smoother on coarse CTs).
         step_fraction: the trilinear step as a fraction of the smallest voxel spacing
-            (:data:`STEP_FRACTION`; line physics only).
+            (:data:`sim.drr.STEP_FRACTION`; line physics only).
         label_materials: ``{label: material}`` for poly / full (a CT loaded with a label map).
 
     Raises :class:`sim.errors.InputError` subclasses, each naming the problem: a CT that cannot be

@@ -122,7 +122,7 @@ def inputs(tmp_path_factory) -> dict[str, str]:
     from learn.model import pose_update_net
     from register.xray.io import write_xray_dicom
     from sim.phantom import make_pelvis_phantom
-    from sim.render import DRRRenderer, RenderSettings
+    from sim.drr import DRRRenderer, RenderSettings
 
     d = tmp_path_factory.mktemp("inputs")
     r = DRRRenderer(make_pelvis_phantom(0), RenderSettings(size=(64, 64)))

@@ -148,7 +148,7 @@ def run_demo(cmd: DemoCommand) -> list[Path]:
     from sim.ct_io import load_ct_spec
     from sim.physics.display import Collimator, DisplayChain
     from sim.physics.imaging import PhysicsSettings, XRayImager
-    from sim.render import check_in_view
+    from sim.drr import check_in_view
 
     out = check_output_dir(cmd.out, OUTPUT_FILES + DEMO_FILES)
     check_demo_options(cmd)  # --size and --pose, before the CT is loaded or anything simulated

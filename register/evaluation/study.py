@@ -91,7 +91,7 @@ from sim.outputs import check_output_dir
 from sim.physics.display import Collimator, DisplayChain
 from sim.physics.imaging import LogImageRenderer, PhysicsSettings, XRayImager
 from sim.progress import Progress
-from sim.render import DRRRenderer, RenderSettings
+from sim.drr import DRRRenderer, RenderSettings
 from sim.scene import SceneError, load_scene
 
 __all__ = ["StudyError", "Variant", "Target", "Study", "load_study", "run_domain_study", "format_study_table",

@@ -114,7 +114,7 @@ def reference_drrs(volume, center_lps, geometry, init_params, *, poses: int = RE
     :func:`fit_to_size` samples the X-ray to ``longer`` px. Returns a
     :class:`register.xray.intensity.PolarityReference`.
     """
-    from sim.render import DRRRenderer, RenderSettings
+    from sim.drr import DRRRenderer, RenderSettings
 
     _, _, _, small = _fit_plan((geometry.height, geometry.width), geometry, longer)
 

@@ -10,7 +10,7 @@ from register.engines.result import RegistrationError
 from register.evaluation.errors import pose_errors
 from register.evaluation.evaluate import EvaluationError, EvaluationSettings, sample_cases, summarize
 from sim.geometry import pose_from_params, projection_matrix
-from sim.render import DRRRenderer, RenderSettings
+from sim.drr import DRRRenderer, RenderSettings
 
 SMALL = CMAESSettings(levels=(2, 1), size=(64, 64), popsize=12, generations=(25, 15), polish_evals=120)
 

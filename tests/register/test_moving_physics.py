@@ -36,7 +36,7 @@ def test_moving_renderer_levels(phantom):
     """line: the plain DRR renderer; poly: the imager's noise-free log image, whatever the noise
     setting given; label materials are refused for line DRRs."""
     from sim.geometry import pose_from_params
-    from sim.render import DRRRenderer
+    from sim.drr import DRRRenderer
 
     vol, c = phantom
     assert isinstance(moving_renderer(vol, None, size=(32, 32), center_lps=c), DRRRenderer)

@@ -68,7 +68,7 @@ def test_network_view_follows_the_predictors_framing(phantom, tmp_path):
     from register.xray.prepare import prepare_xray
     from sim.geometry import pose_from_params
     from sim.physics.display import Collimator
-    from sim.render import DRRRenderer, RenderSettings
+    from sim.drr import DRRRenderer, RenderSettings
 
     vol, c = phantom
     r = DRRRenderer(vol, RenderSettings(size=(96, 96)), center_lps=c)

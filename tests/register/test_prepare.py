@@ -11,7 +11,7 @@ from scipy import ndimage
 
 from register.xray.prepare import fit_to_size, masked_fill
 from sim.geometry import CArmGeometry, backproject_pixel
-from sim.render import DRRRenderer, RenderSettings
+from sim.drr import DRRRenderer, RenderSettings
 
 
 def _image(h=150, w=210, seed=0):

@@ -36,7 +36,7 @@ def synthetic_case(tmp_path_factory):
     from sim.anatomy import anatomy_center
     from sim.ct_io import save_nifti
     from sim.phantom import make_pelvis_phantom
-    from sim.render import DRRRenderer, RenderSettings
+    from sim.drr import DRRRenderer, RenderSettings
 
     d = tmp_path_factory.mktemp("reg")
     vol = make_pelvis_phantom(3, spacing_mm=3.0)

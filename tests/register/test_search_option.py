@@ -24,7 +24,7 @@ def phantom():
 def xray_at(phantom, truth):
     """A 64 x 64 line DRR of the phantom at ``truth`` (deg, mm) as an X-ray with its geometry."""
     from register.xray.io import XRayImage
-    from sim.render import DRRRenderer, RenderSettings
+    from sim.drr import DRRRenderer, RenderSettings
 
     vol, c = phantom
     r = DRRRenderer(vol, RenderSettings(size=(64, 64)), center_lps=c)
