@@ -36,7 +36,7 @@ from sim.geometry import pose_from_params
 from sim.prepare import invert, masked_fill, normalize, percentile_bounds
 from sim.seeds import KIND_POLARITY_POSES, rng_for
 
-__all__ = ["PreparedXRay", "prepare_xray", "confirm_polarity", "fit_to_size", "fit_box", "masked_fill", "reference_drrs",
+__all__ = ["PreparedXRay", "prepare_xray", "confirm_polarity", "fit_to_size", "fit_box", "reference_drrs",
            "REFERENCE_POSES", "REFERENCE_SIZE", "POLARITY_FLIP_MARGIN"]
 
 #: Number of DRRs (poses around the start) of the polarity reference, and their longer side (px).

@@ -9,7 +9,8 @@ import pytest
 from PIL import Image
 from scipy import ndimage
 
-from register.xray.prepare import fit_to_size, masked_fill
+from register.xray.prepare import fit_to_size
+from sim.prepare import masked_fill
 from sim.geometry import CArmGeometry, backproject_pixel
 from sim.drr import DRRRenderer, RenderSettings
 
