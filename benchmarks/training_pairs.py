@@ -19,6 +19,10 @@ virtual patients, 64 x 64 px, 4 subjects per batch) of three kinds, measured in 
 ``--kinds`` picks the rows (default all four); ``--device`` runs the network (and the batched
 pairs) there.
 
+The kinds' batches are interleaved (batch 1 of every kind, then batch 2, ...), so that a drift
+of the machine's speed (a shared 2-core VM drifts by tens of percent over a minute) hits every
+row alike; the ratio column is the comparison to read.
+
 Columns: median seconds per batch of rendering (``OnlinePairs.batch``), of one optimiser step
 of the tiny network (forward, backward, Adam) and of both, pairs per second of both, and the
 ratio of the line rate to each. Batches are new draws each time (batch indices 1..); every
@@ -44,6 +48,11 @@ REPO = Path(__file__).resolve().parents[1]
 
 #: The rows of the table, in order.
 KINDS = ("line", "realistic", "realistic, no tools", "realistic, batched")
+
+#: Full-size batches each kind draws before the timing (batch indices WARM_BASE ..), after its
+#: one-off costs: the first few full batches run slower (allocations growing to their steady state).
+WARM_BATCHES = 2
+WARM_BASE = 100_000
 
 
 def _source(kind: str, device="cpu"):
@@ -115,16 +124,20 @@ def main(argv=None) -> int:
     torch.manual_seed(0)
     model = pose_update_net(backbone="tiny").to(args.device)
     opt = torch.optim.Adam(model.parameters(), lr=1e-4)
-    rows = []
     sync = torch.cuda.synchronize if args.device == "cuda" else (lambda: None)
+    sources = {}
     for kind in args.kinds:
-        source = _source(kind, args.device)
-        _warm(source)
-        render, step = [], []
-        for k in range(1, args.batches + 1):
+        sources[kind] = _source(kind, args.device)
+        _warm(sources[kind])
+        for j in range(WARM_BATCHES):  # full-size batches: the allocator's and caches' steady state
+            sources[kind].batch(WARM_BASE + j, args.batch_size)
+    render = {kind: [] for kind in args.kinds}
+    step = {kind: [] for kind in args.kinds}
+    for k in range(1, args.batches + 1):
+        for kind in args.kinds:  # interleaved: a drift of the machine's speed hits every row alike
             sync()
             t0 = time.perf_counter()
-            a, b, y = (t.to(args.device) for t in source.batch(k, args.batch_size))
+            a, b, y = (t.to(args.device) for t in sources[kind].batch(k, args.batch_size))
             sync()
             t1 = time.perf_counter()
             out = model(a, b)
@@ -134,9 +147,11 @@ def main(argv=None) -> int:
             opt.step()
             sync()
             t2 = time.perf_counter()
-            render.append(t1 - t0)
-            step.append(t2 - t1)
-        r, s = statistics.median(render), statistics.median(step)
+            render[kind].append(t1 - t0)
+            step[kind].append(t2 - t1)
+    rows = []
+    for kind in args.kinds:
+        r, s = statistics.median(render[kind]), statistics.median(step[kind])
         rows.append((kind, r, s, r + s, args.batch_size / (r + s)))
         print(f"  {kind}: {args.batch_size / (r + s):.0f} pairs/s", file=sys.stderr)
     line_rate = rows[0][4] if rows[0][0] == "line" else float("nan")

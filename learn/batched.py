@@ -19,7 +19,9 @@ its pose distribution, near pairs, :mod:`sim.randomize`'s settings drawn per pai
 4. made ready as registration makes a user's X-ray ready
    (:func:`learn.prepare_batched.prepare_like_registration_batched`).
 
-``ideal`` draws take the line DRR of the target pose as their target, collimated as drawn. The
+``ideal`` draws take the line DRR of the target pose as their target, collimated as drawn; they
+skip stages 1-3's realistic work (basis march, signal, noise, display), the rest of the batch
+goes through it as one batch. The
 currents are line DRRs of ``mu`` (the campaign's first physics entry must be a line entry, as
 registration's moving images). Each pair's noise comes from a generator of its own
 (:func:`sim.seeds.pair_normals`), so a pair is a function of ``(seed, batch, index)`` only: the same
@@ -229,11 +231,36 @@ class BatchedPairs(OnlinePairs):
         return {"near": near, "far": ~near, "ideal": ideal, "log": log & ~ideal, "linear": ~log & ~ideal,
                 "field": field, "open": ~field}
 
-    def batch(self, k: int, n: int):
-        from learn.prepare_batched import prepare_like_registration_batched
-        from sim.physics.batched import apply_image_batched, draw_tensors, gaussian_reflect
+    def _realistic(self, subject, poses, index, p, draws):
+        """The displayed realistic targets ``(R, H, W)`` and their fields ``(R, H, W)`` bool of the
+        pairs ``index`` ``(R,)`` (their subjects, target poses ``(R, 4, 4)``, :func:`draw_tensors`
+        entries ``p`` and draws): the module doc's stages 1-3."""
+        from sim.physics.batched import apply_image_batched, gaussian_reflect
         from sim.physics.settings import SETTINGS
         from sim.seeds import pair_normals
+
+        g = self.geometry
+        h, w = g.height, g.width
+        basis = self._volumes.line_integrals(subject, poses, (1, 2)) / 10.0  # water and bone: g/cm^3 mm -> g/cm^2
+        tools = self._tools[(p["tools_pick"].clamp(max=1 - 1e-7) * self._tools.shape[0]).long()]
+        tools = tools * p["tools"].to(tools.dtype)[:, None, None, None]
+        dens = torch.cat([basis, tools.to(basis.dtype)], dim=1)  # (R, 7, H, W)
+        combo = torch.as_tensor(self._imager.table.index(*([d[k] for d in draws] for k in ("kvp", "al_mm", "cu_mm"))),
+                                device=self.device)
+        mean, var, flat = self._imager.signal(dens, combo, p["mas"], p["bone_scale"],
+                                              pixel_area_mm2=g.pixel_spacing_mm ** 2, sdd_mm=g.sdd_mm)
+        e_det = float(SETTINGS["electronic_noise"].default)
+        raw = mean + torch.sqrt(var + e_det ** 2) * pair_normals(self.seed, index, NOISE_STREAM_QUANTUM, (h, w),
+                                                                     device=self.device, dtype=mean.dtype)
+        raw = gaussian_reflect(raw, p["blur_mm"].to(raw.dtype) / g.pixel_spacing_mm)
+        raw = raw.clamp(min=0.0)
+        normals = pair_normals(self.seed, index, NOISE_STREAM_ELECTRONIC, (h, w), device=self.device,
+                                  dtype=raw.dtype)
+        return apply_image_batched(raw, flat, p, normals)
+
+    def batch(self, k: int, n: int):
+        from learn.prepare_batched import prepare_like_registration_batched
+        from sim.physics.batched import draw_tensors, field_masks
 
         if n > MAX_BATCH:
             raise OnlinePairsError(f"batch size must be <= {MAX_BATCH}, got {n}")
@@ -249,28 +276,17 @@ class BatchedPairs(OnlinePairs):
         real_rows = np.flatnonzero(~ideal.cpu().numpy())
         march = self._volumes.line_integrals
         current = march(subject, t_b, (0,))[:, 0]  # line DRRs of mu, as registration's moving images
-        mu_target = torch.zeros_like(current)
-        basis = torch.zeros((n, 2, h, w), dtype=current.dtype, device=self.device)
-        if len(ideal_rows):
-            mu_target[ideal_rows] = march(subject[ideal_rows], t_a[ideal_rows], (0,))[:, 0]
-        if len(real_rows):  # water and bone basis integrals: g/cm^3 mm -> g/cm^2
-            basis[real_rows] = march(subject[real_rows], t_a[real_rows], (1, 2)) / 10.0
-        tools = self._tools[(p["tools_pick"].clamp(max=1 - 1e-7) * self._tools.shape[0]).long()]
-        tools = tools * p["tools"].to(tools.dtype)[:, None, None, None]
-        dens = torch.cat([basis, tools], dim=1)  # (n, 7, H, W)
-        combo = torch.as_tensor(self._imager.table.index(*([d[k] for d in draws] for k in ("kvp", "al_mm", "cu_mm"))),
-                                device=self.device)
-        mean, var, flat = self._imager.signal(dens, combo, p["mas"], p["bone_scale"],
-                                              pixel_area_mm2=g.pixel_spacing_mm ** 2, sdd_mm=g.sdd_mm)
-        e_det = float(SETTINGS["electronic_noise"].default)
-        raw = mean + torch.sqrt(var + e_det ** 2) * pair_normals(self.seed, index, NOISE_STREAM_QUANTUM, (h, w),
-                                                                     device=self.device, dtype=mean.dtype)
-        raw = gaussian_reflect(raw, p["blur_mm"].to(raw.dtype) / g.pixel_spacing_mm)
-        raw = raw.clamp(min=0.0)
-        normals = pair_normals(self.seed, index, NOISE_STREAM_ELECTRONIC, (h, w), device=self.device,
-                                  dtype=raw.dtype)
-        display, field = apply_image_batched(raw, flat, p, normals)
-        display = torch.where(ideal[:, None, None], mu_target.to(display.dtype), display)
+        display = torch.empty_like(current)
+        field = torch.empty(current.shape, dtype=torch.bool, device=self.device)
+        if len(ideal_rows):  # the line DRR of the target pose, collimated as drawn
+            rows = torch.as_tensor(ideal_rows, device=self.device)
+            display[rows] = march(subject[ideal_rows], t_a[ideal_rows], (0,))[:, 0].to(display.dtype)
+            field[rows] = field_masks({k: v[rows] for k, v in p.items()}, h, w)
+        if len(real_rows):  # the realistic stages for the other pairs only
+            rows = torch.as_tensor(real_rows, device=self.device)
+            q = {k: v[rows] for k, v in p.items()}
+            display[rows], field[rows] = self._realistic(subject[real_rows], t_a[real_rows], index[real_rows], q,
+                                                         [draws[i] for i in real_rows])
         log_display = p["log"].bool() | ideal
         bone_dark = (p["polarity"] == 0) & ~ideal  # choice 0: "bone-dark"
         target, cur = prepare_like_registration_batched(display, field, current, log_display=log_display,

@@ -34,6 +34,9 @@ from sim.volume import CTVolume
 
 QUANTITIES = ("line-integral", "intensity", "density")
 RAY_MODELS = ("siddon", "trilinear")
+#: The volume's storage in the integrator (:mod:`sim.integrators.drr`): ``fixed16`` packs the two
+#: materials of a two-material density render into one 16+16-bit word per voxel.
+STORAGES = ("float32", "fixed16")
 
 #: The trilinear step as a fraction of the smallest voxel spacing. The midpoint rule's error
 #: falls as the step squared: at 0.05 it is 1.5e-5 of the image's largest value on the phantom
@@ -73,6 +76,9 @@ class RenderSettings:
         quantity: ``"line-integral"``, ``"intensity"`` or ``"density"``.
         mu_water_per_mm: attenuation of water (1/mm) for the mu quantities.
         i0: unattenuated intensity for ``intensity``.
+        storage: ``"float32"`` (default) or ``"fixed16"``: two materials of a ``density`` render
+            as 16-bit fixed point in one word, one gather per voxel step for both (about 1.8x
+            faster; each voxel within half a code of its value, :mod:`sim.integrators.drr`).
     """
 
     scene: str = DEFAULT_SCENE
@@ -82,12 +88,17 @@ class RenderSettings:
     quantity: str = "line-integral"
     mu_water_per_mm: float = MU_WATER_60KEV_PER_MM
     i0: float = 1.0
+    storage: str = "float32"
 
     def __post_init__(self) -> None:
         if self.ray_model not in RAY_MODELS:
             raise RenderError(f"ray_model must be one of {RAY_MODELS}, got {self.ray_model!r}")
         if self.quantity not in QUANTITIES:
             raise RenderError(f"quantity must be one of {QUANTITIES}, got {self.quantity!r}")
+        if self.storage not in STORAGES:
+            raise RenderError(f"storage must be one of {STORAGES}, got {self.storage!r}")
+        if self.storage == "fixed16" and self.quantity != "density":
+            raise RenderError(f"storage 'fixed16' packs two materials of a density render, not {self.quantity!r}")
         if not (np.isfinite(self.step_fraction) and self.step_fraction in STEP_FRACTION):
             raise RenderError(f"step_fraction must be {STEP_FRACTION} (a fraction of the smallest voxel "
                               f"spacing), got {self.step_fraction}")
@@ -167,7 +178,11 @@ class DRRRenderer:
             channels = self.materials.partial_densities(volume.hu)
         else:
             channels = mu_from_hu(volume.hu, self.settings.mu_water_per_mm)[None]
-        self.integrator.set_volume(channels, volume.spacing_mm, memory_order=memory_order(volume.affine))
+        if self.settings.storage == "fixed16" and len(channels) != 2:
+            raise RenderError(f"storage 'fixed16' packs exactly two materials, this decomposition has "
+                              f"{len(channels)}")
+        self.integrator.set_volume(channels, volume.spacing_mm, memory_order=memory_order(volume.affine),
+                                   storage=self.settings.storage)
         self.channel_names = (
             self.materials.names if self.settings.quantity == "density" else ("mu",)
         )

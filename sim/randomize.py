@@ -61,6 +61,9 @@ setting's limits and the physics range, declared choices only); a bad one raises
 
 from __future__ import annotations
 
+import bisect
+import functools
+import itertools
 import math
 import numbers
 from dataclasses import dataclass, replace
@@ -254,8 +257,8 @@ class Randomized:
         if self.dist == "bernoulli":
             return bool(u < self.p)
         if self.dist == "choice":
-            cdf = np.cumsum(self.probs)
-            i = int(np.searchsorted(cdf, u * cdf[-1], side="right"))
+            cdf = _cdf(tuple(self.probs))
+            i = bisect.bisect_right(cdf, u * cdf[-1])
             i = min(i, len(self.choices) - 1)
             while self.probs[i] == 0:  # u at a cdf plateau's end: the last choice with weight
                 i -= 1
@@ -465,6 +468,12 @@ def _check_declaration() -> None:
 
 
 _check_declaration()
+
+
+@functools.lru_cache(maxsize=256)
+def _cdf(probs: tuple) -> tuple[float, ...]:
+    """The running sums of ``probs`` (as ``np.cumsum``, in order), kept: a draw reads them per pair."""
+    return tuple(itertools.accumulate(float(q) for q in probs))
 
 
 def _check_index(name: str, v) -> int:

@@ -216,7 +216,9 @@ class DrJitVolumes:
     exact Siddon traversal, many poses per kernel launch): the fast path on a CPU, where
     ``grid_sample`` over 3-D volumes is about 80x slower than Dr.Jit's compiled kernel. Same
     arguments (``step_fraction`` unused: Siddon has no step) and results, returned as torch
-    tensors on ``device``; one renderer per subject and channel group, made on first use."""
+    tensors on ``device``; one renderer per subject and channel group, made on first use. A
+    group of two channels is stored as 16-bit fixed point (``RenderSettings.storage="fixed16"``:
+    one gather per step for both, each voxel within half a code of its value)."""
 
     def __init__(self, channels, affines, centers, geometry, *, device="cpu", dtype=None, scene: str = "cios_fusion",
                  step_fraction: float = 0.5):
@@ -254,8 +256,10 @@ class DrJitVolumes:
             h, w = self.geometry.height, self.geometry.width
             # the density quantity divides by 10 (g/cm^3 mm -> g/cm^2): channels go in x 10 so the
             # result is the plain integral (channel unit x mm), as TorchVolumes returns it
+            # two channels (the basis pair) share one 16+16-bit word per voxel: one gather per step
+            storage = "fixed16" if len(chans) == 2 else "float32"
             self._renderers[key] = DRRRenderer(self.volumes[u], RenderSettings(scene=self.scene, size=(h, w),
-                                                                              quantity="density"),
+                                                                              quantity="density", storage=storage),
                                                center_lps=self.centers[u], geometry=self.geometry,
                                                materials=_Channels(self.arrays[u][list(chans)] * 10.0))
         return self._renderers[key]

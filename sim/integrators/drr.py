@@ -17,6 +17,18 @@ Ray models:
     ``step_fraction`` times the smallest voxel spacing (mm), the step shrunk so that a whole
     number of steps spans the ray's chord. Eight gathers per step.
 
+Storage (:meth:`DRRIntegrator.set_volume`, ``storage=``):
+
+``float32`` (default)
+    One float per channel and voxel.
+``fixed16``
+    Exactly two channels, each as 16-bit fixed point, packed in one 32-bit word: one gather per
+    voxel step serves both channels (the two-basis density render of training pairs is
+    gather-bound: about 1.8x faster on a CPU). Each channel's codes span its range (zero
+    included, and exactly representable), so a voxel's value is off by at most half a step,
+    ``(max - min) / 65535 / 2``; the error of a line integral is bounded by that times the chord
+    (mm) and is in practice far smaller (rounding errors of neighbouring voxels cancel).
+
 Both treat the volume as zero outside the grid: ``siddon`` integrates over the voxel boxes,
 ``trilinear`` over the interpolant's support (half a voxel further, where it falls to zero).
 
@@ -41,6 +53,10 @@ import mitsuba as mi
 import numpy as np
 
 RAY_MODELS = ("siddon", "trilinear")
+STORAGES = ("float32", "fixed16")
+
+#: Codes of one ``fixed16`` channel: 0 .. 65535.
+_FIXED16_MAX = 65535
 
 
 class DRRIntegrator(mi.SamplingIntegrator):
@@ -56,13 +72,15 @@ class DRRIntegrator(mi.SamplingIntegrator):
             raise ValueError(f"ctxreg_drr: step_fraction must be in (0, 1], got {self.step_fraction}")
         self.volume: mi.Float | None = None  # flat ((I+2)*(J+2)*(K+2)*C), zero-padded by one voxel
         self.shape: tuple[int, int, int] | None = None  # (I, J, K), unpadded
+        self.storage = "float32"
+        self.fixed16: tuple[tuple[float, float], tuple[float, float]] | None = None  # (step, zero code) per channel
         self.channels = 0
         self.min_spacing_mm = 1.0
         self.world_to_index = mi.Float(np.eye(4, dtype=np.float32)[:3].ravel())  # (B*12,)
         self.n_poses = 1
 
     # ------------------------------------------------------------------ data
-    def set_volume(self, data: np.ndarray, spacing_mm, memory_order=(0, 1, 2)) -> None:
+    def set_volume(self, data: np.ndarray, spacing_mm, memory_order=(0, 1, 2), storage: str = "float32") -> None:
         """Upload a volume once; later renders reuse it.
 
         Args:
@@ -72,6 +90,7 @@ class DRRIntegrator(mi.SamplingIntegrator):
                 of a SIMD packet lie along the detector rows; storing the volume axis that runs
                 along the rows contiguously lets one packet's gathers share cache lines (see
                 :meth:`sim.drr.DRRRenderer` for the choice). Only the strides change.
+            storage: ``"float32"`` or ``"fixed16"`` (``C = 2`` only; module doc).
         """
         data = np.asarray(data, dtype=np.float32)
         if data.ndim != 4 or min(data.shape[1:]) < 1 or data.shape[0] < 1:
@@ -81,16 +100,36 @@ class DRRIntegrator(mi.SamplingIntegrator):
         order = tuple(int(a) for a in memory_order)
         if sorted(order) != [0, 1, 2]:
             raise ValueError(f"ctxreg_drr: memory_order must be a permutation of (0, 1, 2), got {memory_order}")
+        if storage not in STORAGES:
+            raise ValueError(f"ctxreg_drr: storage must be one of {STORAGES}, got {storage!r}")
         c = data.shape[0]
+        if storage == "fixed16" and c != 2:
+            raise ValueError(f"ctxreg_drr: storage 'fixed16' packs exactly 2 channels, got {c}")
         padded = np.zeros((data.shape[1] + 2, data.shape[2] + 2, data.shape[3] + 2, c), np.float32)
         padded[1:-1, 1:-1, 1:-1, :] = np.moveaxis(data, 0, -1)
         stored = np.ascontiguousarray(np.transpose(padded, order + (3,)))
-        # strides (in floats) of index axes i, j, k in the stored array
+        if storage == "fixed16":
+            stored, self.fixed16 = _pack_fixed16(stored)
+        else:
+            self.fixed16 = None
+        # strides (in 32-bit words) of index axes i, j, k in the stored array
         self.strides = tuple(int(stored.strides[order.index(a)] // 4) for a in range(3))
-        self.volume = mi.Float(stored.ravel())
+        self.volume = mi.UInt32(stored.ravel()) if storage == "fixed16" else mi.Float(stored.ravel())
+        self.storage = storage
         self.shape = tuple(int(n) for n in data.shape[1:])
         self.channels = c
         self.min_spacing_mm = float(np.min(spacing_mm))
+
+    def _values(self, index, mask):
+        """The ``channels`` values of the voxel at flat word ``index`` (masked lanes read 0)."""
+        if self.fixed16 is None:
+            return [dr.gather(mi.Float, self.volume, index + c, mask) for c in range(self.channels)]
+        word = dr.gather(mi.UInt32, self.volume, index, mask)
+        # opaque: one compiled kernel serves every volume's steps
+        (step0, zero0), (step1, zero1) = (tuple(dr.opaque(mi.Float, x) for x in p) for p in self.fixed16)
+        v0 = (mi.Float(word & 0xFFFF) - zero0) * step0
+        v1 = (mi.Float(word >> 16) - zero1) * step1
+        return [dr.select(mask, v0, 0.0), dr.select(mask, v1, 0.0)]
 
     def set_world_to_index(self, matrices: np.ndarray) -> None:
         """Place the volume for a batch of poses.
@@ -133,6 +172,11 @@ class DRRIntegrator(mi.SamplingIntegrator):
         width, height = (int(v) for v in sensor.film().crop_size())
         n_rays = self.n_poses * height * width
         acc = self._line_integrals(sensor, width, height, n_rays)
+        if self.channels == 1:
+            return mi.TensorXf(acc[0], shape=(self.n_poses, height, width, 1))
+        # every channel from one launch of the loop: interleaving scatters queued on the loop's
+        # outputs would replay the whole loop once per channel (measured: C launches)
+        dr.eval(*acc)
         values = dr.zeros(mi.Float, n_rays * self.channels)
         idx = dr.arange(mi.UInt32, n_rays)
         for c in range(self.channels):
@@ -221,10 +265,7 @@ class DRRIntegrator(mi.SamplingIntegrator):
             # The zero padding absorbs the single step past the exit face that rounding can
             # cause; the bounds check only guards memory.
             inside = (flat >= 0) & (flat < size)
-            acc = list(acc)
-            for c in range(c_count):
-                val = dr.gather(mi.Float, volume, flat + c, active & inside)
-                acc[c] = dr.fma(val, seg, acc[c])
+            acc = [dr.fma(val, seg, a) for val, a in zip(self._values(flat, active & inside), acc)]
             mx = (t_max.x <= t_max.y) & (t_max.x <= t_max.z)
             my = ~mx & (t_max.y <= t_max.z)
             mz = ~mx & ~my
@@ -244,7 +285,6 @@ class DRRIntegrator(mi.SamplingIntegrator):
         return list(state[4:])
 
     def _trilinear(self, o, d, n, strides, c_count):
-        volume = self.volume
         si, sj, sk = strides
         # Padded centre coordinates: original voxel centre i sits at i + 1; the interpolant's
         # support (zero padding) is [0, n + 1].
@@ -268,7 +308,6 @@ class DRRIntegrator(mi.SamplingIntegrator):
             w = r - f
             i0 = dr.clip(mi.Vector3i(f), 0, n_hi)
             base = i0.x * si + i0.y * sj + i0.z * sk
-            acc = list(acc)
             wx0, wy0, wz0 = 1.0 - w.x, 1.0 - w.y, 1.0 - w.z
             corners = (
                 (0, wx0 * wy0 * wz0), (sk, wx0 * wy0 * w.z),
@@ -276,15 +315,29 @@ class DRRIntegrator(mi.SamplingIntegrator):
                 (si, w.x * wy0 * wz0), (si + sk, w.x * wy0 * w.z),
                 (si + sj, w.x * w.y * wz0), (si + sj + sk, w.x * w.y * w.z),
             )
-            for c in range(c_count):
-                val = mi.Float(0.0)
-                for off, wt in corners:
-                    val = dr.fma(dr.gather(mi.Float, volume, base + off + c), wt, val)
-                acc[c] = acc[c] + val
-            return (k + 1, *acc)
+            val = [mi.Float(0.0) for _ in range(c_count)]
+            for off, wt in corners:
+                val = [dr.fma(v, wt, a) for v, a in zip(self._values(base + off, mi.Bool(True)), val)]
+            return (k + 1, *(a + v for a, v in zip(acc, val)))
 
         state = dr.while_loop(state=(k, *acc), cond=cond, body=body, label="ctxreg_trilinear")
         return [a * ds for a in state[1:]]
+
+
+def _pack_fixed16(stored: np.ndarray):
+    """``(..., 2)`` float32 -> ``(...)`` uint32 words (channel 0 in the low 16 bits) and each
+    channel's ``(step, zero code)``: value = (code - zero) * step, zero exactly representable."""
+    words = np.zeros(stored.shape[:-1], np.uint32)
+    params = []
+    for c in range(2):
+        x = stored[..., c].astype(np.float64)
+        lo, hi = min(float(x.min()), 0.0), max(float(x.max()), 0.0)
+        step = (hi - lo) / _FIXED16_MAX if hi > lo else 1.0
+        zero = float(np.round(-lo / step))
+        code = np.clip(np.round(x / step) + zero, 0, _FIXED16_MAX).astype(np.uint32)
+        words |= code << np.uint32(16 * c)
+        params.append((float(np.float32(step)), zero))
+    return words, tuple(params)
 
 
 def register() -> None:

@@ -284,14 +284,15 @@ class TorchImager:
         scale = torch.as_tensor(mas, **_like(att)) * pixel_area_mm2 * (1000.0 / sdd_mm) ** 2
         n0 = self.fluence[combo] * scale[:, None]  # (B, E) photons per pixel
         dtype = L.dtype
-        path = torch.einsum("bke,bkp->bep", att.to(dtype), L.reshape(b, k, h * w).to(dtype))  # (B, E, P)
-        t = torch.exp(-path)
-        weight = (n0 * self.response[combo]).to(dtype)  # (B, E) keV per pixel without an object
-        counts = (n0 * self.interaction[combo]).to(dtype)
-        per = self.per_photon[combo].to(dtype)
-        mean = torch.einsum("bep,be->bp", t, weight)
-        var = torch.einsum("bep,be->bp", t, counts * per * per)
-        flat = weight.sum(dim=1)
+        # (B, E, P) exponents, then transmissions in place; batched matrix products
+        # (torch's einsum over these shapes is 10x slower on a CPU)
+        t = torch.bmm(att.neg().to(dtype).transpose(1, 2), L.reshape(b, k, h * w).to(dtype)).exp_()
+        weight = n0 * self.response[combo]  # (B, E) keV per pixel without an object
+        counts = n0 * self.interaction[combo]
+        per = self.per_photon[combo]
+        moments = torch.bmm(torch.stack([weight, counts * per * per], 1).to(dtype), t)  # (B, 2, P)
+        mean, var = moments[:, 0], moments[:, 1]
+        flat = weight.sum(dim=1).to(dtype)
         return mean.reshape(b, h, w), var.reshape(b, h, w), flat
 
 
