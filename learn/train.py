@@ -14,7 +14,9 @@ every ``checkpoint_every`` iterations and at the end), ``log.csv`` (iteration, t
 validation loss, rotation and translation error of the predicted gradient) and ``loss.png``.
 A run killed at any point and restarted with ``--resume`` continues from its last checkpoint
 and takes exactly the steps an uninterrupted run would have taken (tested); a resume with another
-config is refused, naming the keys that changed.
+config is refused, naming the keys that changed. The first Ctrl-C (SIGINT) or SIGTERM (a cluster
+scheduler's, ``kill``) stops after the current step with a checkpoint there (no validation), so
+nothing since the last periodic checkpoint is lost; a second one interrupts at once.
 
 Every key of the ``[train]`` table is type-checked (``batch_size = "2"``, ``batch_size = 2.5`` and
 ``iterations = true`` are refused, not taken as numbers); the message names the key.
@@ -25,6 +27,8 @@ from __future__ import annotations
 import csv
 import math
 import os
+import signal
+import threading
 import time
 import typing
 from dataclasses import MISSING, asdict, dataclass, fields
@@ -452,6 +456,41 @@ def resolve_device(device: str = "auto") -> torch.device:
     return torch.device(device)
 
 
+class _StopOnSignal:
+    """While training: the first SIGINT (Ctrl-C) or SIGTERM (a cluster's scheduler, ``kill``) asks the
+    loop to stop after the current step with a checkpoint there (no validation), so ``--resume``
+    continues without losing the steps since the last checkpoint; a second one interrupts at once.
+    Installed from the main thread only (elsewhere Python delivers no signals to handlers)."""
+
+    SIGNALS = ("SIGINT", "SIGTERM")
+
+    def __init__(self):
+        self._event = threading.Event()
+        self._previous = {}
+        self.name = ""
+
+    def __enter__(self):
+        if threading.current_thread() is threading.main_thread():
+            for name in self.SIGNALS:
+                sig = getattr(signal, name)
+                self._previous[sig] = signal.signal(sig, self._handle)
+        return self
+
+    def _handle(self, signum, frame):
+        if self._event.is_set():  # the second one: stop now
+            raise KeyboardInterrupt
+        self.name = signal.Signals(signum).name
+        self._event.set()
+
+    def is_set(self) -> bool:
+        return self._event.is_set()
+
+    def __exit__(self, *exc):
+        for sig, handler in self._previous.items():
+            signal.signal(sig, handler)
+        return False
+
+
 def _on(device, tensors):
     return [t.to(device, non_blocking=True) if isinstance(t, torch.Tensor) else t for t in tensors]
 
@@ -467,7 +506,7 @@ def train(cfg: TrainConfig, *, resume: bool = False, log=print, device: str = "a
                                          and math.isfinite(stop_after_s)):
         raise TrainConfigError(f"stop_after_s must be a positive number of seconds, got {stop_after_s!r}")
     device = resolve_device(device)
-    from learn.checkpoint import Checkpoint, CheckpointError, capture_rng, load_weights, remove_stale_temps, restore_rng
+    from learn.checkpoint import CheckpointError, load_weights, remove_stale_temps, restore_rng
     from learn.model import Weights, pose_update_net
 
     out = Path(cfg.out)
@@ -514,14 +553,31 @@ def train(cfg: TrainConfig, *, resume: bool = False, log=print, device: str = "a
     if resume and log_path.exists():
         with open(log_path) as f:
             rows = [r for r in csv.DictReader(f) if int(r["iteration"]) <= iteration]
-    last = {}
     model.train()
     started = time.perf_counter()
-    start_iteration = iteration
     from sim.progress import Progress
 
     bar = Progress(cfg.iterations, iteration, f"train {out.name}", "iterations", rate_unit="pairs/s",
                    rate_scale=cfg.batch_size)
+    with _StopOnSignal() as signalled:
+        last = _loop(cfg, source, model, optimizer, scheduler, device, iteration, rows, log_path, ckpt_path, bar,
+                     started, stop_after_s, signalled, log)
+    try:
+        _plot(rows, out / "loss.png")
+    except ImportError as e:  # a bare GPU machine: the log.csv holds the curve
+        log(f"loss.png not written: {e}")
+    source.close()
+    return last
+
+
+def _loop(cfg, source, model, optimizer, scheduler, device, iteration, rows, log_path, ckpt_path, bar, started,
+          stop_after_s, signalled, log) -> dict:
+    """The training iterations from ``iteration`` to the end, a time limit or a signal; returns the
+    last log row."""
+    from learn.checkpoint import Checkpoint, capture_rng
+
+    last = {}
+    start_iteration = iteration
     while iteration < cfg.iterations:
         # batches are a function of (seed, iteration) alone, so a resumed run takes the same steps
         *inputs, label = _on(device, source.train_batch(iteration))
@@ -534,8 +590,9 @@ def train(cfg: TrainConfig, *, resume: bool = False, log=print, device: str = "a
         iteration += 1
         bar.update(1)
         last = {"iteration": iteration, "train_loss": float(loss.item()), "lr": scheduler.get_last_lr()[0]}
-        stopping = stop_after_s is not None and time.perf_counter() - started >= stop_after_s
-        if iteration % cfg.val_every == 0 or iteration == cfg.iterations or stopping:
+        interrupted = signalled.is_set()
+        stopping = interrupted or (stop_after_s is not None and time.perf_counter() - started >= stop_after_s)
+        if (iteration % cfg.val_every == 0 or iteration == cfg.iterations or stopping) and not interrupted:
             last.update(_validate(model, source, cfg, device))
             model.train()
             rate = (iteration - start_iteration) * cfg.batch_size / (time.perf_counter() - started)
@@ -555,13 +612,9 @@ def train(cfg: TrainConfig, *, resume: bool = False, log=print, device: str = "a
                 iteration=iteration, optimizer=optimizer.state_dict(), scheduler=scheduler.state_dict(),
                 rng=capture_rng()))
         if stopping:
-            log(f"stopped after {time.perf_counter() - started:.0f} s at iteration {iteration} (--resume continues)")
+            why = f"by {signalled.name}" if interrupted else f"after {time.perf_counter() - started:.0f} s"
+            log(f"stopped {why} at iteration {iteration}, checkpoint written (--resume continues)")
             break
-    try:
-        _plot(rows, out / "loss.png")
-    except ImportError as e:  # a bare GPU machine: the log.csv holds the curve
-        log(f"loss.png not written: {e}")
-    source.close()
     return last
 
 

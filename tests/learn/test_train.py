@@ -160,3 +160,42 @@ def test_shipped_training_configs_load_and_chain_up():
 
             models = {str(resolve_model(m)) for m in shipped_models()}
             assert cfg.init_from in outs | models, f"{name}: init_from is no shipped config's output or model"
+
+
+def test_sigterm_or_ctrl_c_stops_with_a_checkpoint_at_that_step_and_resume_continues(campaign, tmp_path,
+                                                                                    monkeypatch):
+    """The first SIGTERM (a scheduler's) or SIGINT (Ctrl-C) stops the loop after the current step
+    with a checkpoint there, not at the last periodic one (iteration 3 here, checkpoints every 6);
+    the resumed run ends with the uninterrupted run's weights; the handlers are restored after."""
+    import os
+    import signal
+
+    import learn.train as tr
+    from learn.checkpoint import load_checkpoint
+
+    tr.train(config(campaign, tmp_path / "a"), log=lambda *_: None)
+    ref = load_checkpoint(tmp_path / "a" / "checkpoint.pt")
+    before = signal.getsignal(signal.SIGTERM), signal.getsignal(signal.SIGINT)
+    for sig in (signal.SIGTERM, signal.SIGINT):
+        out = tmp_path / sig.name
+        calls = []
+        loss = tr._loss
+
+        def signalling_loss(*a, **k):
+            calls.append(1)
+            if len(calls) == 3:
+                os.kill(os.getpid(), sig)
+            return loss(*a, **k)
+
+        monkeypatch.setattr(tr, "_loss", signalling_loss)
+        said = []
+        tr.train(config(campaign, out), log=said.append)
+        monkeypatch.setattr(tr, "_loss", loss)
+        assert load_checkpoint(out / "checkpoint.pt").iteration == 3
+        assert any(f"stopped by {sig.name} at iteration 3" in s for s in said), said
+        assert (signal.getsignal(signal.SIGTERM), signal.getsignal(signal.SIGINT)) == before
+        tr.train(config(campaign, out), resume=True, log=lambda *_: None)
+        got = load_checkpoint(out / "checkpoint.pt")
+        assert got.iteration == 12
+        for key, value in ref.model_state.items():
+            torch.testing.assert_close(got.model_state[key], value, rtol=0, atol=0, msg=key)
