@@ -1,7 +1,7 @@
 """The network's own prediction error on a study's realistic frames, along its own iteration.
 
     .venv/bin/python benchmarks/network_on_frames.py [--models pelvis_line pelvis_batched ...] [--cases 20]
-        [--study studies/domain_gap.toml] [--target fluoro-65kV] [--out runs/bench_search]
+        [--study studies/domain_gap.toml] [--target fluoro-65kV] [--out runs/bench_search] [--mask field]
 
 The training's validation measures single predictions on virtual patients' pairs; registration
 meets the real CT's frames and the poses its own iteration visits. This script measures the
@@ -12,6 +12,12 @@ trajectory the predicted gradient ``g_k`` is compared with the true label
 ``geodesic_label(T_true, T_k)`` (:mod:`learn.labels`): rotation error ``|g_rot - g_rot,true|``
 (deg) and translation error ``|g_trans - g_trans,true|`` (mm), as the training's validation
 computes them.
+
+``--mask field`` is an experiment on what the network is shown: registration's valid pixels
+become the detected field alone, without the exclusions of :func:`register.xray.field.detect_field`
+(saturated / empty plateaus, overlays), which training's targets never have (they are masked by
+the true field only; the excluded pixels are filled with the mean over the rest at registration).
+Default ``valid``: registration as it is.
 
 Prints one table: per model, the error of the first prediction (at AP, the far pair registration
 starts from), the mean over every prediction of the iteration, the mean over the predictions made
@@ -46,6 +52,9 @@ def main() -> int:
     ap.add_argument("--study", default=str(ROOT / "studies" / "domain_gap.toml"))
     ap.add_argument("--target", default="fluoro-65kV", help="an xray target of --study (default fluoro-65kV)")
     ap.add_argument("--out", default=str(ROOT / "runs" / "bench_search"), help="frame cache (frames in OUT/TARGET)")
+    ap.add_argument("--mask", choices=("valid", "field"), default="valid",
+                    help="registration's valid pixels (default) or the detected field without its exclusions "
+                         "(an experiment: what training shows the network)")
     a = ap.parse_args()
     if not Path(a.ct).exists():
         print(f"network_on_frames: CT {a.ct} not found (see ../shared/data/README.md)", file=sys.stderr)
@@ -63,6 +72,14 @@ def main() -> int:
     from sim.anatomy import anatomy_center
     from sim.geometry import pose_from_params
 
+    if a.mask == "field":  # the experiment: the detected field's mask without the exclusions inside it
+        import dataclasses
+
+        import register.xray.preprocess as preprocess
+
+        detect = preprocess.detect_field
+        preprocess.detect_field = lambda image, settings=None: dataclasses.replace(
+            found := detect(image, settings), mask=found.field_mask.copy())
     study = load_study(a.study)
     targets = {t.name: t for t in study.targets if t.kind == "xray"}
     if a.target not in targets:
@@ -112,7 +129,8 @@ def main() -> int:
         nr = np.concatenate(near) if near else np.full((1, 2), np.nan)
         rows.append((model, len(first), refused, f.mean(0), ev.mean(0), len(ev), nr.mean(0), len(nr), s0.mean(0),
                      fin.mean(0)))
-    print(f"\n{a.target}: the first {a.cases} frames from AP, the network alone (method contextual); errors of the "
+    print(f"\n{a.target}: the first {a.cases} frames from AP, the network alone (method contextual, mask {a.mask}); "
+          f"errors of the "
           f"predicted gradient against the true label, mean rotation deg / translation mm "
           f"({time.strftime('%Y-%m-%d %H:%M')})\n")
     print("| model | frames (refused) | first prediction (at AP) | every prediction (n) | within 10 deg of the truth (n) "
