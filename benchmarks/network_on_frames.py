@@ -35,6 +35,7 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))  # the repository first: benchmarks/learn.py and register.py are not the packages
+from timing import input_problem  # noqa: E402  (benchmarks/timing.py)
 
 
 def _errors(g_pred: np.ndarray, g_true: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -56,11 +57,9 @@ def main() -> int:
                     help="registration's valid pixels (default) or the detected field without its exclusions "
                          "(an experiment: what training shows the network)")
     a = ap.parse_args()
-    if not Path(a.ct).exists():
-        print(f"network_on_frames: CT {a.ct} not found (see ../shared/data/README.md)", file=sys.stderr)
-        return 2
-    if a.cases < 1:
-        print(f"network_on_frames: --cases must be >= 1, got {a.cases}", file=sys.stderr)
+    problem = input_problem("network_on_frames", a.ct, a.cases)
+    if problem:
+        print(problem, file=sys.stderr)
         return 2
 
     from learn.labels import geodesic_label

@@ -48,6 +48,7 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+from timing import input_problem  # noqa: E402  (benchmarks/timing.py)
 
 
 def null_network(fixed, drr):
@@ -77,11 +78,9 @@ def main() -> int:
                     help="the network of the contextual, off and network rows: a shipped model's name (ctxreg models) "
                          "or a ctxreg train checkpoint (default: the shipped default)")
     a = ap.parse_args()
-    if not Path(a.ct).exists():
-        print(f"search: CT {a.ct} not found (see ../shared/data/README.md)", file=sys.stderr)
-        return 2
-    if a.cases < 1:
-        print(f"search: --cases must be >= 1, got {a.cases}", file=sys.stderr)
+    problem = input_problem("search", a.ct, a.cases)
+    if problem:
+        print(problem, file=sys.stderr)
         return 2
 
     from register.evaluation.study import load_study
