@@ -22,7 +22,8 @@ class TrainCommand:
         "torch sees one), cpu or cuda", group="run", choices=("auto", "cpu", "cuda")))
     stop_after: float | None = field(default=None, metadata=opt(
         "stop at the first iteration after this many seconds of training, with a checkpoint (then --resume); "
-        "default: no limit, the run goes to train.iterations",
+        "default: no limit, the run goes to train.iterations (Ctrl-C or SIGTERM also stops with a checkpoint at "
+        "that step)",
         group="run", unit="s", metavar="S", bounds=Range(0.0, None, lo_open=True)))
 
 

@@ -159,7 +159,7 @@ class DRRIntegrator(mi.SamplingIntegrator):
     def to_string(self) -> str:
         return (
             f"DRRIntegrator[ray_model={self.ray_model}, step_fraction={self.step_fraction}, "
-            f"shape={self.shape}, channels={self.channels}, poses={self.n_poses}]"
+            f"shape={self.shape}, channels={self.channels}, storage={self.storage}, poses={self.n_poses}]"
         )
 
     # ---------------------------------------------------------------- render

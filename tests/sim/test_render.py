@@ -531,6 +531,13 @@ def test_fixed16_storage_is_float32_within_half_a_code_along_each_ray(box, ray_m
 
 
 def test_fixed16_storage_is_refused_where_it_does_not_apply(box):
+    from sim.backend import ensure_variant
+
+    ensure_variant()
+    from sim.integrators import drr as integrator
+    from sim.drr import STORAGES
+
+    assert integrator.STORAGES == STORAGES  # the settings' choices are the integrator's
     vol, *_ = box
     with pytest.raises(RenderError, match="storage must be one of"):
         RenderSettings(storage="half")
