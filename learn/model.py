@@ -255,6 +255,8 @@ class _CoordConv2d(nn.Conv2d):
     def forward(self, x: Tensor) -> Tensor:
         b, _, h, w = x.shape
         coords = coordinate_channels(b, h, w, dtype=x.dtype, device=x.device)
+        if x.is_contiguous(memory_format=torch.channels_last):  # cat keeps a layout its inputs share
+            coords = coords.contiguous(memory_format=torch.channels_last)
         return super().forward(torch.cat((x, coords), dim=1))
 
 
@@ -365,10 +367,12 @@ class FeatureExtractor(nn.Module):
         features.conv0 = conv0
         self.features = features
         self.channels = _tap_channels(backbone)  # per image; the heads get twice these
+        #: layout of the maps (channels last: see :class:`PoseUpdateNet`)
+        self.memory_format = torch.channels_last
 
     def forward(self, target: Tensor, current: Tensor) -> tuple[Tensor, Tensor, Tensor]:
         b = target.shape[0]
-        x = torch.cat((target, current), dim=0)
+        x = torch.cat((target, current), dim=0).contiguous(memory_format=self.memory_format)
         taps = []
         for name, module in self.features.named_children():
             x = module(x)
@@ -397,6 +401,9 @@ class PoseUpdateNet(nn.Module):
         self.backbone_frozen = False
         if freeze_backbone:
             self.freeze_backbone()
+        # channels-last (NHWC) weights and maps: oneDNN's and cuDNN's fast layout, 2.4x a step of
+        # the small backbone on a 2-core CPU (docs/benchmarks.md); loading weights keeps the layout
+        self.to(memory_format=torch.channels_last)
 
     def freeze_backbone(self) -> None:
         """Stop training the backbone: ``requires_grad = False`` and eval mode for its modules."""
@@ -428,7 +435,10 @@ class PoseUpdateNet(nn.Module):
                     f"features[{i}] must be (B={batch}, {2 * c}, h, w) for the {self.backbone_kind.value} "
                     f"backbone, got shape {tuple(f.shape)}"
                 )
-        gs, logits = zip(*(head(f) for head, f in zip(self.heads, features)))
+        # the heads in float32 even under autocast: their maps shrink to 1 x 1 px, where oneDNN's
+        # bfloat16 weight gradient of a strided 3 x 3 convolution returns NaN (torch 2.14.1)
+        with torch.autocast(features[0].device.type, enabled=False):
+            gs, logits = zip(*(head(f.float()) for head, f in zip(self.heads, features)))
         g_levels = torch.stack(gs, dim=1)  # (B, 3, 6)
         weights = torch.softmax(torch.stack(logits, dim=1), dim=1)  # (B, 3)
         g = (weights[:, :, None] * g_levels).sum(dim=1)

@@ -47,6 +47,17 @@ class TrainConfigError(InputError):
 #: How realistic targets are made (``[train] pairs``; :class:`TrainConfig`).
 PAIRS = ("per-pair", "batched")
 
+#: The arithmetic of a training step's forward pass (``[train] precision``; :class:`TrainConfig`).
+PRECISIONS = ("fp32", "bf16")
+
+#: With ``precision = "bf16"``, a step whose gradient is not finite is skipped (as a loss scaler
+#: skips it); more than this fraction of a run's steps (at least 100 counted) stops it.
+MAX_SKIPPED_FRACTION = 0.01
+
+#: Config keys a resumed run may change: how the steps are computed, not which steps (the device
+#: may change too). Each change is logged.
+RESUME_MAY_CHANGE = ("precision",)
+
 
 @dataclass(frozen=True)
 class TrainConfig:
@@ -118,6 +129,14 @@ class TrainConfig:
             (:data:`learn.online.FRAMINGS`): the pair cropped to the target's field, or the whole
             detector with the field masked; registration frames the X-ray the same way for the
             network (the checkpoint records it: :func:`register.xray.network_view.network_view`).
+        precision: ``"fp32"`` (default) or ``"bf16"`` (:data:`PRECISIONS`): the training step's
+            forward pass under ``torch.autocast`` with bfloat16 (the backbone's convolutions in
+            bfloat16; its heads, the weights, optimiser, loss and validation in float32). A step
+            whose gradient is not finite is skipped and counted in the log
+            (:data:`MAX_SKIPPED_FRACTION`). A step of the small backbone at batch 256 on this
+            machine's CPU (AVX-512 BF16) takes a third of float32's (docs/benchmarks.md), and
+            bfloat16 is the tensor cores' format on a GPU. A run may resume with another
+            precision (:data:`RESUME_MAY_CHANGE`).
     """
 
     dataset: str
@@ -153,6 +172,7 @@ class TrainConfig:
     tone: str = "off"
     pairs: str = "per-pair"
     framing: str = "field"
+    precision: str = "fp32"
 
     @property
     def online(self) -> bool:
@@ -242,6 +262,8 @@ class TrainConfig:
 
         if self.framing not in FRAMINGS:
             raise TrainConfigError(f"train.framing must be one of {', '.join(FRAMINGS)}, got {self.framing!r}")
+        if self.precision not in PRECISIONS:
+            raise TrainConfigError(f"train.precision must be one of {', '.join(PRECISIONS)}, got {self.precision!r}")
         if self.framing != "field" and self.pairs != "batched":
             raise TrainConfigError("train.framing = 'detector' needs train.pairs = 'batched'")
         if self.pairs == "batched" and self.tone != "off":
@@ -368,11 +390,13 @@ def _plain(value):
 def _config_changes(stored: dict, cfg: TrainConfig) -> list[str]:
     """The keys in which a checkpoint's config differs from ``cfg``, as ``"train.KEY OLD -> NEW"``;
     keys added since it was written (absent from ``stored``) count as equal when ``cfg`` has
-    their default."""
+    their default; the keys of :data:`RESUME_MAY_CHANGE` are not compared."""
     now = asdict(cfg)
     defaults = {f.name: f.default for f in fields(TrainConfig)}
     changes = []
     for key in sorted(set(stored) | set(now)):
+        if key in RESUME_MAY_CHANGE:
+            continue
         if key not in now:
             changes.append(f"train.{key} {stored[key]!r} -> (no longer a key)")
         elif key not in stored:
@@ -548,6 +572,10 @@ def train(cfg: TrainConfig, *, resume: bool = False, log=print, device: str = "a
         iteration = resumed.iteration
         restore_rng(resumed.rng, source=f"checkpoint {ckpt_path}")
         log(f"resumed at iteration {iteration}")
+        for key in RESUME_MAY_CHANGE:
+            was = resumed.config.get(key, next(f.default for f in fields(TrainConfig) if f.name == key))
+            if _plain(was) != _plain(getattr(cfg, key)):
+                log(f"train.{key} {was!r} -> {getattr(cfg, key)!r} from here on")
     log_path = out / "log.csv"
     rows = []
     if resume and log_path.exists():
@@ -578,14 +606,24 @@ def _loop(cfg, source, model, optimizer, scheduler, device, iteration, rows, log
 
     last = {}
     start_iteration = iteration
+    bf16, skipped = cfg.precision == "bf16", 0
+    params = [p for group in optimizer.param_groups for p in group["params"]]
     while iteration < cfg.iterations:
         # batches are a function of (seed, iteration) alone, so a resumed run takes the same steps
         *inputs, label = _on(device, source.train_batch(iteration))
-        output = source.forward(model, inputs)
-        loss = _loss(output, label, cfg)
+        with torch.autocast(device.type, dtype=torch.bfloat16, enabled=cfg.precision == "bf16"):
+            output = source.forward(model, inputs)
+        loss = _loss(type(output)(*(t.float() for t in output)), label, cfg)  # the loss in float32
         optimizer.zero_grad()
         loss.backward()
-        optimizer.step()
+        if bf16 and not all(bool(torch.isfinite(p.grad).all()) for p in params if p.grad is not None):
+            skipped += 1  # a bfloat16 product overflowed: no step, as a loss scaler does
+            if skipped > MAX_SKIPPED_FRACTION * max(iteration + 1 - start_iteration, 100):
+                raise TrainConfigError(f"train.precision = 'bf16': {skipped} of the {iteration + 1 - start_iteration} "
+                                       f"steps since iteration {start_iteration} had a non-finite gradient; train "
+                                       "with precision = 'fp32'")
+        else:
+            optimizer.step()
         scheduler.step()
         iteration += 1
         bar.update(1)
@@ -603,7 +641,8 @@ def _loop(cfg, source, model, optimizer, scheduler, device, iteration, rows, log
             _write_log(log_path, rows)
             log(f"iteration {iteration}/{cfg.iterations}: train {last['train_loss']:.4f}, "
                 f"val {last['val_loss']:.4f}, rotation {last['val_rot_err_deg']:.2f} deg, "
-                f"translation {last['val_trans_err_mm']:.1f} mm ({rate:.0f} pairs/s)")
+                f"translation {last['val_trans_err_mm']:.1f} mm ({rate:.0f} pairs/s"
+                + (f"; {skipped} bf16 steps skipped for a non-finite gradient" if skipped else "") + ")")
         if iteration % cfg.checkpoint_every == 0 or iteration == cfg.iterations or stopping:
             _save_checkpoint(ckpt_path, Checkpoint(
                 model_state=model.state_dict(), backbone=cfg.backbone, head_channels=cfg.head_channels,

@@ -55,6 +55,7 @@ TYPE_CASES = [
     ("tone", "true", "a string, got true (a boolean)"),
     ("pairs", "1", "a string, got the integer 1"),
     ("framing", "true", "a string, got true (a boolean)"),
+    ("precision", "16", "a string, got the integer 16"),
 ]
 
 

@@ -224,6 +224,26 @@ def test_heads_forward_of_features_equals_forward():
         torch.testing.assert_close(x, y, atol=TOL, rtol=0)
 
 
+def test_channels_last_layout_computes_what_the_plain_layout_does():
+    """The network runs channels last (NHWC, the fast layout of oneDNN and cuDNN): same output as
+    the plain NCHW layout to float32 rounding (another summation order; 1e-4 of outputs of
+    order 0.1-1), and weights loaded from a plain state dict keep the layout."""
+    torch.manual_seed(0)
+    fast = pose_update_net(backbone="tiny").eval()
+    w = fast.heads[0].blocks[0].conv1.weight  # (C, C + 2, 3, 3)
+    assert w.is_contiguous(memory_format=torch.channels_last) and not w.is_contiguous()
+    plain = pose_update_net(backbone="tiny").eval()
+    plain.load_state_dict({k: v.contiguous() for k, v in fast.state_dict().items()})
+    assert plain.heads[0].blocks[0].conv1.weight.is_contiguous(memory_format=torch.channels_last)
+    plain.to(memory_format=torch.contiguous_format)
+    plain.backbone.memory_format = torch.contiguous_format
+    a, b = torch.randn(3, 1, 64, 64), torch.randn(3, 1, 64, 64)
+    with torch.no_grad():
+        got, ref = fast(a, b), plain(a, b)
+    torch.testing.assert_close(got.g, ref.g, rtol=1e-4, atol=1e-5)
+    torch.testing.assert_close(got.weights, ref.weights, rtol=1e-4, atol=1e-5)
+
+
 def test_frozen_backbone_step_changes_heads_only():
     model = _tiny(freeze_backbone=True)
     assert all(not p.requires_grad for p in model.backbone.parameters())
