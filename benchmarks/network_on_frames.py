@@ -1,7 +1,7 @@
 """The network's own prediction error on a study's realistic frames, along its own iteration.
 
     .venv/bin/python benchmarks/network_on_frames.py [--models pelvis_line pelvis_batched ...] [--cases 20]
-        [--study studies/domain_gap.toml] [--target fluoro-65kV] [--out runs/bench_search] [--mask field]
+        [--study studies/domain_gap.toml] [--target fluoro-65kV] [--out runs/bench_search] [--mask network|valid|field]
 
 The training's validation measures single predictions on virtual patients' pairs; registration
 meets the real CT's frames and the poses its own iteration visits. This script measures the
@@ -13,11 +13,13 @@ trajectory the predicted gradient ``g_k`` is compared with the true label
 (deg) and translation error ``|g_trans - g_trans,true|`` (mm), as the training's validation
 computes them.
 
-``--mask field`` is an experiment on what the network is shown: registration's valid pixels
-become the detected field alone, without the exclusions of :func:`register.xray.field.detect_field`
-(saturated / empty plateaus, overlays), which training's targets never have (they are masked by
-the true field only; the excluded pixels are filled with the mean over the rest at registration).
-Default ``valid``: registration as it is.
+``--mask`` chooses what the network is shown (what registration does is the default,
+``network``: the detected field minus drawn overlays, its clipped plateaus kept,
+:attr:`register.xray.prepare.PreparedXRay.network_mask`). ``valid``: registration's valid pixels,
+the field minus every exclusion of :func:`register.xray.field.detect_field` (saturated / empty
+plateaus and overlays; what registration showed the network before 2026-11-26). ``field``: the
+detected field alone for every stage of the registration (an experiment; training's targets are
+masked by the true field only).
 
 Prints one table: per model, the error of the first prediction (at AP, the far pair registration
 starts from), the mean over every prediction of the iteration, the mean over the predictions made
@@ -53,9 +55,9 @@ def main() -> int:
     ap.add_argument("--study", default=str(ROOT / "studies" / "domain_gap.toml"))
     ap.add_argument("--target", default="fluoro-65kV", help="an xray target of --study (default fluoro-65kV)")
     ap.add_argument("--out", default=str(ROOT / "runs" / "bench_search"), help="frame cache (frames in OUT/TARGET)")
-    ap.add_argument("--mask", choices=("valid", "field"), default="valid",
-                    help="registration's valid pixels (default) or the detected field without its exclusions "
-                         "(an experiment: what training shows the network)")
+    ap.add_argument("--mask", choices=("network", "valid", "field"), default="network",
+                    help="what the network is shown: registration's network mask (default: the field minus "
+                         "overlays), its valid pixels (minus plateaus too) or the field alone everywhere")
     a = ap.parse_args()
     problem = input_problem("network_on_frames", a.ct, a.cases)
     if problem:
@@ -71,14 +73,23 @@ def main() -> int:
     from sim.anatomy import anatomy_center
     from sim.geometry import pose_from_params
 
+    if a.mask == "valid":  # the network shown what CMA-ES is: the valid pixels
+        import register.api as api
+
+        api.network_view = lambda predictor, prepared: None
     if a.mask == "field":  # the experiment: the detected field's mask without the exclusions inside it
         import dataclasses
 
+        import register.xray.prepare as prepare
         import register.xray.preprocess as preprocess
 
         detect = preprocess.detect_field
-        preprocess.detect_field = lambda image, settings=None: dataclasses.replace(
-            found := detect(image, settings), mask=found.field_mask.copy())
+
+        def field_alone(image, settings=None):
+            found = detect(image, settings)
+            return dataclasses.replace(found, mask=found.field_mask.copy(), overlay=np.zeros_like(found.field_mask))
+
+        preprocess.detect_field = prepare.detect_field = field_alone
     study = load_study(a.study)
     targets = {t.name: t for t in study.targets if t.kind == "xray"}
     if a.target not in targets:

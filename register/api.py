@@ -395,7 +395,7 @@ def register_xray(ct, xray, *, method: str = "contextual+cmaes", model=None, ini
                           restarts=restarts if method == "cmaes" else 0, keep_drrs=True, note=remark,
                           search=grid)
 
-    view = network_view(predictor, prepared) if predictor is not None else None  # a detector-framed network
+    view = network_view(predictor, prepared) if predictor is not None else None  # what the network sees
     result = engine.register(prepared.image, x0, mask=prepared.mask, toned=prepared.toned, network_view=view)
     ran = result.search is not None and bool(result.search.get("grid_poses"))
     return XRayRegistration(method=method, result=result, prepared=prepared, volume=volume, center_lps=c,

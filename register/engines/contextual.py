@@ -49,6 +49,12 @@ class ContextualSettings:
             raise RegistrationError(f"max_iterations must be >= 1, got {self.max_iterations}")
 
 
+def _detector_key(geometry) -> tuple:
+    """What makes two detectors render the same DRR: size, spacing, principal point, distances."""
+    return (geometry.height, geometry.width, geometry.pixel_spacing_mm, tuple(geometry.principal_point),
+            geometry.sdd_mm, geometry.sod_mm)
+
+
 def checked_inputs(fixed: np.ndarray, mask: np.ndarray | None, toned: np.ndarray | None
                    ) -> tuple[np.ndarray, np.ndarray | None]:
     """``fixed`` as float64 and ``mask`` as bool, checked against each other and ``toned``'s shape
@@ -102,8 +108,7 @@ class ContextualRegistration:
         """The moving-image renderer of a network view's detector (made once per geometry)."""
         from sim.physics.imaging import moving_renderer
 
-        key = (geometry.height, geometry.width, geometry.pixel_spacing_mm, geometry.principal_point,
-               geometry.sdd_mm, geometry.sod_mm)
+        key = _detector_key(geometry)
         if key not in self._view_renderers:
             a = self._view_args
             self._view_renderers[key] = moving_renderer(a["volume"], a["physics"], scene=a["scene"],
@@ -122,10 +127,11 @@ class ContextualRegistration:
         toned_net = toned is not None and getattr(self.predictor, "tone", "off") == "ct"
         net_fixed = masked_fill(np.asarray(toned, np.float64) if toned_net else fixed, mask)
         net_mask, view_renderer = mask, None
-        if network_view is not None:  # a detector-framed network: the whole detector, the field masked
+        if network_view is not None:  # what the network sees (register.xray.network_view)
             net_mask = network_view.mask
             net_fixed = masked_fill(network_view.image, net_mask)
-            view_renderer = self._view_renderer(network_view.geometry)
+            if _detector_key(network_view.geometry) != _detector_key(self.geometry):  # the whole detector
+                view_renderer = self._view_renderer(network_view.geometry)
         # a network trained on open current images sees the DRR's anatomy around the field too
         open_current = getattr(self.predictor, "current_field", "masked") == "open"
         T = pose_from_params(np.asarray(init_params, float).reshape(6), self.geometry.sod_mm)
@@ -170,11 +176,12 @@ class ContextualRegistration:
         around the field); the final similarity uses the valid pixels only. ``toned``
         ``(H, W)``: the X-ray's toned version (:attr:`register.xray.prepare.PreparedXRay.toned`) or None;
         a network trained on toned targets (its checkpoint's ``tone`` is ``"ct"``) sees it instead
-        of ``fixed``. ``network_view``: what a network framed by the detector (its ``framing`` is
-        ``"detector"``) sees instead of ``fixed``: the X-ray's whole detector at the network's size
-        with its field (:class:`register.xray.network_view.NetworkView`); the network's DRRs are
-        then rendered for that detector, and ``fixed``, ``mask`` and the renderer of this
-        registration serve the similarity only."""
+        of ``fixed``. ``network_view``: what the network sees instead of ``fixed`` and ``mask``
+        (:class:`register.xray.network_view.NetworkView`): the same pixels masked by the field with
+        its clipped plateaus kept, or for a network framed by the detector (its ``framing`` is
+        ``"detector"``) the X-ray's whole detector at the network's size with its field, the
+        network's DRRs then rendered for that detector; ``fixed``, ``mask`` and the renderer of
+        this registration serve the similarity."""
         fixed, mask = checked_inputs(fixed, mask, toned)
         it = self.iterate(fixed, init_params, mask=mask, toned=toned, network_view=network_view)
         sim_value = float(gradient_ncc(fixed, self.renderer.render(it.T), mask=mask)[0])

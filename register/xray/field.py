@@ -286,6 +286,10 @@ class Field:
         excluded: disjoint pixel counts inside ``field_mask``: ``overlay`` (text, rulers, markers),
             ``saturated`` (plateaus at the maximum), ``empty`` (plateaus at the minimum).
         settings: the :class:`FieldSettings` used.
+        overlay: ``(H, W)`` bool, the overlay pixels (drawn text, rulers, markers, dilated) inside
+            ``field_mask``, or None; ``field_mask & ~overlay`` is the field with its clipped
+            plateaus kept (what a network trained on clipped displays is shown:
+            :attr:`register.xray.prepare.PreparedXRay.network_mask`).
     """
 
     mask: np.ndarray
@@ -295,6 +299,7 @@ class Field:
     params: dict
     excluded: dict
     settings: FieldSettings = dataclasses.field(default_factory=FieldSettings)
+    overlay: np.ndarray | None = None
 
     @property
     def valid_fraction(self) -> float:
@@ -1092,7 +1097,7 @@ def detect_field(image: np.ndarray, settings: FieldSettings | None = None) -> Fi
     excl = _exclusions(img, within, field_mask, lo, hi, q, med, s)
     mask = field_mask & ~(excl["overlay"] | excl["saturated"] | excl["empty"])
     result = Field(mask=mask, field_mask=field_mask, kind=kind, outside=outside_colour, params=params,
-                   excluded={k: int(v.sum()) for k, v in excl.items()}, settings=s)
+                   excluded={k: int(v.sum()) for k, v in excl.items()}, settings=s, overlay=excl["overlay"])
     n = img.size
     if field_mask.sum() < s.min_fraction * n:
         raise FieldError(

@@ -1,9 +1,17 @@
-"""What a detector-framed network sees of a prepared X-ray: its whole detector at the network's size.
+"""What the contextual network sees of a prepared X-ray: its pixels, its mask and their detector.
 
-A network trained with ``train.framing = "detector"`` sees the X-ray's whole detector (and its
-field) rather than the X-ray cropped to its field as CMA-ES does (:func:`network_view`); the
-contextual iteration (:class:`register.engines.contextual.ContextualRegistration`) then renders the
-network's DRRs for that detector.
+Two framings, the network's own (its checkpoint's ``train.framing``):
+
+* ``"field"`` (every shipped network): the X-ray cropped to its field at the optimiser's size, as
+  CMA-ES sees it (:class:`register.xray.prepare.PreparedXRay`), but masked by the field with its
+  clipped plateaus kept (:attr:`~register.xray.prepare.PreparedXRay.network_mask`): the network's
+  training targets keep their clipped pixels, and only drawn overlays are foreign to it;
+* ``"detector"``: the X-ray's whole detector (and its field) fitted into the network's size; the
+  contextual iteration (:class:`register.engines.contextual.ContextualRegistration`) then renders
+  the network's DRRs for that detector.
+
+A network trained on toned targets (its ``tone`` is ``"ct"``) sees the toned pixels
+(:func:`register.xray.prepare.toned_image`).
 """
 
 from __future__ import annotations
@@ -13,17 +21,16 @@ from dataclasses import dataclass
 import numpy as np
 
 from register.engines.result import RegistrationError
-from register.xray.prepare import fit_to_size
+from register.xray.prepare import fit_to_size, recorded_tone_curve, toned_image
 
 __all__ = ["NetworkView", "network_view"]
 
 
 @dataclass(frozen=True)
 class NetworkView:
-    """What a detector-framed network (``train.framing = "detector"``) sees of an X-ray: its whole
-    detector at the network's size. ``image`` ``(h, w)`` the preprocessed X-ray, ``mask`` ``(h, w)``
-    bool its valid pixels (the field), ``geometry`` the :class:`sim.geometry.CArmGeometry` of
-    those pixels (the network's DRRs are rendered for it)."""
+    """What the network sees of an X-ray. ``image`` ``(h, w)`` the preprocessed X-ray, ``mask``
+    ``(h, w)`` bool its pixels shown to the network, ``geometry`` the
+    :class:`sim.geometry.CArmGeometry` of those pixels (the network's DRRs are rendered for it)."""
 
     image: np.ndarray
     mask: np.ndarray
@@ -32,13 +39,18 @@ class NetworkView:
 
 def network_view(predictor, prepared) -> NetworkView | None:
     """The :class:`NetworkView` of a prepared X-ray (:class:`register.xray.prepare.PreparedXRay`) for
-    ``predictor`` when it is framed by the detector (its ``framing``); None otherwise (the network
-    sees the X-ray cropped to its field, as CMA-ES does). The whole detector is fitted into the
-    network's image size, aspect kept (:func:`register.xray.prepare.fit_to_size`)."""
-    if getattr(predictor, "framing", "field") != "detector":
+    ``predictor`` (its ``framing``, ``size`` and ``tone``; module doc). None where the network sees
+    what CMA-ES sees (a field-framed network of an X-ray prepared without the ``field`` step)."""
+    if getattr(predictor, "framing", "field") == "detector":
+        size = getattr(predictor, "size", None) or (64, 64)
+        image, mask, geometry = fit_to_size(prepared.full_image, prepared.full_mask, prepared.full_geometry, size)
+        if mask is None or not mask.any():
+            raise RegistrationError("the X-ray's field holds no valid pixel at the network's size")
+        return NetworkView(np.asarray(image, np.float64), np.asarray(mask, bool), geometry)
+    if prepared.network_mask is None:
         return None
-    size = getattr(predictor, "size", None) or (64, 64)
-    image, mask, geometry = fit_to_size(prepared.full_image, prepared.full_mask, prepared.full_geometry, size)
-    if mask is None or not mask.any():
-        raise RegistrationError("the X-ray's field holds no valid pixel at the network's size")
-    return NetworkView(np.asarray(image, np.float64), np.asarray(mask, bool), geometry)
+    image, mask = np.asarray(prepared.network_image, np.float64), np.asarray(prepared.network_mask, bool)
+    if getattr(predictor, "tone", "off") == "ct":
+        toned = toned_image(image, mask, recorded_tone_curve(prepared.record))
+        image = image if toned is None else toned
+    return NetworkView(image, mask, prepared.geometry)

@@ -29,7 +29,8 @@ from register.engines.search import GlobalSearch, GlobalSearchSettings
 from register.xray.intensity import PolarityReference
 from register.xray.geometry import resolve_geometry
 from register.xray.io import XRayImage, load_xray
-from register.xray.preprocess import DEFAULT_STEPS, Pipeline, PreprocessError, crop_box, cropped_geometry
+from register.xray.field import FieldSettings, detect_field
+from register.xray.preprocess import DEFAULT_STEPS, Field as FieldStep, Pipeline, PreprocessError, crop_box, cropped_geometry
 from sim.campaign.poses import ORIGINAL_PROTOCOL
 from sim.cliargs import IMAGE_SIDE_PX
 from sim.geometry import pose_from_params
@@ -37,6 +38,7 @@ from sim.prepare import invert, masked_fill, normalize, percentile_bounds
 from sim.seeds import KIND_POLARITY_POSES, rng_for
 
 __all__ = ["PreparedXRay", "prepare_xray", "confirm_polarity", "fit_to_size", "fit_box", "reference_drrs",
+           "recorded_tone_curve", "toned_image",
            "REFERENCE_POSES", "REFERENCE_SIZE", "POLARITY_FLIP_MARGIN"]
 
 #: Number of DRRs (poses around the start) of the polarity reference, and their longer side (px).
@@ -152,6 +154,13 @@ class PreparedXRay:
             integrals in the field (the intensity step's tone curve, :func:`toned_image`) and
             normalised to [0, 1]; None when the image got no tone curve (not a display image,
             ``tone="off"``, no CT). The global search ranks its grid on it too.
+        network_image: ``(h, w)`` float64, the same preprocessed pixels as ``image`` (same crop,
+            size and geometry) resampled over ``network_mask`` instead of ``mask``; None: as ``image``.
+        network_mask: ``(h, w)`` bool, the pixels the contextual network is shown: the detected
+            field minus drawn overlays only (text, rulers, markers), its clipped plateaus kept, as
+            the network's training targets keep theirs (``mask`` also drops the plateaus, which
+            intensity similarities cannot use). None when the pipeline's first step is not
+            ``field`` (then ``mask``).
     """
 
     xray: Any
@@ -164,6 +173,8 @@ class PreparedXRay:
     record: list
     sources: Any
     toned: np.ndarray | None = None
+    network_image: np.ndarray | None = None
+    network_mask: np.ndarray | None = None
 
     def step(self, name: str) -> dict | None:
         """The measured values of the first pipeline step called ``name`` (None if it did not run)."""
@@ -221,6 +232,10 @@ def prepare_xray(xray, *, volume=None, center_lps=None, init_params=None, scene:
     options = {"intensity": {"scale": scale, "polarity": polarity, "tone": tone, "tags": tags,
                              "inverted": bool(xray.meta.get("inverted", False)), "bits": bits,
                              "reference": reference}}
+    found = None
+    if steps and steps[0] == "field":  # detected once here: the network's mask keeps its plateaus
+        found = detect_field(xray.pixels, FieldSettings(margin_px=FieldStep().margin_px))
+        options["field"] = {"found": found}
     image, mask, record = Pipeline.from_names(list(steps), options).apply(xray.pixels)
     H, W = xray.shape
     r0, r1, c0, c1 = crop_box(record, (H, W))
@@ -232,13 +247,21 @@ def prepare_xray(xray, *, volume=None, center_lps=None, init_params=None, scene:
     geometry = cropped_geometry(full_geometry, record)  # a crop moves the principal point
     if mask is not None and mask.mean() < 0.02:
         raise PreprocessError(f"{xray.source}: only {mask.sum()} valid pixels are left after preprocessing")
-    small, small_mask, geometry = fit_to_size(image, mask, geometry, box)
+    crop_geometry = geometry
+    small, small_mask, geometry = fit_to_size(image, mask, crop_geometry, box)
     if small_mask is not None and not small_mask.any():
         raise PreprocessError(f"{xray.source}: no valid pixel is left at the optimiser's {small.shape[0]} x "
                               f"{small.shape[1]} px")
+    net_image = net_mask = None
+    if found is not None:
+        shown = (found.field_mask & ~found.overlay)[r0:r1, c0:c1]
+        net_image, net_mask, _ = fit_to_size(image, shown, crop_geometry, box)
+        if not net_mask.any():
+            net_image = net_mask = None
     return PreparedXRay(xray=xray, image=small, mask=small_mask, geometry=geometry, full_geometry=full_geometry,
                         full_image=full_image, full_mask=full_mask, record=record, sources=sources,
-                        toned=toned_image(small, small_mask, _tone_of(record)))
+                        toned=toned_image(small, small_mask, recorded_tone_curve(record)), network_image=net_image,
+                        network_mask=net_mask)
 
 
 def toned_image(image: np.ndarray, mask: np.ndarray | None, curve) -> np.ndarray | None:
@@ -317,12 +340,15 @@ def confirm_polarity(prepared: PreparedXRay, volume, center_lps, init_params, *,
         return replace(prepared, record=record)
     inverse = invert(prepared.image, prepared.mask)[0]
     full_inverse = invert(prepared.full_image, prepared.full_mask if prepared.full_mask.any() else None)[0]
+    net_inverse = (None if prepared.network_image is None else
+                   invert(prepared.network_image, prepared.network_mask)[0])
     return replace(prepared, image=inverse, full_image=full_inverse, record=record,
-                   toned=toned_image(inverse, prepared.mask, _tone_of(prepared.record)))
+                   toned=toned_image(inverse, prepared.mask, recorded_tone_curve(prepared.record)), network_image=net_inverse)
 
 
-def _tone_of(record) -> np.ndarray | None:
-    """The tone curve ``(levels,)`` the intensity step recorded (None: the image has none)."""
+def recorded_tone_curve(record) -> np.ndarray | None:
+    """The tone curve ``(levels,)`` the intensity step of a preprocessing ``record`` recorded (None:
+    the image has none)."""
     for entry in record:
         if entry["step"] == "intensity":
             curve = entry["measured"].get("tone_curve")

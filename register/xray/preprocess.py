@@ -110,12 +110,23 @@ class Field(Step):
 
     name: ClassVar[str] = "field"
     margin_px: float = 2.0
+    #: this image's field when already detected (:func:`register.xray.field.detect_field` with
+    #: ``margin_px``): :func:`register.xray.prepare.prepare_xray` detects once and keeps its overlays
+    found: Any = dataclasses.field(default=None, compare=False, repr=False)
 
     def __post_init__(self) -> None:
         _num(self.margin_px, "field.margin_px", lo=0.0, hi=50.0)
 
+    def params(self) -> dict[str, Any]:
+        return {"margin_px": float(self.margin_px)}
+
     def apply(self, image, mask):
-        found = detect_field(image, FieldSettings(margin_px=float(self.margin_px)))
+        found = self.found
+        if found is None:
+            found = detect_field(image, FieldSettings(margin_px=float(self.margin_px)))
+        elif found.mask.shape != image.shape or found.settings.margin_px != float(self.margin_px):
+            raise PreprocessError(f"field: the given detection is of a {found.mask.shape} image with margin "
+                                  f"{found.settings.margin_px} px, not of this {image.shape} one with {self.margin_px}")
         out = found.mask if mask is None else (mask & found.mask)
         if not out.any():
             raise PreprocessError("field: no valid pixel is left inside the detected field and the given mask")

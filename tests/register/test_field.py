@@ -350,6 +350,8 @@ def test_text_ruler_and_marker_are_excluded(outside, dtype, shape_name):
     assert f.mask[far].all(), f"{int((~f.mask[far]).sum())} pixels far from glyphs were excluded"
     assert f.excluded["overlay"] > (glyph & f.field_mask).sum()
     assert f.excluded["saturated"] == 0 and f.excluded["empty"] == 0
+    assert not (f.field_mask & ~f.overlay & glyph).any()  # the overlay mask holds the glyphs
+    assert int(f.overlay.sum()) == f.excluded["overlay"]
 
 
 def test_text_crossing_the_field_edge_does_not_bend_the_field():
@@ -394,6 +396,7 @@ def test_saturated_plateau_is_excluded():
     assert f.kind == "circle"
     assert not (f.mask & big).any()
     assert f.excluded["saturated"] >= big.sum() and f.excluded["overlay"] == 0
+    assert not f.overlay.any()  # a plateau is no overlay: the network's mask keeps it
     dist = _boundary_distance(truth_fn, S)
     far = truth & (dist > 3) & (ndimage.distance_transform_edt(~plateau) > 5)
     assert f.mask[far].all()
