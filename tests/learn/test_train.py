@@ -112,3 +112,36 @@ def test_a_bf16_step_has_the_fp32_gradient_direction():
     ref, bf16, other = gradient(batches[0], False), gradient(batches[0], True), gradient(batches[1], False)
     assert cos(ref, bf16, dim=0) > 0.9
     assert (ref - bf16).norm() < 0.5 * (ref - other).norm()
+
+
+def test_a_bf16_step_with_a_non_finite_gradient_is_skipped_and_too_many_stop_the_run(campaign, tmp_path,
+                                                                                     monkeypatch):
+    """An overflowed bfloat16 step (a NaN gradient) takes no optimiser step and is counted in the
+    log; the weights stay finite. More than MAX_SKIPPED_FRACTION of the steps (1 % of at least 100,
+    so a second one here) stops the run with a line naming the remedy."""
+    import learn.train as tr
+    from learn.checkpoint import load_checkpoint
+
+    real_loss, calls = tr._loss, []
+
+    def loss_poisoned_on(poisoned):
+        def loss(*args, **kw):
+            calls.append(None)
+            value = real_loss(*args, **kw)
+            return value * float("nan") if len(calls) in poisoned else value
+        return loss
+
+    monkeypatch.setattr(tr, "_loss", loss_poisoned_on({3}))
+    lines = []
+    tr.train(config(campaign, tmp_path / "a", precision="bf16"), log=lines.append)
+    got = load_checkpoint(tmp_path / "a" / "checkpoint.pt")
+    assert got.iteration == 12
+    assert all(torch.isfinite(v).all() for v in got.model_state.values() if v.is_floating_point())
+    steps = {int(s["step"]) for s in got.optimizer["state"].values()}
+    assert steps == {11}, "the poisoned iteration must take no Adam step"
+    assert any("1 bf16 steps skipped for a non-finite gradient" in line for line in lines)
+
+    calls.clear()
+    monkeypatch.setattr(tr, "_loss", loss_poisoned_on({2, 5}))
+    with pytest.raises(tr.TrainConfigError, match="2 of the 5 steps .* non-finite gradient; train with precision = 'fp32'"):
+        tr.train(config(campaign, tmp_path / "b", precision="bf16"), log=lambda *_: None)
