@@ -46,6 +46,41 @@ def _errors(g_pred: np.ndarray, g_true: np.ndarray) -> tuple[np.ndarray, np.ndar
     return rot, np.linalg.norm(g_pred[:, 3:] - g_true[:, 3:], axis=1)
 
 
+class FrameTargetError(ValueError):
+    """An unknown ``--target`` of the study (one line for the user)."""
+
+
+def study_frame_files(study_path, target: str, ct, cases: int, out):
+    """The first ``cases`` frames of a study's ``xray`` target from AP, simulated into
+    ``out/target`` where missing: ``(volume, centre (3,) mm, sod_mm, [(i, T_true (4, 4) mm, path)])``.
+    :class:`FrameTargetError` names an unknown target."""
+    from register.evaluation.evaluate import EvaluationSettings, sample_cases
+    from register.evaluation.study import frame_seed, load_study, study_frames
+    from sim import load_ct
+    from sim.anatomy import anatomy_center
+    from sim.geometry import pose_from_params
+
+    study = load_study(study_path)
+    targets = {t.name: t for t in study.targets if t.kind == "xray"}
+    if target not in targets:
+        raise FrameTargetError(f"--target must be one of {sorted(targets)}")
+    volume = load_ct(ct)
+    center = anatomy_center(volume)
+    frames = study_frames(study, targets[target], volume, center)
+    sod = frames.imager.geometry.sod_mm
+    poses, _ = sample_cases(EvaluationSettings(cases=cases, seed=study.seed, size=study.size, start="ap"))
+    folder = Path(out) / target
+    folder.mkdir(parents=True, exist_ok=True)
+    found = []
+    for i, params in enumerate(poses):
+        T_true = pose_from_params(params, sod)
+        path = folder / f"case_{i:03d}.dcm"
+        if not path.exists():
+            frames.simulate(path, T_true, frame_seed(study, i))
+        found.append((i, T_true, path))
+    return volume, center, sod, found
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--ct", default=str(ROOT.parent / "shared" / "data" / "ct" / "pelvis_abdomen_3mm.nii.gz"))
@@ -67,10 +102,7 @@ def main() -> int:
     from learn.labels import geodesic_label
     from register.api import register_xray
     from register.evaluation.errors import bone_points, pose_errors
-    from register.evaluation.evaluate import EvaluationSettings, sample_cases
-    from register.evaluation.study import frame_refusals, frame_seed, load_study, study_frames
-    from sim import load_ct
-    from sim.anatomy import anatomy_center
+    from register.evaluation.study import frame_refusals
     from sim.geometry import pose_from_params
 
     if a.mask == "valid":  # the network shown what CMA-ES is: the valid pixels
@@ -90,28 +122,17 @@ def main() -> int:
             return dataclasses.replace(found, mask=found.field_mask.copy(), overlay=np.zeros_like(found.field_mask))
 
         preprocess.detect_field = prepare.detect_field = field_alone
-    study = load_study(a.study)
-    targets = {t.name: t for t in study.targets if t.kind == "xray"}
-    if a.target not in targets:
-        print(f"network_on_frames: --target must be one of {sorted(targets)}", file=sys.stderr)
+    try:
+        volume, center, sod, cases = study_frame_files(a.study, a.target, a.ct, a.cases, a.out)
+    except FrameTargetError as e:
+        print(f"network_on_frames: {e}", file=sys.stderr)
         return 2
-    volume = load_ct(a.ct)
-    center = anatomy_center(volume)
-    frames = study_frames(study, targets[a.target], volume, center)
-    sod = frames.imager.geometry.sod_mm
-    poses, _ = sample_cases(EvaluationSettings(cases=a.cases, seed=study.seed, size=study.size, start="ap"))
     points = bone_points(volume, 2000, 0)
-    folder = Path(a.out) / a.target
-    folder.mkdir(parents=True, exist_ok=True)
     rows = []
     t0 = time.perf_counter()
     for model in a.models:
         first, every, near, size0, final, refused = [], [], [], [], [], 0
-        for i, params in enumerate(poses):
-            T_true = pose_from_params(params, sod)
-            path = folder / f"case_{i:03d}.dcm"
-            if not path.exists():
-                frames.simulate(path, T_true, frame_seed(study, i))
+        for i, T_true, path in cases:
             try:
                 res = register_xray(volume, path, center=center, method="contextual", model=model)
             except frame_refusals():

@@ -259,14 +259,29 @@ class BatchedPairs(OnlinePairs):
         return apply_image_batched(raw, flat, p, normals)
 
     def batch(self, k: int, n: int):
+        if n > MAX_BATCH:
+            raise OnlinePairsError(f"batch size must be <= {MAX_BATCH}, got {n}")
+        subject, t_a, t_b = self.draw(k, n)
+        return self.pairs(subject, t_a, t_b, int(k) * MAX_BATCH + np.arange(n))
+
+    def pairs(self, subject, t_a, t_b, index):
+        """The pairs of given subjects and poses: ``subject`` ``(n,)`` indices into
+        :attr:`subjects`, target poses ``t_a`` and current poses ``t_b`` ``(n, 4, 4)`` (mm),
+        ``index`` ``(n,)`` the pairs' numbers (the randomization's draw and noise streams of pair
+        ``i``: :meth:`batch` ``k`` uses ``k * MAX_BATCH + arange(n)``) -> as :meth:`batch`. Used
+        by :meth:`batch` and to render the training's own pairs at chosen poses (the benchmarks)."""
         from learn.prepare_batched import prepare_like_registration_batched
         from sim.physics.batched import draw_tensors, field_masks
 
-        if n > MAX_BATCH:
-            raise OnlinePairsError(f"batch size must be <= {MAX_BATCH}, got {n}")
+        subject, index = np.asarray(subject, np.int64), np.asarray(index, np.int64)
+        t_a, t_b = np.asarray(t_a, np.float64), np.asarray(t_b, np.float64)
+        n = len(index)
+        if subject.shape != (n,) or t_a.shape != (n, 4, 4) or t_b.shape != (n, 4, 4):
+            raise OnlinePairsError(f"pairs: subject (n,), t_a and t_b (n, 4, 4) for {n} pair numbers, got "
+                                   f"{subject.shape}, {t_a.shape} and {t_b.shape}")
+        if n and not (0 <= subject.min() and subject.max() < len(self.subjects)):
+            raise OnlinePairsError(f"pairs: subject indices must lie in [0, {len(self.subjects)})")
         self.prepare()
-        subject, t_a, t_b = self.draw(k, n)
-        index = int(k) * MAX_BATCH + np.arange(n)
         draws = [self.randomization.draw(self.seed, int(i)) for i in index]
         p = draw_tensors(draws, device=self.device, dtype=torch.float32)
         g = self.geometry

@@ -79,6 +79,24 @@ def test_a_batch_is_reproducible_and_its_groups_follow_the_draws(both):
     assert not (g["log"] & g["linear"]).any() and ((g["log"] | g["linear"]) == ~g["ideal"]).all()
 
 
+def test_pairs_at_chosen_poses_are_the_batch_pairs_of_those_poses(both):
+    """``pairs(subject, t_a, t_b, index)`` with batch k's own draws gives batch k exactly, pair by
+    pair (a pair's draw and noise follow its number, not its neighbours); bad shapes are refused."""
+    _, _, batched = both
+    k, n = 4, 6
+    subject, t_a, t_b = batched.draw(k, n)
+    index = k * (1 << 16) + np.arange(n)
+    ref = batched.batch(k, n)
+    pick = [4, 1]  # two of the pairs, in another order
+    got = batched.pairs(subject[pick], t_a[pick], t_b[pick], index[pick])
+    for u, v in zip(got, ref):
+        torch.testing.assert_close(u, v[pick], rtol=0, atol=0)
+    with pytest.raises(OnlinePairsError, match=r"t_a and t_b \(n, 4, 4\) for 2 pair numbers"):
+        batched.pairs(subject[:2], t_a[:2, :3], t_b[:2], index[:2])
+    with pytest.raises(OnlinePairsError, match="subject indices must lie in"):
+        batched.pairs(np.full(2, len(batched.subjects)), t_a[:2], t_b[:2], index[:2])
+
+
 def test_the_noise_of_a_pair_does_not_depend_on_its_batch():
     from sim.seeds import pair_normals
 

@@ -1,0 +1,159 @@
+"""Where the network's first step from AP goes wrong: a study's frames against the training's own pairs at the same poses.
+
+    .venv/bin/python benchmarks/network_first_step.py [--model pelvis_batched_small] [--cases 20] [--draws 4]
+        [--study studies/domain_gap.toml] [--target fluoro-65kV] [--out runs/bench_search]
+
+Registration from AP starts with a far pair, and there the network's prediction on the study's
+frames is far worse than on the training's far validation pairs (docs/benchmarks.md, "The network
+on realistic frames"). Three things differ between the two: the target image (a study frame,
+12-bit DICOM through registration's preparation, against a target of the training's randomized
+two-basis pipeline), the CT (the real pelvis CT against held-out virtual patients) and the poses
+(the study's protocol against the training's draws). This script holds the poses fixed (each
+frame's true pose, current at registration's AP start) and changes one thing per row:
+
+* ``frame``: the study's frame through ``register_xray(method="contextual")`` (its first
+  prediction; the frames cached in ``--out`` as ``benchmarks/search.py`` makes them);
+* ``training pairs, real CT``: targets of the training's own pipeline
+  (:meth:`learn.batched.BatchedPairs.pairs`, the checkpoint's ``[train.randomize]`` with every
+  target realistic, ``--draws`` draws per pose) on the real CT (a training subject);
+* ``training pairs, held-out VP``: the same on the first validation virtual patient;
+* ``line DRR targets, real CT``: the ideal line-DRR target (no appearance gap at all).
+
+Columns (mean over frames and draws): rotation error ``|g_rot - g_rot,true|`` (deg) and
+translation error (mm) as the training's validation computes them, their size relative to the true
+label, and the cosine between the predicted and the true rotation (translation) part: the
+iteration moves along ``-g``, so a cosine near 1 is a step in the right direction whatever its
+length. The true first label is printed for scale (``|g|`` is twice the pose distance).
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))  # the repository first: benchmarks/learn.py and register.py are not the packages
+from network_on_frames import FrameTargetError, study_frame_files  # noqa: E402  (benchmarks/)
+from timing import input_problem  # noqa: E402  (benchmarks/timing.py)
+
+#: Pair numbers of the synthetic rows start here: far beyond any training batch's
+#: (``k * MAX_BATCH + i`` for k below 10^6), so their draws are not the training's.
+INDEX_BASE = 1 << 40
+
+
+def _scores(g_pred: np.ndarray, g_true: np.ndarray) -> np.ndarray:
+    """``(K, 6)`` rad/mm each -> ``(K, 6)``: rotation error deg, translation error mm, their
+    relative sizes, the rotation and translation cosines."""
+    out = []
+    for part in (slice(0, 3), slice(3, 6)):
+        err = np.linalg.norm(g_pred[:, part] - g_true[:, part], axis=1)
+        size = np.linalg.norm(g_true[:, part], axis=1)
+        cos = (g_pred[:, part] * g_true[:, part]).sum(1) / np.maximum(
+            np.linalg.norm(g_pred[:, part], axis=1) * size, 1e-12)
+        out.append((err, err / np.maximum(size, 1e-12), cos))
+    (er, rr, cr), (et, rt, ct) = out
+    return np.stack([np.degrees(er), et, rr, rt, cr, ct], 1)
+
+
+def _training_pairs(model, randomize: dict, subject_split: str, ideal: float, seed: int):
+    """A :class:`learn.batched.BatchedPairs` of the pelvis campaign drawing as ``model``'s run
+    drew (its randomization with ``ideal`` set), untransformed (the predictor normalises),
+    restricted to the split's first subject (the real CT in ``train``, a held-out virtual
+    patient in ``val``)."""
+    from learn.batched import BatchedPairs
+    from learn.online import NearPairs
+    from sim.campaign.config import load_campaign
+    from sim.randomize import DomainRandomization
+
+    cfg = model.checkpoint.config or {}
+    campaign = load_campaign(ROOT / "campaigns" / "pelvis_vp.toml")
+    randomization = DomainRandomization.from_table({**randomize, "ideal": ideal}, "train.randomize")
+    pairs = BatchedPairs(campaign, subject_split, near=NearPairs(), seed=seed, randomization=randomization,
+                         current_field=cfg.get("current_field", "masked"), framing=cfg.get("framing", "field"),
+                         tables=ROOT / "runs" / "bench_pairs_tables")
+    pairs.subjects = pairs.subjects[:1]  # only this subject's volume is built
+    return pairs
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--ct", default=str(ROOT.parent / "shared" / "data" / "ct" / "pelvis_abdomen_3mm.nii.gz"))
+    ap.add_argument("--model", default="pelvis_batched_small",
+                    help="a shipped model's name or a checkpoint trained with [train.randomize] and pairs = "
+                         "'batched' (default pelvis_batched_small)")
+    ap.add_argument("--cases", type=int, default=20, help="frames: the protocol's first N poses (default 20)")
+    ap.add_argument("--draws", type=int, default=4, help="randomization draws per pose for the synthetic rows")
+    ap.add_argument("--study", default=str(ROOT / "studies" / "domain_gap.toml"))
+    ap.add_argument("--target", default="fluoro-65kV", help="an xray target of --study (default fluoro-65kV)")
+    ap.add_argument("--out", default=str(ROOT / "runs" / "bench_search"), help="frame cache (frames in OUT/TARGET)")
+    a = ap.parse_args()
+    problem = input_problem("network_first_step", a.ct, a.cases)
+    if problem or a.draws < 1:
+        print(problem or "network_first_step: --draws must be >= 1", file=sys.stderr)
+        return 2
+
+    from learn.labels import geodesic_label
+    from learn.predict import NetworkPredictor
+    from register.api import register_xray
+    from register.evaluation.study import frame_refusals
+    from sim.geometry import pose_from_params
+
+    model = NetworkPredictor(a.model)
+    randomize = (model.checkpoint.config or {}).get("randomize")
+    if randomize is None or (model.checkpoint.config or {}).get("pairs") != "batched":
+        print(f"network_first_step: {a.model} was not trained on batched randomized pairs ([train.randomize], "
+              f"pairs = 'batched'): there are no training pairs to compare with", file=sys.stderr)
+        return 2
+    try:
+        volume, center, sod, cases = study_frame_files(a.study, a.target, a.ct, a.cases, a.out)
+    except FrameTargetError as e:
+        print(f"network_first_step: {e}", file=sys.stderr)
+        return 2
+    t0 = time.perf_counter()
+    frame, t_true, t_start = [], [], []
+    for i, T_true, path in cases:
+        try:
+            res = register_xray(volume, path, center=center, method="contextual", model=model)
+        except frame_refusals():
+            continue
+        traj = res.result.trajectory
+        T0 = pose_from_params(np.asarray(traj["params"])[0], sod)
+        g_true = np.asarray(geodesic_label(T_true[None], T0[None]), np.float64)
+        frame.append(_scores(np.asarray(traj["g"], np.float64)[:1], g_true)[0])
+        t_true.append(T_true)
+        t_start.append(T0)
+        print(f"network_first_step: frame {i} ({time.perf_counter() - t0:.0f} s)", file=sys.stderr, flush=True)
+    if not frame:
+        print("network_first_step: every frame was refused", file=sys.stderr)
+        return 2
+    n = len(t_true)
+    T_a = np.repeat(np.stack(t_true), a.draws, 0)
+    T_b = np.repeat(np.stack(t_start), a.draws, 0)
+    g_true = np.asarray(geodesic_label(T_a, T_b), np.float64)
+    size = np.concatenate([np.degrees(np.linalg.norm(g_true[:, :3], axis=1))[:, None],
+                           np.linalg.norm(g_true[:, 3:], axis=1)[:, None]], 1).mean(0)
+    rows = [("frame (registration's preparation)", np.mean(frame, 0), n)]
+    seed = int((model.checkpoint.config or {}).get("seed", 0))
+    for name, split, ideal in (("training pairs, real CT", "train", 0.0),
+                               ("training pairs, held-out VP", "val", 0.0),
+                               ("line DRR targets, real CT", "train", 1.0)):
+        pairs = _training_pairs(model, randomize, split, ideal, seed)
+        target, current, _ = pairs.pairs(np.zeros(len(T_a), np.int64), T_a, T_b, INDEX_BASE + np.arange(len(T_a)))
+        pred = model.predict(target[:, 0].numpy(), current[:, 0].numpy()).g
+        rows.append((name, _scores(pred, g_true).mean(0), len(T_a)))
+        print(f"network_first_step: {name} ({time.perf_counter() - t0:.0f} s)", file=sys.stderr, flush=True)
+    print(f"\n{a.target}: the network's first prediction from AP, {n} frames' true poses, model {a.model} "
+          f"(true first label {size[0]:.1f} deg / {size[1]:.1f} mm on average; {time.strftime('%Y-%m-%d %H:%M')})\n")
+    print("| target | pairs | rotation error deg (relative) | translation error mm (relative) | cosine rotation "
+          "| cosine translation |")
+    print("|---|---|---|---|---|---|")
+    for name, s, count in rows:
+        print(f"| {name} | {count} | {s[0]:.1f} ({s[2]:.2f}) | {s[1]:.1f} ({s[3]:.2f}) | {s[4]:.2f} | {s[5]:.2f} |")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
