@@ -264,6 +264,20 @@ class BatchedPairs(OnlinePairs):
         subject, t_a, t_b = self.draw(k, n)
         return self.pairs(subject, t_a, t_b, int(k) * MAX_BATCH + np.arange(n))
 
+    def ap_batch(self, k: int, n: int):
+        """Batch ``k``'s targets (the same subjects, poses, draws and noise as :meth:`batch`) with
+        every current image at registration's start from AP (pose parameters zero,
+        ``register.api.parse_init("ap")``): the pair kind ``ap`` of :mod:`learn.accuracy`, the far
+        pairs every registration from AP begins with. Shapes as :meth:`batch`."""
+        from sim.geometry import pose_from_params
+        from sim.scene import load_scene
+
+        if n > MAX_BATCH:
+            raise OnlinePairsError(f"batch size must be <= {MAX_BATCH}, got {n}")
+        subject, t_a, _ = self.draw(k, n)
+        t_b = pose_from_params(np.zeros((n, 6)), load_scene(self.cfg.scene.name).geometry.sod_mm)
+        return self.pairs(subject, t_a, t_b, int(k) * MAX_BATCH + np.arange(n))
+
     def pairs(self, subject, t_a, t_b, index):
         """The pairs of given subjects and poses: ``subject`` ``(n,)`` indices into
         :attr:`subjects`, target poses ``t_a`` and current poses ``t_b`` ``(n, 4, 4)`` (mm),

@@ -641,7 +641,9 @@ def _loop(cfg, source, model, optimizer, scheduler, device, iteration, rows, log
             _write_log(log_path, rows)
             log(f"iteration {iteration}/{cfg.iterations}: train {last['train_loss']:.4f}, "
                 f"val {last['val_loss']:.4f}, rotation {last['val_rot_err_deg']:.2f} deg, "
-                f"translation {last['val_trans_err_mm']:.1f} mm ({rate:.0f} pairs/s"
+                f"translation {last['val_trans_err_mm']:.1f} mm"
+                + (f" (from AP: {last['val_rot_ap_deg']:.2f} deg, {last['val_trans_ap_mm']:.1f} mm)"
+                   if "val_rot_ap_deg" in last else "") + f" ({rate:.0f} pairs/s"
                 + (f"; {skipped} bf16 steps skipped for a non-finite gradient" if skipped else "") + ")")
         if iteration % cfg.checkpoint_every == 0 or iteration == cfg.iterations or stopping:
             _save_checkpoint(ckpt_path, Checkpoint(
@@ -812,7 +814,7 @@ class _OnlineSource:
                 self.val = OnlinePairs(campaign, val_split, seed=cfg.seed + 1, **kw)  # all subjects, every batch
         except OnlinePairsError as e:
             raise TrainConfigError(f"train.dataset {cfg.dataset}: {e}") from None
-        self._val = None
+        self._val = self._val_ap = None
         self.size = tuple(campaign.scene.size)  # (H, W) pixels
         self.physics = target.to_dict()  # the physics entries of the target and current images
         if cfg.randomize is not None:  # each target draws its own: the record is the randomization
@@ -830,6 +832,16 @@ class _OnlineSource:
             n, size = self.cfg.val_pairs, self.cfg.batch_size
             self._val = [self.val.batch(k, min(size, n - start)) for k, start in enumerate(range(0, n, size))]
         return iter(self._val)
+
+    def val_ap_batches(self):
+        """The validation pairs' targets with the current image at the AP start
+        (:meth:`learn.batched.BatchedPairs.ap_batch`), rendered once; None for per-pair sources."""
+        if not hasattr(self.val, "ap_batch"):
+            return None
+        if self._val_ap is None:
+            n, size = self.cfg.val_pairs, self.cfg.batch_size
+            self._val_ap = [self.val.ap_batch(k, min(size, n - start)) for k, start in enumerate(range(0, n, size))]
+        return iter(self._val_ap)
 
     def val_groups(self) -> dict[str, np.ndarray] | None:
         """Each pair group's ``(val_pairs,)`` bool mask over the validation pairs in order (batched
@@ -855,22 +867,29 @@ def _validate(model, source, cfg: TrainConfig, device=None) -> dict:
     from learn.labels import LabelNormalizer
 
     model.eval()
-    losses, preds, trues = [], [], []
-    for *inputs, label in source.val_batches():
-        *inputs, label = _on(device or torch.device("cpu"), (*inputs, label))
-        out = source.forward(model, inputs)
-        losses.append(float(_loss(out, label, cfg)) * len(label))
-        preds.append(out.g)
-        trues.append(label)
-    n = sum(len(t) for t in trues)
-    pred, true = torch.cat(preds).cpu(), torch.cat(trues).cpu()
+
+    def predictions(batches):
+        losses, preds, trues = [], [], []
+        for *inputs, label in batches:
+            *inputs, label = _on(device or torch.device("cpu"), (*inputs, label))
+            out = source.forward(model, inputs)
+            losses.append(float(_loss(out, label, cfg)) * len(label))
+            preds.append(out.g)
+            trues.append(label)
+        return sum(losses) / sum(len(t) for t in trues), torch.cat(preds).cpu(), torch.cat(trues).cpu()
+
+    loss, pred, true = predictions(source.val_batches())
     rot, trans = _errors(pred, true, LabelNormalizer())
-    row = {"val_loss": sum(losses) / n, "val_rot_err_deg": rot, "val_trans_err_mm": trans}
+    row = {"val_loss": loss, "val_rot_err_deg": rot, "val_trans_err_mm": trans}
     groups = source.val_groups() if hasattr(source, "val_groups") else None
     for name, mask in (groups or {}).items():  # the learning curve by pair kind, field and display
         m = torch.from_numpy(np.asarray(mask, bool))
         rot, trans = _errors(pred[m], true[m], LabelNormalizer()) if m.any() else (float("nan"), float("nan"))
         row[f"val_rot_{name}_deg"], row[f"val_trans_{name}_mm"] = rot, trans
+    ap = source.val_ap_batches() if hasattr(source, "val_ap_batches") else None
+    if ap is not None:  # the same targets from the AP start: registration's first pairs (not in "all")
+        _, pred, true = predictions(ap)
+        row["val_rot_ap_deg"], row["val_trans_ap_mm"] = _errors(pred, true, LabelNormalizer())
     return row
 
 

@@ -97,6 +97,27 @@ def test_pairs_at_chosen_poses_are_the_batch_pairs_of_those_poses(both):
         batched.pairs(np.full(2, len(batched.subjects)), t_a[:2], t_b[:2], index[:2])
 
 
+def test_the_ap_pairs_are_the_batch_targets_with_the_current_image_at_ap(both, campaign):
+    """``ap_batch(k, n)``: batch k's targets unchanged, every current image the AP start's (pose
+    parameters zero, as ``register.api.parse_init("ap")``), labels from that start."""
+    from learn.labels import geodesic_label
+    from register.api import parse_init
+    from sim.geometry import pose_from_params
+    from sim.scene import load_scene
+
+    _, _, batched = both
+    k, n = 3, 5
+    target, _, _ = batched.batch(k, n)
+    ap_target, ap_current, ap_label = batched.ap_batch(k, n)
+    torch.testing.assert_close(ap_target, target, rtol=0, atol=0)
+    subject, t_a, _ = batched.draw(k, n)
+    start = pose_from_params(np.repeat(parse_init("ap")[None], n, 0), load_scene(campaign.scene.name).geometry.sod_mm)
+    _, current, label = batched.pairs(subject, t_a, start, k * (1 << 16) + np.arange(n))
+    torch.testing.assert_close(ap_current, current, rtol=0, atol=0)
+    torch.testing.assert_close(ap_label, batched.normalizer.normalize(
+        geodesic_label(torch.from_numpy(t_a), torch.from_numpy(start))).float(), rtol=0, atol=0)
+
+
 def test_the_noise_of_a_pair_does_not_depend_on_its_batch():
     from sim.seeds import pair_normals
 
@@ -158,6 +179,7 @@ def test_a_resumed_batched_training_takes_the_same_steps(campaign, tmp_path, mon
             if k != "iteration" and q[k]:
                 assert float(r[k]) == pytest.approx(float(q[k]), rel=1e-3, abs=1e-4, nan_ok=True), k
     assert "val_rot_near_deg" in rows[0] and "val_rot_field_deg" in rows[0]  # the curve by group
+    assert all(float(r["val_rot_ap_deg"]) > 0 and float(r["val_trans_ap_mm"]) > 0 for r in rows)  # and from AP
 
 
 def test_batched_config_refusals_name_the_key(tmp_path):
