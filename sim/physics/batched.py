@@ -246,7 +246,8 @@ def gaussian_reflect(x: torch.Tensor, sigma_px) -> torch.Tensor:
     sigma = _per_pair("sigma_px", sigma_px, b, x.to(torch.float64), "gaussian_reflect")
     if not bool(torch.all(torch.isfinite(sigma) & (sigma >= 0))):
         raise PhysicsError("gaussian_reflect: sigma_px must be finite and >= 0 (pixels)")
-    kh, kw = _mirror_gaussian_matrices(sigma, h, x.dtype), _mirror_gaussian_matrices(sigma, w, x.dtype)
+    kh = _mirror_gaussian_matrices(sigma, h, x.dtype)
+    kw = kh if w == h else _mirror_gaussian_matrices(sigma, w, x.dtype)  # square images: one operator
     return torch.bmm(torch.bmm(kh, x), kw.transpose(1, 2))
 
 
@@ -289,7 +290,7 @@ def _gaussian_filter(x: torch.Tensor, sigma: torch.Tensor) -> torch.Tensor:
     one sigma ``(B,)`` (px, > 0) per pair (shared by its ``C`` images)."""
     b, c, h, w = x.shape
     kh = _gaussian_matrices(sigma, h, x.dtype)
-    kw = _gaussian_matrices(sigma, w, x.dtype)
+    kw = kh if w == h else _gaussian_matrices(sigma, w, x.dtype)
     y = torch.bmm(x.reshape(b, c * h, w), kw.transpose(1, 2)).reshape(b, c, h, w)  # along the rows
     y = torch.bmm(kh, y.permute(0, 2, 1, 3).reshape(b, h, c * w))  # along the columns
     return y.reshape(b, h, c, w).permute(0, 2, 1, 3)

@@ -258,6 +258,9 @@ class TorchImager:
         ...                                 torch.ones(1), pixel_area_mm2=1.0, sdd_mm=1000.0)
     """
 
+    #: Pairs per batched product on a CPU (:meth:`signal`).
+    CPU_CHUNK = 16
+
     def __init__(self, table: SpectralTable, device="cpu"):
         import torch
 
@@ -284,13 +287,21 @@ class TorchImager:
         scale = torch.as_tensor(mas, **_like(att)) * pixel_area_mm2 * (1000.0 / sdd_mm) ** 2
         n0 = self.fluence[combo] * scale[:, None]  # (B, E) photons per pixel
         dtype = L.dtype
-        # (B, E, P) exponents, then transmissions in place; batched matrix products
-        # (torch's einsum over these shapes is 10x slower on a CPU)
-        t = torch.bmm(att.neg().to(dtype).transpose(1, 2), L.reshape(b, k, h * w).to(dtype)).exp_()
         weight = n0 * self.response[combo]  # (B, E) keV per pixel without an object
         counts = n0 * self.interaction[combo]
         per = self.per_photon[combo]
-        moments = torch.bmm(torch.stack([weight, counts * per * per], 1).to(dtype), t)  # (B, 2, P)
+        exponent = att.neg().to(dtype).transpose(1, 2)  # (B, E, k)
+        paths = L.reshape(b, k, h * w).to(dtype)
+        sums = torch.stack([weight, counts * per * per], 1).to(dtype)  # (B, 2, E)
+        # (B, E, P) exponents, then transmissions in place, then their two weighted sums over the
+        # energies: batched matrix products (torch's einsum over these shapes is 10x slower on a
+        # CPU), on a CPU a few pairs at a time so that the (chunk, E, P) transmissions stay in cache
+        # (half the time of one call for a batch of 180 pairs of 64 x 64 px)
+        chunk = b if self.device.type != "cpu" else self.CPU_CHUNK
+        moments = torch.empty(b, 2, h * w, dtype=dtype, device=self.device)
+        for s in range(0, b, chunk):
+            t = torch.bmm(exponent[s:s + chunk], paths[s:s + chunk]).exp_()
+            torch.bmm(sums[s:s + chunk], t, out=moments[s:s + chunk])
         mean, var = moments[:, 0], moments[:, 1]
         flat = weight.sum(dim=1).to(dtype)
         return mean.reshape(b, h, w), var.reshape(b, h, w), flat

@@ -104,6 +104,24 @@ def test_torch_signal_equals_the_numpy_model_and_its_variance_the_poisson_monte_
     assert draws.var() == pytest.approx(var[0, 0, 0].item() * 1e-4, rel=0.04)
 
 
+def test_the_signal_in_chunks_of_pairs_is_the_signal_of_each_pair():
+    """On a CPU the imager computes a batch a few pairs at a time (``CPU_CHUNK``): 7 pairs in
+    chunks of 3 (the last one short) against each pair alone, to float64 rounding (1e-12)."""
+    table = SpectralTable.build([70.0, 90.0], [2.5], [0.0])
+    rng = np.random.default_rng(5)
+    L = torch.from_numpy(np.concatenate([rng.uniform(0, 30, (7, 1, 4, 5)), rng.uniform(0, 3, (7, 1, 4, 5))], 1))
+    combo = torch.from_numpy(rng.integers(0, 2, 7))
+    mas, bone = torch.from_numpy(rng.uniform(0.5, 4, 7)), torch.from_numpy(rng.uniform(0.75, 1.5, 7))
+    kw = dict(pixel_area_mm2=0.3, sdd_mm=1020.0)
+    imager = TorchImager(table)
+    imager.CPU_CHUNK = 3
+    chunked = imager.signal(L, combo, mas, bone, **kw)
+    for i in range(7):
+        alone = imager.signal(L[i:i + 1], combo[i:i + 1], mas[i:i + 1], bone[i:i + 1], **kw)
+        for u, v in zip(chunked, alone):
+            np.testing.assert_allclose(u[i:i + 1].numpy(), v.numpy(), rtol=1e-12)
+
+
 def test_bone_scale_multiplies_the_bone_path():
     table = SpectralTable.build([100.0], [3.0], [0.0])
     imager = TorchImager(table)
