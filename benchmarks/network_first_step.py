@@ -2,6 +2,7 @@
 
     .venv/bin/python benchmarks/network_first_step.py [--model pelvis_batched_small] [--cases 20] [--draws 4]
         [--study studies/domain_gap.toml] [--target fluoro-65kV] [--out runs/bench_search]
+        [--rows frame frame-pixels training training-vp line]
 
 Registration from AP starts with a far pair, and there the network's prediction on the study's
 frames is far worse than on the training's far validation pairs (docs/benchmarks.md, "The network
@@ -9,15 +10,21 @@ on realistic frames"). Three things differ between the two: the target image (a 
 12-bit DICOM through registration's preparation, against a target of the training's randomized
 two-basis pipeline), the CT (the real pelvis CT against held-out virtual patients) and the poses
 (the study's protocol against the training's draws). This script holds the poses fixed (each
-frame's true pose, current at registration's AP start) and changes one thing per row:
+frame's true pose, current at registration's AP start, ``register.api.parse_init("ap")``) and
+changes one thing per row (``--rows``, default all; ``frame`` registers every frame with the
+network alone, the slow one):
 
 * ``frame``: the study's frame through ``register_xray(method="contextual")`` (its first
   prediction; the frames cached in ``--out`` as ``benchmarks/search.py`` makes them);
-* ``training pairs, real CT``: targets of the training's own pipeline
+* ``frame-pixels``: the same frames' displayed pixels (made again from their seeds), area-averaged
+  to the training's image size, through the training's preparation with their true field and
+  polarity (:meth:`learn.batched.BatchedPairs.displayed_pairs`): the frame's appearance without
+  registration's preparation (field detection, polarity and intensity decisions, filters);
+* ``training`` (training pairs, real CT): targets of the training's own pipeline
   (:meth:`learn.batched.BatchedPairs.pairs`, the checkpoint's ``[train.randomize]`` with every
   target realistic, ``--draws`` draws per pose) on the real CT (a training subject);
-* ``training pairs, held-out VP``: the same on the first validation virtual patient;
-* ``line DRR targets, real CT``: the ideal line-DRR target (no appearance gap at all).
+* ``training-vp`` (training pairs, held-out VP): the same on the first validation virtual patient;
+* ``line`` (line DRR targets, real CT): the ideal line-DRR target (no appearance gap at all).
 
 Columns (mean over frames and draws): rotation error ``|g_rot - g_rot,true|`` (deg) and
 translation error (mm) as the training's validation computes them, their size relative to the true
@@ -42,6 +49,9 @@ from timing import input_problem  # noqa: E402  (benchmarks/timing.py)
 #: Pair numbers of the synthetic rows start here: far beyond any training batch's
 #: (``k * MAX_BATCH + i`` for k below 10^6), so their draws are not the training's.
 INDEX_BASE = 1 << 40
+
+#: The rows, in order (module doc).
+ROWS = ("frame", "frame-pixels", "training", "training-vp", "line")
 
 
 def _scores(g_pred: np.ndarray, g_true: np.ndarray) -> np.ndarray:
@@ -89,6 +99,7 @@ def main() -> int:
     ap.add_argument("--study", default=str(ROOT / "studies" / "domain_gap.toml"))
     ap.add_argument("--target", default="fluoro-65kV", help="an xray target of --study (default fluoro-65kV)")
     ap.add_argument("--out", default=str(ROOT / "runs" / "bench_search"), help="frame cache (frames in OUT/TARGET)")
+    ap.add_argument("--rows", nargs="+", choices=ROWS, default=list(ROWS), help="the rows (module doc; default all)")
     a = ap.parse_args()
     problem = input_problem("network_first_step", a.ct, a.cases)
     if problem or a.draws < 1:
@@ -97,7 +108,7 @@ def main() -> int:
 
     from learn.labels import geodesic_label
     from learn.predict import NetworkPredictor
-    from register.api import register_xray
+    from register.api import parse_init, register_xray
     from register.evaluation.study import frame_refusals
     from sim.geometry import pose_from_params
 
@@ -108,50 +119,72 @@ def main() -> int:
               f"pairs = 'batched'): there are no training pairs to compare with", file=sys.stderr)
         return 2
     try:
-        volume, center, sod, cases = study_frame_files(a.study, a.target, a.ct, a.cases, a.out)
+        volume, center, sod, cases, frames = study_frame_files(a.study, a.target, a.ct, a.cases, a.out)
     except FrameTargetError as e:
         print(f"network_first_step: {e}", file=sys.stderr)
         return 2
     t0 = time.perf_counter()
-    frame, t_true, t_start = [], [], []
-    for i, T_true, path in cases:
-        try:
-            res = register_xray(volume, path, center=center, method="contextual", model=model)
-        except frame_refusals():
-            continue
-        traj = res.result.trajectory
-        T0 = pose_from_params(np.asarray(traj["params"])[0], sod)
-        g_true = np.asarray(geodesic_label(T_true[None], T0[None]), np.float64)
-        frame.append(_scores(np.asarray(traj["g"], np.float64)[:1], g_true)[0])
-        t_true.append(T_true)
-        t_start.append(T0)
-        print(f"network_first_step: frame {i} ({time.perf_counter() - t0:.0f} s)", file=sys.stderr, flush=True)
-    if not frame:
-        print("network_first_step: every frame was refused", file=sys.stderr)
-        return 2
+    start = pose_from_params(parse_init("ap"), sod)  # registration's start (init="ap")
+    t_true = np.stack([T for _, T, _ in cases])
     n = len(t_true)
-    T_a = np.repeat(np.stack(t_true), a.draws, 0)
-    T_b = np.repeat(np.stack(t_start), a.draws, 0)
-    g_true = np.asarray(geodesic_label(T_a, T_b), np.float64)
-    size = np.concatenate([np.degrees(np.linalg.norm(g_true[:, :3], axis=1))[:, None],
-                           np.linalg.norm(g_true[:, 3:], axis=1)[:, None]], 1).mean(0)
-    rows = [("frame (registration's preparation)", np.mean(frame, 0), n)]
+    g_frames = np.asarray(geodesic_label(t_true, np.broadcast_to(start, t_true.shape)), np.float64)
+    rows = []
+    if "frame" in a.rows:
+        scores = []
+        for (i, T_true, path), g_true in zip(cases, g_frames):
+            try:
+                res = register_xray(volume, path, center=center, method="contextual", model=model)
+            except frame_refusals():
+                continue
+            traj = res.result.trajectory
+            if not np.allclose(pose_from_params(np.asarray(traj["params"])[0], sod), start, atol=1e-9):
+                print(f"network_first_step: frame {i} did not start at AP", file=sys.stderr)
+                return 1
+            scores.append(_scores(np.asarray(traj["g"], np.float64)[:1], g_true[None])[0])
+            print(f"network_first_step: frame {i} ({time.perf_counter() - t0:.0f} s)", file=sys.stderr, flush=True)
+        rows.append(("frame (registration's preparation)", np.mean(scores, 0), len(scores)))
     seed = int((model.checkpoint.config or {}).get("seed", 0))
-    for name, split, ideal in (("training pairs, real CT", "train", 0.0),
-                               ("training pairs, held-out VP", "val", 0.0),
-                               ("line DRR targets, real CT", "train", 1.0)):
+    if "frame-pixels" in a.rows:
+        import torch
+        import torch.nn.functional as F
+
+        pairs = _training_pairs(model, randomize, "train", 0.0, seed)
+        h, w = pairs.geometry.height, pairs.geometry.width
+        shown = []
+        for i, T_true, _ in cases:
+            pixels, _ = frames.display(frames.raw(T_true, frames.seeds[i]))
+            shown.append(F.interpolate(torch.from_numpy(np.asarray(pixels, np.float64))[None, None], size=(h, w),
+                                       mode="area")[0, 0])
+        field = frames.collimator.mask(h, w) if frames.collimator is not None else np.ones((h, w), bool)
+        target, current, _ = pairs.displayed_pairs(
+            torch.stack(shown), torch.from_numpy(np.repeat(field[None], n, 0)), np.zeros(n, np.int64), t_true,
+            np.repeat(start[None], n, 0), log_display=bool(frames.chain.log),
+            bone_dark=frames.chain.polarity == "bone-dark")
+        pred = model.predict(target[:, 0].numpy(), current[:, 0].numpy()).g
+        rows.append(("frame pixels, training's preparation (true field, polarity)", _scores(pred, g_frames).mean(0), n))
+        print(f"network_first_step: frame pixels ({time.perf_counter() - t0:.0f} s)", file=sys.stderr, flush=True)
+    T_a = np.repeat(t_true, a.draws, 0)
+    T_b = np.repeat(start[None], len(T_a), 0)
+    g_true = np.repeat(g_frames, a.draws, 0)
+    for key, name, split, ideal in (("training", "training pairs, real CT", "train", 0.0),
+                                    ("training-vp", "training pairs, held-out VP", "val", 0.0),
+                                    ("line", "line DRR targets, real CT", "train", 1.0)):
+        if key not in a.rows:
+            continue
         pairs = _training_pairs(model, randomize, split, ideal, seed)
         target, current, _ = pairs.pairs(np.zeros(len(T_a), np.int64), T_a, T_b, INDEX_BASE + np.arange(len(T_a)))
         pred = model.predict(target[:, 0].numpy(), current[:, 0].numpy()).g
         rows.append((name, _scores(pred, g_true).mean(0), len(T_a)))
         print(f"network_first_step: {name} ({time.perf_counter() - t0:.0f} s)", file=sys.stderr, flush=True)
+    size = np.array([np.degrees(np.linalg.norm(g_frames[:, :3], axis=1)).mean(),
+                     np.linalg.norm(g_frames[:, 3:], axis=1).mean()])
     print(f"\n{a.target}: the network's first prediction from AP, {n} frames' true poses, model {a.model} "
           f"(true first label {size[0]:.1f} deg / {size[1]:.1f} mm on average; {time.strftime('%Y-%m-%d %H:%M')})\n")
     print("| target | pairs | rotation error deg (relative) | translation error mm (relative) | cosine rotation "
           "| cosine translation |")
     print("|---|---|---|---|---|---|")
-    for name, s, count in rows:
-        print(f"| {name} | {count} | {s[0]:.1f} ({s[2]:.2f}) | {s[1]:.1f} ({s[3]:.2f}) | {s[4]:.2f} | {s[5]:.2f} |")
+    for name, sc, count in rows:
+        print(f"| {name} | {count} | {sc[0]:.1f} ({sc[2]:.2f}) | {sc[1]:.1f} ({sc[3]:.2f}) | {sc[4]:.2f} | {sc[5]:.2f} |")
     return 0
 
 

@@ -52,7 +52,9 @@ class FrameTargetError(ValueError):
 
 def study_frame_files(study_path, target: str, ct, cases: int, out):
     """The first ``cases`` frames of a study's ``xray`` target from AP, simulated into
-    ``out/target`` where missing: ``(volume, centre (3,) mm, sod_mm, [(i, T_true (4, 4) mm, path)])``.
+    ``out/target`` where missing: ``(volume, centre (3,) mm, sod_mm, [(i, T_true (4, 4) mm, path)],
+    simulator)`` (the :class:`register.evaluation.frames.FrameSimulator` and the frames' seeds as
+    ``simulator.seeds``, ``{i: seed}``, to make a frame's pixels again).
     :class:`FrameTargetError` names an unknown target."""
     from register.evaluation.evaluate import EvaluationSettings, sample_cases
     from register.evaluation.study import frame_seed, load_study, study_frames
@@ -72,13 +74,14 @@ def study_frame_files(study_path, target: str, ct, cases: int, out):
     folder = Path(out) / target
     folder.mkdir(parents=True, exist_ok=True)
     found = []
+    frames.seeds = {i: frame_seed(study, i) for i in range(len(poses))}
     for i, params in enumerate(poses):
         T_true = pose_from_params(params, sod)
         path = folder / f"case_{i:03d}.dcm"
         if not path.exists():
-            frames.simulate(path, T_true, frame_seed(study, i))
+            frames.simulate(path, T_true, frames.seeds[i])
         found.append((i, T_true, path))
-    return volume, center, sod, found
+    return volume, center, sod, found, frames
 
 
 def main() -> int:
@@ -123,7 +126,7 @@ def main() -> int:
 
         preprocess.detect_field = prepare.detect_field = field_alone
     try:
-        volume, center, sod, cases = study_frame_files(a.study, a.target, a.ct, a.cases, a.out)
+        volume, center, sod, cases, _ = study_frame_files(a.study, a.target, a.ct, a.cases, a.out)
     except FrameTargetError as e:
         print(f"network_on_frames: {e}", file=sys.stderr)
         return 2

@@ -278,24 +278,28 @@ class BatchedPairs(OnlinePairs):
         t_b = pose_from_params(np.zeros((n, 6)), load_scene(self.cfg.scene.name).geometry.sod_mm)
         return self.pairs(subject, t_a, t_b, int(k) * MAX_BATCH + np.arange(n))
 
+    def _checked_poses(self, where: str, subject, t_a, t_b, n: int):
+        subject = np.asarray(subject, np.int64)
+        t_a, t_b = np.asarray(t_a, np.float64), np.asarray(t_b, np.float64)
+        if subject.shape != (n,) or t_a.shape != (n, 4, 4) or t_b.shape != (n, 4, 4):
+            raise OnlinePairsError(f"{where}: subject (n,), t_a and t_b (n, 4, 4) for {n} pair numbers, got "
+                                   f"{subject.shape}, {t_a.shape} and {t_b.shape}")
+        if n and not (0 <= subject.min() and subject.max() < len(self.subjects)):
+            raise OnlinePairsError(f"{where}: subject indices must lie in [0, {len(self.subjects)})")
+        self.prepare()
+        return subject, t_a, t_b
+
     def pairs(self, subject, t_a, t_b, index):
         """The pairs of given subjects and poses: ``subject`` ``(n,)`` indices into
         :attr:`subjects`, target poses ``t_a`` and current poses ``t_b`` ``(n, 4, 4)`` (mm),
         ``index`` ``(n,)`` the pairs' numbers (the randomization's draw and noise streams of pair
         ``i``: :meth:`batch` ``k`` uses ``k * MAX_BATCH + arange(n)``) -> as :meth:`batch`. Used
         by :meth:`batch` and to render the training's own pairs at chosen poses (the benchmarks)."""
-        from learn.prepare_batched import prepare_like_registration_batched
         from sim.physics.batched import draw_tensors, field_masks
 
-        subject, index = np.asarray(subject, np.int64), np.asarray(index, np.int64)
-        t_a, t_b = np.asarray(t_a, np.float64), np.asarray(t_b, np.float64)
+        index = np.asarray(index, np.int64)
         n = len(index)
-        if subject.shape != (n,) or t_a.shape != (n, 4, 4) or t_b.shape != (n, 4, 4):
-            raise OnlinePairsError(f"pairs: subject (n,), t_a and t_b (n, 4, 4) for {n} pair numbers, got "
-                                   f"{subject.shape}, {t_a.shape} and {t_b.shape}")
-        if n and not (0 <= subject.min() and subject.max() < len(self.subjects)):
-            raise OnlinePairsError(f"pairs: subject indices must lie in [0, {len(self.subjects)})")
-        self.prepare()
+        subject, t_a, t_b = self._checked_poses("pairs", subject, t_a, t_b, n)
         draws = [self.randomization.draw(self.seed, int(i)) for i in index]
         p = draw_tensors(draws, device=self.device, dtype=torch.float32)
         g = self.geometry
@@ -318,6 +322,33 @@ class BatchedPairs(OnlinePairs):
                                                          [draws[i] for i in real_rows])
         log_display = p["log"].bool() | ideal
         bone_dark = (p["polarity"] == 0) & ~ideal  # choice 0: "bone-dark"
+        return self._prepared(display, field, current, log_display, bone_dark, t_a, t_b)
+
+    def displayed_pairs(self, display, field, subject, t_a, t_b, *, log_display, bone_dark):
+        """Pairs of given displayed targets with the training's current images and preparation:
+        ``display`` ``(n, H, W)`` displayed X-rays at the campaign's image size (a display
+        chain's values, e.g. a study's frames resampled to it), ``field`` ``(n, H, W)`` bool their
+        collimated fields, ``subject``, ``t_a`` (the targets' true poses) and ``t_b`` as
+        :meth:`pairs`, ``log_display`` and ``bone_dark`` ``(n,)`` bool (or one bool) their display's
+        log and polarity -> as :meth:`batch`. What training would make of those images (the
+        benchmarks compare it with registration's preparation of the same frames)."""
+        n = len(display)
+        subject, t_a, t_b = self._checked_poses("displayed_pairs", subject, t_a, t_b, n)
+        h, w = self.geometry.height, self.geometry.width
+        display = torch.as_tensor(display, device=self.device)
+        field = torch.as_tensor(field, device=self.device)
+        if display.shape != (n, h, w) or field.shape != (n, h, w) or field.dtype != torch.bool:
+            raise OnlinePairsError(f"displayed_pairs: display and a bool field of shape {(n, h, w)} (the campaign's "
+                                   f"image size), got {tuple(display.shape)} and {field.dtype} {tuple(field.shape)}")
+        current = self._volumes.line_integrals(subject, t_b, (0,))[:, 0]
+        return self._prepared(display.to(current.dtype), field, current, log_display, bone_dark, t_a, t_b)
+
+    def _prepared(self, display, field, current, log_display, bone_dark, t_a, t_b):
+        """Registration's preparation of the displayed targets and currents (``(n, H, W)`` each),
+        the transform and the labels of ``t_a`` from ``t_b``: the returns of :meth:`batch`."""
+        from learn.prepare_batched import prepare_like_registration_batched
+
+        n = len(display)
         target, cur = prepare_like_registration_batched(display, field, current, log_display=log_display,
                                                         bone_dark=bone_dark,
                                                         mask_current=self.current_field == "masked",

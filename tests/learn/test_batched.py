@@ -97,6 +97,32 @@ def test_pairs_at_chosen_poses_are_the_batch_pairs_of_those_poses(both):
         batched.pairs(np.full(2, len(batched.subjects)), t_a[:2], t_b[:2], index[:2])
 
 
+def test_displayed_pairs_of_a_batch_displays_are_the_batch(both, monkeypatch):
+    """``displayed_pairs`` given the displayed targets and fields a batch rendered (captured on the
+    way) gives that batch back: the same current renders, preparation and labels; a display of
+    another size is refused."""
+    _, _, batched = both
+    k, n = 6, 5
+    subject, t_a, t_b = batched.draw(k, n)
+    seen = {}
+    real = type(batched)._prepared
+
+    def capture(self, display, field, current, log_display, bone_dark, *rest):
+        seen.update(display=display.clone(), field=field.clone(), log=log_display.clone(), dark=bone_dark.clone())
+        return real(self, display, field, current, log_display, bone_dark, *rest)
+
+    monkeypatch.setattr(type(batched), "_prepared", capture)
+    ref = batched.batch(k, n)
+    monkeypatch.setattr(type(batched), "_prepared", real)
+    got = batched.displayed_pairs(seen["display"], seen["field"], subject, t_a, t_b, log_display=seen["log"],
+                                  bone_dark=seen["dark"])
+    for u, v in zip(got, ref):
+        torch.testing.assert_close(u, v, rtol=0, atol=0)
+    with pytest.raises(OnlinePairsError, match="the campaign's image size"):
+        batched.displayed_pairs(seen["display"][:, :-1], seen["field"][:, :-1], subject, t_a, t_b,
+                                log_display=True, bone_dark=False)
+
+
 def test_the_ap_pairs_are_the_batch_targets_with_the_current_image_at_ap(both, campaign):
     """``ap_batch(k, n)``: batch k's targets unchanged, every current image the AP start's (pose
     parameters zero, as ``register.api.parse_init("ap")``), labels from that start."""
