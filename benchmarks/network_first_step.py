@@ -2,7 +2,7 @@
 
     .venv/bin/python benchmarks/network_first_step.py [--model pelvis_batched_small] [--cases 20] [--draws 4]
         [--study studies/domain_gap.toml] [--target fluoro-65kV] [--out runs/bench_search]
-        [--rows frame frame-pixels training training-vp line]
+        [--rows frame frame-pixels frame-pixels-poly training training-vp line]
 
 Registration from AP starts with a far pair, and there the network's prediction on the study's
 frames is far worse than on the training's far validation pairs (docs/benchmarks.md, "The network
@@ -20,6 +20,9 @@ network alone, the slow one):
   to the training's image size, through the training's preparation with their true field and
   polarity (:meth:`learn.batched.BatchedPairs.displayed_pairs`): the frame's appearance without
   registration's preparation (field detection, polarity and intensity decisions, filters);
+* ``frame-pixels-poly``: the same, the frames rendered again at physics level ``poly`` (no Monte
+  Carlo scatter, no grid; the same spectrum, exposure, noise seed, collimator and display): what
+  the frames' scatter costs;
 * ``training`` (training pairs, real CT): targets of the training's own pipeline
   (:meth:`learn.batched.BatchedPairs.pairs`, the checkpoint's ``[train.randomize]`` with every
   target realistic, ``--draws`` draws per pose) on the real CT (a training subject);
@@ -51,7 +54,7 @@ from timing import input_problem  # noqa: E402  (benchmarks/timing.py)
 INDEX_BASE = 1 << 40
 
 #: The rows, in order (module doc).
-ROWS = ("frame", "frame-pixels", "training", "training-vp", "line")
+ROWS = ("frame", "frame-pixels", "frame-pixels-poly", "training", "training-vp", "line")
 
 
 def _scores(g_pred: np.ndarray, g_true: np.ndarray) -> np.ndarray:
@@ -86,6 +89,20 @@ def _training_pairs(model, randomize: dict, subject_split: str, ideal: float, se
                          tables=ROOT / "runs" / "bench_pairs_tables")
     pairs.subjects = pairs.subjects[:1]  # only this subject's volume is built
     return pairs
+
+
+def _poly_frames(study_path, target: str, volume, center):
+    """The frame simulator of a study's ``xray`` target at physics level ``poly``: its settings
+    without the Monte Carlo scatter and grid (the settings that mean something only at ``full``)."""
+    from dataclasses import replace
+
+    from register.evaluation.study import load_study, study_frames
+    from sim.physics.settings import SETTINGS
+
+    study = load_study(study_path)
+    t = next(t for t in study.targets if t.name == target)
+    physics = {k: v for k, v in t.physics.items() if k == "level" or "poly" in SETTINGS[k].levels}
+    return study_frames(study, replace(t, physics={**physics, "level": "poly"}), volume, center)
 
 
 def main() -> int:
@@ -144,25 +161,29 @@ def main() -> int:
             print(f"network_first_step: frame {i} ({time.perf_counter() - t0:.0f} s)", file=sys.stderr, flush=True)
         rows.append(("frame (registration's preparation)", np.mean(scores, 0), len(scores)))
     seed = int((model.checkpoint.config or {}).get("seed", 0))
-    if "frame-pixels" in a.rows:
+    for key, name in (("frame-pixels", "frame pixels, training's preparation (true field, polarity)"),
+                      ("frame-pixels-poly", "the same, frames without scatter (poly)")):
+        if key not in a.rows:
+            continue
         import torch
         import torch.nn.functional as F
 
+        simulator = frames if key == "frame-pixels" else _poly_frames(a.study, a.target, volume, center)
         pairs = _training_pairs(model, randomize, "train", 0.0, seed)
         h, w = pairs.geometry.height, pairs.geometry.width
         shown = []
         for i, T_true, _ in cases:
-            pixels, _ = frames.display(frames.raw(T_true, frames.seeds[i]))
+            pixels, _ = simulator.display(simulator.raw(T_true, frames.seeds[i]))
             shown.append(F.interpolate(torch.from_numpy(np.asarray(pixels, np.float64))[None, None], size=(h, w),
                                        mode="area")[0, 0])
-        field = frames.collimator.mask(h, w) if frames.collimator is not None else np.ones((h, w), bool)
+        field = simulator.collimator.mask(h, w) if simulator.collimator is not None else np.ones((h, w), bool)
         target, current, _ = pairs.displayed_pairs(
             torch.stack(shown), torch.from_numpy(np.repeat(field[None], n, 0)), np.zeros(n, np.int64), t_true,
-            np.repeat(start[None], n, 0), log_display=bool(frames.chain.log),
-            bone_dark=frames.chain.polarity == "bone-dark")
+            np.repeat(start[None], n, 0), log_display=bool(simulator.chain.log),
+            bone_dark=simulator.chain.polarity == "bone-dark")
         pred = model.predict(target[:, 0].numpy(), current[:, 0].numpy()).g
-        rows.append(("frame pixels, training's preparation (true field, polarity)", _scores(pred, g_frames).mean(0), n))
-        print(f"network_first_step: frame pixels ({time.perf_counter() - t0:.0f} s)", file=sys.stderr, flush=True)
+        rows.append((name, _scores(pred, g_frames).mean(0), n))
+        print(f"network_first_step: {name} ({time.perf_counter() - t0:.0f} s)", file=sys.stderr, flush=True)
     T_a = np.repeat(t_true, a.draws, 0)
     T_b = np.repeat(start[None], len(T_a), 0)
     g_true = np.repeat(g_frames, a.draws, 0)
