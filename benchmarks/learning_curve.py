@@ -72,7 +72,7 @@ def main(argv=None) -> int:
     ap.add_argument("logs", nargs="+", type=Path, help="ctxreg train log.csv files")
     ap.add_argument("--batch-size", type=int, default=256, help="pairs per iteration (default 256)")
     ap.add_argument("--from-pairs", type=float, default=5e5, help="fit the checks from this many pairs on (default 5e5)")
-    ap.add_argument("--target-deg", type=float, default=9.7, help="the validation rotation error to reach (deg)")
+    ap.add_argument("--target-deg", type=float, default=9.7, help="the validation rotation error to reach (deg; default 9.7)")
     ap.add_argument("--rates", type=float, nargs="+", default=[200.0, 1500.0],
                     help="pairs per second to convert pairs into hours (default: this CPU's 200, an H200's 1500)")
     ap.add_argument("--groups", nargs="+", default=["all", "far", "near", "log", "linear"],
@@ -84,10 +84,10 @@ def main(argv=None) -> int:
     head = ("| run | group | checks fitted | exponent b (95 %) | fitted error now | pairs to "
             f"{a.target_deg:g} deg (range) | " + " | ".join(f"hours more at {r:g} pairs/s" for r in a.rates)
             + " | checks after the lr step |")
+    logs = [(path, _rows(path)) for path in a.logs]  # every file read (or refused) before the table
     print(head)
     print("|" + "---|" * (head.count("|") - 1))
-    for path in a.logs:
-        rows = _rows(path)
+    for path, rows in logs:
         lr0 = next((r["lr"] for r in rows if int(r["iteration"]) * a.batch_size >= a.from_pairs), None)
         for group in a.groups:
             col = "val_rot_err_deg" if group == "all" else f"val_rot_{group}_deg"

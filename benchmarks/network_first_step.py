@@ -112,7 +112,7 @@ def main() -> int:
                     help="a shipped model's name or a checkpoint trained with [train.randomize] and pairs = "
                          "'batched' (default pelvis_batched_small)")
     ap.add_argument("--cases", type=int, default=20, help="frames: the protocol's first N poses (default 20)")
-    ap.add_argument("--draws", type=int, default=4, help="randomization draws per pose for the synthetic rows")
+    ap.add_argument("--draws", type=int, default=4, help="randomization draws per pose for the synthetic rows (default 4)")
     ap.add_argument("--study", default=str(ROOT / "studies" / "domain_gap.toml"))
     ap.add_argument("--target", default="fluoro-65kV", help="an xray target of --study (default fluoro-65kV)")
     ap.add_argument("--out", default=str(ROOT / "runs" / "bench_search"), help="frame cache (frames in OUT/TARGET)")
