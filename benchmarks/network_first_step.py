@@ -2,7 +2,7 @@
 
     .venv/bin/python benchmarks/network_first_step.py [--model pelvis_batched_small] [--cases 20] [--draws 4]
         [--study studies/domain_gap.toml] [--target fluoro-65kV] [--out runs/bench_search]
-        [--rows frame frame-pixels frame-pixels-poly training training-vp line]
+        [--rows frame frame-pixels frame-pixels-poly frame-pixels-sks training training-vp line]
 
 Registration from AP starts with a far pair, and there the network's prediction on the study's
 frames is far worse than on the training's far validation pairs (docs/benchmarks.md, "The network
@@ -23,6 +23,11 @@ network alone, the slow one):
 * ``frame-pixels-poly``: the same, the frames rendered again at physics level ``poly`` (no Monte
   Carlo scatter, no grid; the same spectrum, exposure, noise seed, collimator and display): what
   the frames' scatter costs;
+* ``frame-pixels-sks``: the ``poly`` frames with the scatter-kernel model's scatter added in its
+  place (:func:`sim.physics.scatter_kernel.default_table` at the frames' kV and grid, the
+  frames' air gap, of the exposure before the collimator as the frames' Monte Carlo is, with its
+  quantum noise): whether the training's ``sks`` scatter does to the network what the frames'
+  Monte Carlo scatter does;
 * ``training`` (training pairs, real CT): targets of the training's own pipeline
   (:meth:`learn.batched.BatchedPairs.pairs`, the checkpoint's ``[train.randomize]`` with every
   target realistic, ``--draws`` draws per pose) on the real CT (a training subject);
@@ -54,7 +59,7 @@ from timing import input_problem  # noqa: E402  (benchmarks/timing.py)
 INDEX_BASE = 1 << 40
 
 #: The rows, in order (module doc).
-ROWS = ("frame", "frame-pixels", "frame-pixels-poly", "training", "training-vp", "line")
+ROWS = ("frame", "frame-pixels", "frame-pixels-poly", "frame-pixels-sks", "training", "training-vp", "line")
 
 
 def _scores(g_pred: np.ndarray, g_true: np.ndarray) -> np.ndarray:
@@ -103,6 +108,21 @@ def _poly_frames(study_path, target: str, volume, center):
     t = next(t for t in study.targets if t.name == target)
     physics = {k: v for k, v in t.physics.items() if k == "level" or "poly" in SETTINGS[k].levels}
     return study_frames(study, replace(t, physics={**physics, "level": "poly"}), volume, center)
+
+
+def _with_sks(raw, simulator, physics, pose, seed: int):
+    """``raw`` ``(H, W)`` (a ``poly`` frame, before its collimator) with the default scatter-kernel
+    table's scatter at ``physics``' kV and grid ratio and ``pose``'s air gap added, with its
+    quantum noise (a normal draw of ``seed``)."""
+    from sim.physics.scatter_kernel import default_table, detector_gap_mm
+
+    g = simulator.imager.geometry
+    model = default_table().model_for(float(physics.kvp), float(physics.grid_ratio))
+    flat = float(simulator.imager.flat)
+    tau = -np.log(np.maximum(raw, 1e-12 * flat) / flat)
+    sc = model.predict(tau, g, flat_signal=flat, gap_mm=float(detector_gap_mm(pose, g)[0]))
+    noise = np.random.default_rng([seed, 28]).standard_normal(raw.shape)
+    return raw + sc + np.sqrt(sc * model.signal_per_photon) * noise
 
 
 def main() -> int:
@@ -162,7 +182,8 @@ def main() -> int:
         rows.append(("frame (registration's preparation)", np.mean(scores, 0), len(scores)))
     seed = int((model.checkpoint.config or {}).get("seed", 0))
     for key, name in (("frame-pixels", "frame pixels, training's preparation (true field, polarity)"),
-                      ("frame-pixels-poly", "the same, frames without scatter (poly)")):
+                      ("frame-pixels-poly", "the same, frames without scatter (poly)"),
+                      ("frame-pixels-sks", "the same, poly frames + the kernel model's scatter (sks)")):
         if key not in a.rows:
             continue
         import torch
@@ -173,7 +194,10 @@ def main() -> int:
         h, w = pairs.geometry.height, pairs.geometry.width
         shown = []
         for i, T_true, _ in cases:
-            pixels, _ = simulator.display(simulator.raw(T_true, frames.seeds[i]))
+            raw = simulator.raw(T_true, frames.seeds[i])
+            if key == "frame-pixels-sks":
+                raw = _with_sks(raw, simulator, frames.imager.physics, T_true, frames.seeds[i])
+            pixels, _ = simulator.display(raw)
             shown.append(F.interpolate(torch.from_numpy(np.asarray(pixels, np.float64))[None, None], size=(h, w),
                                        mode="area")[0, 0])
         field = simulator.collimator.mask(h, w) if simulator.collimator is not None else np.ones((h, w), bool)

@@ -10,7 +10,10 @@ angles (phi +-40, theta +-20, psi +-20 deg) with offsets of +-40 mm; one model f
 setting (80 and 120 kVp, without and with a ratio ``--grid-ratio`` grid) on ``--train`` poses,
 then evaluated on ``--test`` held-out poses, on a held-out kVp (100 kVp from the 80 and 120 kVp
 fits by :func:`interpolate_kvp`, 140 kVp extrapolated), and on a held-out subject (the built-in
-phantom, seed 0, with the pelvis fits).
+phantom, seed 0, with the pelvis fits); then the committed table
+(``sim/physics/data/scatter_kernels_pelvis.json``, training's ``sks`` scatter) at tube voltages and
+grid ratios between its fits (65 and 110 kVp without a grid, 75 kVp ratio 10, 120 kVp ratio 12) and
+on the phantom (80 kVp), unless ``--no-table``.
 
 Reference: the mean of two Monte Carlo runs with different seeds per held-out pose (images as
 ``XRayImager`` makes them: cells of ``--cell-px`` pixels, 6 mm Gaussian, bilinear). Errors per
@@ -81,6 +84,7 @@ def main(argv=None) -> int:
     ap.add_argument("--grid-ratio", type=float, default=10.0, help="grid ratio of the grid rows (default: 10)")
     ap.add_argument("--repeats", type=int, default=5, help="timed repeats (default: 5)")
     ap.add_argument("--json", default=None, help="also write the numbers here")
+    ap.add_argument("--no-table", action="store_true", help="leave out the committed table's rows")
     args = ap.parse_args(argv)
     sys.path.insert(0, str(REPO))
     import numpy as np
@@ -89,8 +93,8 @@ def main(argv=None) -> int:
     from sim.ct_io import load_ct
     from sim.phantom import make_pelvis_phantom
     from sim.physics.imaging import PhysicsSettings, XRayImager
-    from sim.physics.scatter_kernel import (data_tau_nodes, detector_gap_mm, fit_maps, interpolate_kvp,
-                                            monte_carlo_maps, physics_record)
+    from sim.physics.scatter_kernel import (data_tau_nodes, default_table, detector_gap_mm, fit_maps,
+                                            interpolate_kvp, monte_carlo_maps, physics_record)
 
     ct_path = REPO.parent / "shared" / "data" / "ct" / "pelvis_abdomen_3mm.nii.gz"
     if not ct_path.is_file():
@@ -167,6 +171,13 @@ def main(argv=None) -> int:
              interpolate_kvp([models[80.0, 0.0], models[120.0, 0.0]], 140.0))
     for grid in grids:
         evaluate("held-out subject (phantom)", "phantom", 120.0, grid, models[120.0, grid])
+    # the committed table (sim/physics/data/scatter_kernels_pelvis.json, what training's "sks"
+    # scatter draws from) at kVs and grid ratios it was not fitted at, and on the phantom
+    if not args.no_table:
+        table = default_table()
+        for kvp, grid in ((65.0, 0.0), (110.0, 0.0), (75.0, 10.0), (120.0, 12.0)):
+            evaluate("committed table, interpolated", "pelvis", kvp, grid, table.model_for(kvp, grid))
+        evaluate("committed table, held-out subject (phantom)", "phantom", 80.0, 0.0, table.model_for(80.0, 0.0))
 
     print(f"# {time.strftime('%Y-%m-%d %H:%M')}, pelvis_abdomen_3mm, {args.size}x{args.size}, "
           f"{args.train} fitting poses, {args.test} held-out poses, {args.photons:.0e} histories per MC image, "

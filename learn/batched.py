@@ -14,7 +14,9 @@ its pose distribution, near pairs, :mod:`sim.randomize`'s settings drawn per pai
    integrals (:class:`sim.physics.two_basis.TorchImager`: the drawn spectrum, filtration,
    exposure and bone factor), the quantum noise of its variance in one normal draw, the
    detector's blur (:func:`sim.physics.batched.gaussian_reflect`);
-3. collimator, kernel scatter, electronic noise and display chain
+3. collimator, scatter (the Gaussian ``kernel`` or the fitted scatter-kernel superposition
+   ``sks`` of :mod:`sim.physics.scatter_kernel` at the pair's kV, grid and air gap, with its
+   quantum noise), electronic noise and display chain
    (:func:`sim.physics.batched.apply_image_batched`);
 4. made ready as registration makes a user's X-ray ready
    (:func:`learn.prepare_batched.prepare_like_registration_batched`).
@@ -43,11 +45,12 @@ import torch
 from learn.labels import LabelNormalizer, geodesic_label
 from learn.online import MAX_BATCH, NearPairs, OnlinePairs, OnlinePairsError, check_trainable
 
-__all__ = ["BatchedPairs", "NOISE_STREAM_QUANTUM", "NOISE_STREAM_ELECTRONIC", "tool_arrangements", "tool_looks"]
+__all__ = ["BatchedPairs", "NOISE_STREAM_QUANTUM", "NOISE_STREAM_ELECTRONIC", "NOISE_STREAM_SCATTER", "tool_arrangements", "tool_looks"]
 
 #: :func:`sim.seeds.pair_normals` streams of a pair's noise (the seed is the randomization seed).
 NOISE_STREAM_QUANTUM = 1
 NOISE_STREAM_ELECTRONIC = 2
+NOISE_STREAM_SCATTER = 3
 
 
 def tool_arrangements(bank, names: tuple[str, ...]) -> np.ndarray:
@@ -256,7 +259,15 @@ class BatchedPairs(OnlinePairs):
         raw = raw.clamp(min=0.0)
         normals = pair_normals(self.seed, index, NOISE_STREAM_ELECTRONIC, (h, w), device=self.device,
                                   dtype=raw.dtype)
-        return apply_image_batched(raw, flat, p, normals)
+        sks = p["scatter"] == 3
+        scatter_normals = gaps = None
+        if bool(sks.any()):  # the scatter-kernel model's quantum noise, and the targets' air gaps
+            from sim.physics.scatter_kernel import detector_gap_mm
+
+            scatter_normals = pair_normals(self.seed, index, NOISE_STREAM_SCATTER, (h, w), device=self.device,
+                                           dtype=raw.dtype)
+            gaps = detector_gap_mm(poses, g)
+        return apply_image_batched(raw, flat, p, normals, geometry=g, gap_mm=gaps, scatter_normals=scatter_normals)
 
     def batch(self, k: int, n: int):
         if n > MAX_BATCH:

@@ -195,8 +195,8 @@ def check_trainable(randomization) -> None:
     sc = randomization.by_name["scatter"]
     if dict(zip(sc.choices, sc.probs)).get("monte-carlo", 0.0) > 0:
         raise OnlinePairsError("randomize.scatter: online training cannot run a Monte Carlo transport per pair; "
-                               "allow 'none' and 'kernel' only (scatter = [\"none\", \"kernel\"]): the kernel "
-                               "scatter stands in for it")
+                               "allow 'none', 'kernel' and 'sks' only (e.g. scatter = [\"none\", \"sks\"]): the "
+                               "scatter-kernel model fitted to the Monte Carlo stands in for it")
 
 
 class RealisticTargets:
@@ -209,7 +209,7 @@ class RealisticTargets:
         seed: the randomization seed (pair ``i`` of batch ``k`` is index ``k * MAX_BATCH + i``).
         geometry: the :class:`sim.geometry.CArmGeometry` of the images; scene: its C-arm scene.
 
-    ``image(L, index)``: density integrals ``(M, H, W)`` g/cm^2 of one pose over
+    ``image(L, index, gap_mm=None)``: density integrals ``(M, H, W)`` g/cm^2 of one pose over
     :data:`sim.materials.TISSUE_DECOMPOSITION` -> ``(display (H, W) uint16, field (H, W) bool,
     draw)``: tools added where drawn (:class:`sim.randomize.ToolBank`), the drawn spectrum and
     detector (quantum noise, blur) applied, then the post-render stages
@@ -249,7 +249,7 @@ class RealisticTargets:
                                   physics.blur_mm)
         return model
 
-    def image(self, L: np.ndarray, index: int):
+    def image(self, L: np.ndarray, index: int, gap_mm: float | None = None):
         from sim.distractors import add_to_density_integrals
         from sim.randomize import apply_image, image_rng
 
@@ -273,7 +273,7 @@ class RealisticTargets:
         exposure = dict(mas=physics.mas, sdd_mm=g.sdd_mm, pixel_area_mm2=g.pixel_spacing_mm ** 2)
         rng = image_rng(self.seed, index)
         raw = model.noisy(dens, rng, pixel_spacing_mm=g.pixel_spacing_mm, **exposure)[0]
-        display, field = apply_image(raw, model.flat_field(**exposure), draw, rng)
+        display, field = apply_image(raw, model.flat_field(**exposure), draw, rng, geometry=g, gap_mm=gap_mm)
         return display, field, draw
 
 
@@ -443,7 +443,8 @@ class OnlinePairs:
                             ideal[at[j]], field, current[j], log_display=True, bone_dark=False,
                             mask_current=mask_current, tone=toned)
                         continue
-                    display, field, _ = self.realistic.image(L[at[j]], int(k) * MAX_BATCH + int(i))
+                    gap = float(self.realistic.geometry.sdd_mm - T_a[i][2, 3])  # detector_gap_mm of the target
+                    display, field, _ = self.realistic.image(L[at[j]], int(k) * MAX_BATCH + int(i), gap)
                     images[0, i], images[1, i] = prepare_like_registration(
                         display, field, current[j], log_display=bool(draw["log"]),
                         bone_dark=draw["polarity"] == "bone-dark", mask_current=mask_current, tone=toned)

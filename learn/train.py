@@ -863,6 +863,39 @@ def _loss(output, label, cfg: TrainConfig):
 
 
 @torch.no_grad()
+def validate_checkpoint(cfg: TrainConfig, checkpoint: str | os.PathLike, *, device: str = "cpu") -> dict:
+    """A checkpoint's weights on ``cfg``'s validation pairs, as training logs them: the row of
+    ``log.csv`` (``val_loss``, ``val_rot_err_deg``, ``val_trans_err_mm``, the groups' and the AP
+    start's columns) without the training columns. ``cfg`` must draw its pairs online (its
+    validation pairs are a function of its config: the same for any checkpoint); the checkpoint's
+    backbone and head must be ``cfg``'s. Compares networks on one set of pairs (e.g. two
+    randomizations' runs on each other's validation pairs: ``benchmarks/validate_checkpoints.py``)."""
+    from learn.checkpoint import CheckpointError, load_checkpoint, load_weights
+    from learn.model import Weights, pose_update_net
+
+    if not cfg.online:
+        raise TrainConfigError("validate_checkpoint: the config must draw its pairs online (train.pairs)")
+    path = Path(checkpoint)
+    try:
+        state = load_checkpoint(path)
+    except CheckpointError as e:
+        raise TrainConfigError(f"validate_checkpoint: {e}") from None
+    for key in ("backbone", "head_channels"):
+        if getattr(state, key) != getattr(cfg, key):
+            raise TrainConfigError(f"validate_checkpoint: {path} has {key} = {getattr(state, key)!r}, the config "
+                                   f"{getattr(cfg, key)!r}")
+    dev = resolve_device(device)
+    model = pose_update_net(backbone=cfg.backbone, weights=Weights.NONE, head_channels=cfg.head_channels)
+    load_weights(model, state.model_state, source=f"checkpoint {path}")
+    model.to(dev)
+    source = _OnlineSource(cfg, dev)
+    try:
+        with torch.no_grad():
+            return _validate(model, source, cfg, dev)
+    finally:
+        source.close()
+
+
 def _validate(model, source, cfg: TrainConfig, device=None) -> dict:
     from learn.labels import LabelNormalizer
 

@@ -76,7 +76,8 @@ from sim.errors import InputError
 from sim.seeds import KIND_RANDOMIZE, rng_for
 
 __all__ = ["RandomizeError", "Randomized", "DECLARATION", "STAGES", "DISTRIBUTIONS", "DomainRandomization",
-           "Draw", "ToolBank", "TOOL_BANK_SIZE", "apply_image", "image_rng", "load_randomization", "doc_table_rows"]
+           "Draw", "ToolBank", "TOOL_BANK_SIZE", "apply_image", "sks_model", "image_rng", "load_randomization",
+           "doc_table_rows"]
 
 
 class RandomizeError(InputError):
@@ -384,9 +385,10 @@ DECLARATION: tuple[Randomized, ...] = (
        when=("grid", (True,))),
     _u("blur_mm", "physics", 0.1, 0.5, "Gaussian sigma of the detector blur at the detector", "mm",
        limits=(0.0, None), physics="blur_mm"),
-    _c("scatter", "physics", ("none", "kernel", "monte-carlo"), (0.25, 0.5, 0.25),
-       "scatter: none, a Gaussian kernel model on the signal (cheap), or Monte Carlo (level full, "
-       "one transport per subject and batch)"),
+    _c("scatter", "physics", ("none", "kernel", "monte-carlo", "sks"), (0.25, 0.5, 0.25, 0.0),
+       "scatter: none, a Gaussian kernel model on the signal (cheap), Monte Carlo (level full, one "
+       "transport per subject and batch), or scatter-kernel superposition fitted to the Monte Carlo for "
+       "the drawn kV and grid (sim.physics.scatter_kernel's default table; cheap, physical)"),
     # -- signal: the raw detector signal after rendering (apply_image) ---------------------------
     _lu("scatter_spr", "signal", 0.1, 2.0, "kernel scatter-to-primary ratio: scatter = spr x G(signal)",
         limits=(0.0, 100.0), when=("scatter", ("kernel",))),
@@ -450,6 +452,15 @@ DECLARATION: tuple[Randomized, ...] = (
                                             "calibration vary between patients): on the bone channels of the "
                                             "density integrals, or the bone basis of the two-basis model",
         limits=(0.0, 10.0)),
+    _lu("sks_amplitude", "signal", 0.6, 1.7, "factor on the fitted kernel model's scatter (its subject, "
+                                             "filtration and detector are one patient's and one tube's)",
+        limits=(0.0, 100.0), when=("scatter", ("sks",))),
+    _lu("sks_width", "signal", 0.75, 1.35, "factor on the fitted kernel model's widths", limits=(0.0, 10.0),
+        when=("scatter", ("sks",))),
+    _b("sks_open", "signal", 0.5, "the sks scatter of the whole detector's exposure, the collimator a mask on the "
+                                  "finished signal (as sim's frames and many simulators make it: more scatter in "
+                                  "the field), or of the collimated field only (a real collimator)",
+       when=("scatter", ("sks",))),
 )
 
 _DECLARED: dict[str, Randomized] = {r.name: r for r in DECLARATION}
@@ -729,14 +740,36 @@ def _kernel_scatter(x: np.ndarray, sigma_px: float) -> np.ndarray:
     return np.fft.irfft2(np.fft.rfft2(xp) * transfer, s=xp.shape)[:x.shape[0], :x.shape[1]]
 
 
+def sks_model(draw: Draw, table=None):
+    """The :class:`sim.physics.scatter_kernel.ScatterKernelModel` of a draw whose scatter is
+    ``sks``: the table's model (default :func:`sim.physics.scatter_kernel.default_table`) at the
+    drawn kV and grid ratio (0 without a grid), its amplitudes times ``sks_amplitude`` and its
+    widths times ``sks_width`` (:meth:`ScatterKernelTable.drawn`)."""
+    from sim.physics.scatter_kernel import default_table
+
+    table = default_table() if table is None else table
+    return table.drawn(float(draw["kvp"]), float(draw["grid_ratio"]) if draw["grid"] else 0.0,
+                       float(draw["sks_amplitude"]), float(draw["sks_width"]))
+
+
 def apply_image(raw_intensity: np.ndarray, i0: float, draw: Draw, rng: np.random.Generator, *,
-                scatter: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+                scatter: np.ndarray | None = None, geometry=None, gap_mm: float | None = None,
+                sks_table=None) -> tuple[np.ndarray, np.ndarray]:
     """The post-render stages of ``draw`` (module doc): raw detector signal ``(H, W)`` (keV or
     counts per pixel, :meth:`sim.physics.imaging.XRayImager.render`'s ``raw``), its flat-field
     signal ``i0`` (``imager.flat``), the noise stream ``rng`` (:func:`image_rng`) and, where the
     draw's scatter is ``monte-carlo``, the expected scatter image ``(H, W)`` (the render's
     ``scatter``) -> ``(image, field_mask)``: display integers ``(H, W)`` ``uint16`` in
-    ``0 .. 2^bits - 1`` and the collimated field ``(H, W)`` bool (all True when open)."""
+    ``0 .. 2^bits - 1`` and the collimated field ``(H, W)`` bool (all True when open).
+
+    Where the draw's scatter is ``sks``: ``geometry`` (the :class:`sim.geometry.CArmGeometry` of
+    the image: the kernels are mm at the detector) is required; ``gap_mm`` the air gap of the
+    target pose (anatomy centre to detector, mm; :func:`sim.physics.scatter_kernel.detector_gap_mm`;
+    None: the model's reference gap); ``sks_table`` the :class:`ScatterKernelTable` (None: the
+    default). The scatter ``S`` of :func:`sks_model` from ``tau = -ln(raw / i0)`` of the
+    collimated signal (``sks_open``: of the signal before collimation, ``S`` then collimated as
+    the signal is) is added with its quantum noise (``sqrt(S e)`` times a second normal draw of
+    ``rng``, ``e`` the model's signal per scattered photon), after the electronic noise's draw."""
     raw = np.asarray(raw_intensity)
     if raw.ndim != 2 or not np.issubdtype(raw.dtype, np.number) or np.iscomplexobj(raw) or raw.size == 0:
         raise RandomizeError(f"apply_image needs a real (H, W) raw signal, got shape {raw.shape} dtype {raw.dtype}")
@@ -766,11 +799,26 @@ def apply_image(raw_intensity: np.ndarray, i0: float, draw: Draw, rng: np.random
     h, w = raw.shape
     col = draw.collimator(h, w)
     field_mask = np.ones((h, w), bool) if col is None else col.mask(h, w)
+    open_raw = raw
     if col is not None:
         raw = col.apply(raw)
     if mode == "kernel":
         raw = raw + float(draw["scatter_spr"]) * _kernel_scatter(raw, float(draw["scatter_sigma"]) * min(h, w))
+    if mode == "sks":
+        from sim.geometry import CArmGeometry
+
+        if not isinstance(geometry, CArmGeometry) or (geometry.height, geometry.width) != (h, w):
+            raise RandomizeError(f"apply_image: the draw's scatter is sks: pass the image's geometry (a CArmGeometry "
+                                 f"of {h} x {w} px), got {geometry!r}")
+        model = sks_model(draw, sks_table)
+        source = open_raw if draw["sks_open"] else raw
+        tau = -np.log(np.maximum(source, 1e-12 * float(i0)) / float(i0))
+        sc = model.predict(tau, geometry, flat_signal=float(i0), gap_mm=gap_mm)
+        if draw["sks_open"] and col is not None:  # the open exposure's scatter, collimated as the signal
+            sc = col.apply(sc)
     raw = raw + rng.normal(0.0, float(draw["electronic_noise_fraction"]) * float(i0), raw.shape)
+    if mode == "sks":
+        raw = raw + sc + np.sqrt(sc * model.signal_per_photon) * rng.standard_normal(raw.shape)
     image = draw.display_chain().apply(raw, float(i0), None if col is None else field_mask)
     return image, field_mask
 

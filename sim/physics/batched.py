@@ -14,10 +14,12 @@ pixels (only over the few discrete choices). Each function equals its numpy coun
   geometry is computed in float64 with the numpy code's operations);
 * :func:`gaussian_reflect`: ``sim.randomize._kernel_scatter`` (the Gaussian of the mirror
   extension, by its transfer function), one sigma per pair;
+* :func:`kernel_superposition`, :func:`sks_scatter_batched`: ``ScatterKernelModel.predict``
+  (:mod:`sim.physics.scatter_kernel`), each pair with its own fitted kernels (``scatter = "sks"``);
 * :func:`masked_percentile`: ``numpy.percentile`` (linear interpolation) over each pair's
   masked values;
 * :func:`apply_image_batched`: stages 2-4 of :func:`sim.randomize.apply_image` for draws whose
-  scatter is ``none`` or ``kernel`` (a Monte Carlo transport per pair is not a batch job).
+  scatter is ``none``, ``kernel`` or ``sks`` (a Monte Carlo transport per pair is not a batch job).
 
 Both Gaussians are separable linear operators with mirrored edges, so both are applied as a
 ``(H, H)`` and a ``(W, W)`` matrix per pair (two batched matrix products, the mirror folded
@@ -42,8 +44,8 @@ import torch
 
 from sim.physics import PhysicsError
 
-__all__ = ["FIELD_CODES", "draw_tensors", "field_masks", "gaussian_reflect", "masked_percentile",
-           "apply_image_batched"]
+__all__ = ["FIELD_CODES", "draw_tensors", "field_masks", "gaussian_reflect", "kernel_superposition",
+           "sks_scatter_batched", "masked_percentile", "apply_image_batched"]
 
 #: ``p["field_code"]`` of :func:`draw_tensors`: the shape of each pair's collimated field, as
 #: :meth:`sim.randomize.Draw.collimator` builds it (a circle with blades is ``iris-blades``).
@@ -263,6 +265,72 @@ def _mirror_gaussian_matrices(sigma: torch.Tensor, n: int, dtype: torch.dtype) -
     return (k[:, direct] + k[:, mirrored]).to(dtype)
 
 
+def kernel_superposition(tau: torch.Tensor, tau_nodes, amplitude: torch.Tensor, sigma1_mm: torch.Tensor,
+                         sigma2_mm: torch.Tensor, broad_fraction: torch.Tensor, aspect: torch.Tensor,
+                         spacing_mm: float) -> torch.Tensor:
+    """Scatter-kernel superposition (:mod:`sim.physics.scatter_kernel`) of a batch, each pair with
+    its own kernels: ``ScatterKernelModel.predict`` batched, divided by the flat-field signal.
+
+    Args:
+        tau: ``(B, H, W)`` log primary ``-ln(P / I0)`` (dimensionless; below 0 counts as 0).
+        tau_nodes: ``(K,)`` the thickness nodes (shared by the pairs: one table's).
+        amplitude, sigma1_mm, sigma2_mm, broad_fraction: ``(B, K)`` each pair's model (widths in
+            mm at the detector, already scaled to the pair's air gap: ``ScatterKernelModel.scaled``).
+        aspect: ``(B,)`` the kernels' width along the columns over the width along the rows.
+        spacing_mm: detector pixel spacing (mm).
+
+    Returns:
+        ``(B, H, W)`` scatter per flat-field signal ``S / I0`` (>= 0), ``tau``'s dtype. The
+        convolution is linear (cut at the detector's edges, nothing folded back) and separable:
+        per pair, node and Gaussian a ``(H, H)`` and a ``(W, W)`` matrix of pixel-integrated 1-D
+        Gaussians (``ndtr`` differences, as the numpy model's kernel spectra), two batched matrix
+        products. Equal to the numpy model to float32 rounding (``tests/sim/test_physics_batched.py``).
+    """
+    where = "kernel_superposition"
+    tau = _image("tau", tau, where)
+    b, h, w = tau.shape
+    dt, dev = tau.dtype, tau.device
+    nodes = torch.as_tensor(tau_nodes, dtype=torch.float64, device=dev).reshape(-1)
+    k = nodes.numel()
+    params = {}
+    for name, v in (("amplitude", amplitude), ("sigma1_mm", sigma1_mm), ("sigma2_mm", sigma2_mm),
+                    ("broad_fraction", broad_fraction)):
+        if not isinstance(v, torch.Tensor) or v.shape != (b, k):
+            shape = tuple(v.shape) if isinstance(v, torch.Tensor) else type(v).__name__
+            raise PhysicsError(f"{where}: {name} must be a ({b}, {k}) tensor (pairs x thickness nodes), got {shape}")
+        params[name] = v.to(device=dev, dtype=torch.float64)
+    if not bool(torch.all(params["sigma1_mm"] > 0) & torch.all(params["sigma2_mm"] > 0)):
+        raise PhysicsError(f"{where}: the kernel widths must be > 0 mm")
+    asp = _per_pair("aspect", aspect, b, tau.to(torch.float64), where)
+    t = tau.clamp(min=0.0)
+    g = t * torch.exp(-t)
+    pc = torch.zeros_like(t)  # node coordinate, as scatter_kernel._node_coordinate
+    for lo, hi in zip(nodes[:-1].tolist(), nodes[1:].tolist()):
+        pc = pc + ((t - lo) * (1.0 / (hi - lo))).clamp(0.0, 1.0)
+    j = torch.arange(k, device=dev, dtype=dt)
+    src = g[:, None] * (1.0 - (pc[:, None] - j[None, :, None, None]).abs()).clamp(min=0.0)  # (B, K, H, W)
+    ry = torch.sqrt(asp)[:, None, None]  # (B, 1, 1)
+    f = params["broad_fraction"][:, :, None]
+    sig = torch.stack([params["sigma1_mm"], params["sigma2_mm"]], dim=2)  # (B, K, 2)
+    share = torch.cat([1.0 - f, f], dim=2) * params["amplitude"][:, :, None]  # (B, K, 2)
+    ky = _pixel_gaussian_matrices(sig * ry, h, spacing_mm, dt) * share[..., None, None].to(dt)  # (B, K, 2, H, H)
+    kx = _pixel_gaussian_matrices(sig / ry, w, spacing_mm, dt)  # (B, K, 2, W, W)
+    x = src[:, :, None].expand(b, k, 2, h, w).reshape(-1, h, w)
+    y = torch.bmm(torch.bmm(ky.reshape(-1, h, h), x), kx.reshape(-1, w, w).transpose(1, 2))
+    return y.reshape(b, k * 2, h, w).sum(1).clamp(min=0.0)
+
+
+def _pixel_gaussian_matrices(sigma_mm: torch.Tensor, n: int, spacing_mm: float, dtype: torch.dtype) -> torch.Tensor:
+    """``sigma_mm.shape + (n, n)`` in ``dtype``: entry ``[i, j]`` the integral over pixel ``i`` of a
+    unit 1-D Gaussian of ``sigma_mm`` centred on pixel ``j`` (``scatter_kernel._axis_kernel``): the
+    ``2n - 1`` displacements' integrals (float64 ``ndtr`` differences) gathered into a Toeplitz matrix."""
+    edges = (torch.arange(-n, n, dtype=torch.float64, device=sigma_mm.device) + 0.5) * float(spacing_mm)  # (2n,)
+    cdf = torch.special.ndtr(edges / sigma_mm[..., None])
+    kernel = (cdf[..., 1:] - cdf[..., :-1]).to(dtype)  # displacements -(n-1) .. n-1
+    i = torch.arange(n, device=sigma_mm.device)
+    return kernel[..., i[:, None] - i[None, :] + n - 1]
+
+
 def _reflect_index(i: torch.Tensor, n: int) -> torch.Tensor:
     """scipy's ``reflect`` extension (``d c b a | a b c d | d c b a``, period ``2n``) of indices ``i``."""
     m = torch.remainder(i, 2 * n)
@@ -393,23 +461,58 @@ def _order_statistics(flat: torch.Tensor, mflat: torch.Tensor, ranks: torch.Tens
 # apply_image, batched
 # --------------------------------------------------------------------------------------------
 
-_APPLY_NEEDS = ("scatter", "scatter_spr", "scatter_sigma", "electronic_noise_fraction", "field_transmission",
+_APPLY_NEEDS = ("scatter", "scatter_spr", "scatter_sigma", "sks_amplitude", "sks_width", "sks_open", "kvp", "grid",
+                "grid_ratio",
+                "electronic_noise_fraction", "field_transmission",
                 "shutter", "log", "polarity", "window_low", "window_high", "gamma", "unsharp", "unsharp_sigma_px",
                 "unsharp_amount", "max_value", "field_code") + _GEOMETRY
 
 
-def apply_image_batched(raw: torch.Tensor, i0, p: dict[str, torch.Tensor], normals: torch.Tensor
+def sks_scatter_batched(raw: torch.Tensor, i0: torch.Tensor, models, geometry, gap_mm=None) -> torch.Tensor:
+    """Expected scatter signal ``(B, H, W)`` of ``B`` :class:`ScatterKernelModel` s (one per pair,
+    one table's: the same thickness nodes) on the log of the signal ``raw`` ``(B, H, W)`` over
+    ``i0`` ``(B,)``: ``ScatterKernelModel.predict(-ln(raw / i0), geometry, flat_signal=i0,
+    gap_mm=gap)`` of each pair (:func:`kernel_superposition`; ``gap_mm`` ``(B,)`` mm or None: each
+    model's reference gap; rounded to 0.5 mm as ``predict`` does)."""
+    where = "sks_scatter_batched"
+    b, h, w = raw.shape
+    models = list(models)
+    if len(models) != b or not models or any(m.tau_nodes != models[0].tau_nodes for m in models):
+        raise PhysicsError(f"{where}: one model per pair ({b}), all with the same thickness nodes")
+    if (geometry.height, geometry.width) != (h, w):
+        raise PhysicsError(f"{where}: the geometry is {geometry.height} x {geometry.width} px, raw {h} x {w}")
+    gaps = [None] * b if gap_mm is None else [float(x) for x in gap_mm]
+    if len(gaps) != b:
+        raise PhysicsError(f"{where}: gap_mm must be ({b},) mm, got {len(gaps)} values")
+    scaled = [m.scaled(m.gap_ref_mm if g is None or m.gap_ref_mm == 0 else round(g * 2.0) / 2.0)
+              for m, g in zip(models, gaps)]
+    dev = raw.device
+    amp, s1, s2 = (torch.tensor([sc[j] for sc in scaled], dtype=torch.float64, device=dev) for j in range(3))
+    frac = torch.tensor([m.broad_fraction for m in models], dtype=torch.float64, device=dev)
+    aspect = torch.tensor([m.aspect for m in models], dtype=torch.float64, device=dev)
+    tau = -torch.log(torch.maximum(raw, 1e-12 * i0[:, None, None]) / i0[:, None, None])
+    return kernel_superposition(tau, models[0].tau_nodes, amp, s1, s2, frac, aspect,
+                                geometry.pixel_spacing_mm) * i0[:, None, None]
+
+
+def apply_image_batched(raw: torch.Tensor, i0, p: dict[str, torch.Tensor], normals: torch.Tensor, *,
+                        geometry=None, gap_mm=None, scatter_normals: torch.Tensor | None = None, sks_table=None
                         ) -> tuple[torch.Tensor, torch.Tensor]:
     """Stages 2-4 of :func:`sim.randomize.apply_image` for a batch of pairs, each with its own draw.
 
     Args:
         raw: ``(B, H, W)`` raw detector signal (keV or counts per pixel, the render's ``raw``).
         i0: ``(B,)`` flat-field signal per pair (same unit, > 0), or one number for all.
-        p: :func:`draw_tensors` of the pairs' draws; their ``scatter`` must be ``none`` or
-            ``kernel`` (``monte-carlo`` needs the render's scatter image: use ``apply_image``).
+        p: :func:`draw_tensors` of the pairs' draws; their ``scatter`` must be ``none``,
+            ``kernel`` or ``sks`` (``monte-carlo`` needs the render's scatter image: use ``apply_image``).
         normals: ``(B, H, W)`` standard normal numbers, the electronic noise (pair ``b`` as
             ``apply_image`` with ``image_rng(seed, index)``:
             ``image_rng(seed, index).standard_normal((H, W))``).
+        geometry, gap_mm, scatter_normals, sks_table: for pairs whose scatter is ``sks``
+            (``apply_image``'s): the images' :class:`sim.geometry.CArmGeometry` (required then),
+            the target poses' air gaps ``(B,)`` mm (None: the models' reference gap), ``(B, H, W)``
+            standard normal numbers for the scatter's quantum noise (required then; ``apply_image``'s
+            second draw of the pair's ``rng``), the :class:`ScatterKernelTable` (None: the default).
 
     Returns:
         ``(image, field)``: ``image`` ``(B, H, W)`` in ``raw``'s floating dtype (float32 for
@@ -445,7 +548,7 @@ def apply_image_batched(raw: torch.Tensor, i0, p: dict[str, torch.Tensor], norma
     mc = q["scatter"] == 2
     if bool(mc.any()):
         raise PhysicsError(f"{where}: pairs {torch.nonzero(mc).flatten().tolist()[:10]} have scatter monte-carlo; "
-                           f"only none and kernel can be batched (use sim.randomize.apply_image)")
+                           f"only none, kernel and sks can be batched (use sim.randomize.apply_image)")
 
     field = field_masks(q, h, w)
     if b and not bool(field.flatten(1).any(1).all()):
@@ -460,7 +563,31 @@ def apply_image_batched(raw: torch.Tensor, i0, p: dict[str, torch.Tensor], norma
         xk = x[kern]
         sigma = q["scatter_sigma"][kern].to(torch.float64) * min(h, w)
         x = x.index_copy(0, kern, xk + col(f["scatter_spr"][kern]) * gaussian_reflect(xk, sigma))
+    sks = torch.nonzero(q["scatter"] == 3).flatten()
+    if sks.numel():
+        from sim.geometry import CArmGeometry
+        from sim.physics.scatter_kernel import default_table
+
+        if not isinstance(geometry, CArmGeometry) or (geometry.height, geometry.width) != (h, w):
+            raise PhysicsError(f"{where}: pairs with scatter sks need the images' geometry (a CArmGeometry of {h} x "
+                               f"{w} px), got {geometry!r}")
+        if not isinstance(scatter_normals, torch.Tensor) or scatter_normals.shape != raw.shape:
+            raise PhysicsError(f"{where}: pairs with scatter sks need scatter_normals of raw's shape {tuple(raw.shape)}")
+        table = default_table() if sks_table is None else sks_table
+        rows = sks.tolist()
+        kv, grid, ratio = (p[k][rows].tolist() for k in ("kvp", "grid", "grid_ratio"))
+        amp, wid = (p[k][rows].tolist() for k in ("sks_amplitude", "sks_width"))
+        models = [table.drawn(kv[j], ratio[j] if grid[j] else 0.0, amp[j], wid[j]) for j in range(len(rows))]
+        gaps = None if gap_mm is None else [float(gap_mm[r]) for r in rows]
+        opened = q["sks_open"][sks][:, None, None]
+        source = torch.where(opened, raw[sks], x[sks])  # sks_open: the exposure before collimation
+        sc = sks_scatter_batched(source, i0[sks], models, geometry, gaps)
+        sc = torch.where(opened & ~field[sks], sc * col(f["field_transmission"][sks]), sc)
+        spp = torch.tensor([m.signal_per_photon for m in models], dtype=dt, device=dev)[:, None, None]
+        scatter_add = sc + torch.sqrt(sc * spp) * scatter_normals[sks].to(device=dev, dtype=dt)
     x = x + col(f["electronic_noise_fraction"] * i0) * normals.to(device=dev, dtype=dt)
+    if sks.numel():
+        x = x.index_add(0, sks, scatter_add)
 
     # 4: display chain
     log = q["log"]

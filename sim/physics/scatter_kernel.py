@@ -56,6 +56,7 @@ from __future__ import annotations
 
 import functools
 import math
+from pathlib import Path
 from dataclasses import dataclass, replace
 from typing import Any
 
@@ -615,29 +616,42 @@ def fit_scatter_kernel(volume, physics, poses: np.ndarray, *, size=(64, 64), sce
 
 def interpolate_kvp(models, kvp: float) -> ScatterKernelModel:
     """A model at ``kvp`` from models fitted at other kVps (all other settings and the nodes
-    equal): log amplitudes, log widths, log aspect, broad fractions, ``signal_per_photon`` and
-    the gap parameters linear in kVp between the two nearest fitted kVps (linear extrapolation
-    from the two nearest outside). ``fit_rms`` of the result is 0 (not fitted)."""
+    equal): :func:`interpolate_setting` of ``"kvp"``."""
+    return interpolate_setting(models, "kvp", kvp)
+
+
+def interpolate_setting(models, name: str, value: float) -> ScatterKernelModel:
+    """A model at setting ``name`` (``"kvp"`` in kV or ``"grid_ratio"``) = ``value`` from models
+    fitted at other values of it (all other settings and the nodes equal): log amplitudes, log
+    widths, log aspect, broad fractions, ``signal_per_photon`` and the gap parameters linear in
+    the setting between the two nearest fitted values (linear extrapolation from the two nearest
+    outside). ``fit_rms`` of the result is 0 (not fitted)."""
+    if name not in ("kvp", "grid_ratio"):
+        raise PhysicsError(f"interpolate_setting: name must be 'kvp' or 'grid_ratio', got {name!r}")
     models = list(models)
     if len(models) < 2:
-        raise PhysicsError(f"interpolate_kvp needs models at two or more kVps, got {len(models)}")
-    if isinstance(kvp, bool) or not isinstance(kvp, (int, float)) or not math.isfinite(kvp) or kvp <= 0:
-        raise PhysicsError(f"kvp must be a positive number (kV), got {kvp!r}")
-    ref = {k: v for k, v in models[0].settings if k != "kvp"}
+        raise PhysicsError(f"interpolate_{name} needs models at two or more values of {name}, got {len(models)}")
+    if isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating)) \
+            or not math.isfinite(value) or value < 0 or (name == "kvp" and value == 0):
+        what = "a positive number (kV)" if name == "kvp" else "a number >= 0"
+        raise PhysicsError(f"{name} must be {what}, got {value!r}")
+    value = float(value)
+    ref = {k: v for k, v in models[0].settings if k != name}
     for m in models:
-        if m.tau_nodes != models[0].tau_nodes or {k: v for k, v in m.settings if k != "kvp"} != ref \
-                or "kvp" not in m.settings_dict:
-            raise PhysicsError("interpolate_kvp needs models with the same thickness nodes and settings except kvp")
-    models.sort(key=lambda m: m.settings_dict["kvp"])
-    kvps = [m.settings_dict["kvp"] for m in models]
-    if len(set(kvps)) != len(kvps):
-        raise PhysicsError(f"interpolate_kvp needs models at different kVps, got {kvps}")
-    i = int(np.clip(np.searchsorted(kvps, kvp) - 1, 0, len(kvps) - 2))
+        if m.tau_nodes != models[0].tau_nodes or {k: v for k, v in m.settings if k != name} != ref \
+                or name not in m.settings_dict:
+            raise PhysicsError(f"interpolate_{name} needs models with the same thickness nodes and settings except "
+                               f"{name}")
+    models.sort(key=lambda m: m.settings_dict[name])
+    values = [float(m.settings_dict[name]) for m in models]
+    if len(set(values)) != len(values):
+        raise PhysicsError(f"interpolate_{name} needs models at different values of {name}, got {values}")
+    i = int(np.clip(np.searchsorted(values, value) - 1, 0, len(values) - 2))
     lo, hi = models[i], models[i + 1]
-    t = (kvp - kvps[i]) / (kvps[i + 1] - kvps[i])
+    t = (value - values[i]) / (values[i + 1] - values[i])
 
-    def mix(name, log):
-        a, b = np.asarray(getattr(lo, name)), np.asarray(getattr(hi, name))
+    def mix(attr, log):
+        a, b = np.asarray(getattr(lo, attr)), np.asarray(getattr(hi, attr))
         if log:
             a, b = np.log(np.maximum(a, 1e-300)), np.log(np.maximum(b, 1e-300))
             return tuple(np.exp(a + t * (b - a)))
@@ -645,10 +659,171 @@ def interpolate_kvp(models, kvp: float) -> ScatterKernelModel:
 
     s1 = np.clip(mix("sigma1_mm", True), *_SIGMA_MM)
     s2 = np.maximum(np.clip(mix("sigma2_mm", True), *_SIGMA_MM), s1)
-    lin = {name: getattr(lo, name) + t * (getattr(hi, name) - getattr(lo, name))
-           for name in ("signal_per_photon", "gap_ref_mm", "gap_exponent")}
+    lin = {attr: getattr(lo, attr) + t * (getattr(hi, attr) - getattr(lo, attr))
+           for attr in ("signal_per_photon", "gap_ref_mm", "gap_exponent")}
     return replace(lo, amplitude=mix("amplitude", True), sigma1_mm=tuple(s1), sigma2_mm=tuple(s2),
                    broad_fraction=tuple(np.clip(mix("broad_fraction", False), 0.0, 1.0)),
                    signal_per_photon=max(lin["signal_per_photon"], 1e-9), gap_ref_mm=max(lin["gap_ref_mm"], 0.0),
-                   gap_exponent=lin["gap_exponent"], aspect=lo.aspect * (hi.aspect / lo.aspect) ** t,
-                   settings={**dict(lo.settings), "kvp": float(kvp)}, fit_rms=0.0)
+                   gap_exponent=lin["gap_exponent"],
+                   aspect=float(np.clip(lo.aspect * (hi.aspect / lo.aspect) ** t, 1e-3, 100.0)),
+                   settings={**dict(lo.settings), name: value}, fit_rms=0.0)
+
+
+#: Version of :meth:`ScatterKernelTable.to_dict`.
+TABLE_FORMAT_VERSION = 1
+
+
+@dataclass(frozen=True)
+class ScatterKernelTable:
+    """Models of one subject fitted over a grid of tube voltages and grid ratios, for any
+    ``(kvp, grid_ratio)`` between (:meth:`model_for`): the scatter of the training pairs'
+    drawn tube and grid (``scatter = "sks"`` of :mod:`sim.randomize`).
+
+    Attributes:
+        models: ``ScatterKernelModel`` s, all with the same thickness nodes and settings except
+            ``kvp`` and ``grid_ratio`` (0: no grid); every grid ratio fitted at the same two or
+            more kVps.
+        subject: what they were fitted on (a CT's name, free text).
+
+    ``model_for(kvp, grid_ratio)``: the models of the two nearest fitted grid ratios (no grid:
+    the ratio-0 models alone), each interpolated in kVp (:func:`interpolate_kvp`), then in the
+    ratio (:func:`interpolate_setting`); a ratio above 0 is interpolated among the grids only
+    (a thin grid is not "half no grid"). Cached per ``(kvp, grid_ratio)`` rounded to 0.01.
+
+    Example::
+
+        >>> table = ScatterKernelTable.load(DEFAULT_TABLE)
+        >>> table.model_for(75.0, 0.0).settings_dict["kvp"]
+        75.0
+    """
+
+    models: tuple[ScatterKernelModel, ...]
+    subject: str = ""
+
+    def __post_init__(self) -> None:
+        models = tuple(self.models)
+        if not models or not all(isinstance(m, ScatterKernelModel) for m in models):
+            raise PhysicsError("scatter kernel table: models must be one or more ScatterKernelModel")
+        ref = {k: v for k, v in models[0].settings if k not in ("kvp", "grid_ratio")}
+        for m in models:
+            s = m.settings_dict
+            if "kvp" not in s or "grid_ratio" not in s:
+                raise PhysicsError("scatter kernel table: every model must record its kvp and grid_ratio settings")
+            if m.tau_nodes != models[0].tau_nodes or {k: v for k, v in m.settings if k not in ("kvp", "grid_ratio")} \
+                    != ref:
+                raise PhysicsError("scatter kernel table: the models must share thickness nodes and settings except "
+                                   "kvp and grid_ratio")
+        by_ratio: dict[float, list] = {}
+        for m in models:
+            by_ratio.setdefault(float(m.settings_dict["grid_ratio"]), []).append(float(m.settings_dict["kvp"]))
+        kvps = {r: sorted(v) for r, v in by_ratio.items()}
+        first = next(iter(kvps.values()))
+        if len(first) < 2 or any(v != first for v in kvps.values()) or len(set(first)) != len(first):
+            raise PhysicsError(f"scatter kernel table: every grid ratio needs the same two or more distinct kVps, got "
+                               f"{kvps}")
+        if 0.0 not in kvps:
+            raise PhysicsError("scatter kernel table: models without a grid (grid_ratio 0) are required")
+        object.__setattr__(self, "models", models)
+        object.__setattr__(self, "subject", str(self.subject))
+
+    @property
+    def kvps(self) -> tuple[float, ...]:
+        """The fitted tube voltages (kV)."""
+        return tuple(sorted({float(m.settings_dict["kvp"]) for m in self.models}))
+
+    @property
+    def grid_ratios(self) -> tuple[float, ...]:
+        """The fitted grid ratios (0: no grid)."""
+        return tuple(sorted({float(m.settings_dict["grid_ratio"]) for m in self.models}))
+
+    def model_for(self, kvp: float, grid_ratio: float) -> ScatterKernelModel:
+        """The model at ``kvp`` (kV, > 0) and ``grid_ratio`` (>= 0; 0: no grid), class doc."""
+        for name, v in (("kvp", kvp), ("grid_ratio", grid_ratio)):
+            if isinstance(v, bool) or not isinstance(v, (int, float, np.integer, np.floating)) \
+                    or not math.isfinite(v) or v < 0 or (name == "kvp" and v == 0):
+                raise PhysicsError(f"scatter kernel table: {name} must be a {'positive' if name == 'kvp' else '>= 0'} "
+                                   f"number, got {v!r}")
+        return self._model(round(float(kvp), 2), round(float(grid_ratio), 2))
+
+    def drawn(self, kvp: float, grid_ratio: float, amplitude_factor: float = 1.0,
+              width_factor: float = 1.0) -> ScatterKernelModel:
+        """:meth:`model_for` with its amplitudes times ``amplitude_factor`` (> 0) and its widths times
+        ``width_factor`` (> 0; kept within 1-1000 mm): the scatter of a randomized draw (another
+        patient, filtration or detector than the fit's; ``sim.randomize.sks_model``)."""
+        for name, v in (("amplitude_factor", amplitude_factor), ("width_factor", width_factor)):
+            if isinstance(v, bool) or not isinstance(v, (int, float, np.integer, np.floating)) \
+                    or not (math.isfinite(v) and v > 0):
+                raise PhysicsError(f"scatter kernel table: {name} must be a positive number, got {v!r}")
+        model = self.model_for(kvp, grid_ratio)
+        a, wf = float(amplitude_factor), float(width_factor)
+        s1 = tuple(min(max(x * wf, _SIGMA_MM[0]), _SIGMA_MM[1]) for x in model.sigma1_mm)
+        s2 = tuple(max(min(max(x * wf, _SIGMA_MM[0]), _SIGMA_MM[1]), y) for x, y in zip(model.sigma2_mm, s1))
+        return replace(model, amplitude=tuple(x * a for x in model.amplitude), sigma1_mm=s1, sigma2_mm=s2,
+                       fit_rms=0.0)
+
+    @functools.lru_cache(maxsize=512)
+    def _model(self, kvp: float, grid_ratio: float) -> ScatterKernelModel:
+        def at_ratio(r):
+            return interpolate_kvp([m for m in self.models if m.settings_dict["grid_ratio"] == r], kvp)
+
+        if grid_ratio == 0.0:
+            return at_ratio(0.0)
+        grids = [r for r in self.grid_ratios if r > 0]
+        if not grids:
+            raise PhysicsError(f"scatter kernel table ({self.subject}): no grid was fitted, grid_ratio "
+                               f"{grid_ratio:g} asked")
+        if len(grids) == 1:
+            return replace(at_ratio(grids[0]), settings={**self.models[0].settings_dict, "kvp": kvp,
+                                                         "grid_ratio": grid_ratio})
+        return interpolate_setting([at_ratio(r) for r in grids], "grid_ratio", grid_ratio)
+
+    def to_dict(self) -> dict[str, Any]:
+        """Plain JSON types: ``{"format": 1, "subject": ..., "models": [model.to_dict(), ...]}``."""
+        return {"format": TABLE_FORMAT_VERSION, "subject": self.subject, "models": [m.to_dict() for m in self.models]}
+
+    @classmethod
+    def from_dict(cls, d: Any) -> ScatterKernelTable:
+        """The table of :meth:`to_dict`'s output (a bad key or model raises :class:`PhysicsError`)."""
+        if not isinstance(d, dict) or set(d) != {"format", "subject", "models"}:
+            got = sorted(d) if isinstance(d, dict) else type(d).__name__
+            raise PhysicsError(f"scatter kernel table must be an object with keys format, subject, models; got {got}")
+        if d["format"] != TABLE_FORMAT_VERSION:
+            raise PhysicsError(f"scatter kernel table: format must be {TABLE_FORMAT_VERSION}, got {d['format']!r}")
+        if not isinstance(d["models"], list):
+            raise PhysicsError("scatter kernel table: models must be a list")
+        return cls(tuple(ScatterKernelModel.from_dict(m) for m in d["models"]), str(d["subject"]))
+
+    @classmethod
+    def load(cls, path) -> ScatterKernelTable:
+        """Read a table written by :meth:`save` (JSON; a missing or corrupt file raises
+        :class:`PhysicsError` naming it)."""
+        import json
+
+        path = Path(path)
+        try:
+            data = json.loads(path.read_text())
+        except OSError as e:
+            raise PhysicsError(f"scatter kernel table {path} cannot be read: {e.strerror or e}") from None
+        except ValueError as e:
+            raise PhysicsError(f"scatter kernel table {path} is not valid JSON: {e}") from None
+        try:
+            return cls.from_dict(data)
+        except PhysicsError as e:
+            raise PhysicsError(f"{path}: {e}") from None
+
+    def save(self, path) -> None:
+        """Write the table as JSON, atomically."""
+        from sim.atomic import write_json
+
+        write_json(path, self.to_dict())
+
+
+#: The committed table: the pelvis CT (``pelvis_abdomen_3mm``) fitted at 60-140 kV without a grid
+#: and with grids of ratio 6 and 16 (``scripts/fit_scatter_kernels.py``; ``docs/physics.md``).
+DEFAULT_TABLE = Path(__file__).with_name("data") / "scatter_kernels_pelvis.json"
+
+
+@functools.lru_cache(maxsize=4)
+def default_table() -> ScatterKernelTable:
+    """:data:`DEFAULT_TABLE`, read once."""
+    return ScatterKernelTable.load(DEFAULT_TABLE)

@@ -64,6 +64,34 @@ def test_batched_pairs_are_the_per_pair_pairs(both):
     assert np.median(mad) < 0.03
 
 
+def test_batched_pairs_with_fitted_scatter_are_the_per_pair_pairs(campaign, tmp_path):
+    """Scatter ``sks`` (the fitted kernel model at the pair's kV, grid and air gap, with its
+    quantum noise) through both paths, 16 pairs: the mean absolute bounds of the test above (the
+    scatter is the same model in both; the bases and the noise draws differ), correlations above
+    0.7, median above 0.9 (measured 0.77-1.00: scatter lowers the contrast, so the paths' different
+    noise weighs more), and the scatter acts in both: the per-pair targets are nearer the batched
+    ones with scatter than those without it."""
+    from learn.batched import BatchedPairs
+
+    table = {**TABLE, "scatter": ["sks"], "ideal": 0.0, "mas": [4.0, 8.0]}
+    r = DomainRandomization.from_table(table)
+    per_pair = OnlinePairs(campaign, "train", seed=4, randomization=r)
+    batched = BatchedPairs(campaign, "train", seed=4, randomization=r, tables=tmp_path)
+    n, k = 16, 1
+    a1, _, _ = per_pair.batch(k, n)
+    a2, _, _ = batched.batch(k, n)
+    mad = [np.abs(a1.numpy()[i] - a2.numpy()[i]).mean() for i in range(n)]
+    assert max(mad) < 0.08 and np.median(mad) < 0.03, mad
+    corr = [np.corrcoef(a1.numpy()[i].ravel(), a2.numpy()[i].ravel())[0, 1] for i in range(n)]
+    assert min(corr) > 0.7 and np.median(corr) > 0.9, corr  # measured: 0.77-1.00 (lowered contrast: noise weighs more)
+    plain = BatchedPairs(campaign, "train", seed=4, randomization=DomainRandomization.from_table(
+        {**table, "scatter": ["none"]}), tables=tmp_path)
+    a3, _, _ = plain.batch(k, n)
+    # the per-pair targets are nearer the batched ones with the same scatter than without it
+    assert np.abs(a1.numpy() - a2.numpy()).mean() < 0.7 * np.abs(a1.numpy() - a3.numpy()).mean()
+    assert np.abs(a3.numpy() - a2.numpy()).mean() > 0.01
+
+
 def test_a_batch_is_reproducible_and_its_groups_follow_the_draws(both):
     r, _, batched = both
     a1, b1, y1 = batched.batch(5, 6)
@@ -239,3 +267,23 @@ def test_the_cached_tables_serve_a_new_run_unchanged(both, campaign):
         torch.testing.assert_close(u, v, rtol=0, atol=0)
     with pytest.raises(OnlinePairsError, match="needs a tables folder"):
         BatchedPairs(campaign, "train", seed=3, randomization=r).cache_tables()
+
+
+def test_validate_checkpoint_gives_the_logged_validation(tmp_path):
+    """learn.train.validate_checkpoint of a run's final checkpoint on the run's own config is the
+    log's last validation row (the same pairs, groups and AP targets); a checkpoint of another
+    backbone is refused, naming it."""
+    import learn.train as tr
+
+    cfg = tr.TrainConfig(dataset=str(ROOT / "campaigns" / "smoke.toml"), out=str(tmp_path / "a"), backbone="tiny",
+                         batch_size=3, iterations=4, lr=1e-3, val_pairs=4, val_every=4, checkpoint_every=4, seed=5,
+                         loss="relative", pairs="batched", randomize={**TABLE, "scatter": ["none", "sks"]})
+    tr.train(cfg, log=lambda *_: None, device="cpu")
+    last = list(csv.DictReader(open(tmp_path / "a" / "log.csv")))[-1]
+    got = tr.validate_checkpoint(cfg, tmp_path / "a" / "checkpoint.pt")
+    assert set(got) == {k for k in last if k.startswith("val_")}
+    for k, v in got.items():
+        assert v == pytest.approx(float(last[k]), rel=1e-4, abs=1e-5, nan_ok=True), k
+    other = tr.TrainConfig(**{**cfg.__dict__, "backbone": "small"})
+    with pytest.raises(tr.TrainConfigError, match="backbone"):
+        tr.validate_checkpoint(other, tmp_path / "a" / "checkpoint.pt")

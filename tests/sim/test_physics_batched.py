@@ -217,3 +217,106 @@ def test_apply_image_batched_on_cuda_equals_cpu():
     np.testing.assert_array_equal(field.cpu().numpy(), ref_field)
     diff = np.abs(image.cpu().numpy().astype(np.int64) - ref.astype(np.int64))
     assert diff.max() <= 1 and (diff == 0).mean() >= 0.99
+
+
+# -- scatter-kernel superposition ("sks") -----------------------------------------------------------
+
+
+def _sks_geometry(h: int, w: int):
+    """A C-arm geometry of ``h x w`` pixels of 6 mm (a 64-px image of a 384 mm detector)."""
+    from sim.geometry import CArmGeometry
+
+    return CArmGeometry(sdd_mm=1020.0, sod_mm=620.0, height=h, width=w, pixel_spacing_mm=6.0)
+
+
+def _thick_tau(rng: np.random.Generator, b: int, h: int, w: int) -> np.ndarray:
+    """``(b, h, w)`` smooth log primaries 0-6 (an object of pelvis-like thickness, air at the edges)."""
+    from scipy.ndimage import gaussian_filter
+
+    y, x = np.mgrid[0:h, 0:w]
+    out = []
+    for _ in range(b):
+        cy, cx = rng.uniform(0.3, 0.7) * h, rng.uniform(0.3, 0.7) * w
+        body = np.clip(1.0 - ((y - cy) / (0.45 * h)) ** 2 - ((x - cx) / (0.5 * w)) ** 2, 0.0, None)
+        out.append(6.0 * np.sqrt(body) + gaussian_filter(rng.normal(0.0, 1.0, (h, w)), 3.0))
+    return np.clip(np.stack(out), 0.0, None)
+
+
+def test_kernel_superposition_equals_the_numpy_model():
+    from sim.physics.batched import sks_scatter_batched
+    from sim.physics.scatter_kernel import default_table
+
+    rng = np.random.default_rng(3)
+    h, w = 40, 56  # not square: the two axes' matrices differ
+    g = _sks_geometry(h, w)
+    table = default_table()
+    settings = [(60.0, 0.0, 1.0, 1.0), (77.0, 0.0, 1.4, 0.8), (95.0, 9.5, 0.7, 1.2), (130.0, 16.0, 1.0, 1.0)]
+    models = [table.drawn(*s) for s in settings]
+    tau = _thick_tau(rng, len(models), h, w)
+    i0 = rng.uniform(100.0, 5000.0, len(models))
+    gaps = np.array([280.0, 333.3, 410.0, 365.0])
+    ref = np.stack([m.predict(t, g, flat_signal=a, gap_mm=gp) for m, t, a, gp in zip(models, tau, i0, gaps)])
+    raw = np.exp(-tau) * i0[:, None, None]
+    for dtype, tol in ((torch.float64, 1e-5), (torch.float32, 1e-4)):  # numpy's FFTs run in float32
+        got = sks_scatter_batched(torch.from_numpy(raw).to(dtype), torch.from_numpy(i0).to(dtype), models, g,
+                                  gaps).double().numpy()
+        assert np.abs(got - ref).max() <= tol * ref.max(), dtype
+    assert ref.max() > 0 and np.all(ref >= 0)
+
+
+def test_apply_image_batched_sks_equals_apply_image():
+    h, w, n = 48, 64, 24
+    g = _sks_geometry(h, w)
+    dr = DomainRandomization.from_table({"scatter": ["sks", "none"], "field": ["none", "circle"]})
+    draws = [dr.draw(SEED, i) for i in range(n)]
+    assert {d["scatter"] for d in draws} == {"sks", "none"} and {d["grid"] for d in draws} == {True, False}
+    assert {d["sks_open"] for d in draws if d["scatter"] == "sks" and d["field"] != "none"} == {True, False}
+    rng = np.random.default_rng(SEED)
+    i0 = rng.uniform(100.0, 5000.0, n)
+    raw = np.exp(-_thick_tau(rng, n, h, w)) * i0[:, None, None]
+    gaps = rng.uniform(250.0, 450.0, n)
+    ref, ref_field, normals, scatter_normals = [], [], [], []
+    for i, (r, a, d, gap) in enumerate(zip(raw, i0, draws, gaps)):
+        img, field = apply_image(r, float(a), d, image_rng(SEED, i), geometry=g, gap_mm=float(gap))
+        ref.append(img)
+        ref_field.append(field)
+        stream = image_rng(SEED, i)
+        normals.append(stream.standard_normal((h, w)))
+        scatter_normals.append(stream.standard_normal((h, w)))  # apply_image's second draw
+    ref = np.stack(ref).astype(np.int64)
+    image, field = apply_image_batched(torch.from_numpy(raw), torch.from_numpy(i0), draw_tensors(draws, dtype=torch.float64),
+                                       torch.from_numpy(np.stack(normals)), geometry=g, gap_mm=torch.from_numpy(gaps),
+                                       scatter_normals=torch.from_numpy(np.stack(scatter_normals)))
+    np.testing.assert_array_equal(field.numpy(), np.stack(ref_field))
+    diff = np.abs(image.numpy().astype(np.int64) - ref)
+    assert diff.max() <= 1 and (diff == 0).mean() >= 0.995
+    # the scatter acts: the same pairs without it differ where the draw is sks, and only there
+    plain = [apply_image(r, float(a), d, image_rng(SEED, i)) [0] if d["scatter"] == "none" else None
+             for i, (r, a, d) in enumerate(zip(raw, i0, draws))]
+    for i, d in enumerate(draws):
+        if d["scatter"] == "none":
+            assert np.array_equal(plain[i].astype(np.int64), ref[i])
+
+
+def test_apply_image_sks_needs_the_geometry_and_adds_physical_scatter():
+    from sim.physics.scatter_kernel import default_table
+
+    h, w = 32, 32
+    g = _sks_geometry(h, w)
+    dr = DomainRandomization.from_table({"scatter": ["sks"]})
+    d = dr.draw(0, 0)
+    raw = np.exp(-_thick_tau(np.random.default_rng(0), 1, h, w)[0]) * 1000.0
+    with pytest.raises(RandomizeError, match="geometry"):
+        apply_image(raw, 1000.0, d, image_rng(0, 0))
+    p = draw_tensors([d], dtype=torch.float64)
+    with pytest.raises(PhysicsError, match="geometry"):
+        apply_image_batched(torch.from_numpy(raw[None]), 1000.0, p, torch.zeros(1, h, w))
+    with pytest.raises(PhysicsError, match="scatter_normals"):
+        apply_image_batched(torch.from_numpy(raw[None]), 1000.0, p, torch.zeros(1, h, w), geometry=g)
+    # a grid removes scatter, more of it at a higher ratio; a harder beam scatters more (no grid)
+    table = default_table()
+    tau = -np.log(raw / 1000.0)
+    spr = {key: float(table.model_for(*key).predict(tau, g).sum() / np.exp(-tau).sum())
+           for key in ((60.0, 0.0), (130.0, 0.0), (95.0, 0.0), (95.0, 6.0), (95.0, 16.0))}
+    assert spr[95.0, 16.0] < spr[95.0, 6.0] < 0.5 * spr[95.0, 0.0]
+    assert spr[60.0, 0.0] < spr[130.0, 0.0]

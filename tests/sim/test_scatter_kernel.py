@@ -272,3 +272,78 @@ def test_bad_records_are_refused(change, match):
         ScatterKernelModel.from_dict(d)
     with pytest.raises(PhysicsError, match="missing key 'amplitude'"):
         ScatterKernelModel.from_dict({k: v for k, v in good.to_dict().items() if k != "amplitude"})
+
+
+# -- the table of models over kV and grid ratio -------------------------------------------------------
+
+
+def _table_models():
+    """Synthetic models at 60 / 120 kV, without a grid and with ratios 6 and 16."""
+    out = []
+    for kvp in (60.0, 120.0):
+        for ratio, amp in ((0.0, 0.4), (6.0, 0.1), (16.0, 0.05)):
+            a = amp * (1.0 + kvp / 120.0)
+            out.append(ScatterKernelModel((1.0, 3.0), (a, 2 * a), (10.0 + ratio, 20.0), (40.0, 80.0), (0.3, 0.5),
+                                          settings={"kvp": kvp, "grid_ratio": ratio}, gap_ref_mm=300.0,
+                                          gap_exponent=1.0, aspect=1.0 + ratio / 4))
+    return out
+
+
+def test_table_interpolates_kvp_and_grid_ratio_and_round_trips(tmp_path):
+    from sim.physics.scatter_kernel import ScatterKernelTable
+
+    models = _table_models()
+    table = ScatterKernelTable(tuple(models), "synthetic")
+    assert table.kvps == (60.0, 120.0) and table.grid_ratios == (0.0, 6.0, 16.0)
+    for m in models:  # the fitted points are the fitted models
+        s = m.settings_dict
+        got = table.model_for(s["kvp"], s["grid_ratio"])
+        assert got.amplitude == pytest.approx(m.amplitude) and got.aspect == pytest.approx(m.aspect)
+    mid = table.model_for(90.0, 0.0)  # halfway in kV: the geometric mean of the amplitudes
+    assert mid.amplitude[0] == pytest.approx(math.sqrt(models[0].amplitude[0] * models[3].amplitude[0]))
+    r11 = table.model_for(60.0, 11.0)  # halfway between the grids, not towards "no grid"
+    assert models[2].amplitude[0] < r11.amplitude[0] < models[1].amplitude[0]
+    assert r11.settings_dict == {**models[0].settings_dict, "kvp": 60.0, "grid_ratio": 11.0}
+    d = table.drawn(60.0, 0.0, 2.0, 0.5)
+    assert d.amplitude == pytest.approx(tuple(2 * a for a in models[0].amplitude))
+    assert d.sigma1_mm == pytest.approx((5.0, 10.0)) and d.sigma2_mm == pytest.approx((20.0, 40.0))
+    path = tmp_path / "t.json"
+    table.save(path)
+    assert ScatterKernelTable.load(path) == table
+
+
+def test_table_refuses_bad_tables_and_files(tmp_path):
+    from sim.physics.scatter_kernel import ScatterKernelTable
+
+    models = _table_models()
+    with pytest.raises(PhysicsError, match="grid_ratio 0"):
+        ScatterKernelTable(tuple(m for m in models if m.settings_dict["grid_ratio"] > 0))
+    with pytest.raises(PhysicsError, match="same two or more"):
+        ScatterKernelTable(tuple(models[:-1]))
+    with pytest.raises(PhysicsError, match="kvp and grid_ratio"):
+        ScatterKernelTable((_one_node(), _one_node()))
+    table = ScatterKernelTable(tuple(models))
+    with pytest.raises(PhysicsError, match="kvp must be"):
+        table.model_for(float("nan"), 0.0)
+    with pytest.raises(PhysicsError, match="amplitude_factor"):
+        table.drawn(80.0, 0.0, 0.0, 1.0)
+    (tmp_path / "bad.json").write_text("{not json")
+    with pytest.raises(PhysicsError, match="not valid JSON"):
+        ScatterKernelTable.load(tmp_path / "bad.json")
+    with pytest.raises(PhysicsError, match="cannot be read"):
+        ScatterKernelTable.load(tmp_path / "missing.json")
+    (tmp_path / "keys.json").write_text(json.dumps({"format": 1, "models": []}))
+    with pytest.raises(PhysicsError, match="keys format, subject, models"):
+        ScatterKernelTable.load(tmp_path / "keys.json")
+
+
+def test_default_table_covers_the_randomized_tube_and_grid():
+    """The committed table spans the declared kV and grid-ratio ranges of sim.randomize."""
+    from sim.physics.scatter_kernel import default_table
+    from sim.randomize import DomainRandomization
+
+    table = default_table()
+    r = DomainRandomization.from_table(None).by_name
+    assert table.kvps[0] <= r["kvp"].low and table.kvps[-1] >= r["kvp"].high
+    grids = [x for x in table.grid_ratios if x > 0]
+    assert 0.0 in table.grid_ratios and grids[0] <= r["grid_ratio"].low and grids[-1] >= r["grid_ratio"].high
