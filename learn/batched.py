@@ -264,7 +264,7 @@ class BatchedPairs(OnlinePairs):
         if bool(sks.any()):  # the scatter-kernel model's quantum noise, and the targets' air gaps
             from sim.physics.scatter_kernel import detector_gap_mm
 
-            scatter_normals = pair_normals(self.seed, index, NOISE_STREAM_SCATTER, (h, w), device=self.device,
+            scatter_normals = pair_normals(self.seed, index, NOISE_STREAM_SCATTER, (2, h, w), device=self.device,
                                            dtype=raw.dtype)
             gaps = detector_gap_mm(poses, g)
         return apply_image_batched(raw, flat, p, normals, geometry=g, gap_mm=gaps, scatter_normals=scatter_normals)

@@ -76,7 +76,8 @@ from sim.errors import InputError
 from sim.seeds import KIND_RANDOMIZE, rng_for
 
 __all__ = ["RandomizeError", "Randomized", "DECLARATION", "STAGES", "DISTRIBUTIONS", "DomainRandomization",
-           "Draw", "ToolBank", "TOOL_BANK_SIZE", "apply_image", "sks_model", "image_rng", "load_randomization",
+           "Draw", "ToolBank", "TOOL_BANK_SIZE", "apply_image", "sks_model", "sks_texture",
+           "image_rng", "load_randomization",
            "doc_table_rows"]
 
 
@@ -461,6 +462,12 @@ DECLARATION: tuple[Randomized, ...] = (
                                   "finished signal (as sim's frames and many simulators make it: more scatter in "
                                   "the field), or of the collimated field only (a real collimator)",
        when=("scatter", ("sks",))),
+    _lu("sks_texture", "signal", 0.02, 0.3, "relative std of the sks scatter's texture, a smooth random factor "
+                                            "on it: the structure the thickness-only kernel model smooths away, "
+                                            "and a Monte Carlo estimate's own noise (the frames' scatter)",
+        limits=(0.0, 1.0), when=("scatter", ("sks",))),
+    _u("sks_texture_sigma", "signal", 0.03, 0.1, "Gaussian sigma of the sks scatter's texture",
+       "fraction of the shorter side", limits=(0.0, 1.0), lo_open=True, when=("scatter", ("sks",))),
 )
 
 _DECLARED: dict[str, Randomized] = {r.name: r for r in DECLARATION}
@@ -752,6 +759,16 @@ def sks_model(draw: Draw, table=None):
                        float(draw["sks_amplitude"]), float(draw["sks_width"]))
 
 
+def sks_texture(normals: np.ndarray, strength: float, sigma_px: float) -> np.ndarray:
+    """The smooth random factor on the ``sks`` scatter: ``max(0, 1 + strength * n)`` with ``n``
+    the standard normal numbers ``normals`` ``(H, W)`` blurred by a Gaussian of ``sigma_px``
+    (mirrored edges, :func:`_kernel_scatter`) and scaled back to unit standard deviation
+    (``x 2 sqrt(pi) sigma``, white noise's under a 2-D Gaussian; exact away from the edges for
+    sigma >= 1 px)."""
+    n = _kernel_scatter(np.asarray(normals, np.float64), sigma_px) * (2.0 * math.sqrt(math.pi) * sigma_px)
+    return np.maximum(1.0 + strength * n, 0.0)
+
+
 def apply_image(raw_intensity: np.ndarray, i0: float, draw: Draw, rng: np.random.Generator, *,
                 scatter: np.ndarray | None = None, geometry=None, gap_mm: float | None = None,
                 sks_table=None) -> tuple[np.ndarray, np.ndarray]:
@@ -768,8 +785,9 @@ def apply_image(raw_intensity: np.ndarray, i0: float, draw: Draw, rng: np.random
     None: the model's reference gap); ``sks_table`` the :class:`ScatterKernelTable` (None: the
     default). The scatter ``S`` of :func:`sks_model` from ``tau = -ln(raw / i0)`` of the
     collimated signal (``sks_open``: of the signal before collimation, ``S`` then collimated as
-    the signal is) is added with its quantum noise (``sqrt(S e)`` times a second normal draw of
-    ``rng``, ``e`` the model's signal per scattered photon), after the electronic noise's draw."""
+    the signal is), times its texture (:func:`sks_texture` of a third normal draw of ``rng``), is
+    added with its quantum noise (``sqrt(S e)`` times the second normal draw of ``rng``, ``e`` the
+    model's signal per scattered photon), after the electronic noise's draw."""
     raw = np.asarray(raw_intensity)
     if raw.ndim != 2 or not np.issubdtype(raw.dtype, np.number) or np.iscomplexobj(raw) or raw.size == 0:
         raise RandomizeError(f"apply_image needs a real (H, W) raw signal, got shape {raw.shape} dtype {raw.dtype}")
@@ -818,7 +836,10 @@ def apply_image(raw_intensity: np.ndarray, i0: float, draw: Draw, rng: np.random
             sc = col.apply(sc)
     raw = raw + rng.normal(0.0, float(draw["electronic_noise_fraction"]) * float(i0), raw.shape)
     if mode == "sks":
-        raw = raw + sc + np.sqrt(sc * model.signal_per_photon) * rng.standard_normal(raw.shape)
+        quantum = rng.standard_normal(raw.shape)
+        sc = sc * sks_texture(rng.standard_normal(raw.shape), float(draw["sks_texture"]),
+                              float(draw["sks_texture_sigma"]) * min(h, w))
+        raw = raw + sc + np.sqrt(sc * model.signal_per_photon) * quantum
     image = draw.display_chain().apply(raw, float(i0), None if col is None else field_mask)
     return image, field_mask
 

@@ -461,8 +461,8 @@ def _order_statistics(flat: torch.Tensor, mflat: torch.Tensor, ranks: torch.Tens
 # apply_image, batched
 # --------------------------------------------------------------------------------------------
 
-_APPLY_NEEDS = ("scatter", "scatter_spr", "scatter_sigma", "sks_amplitude", "sks_width", "sks_open", "kvp", "grid",
-                "grid_ratio",
+_APPLY_NEEDS = ("scatter", "scatter_spr", "scatter_sigma", "sks_amplitude", "sks_width", "sks_open", "sks_texture",
+                "sks_texture_sigma", "kvp", "grid", "grid_ratio",
                 "electronic_noise_fraction", "field_transmission",
                 "shutter", "log", "polarity", "window_low", "window_high", "gamma", "unsharp", "unsharp_sigma_px",
                 "unsharp_amount", "max_value", "field_code") + _GEOMETRY
@@ -510,9 +510,10 @@ def apply_image_batched(raw: torch.Tensor, i0, p: dict[str, torch.Tensor], norma
             ``image_rng(seed, index).standard_normal((H, W))``).
         geometry, gap_mm, scatter_normals, sks_table: for pairs whose scatter is ``sks``
             (``apply_image``'s): the images' :class:`sim.geometry.CArmGeometry` (required then),
-            the target poses' air gaps ``(B,)`` mm (None: the models' reference gap), ``(B, H, W)``
-            standard normal numbers for the scatter's quantum noise (required then; ``apply_image``'s
-            second draw of the pair's ``rng``), the :class:`ScatterKernelTable` (None: the default).
+            the target poses' air gaps ``(B,)`` mm (None: the models' reference gap), ``(B, 2, H,
+            W)`` standard normal numbers for the scatter's quantum noise and its texture (required
+            then; ``apply_image``'s second and third draws of the pair's ``rng``), the
+            :class:`ScatterKernelTable` (None: the default).
 
     Returns:
         ``(image, field)``: ``image`` ``(B, H, W)`` in ``raw``'s floating dtype (float32 for
@@ -571,8 +572,8 @@ def apply_image_batched(raw: torch.Tensor, i0, p: dict[str, torch.Tensor], norma
         if not isinstance(geometry, CArmGeometry) or (geometry.height, geometry.width) != (h, w):
             raise PhysicsError(f"{where}: pairs with scatter sks need the images' geometry (a CArmGeometry of {h} x "
                                f"{w} px), got {geometry!r}")
-        if not isinstance(scatter_normals, torch.Tensor) or scatter_normals.shape != raw.shape:
-            raise PhysicsError(f"{where}: pairs with scatter sks need scatter_normals of raw's shape {tuple(raw.shape)}")
+        if not isinstance(scatter_normals, torch.Tensor) or scatter_normals.shape != (b, 2, h, w):
+            raise PhysicsError(f"{where}: pairs with scatter sks need scatter_normals of shape {(b, 2, h, w)}")
         table = default_table() if sks_table is None else sks_table
         rows = sks.tolist()
         kv, grid, ratio = (p[k][rows].tolist() for k in ("kvp", "grid", "grid_ratio"))
@@ -584,7 +585,11 @@ def apply_image_batched(raw: torch.Tensor, i0, p: dict[str, torch.Tensor], norma
         sc = sks_scatter_batched(source, i0[sks], models, geometry, gaps)
         sc = torch.where(opened & ~field[sks], sc * col(f["field_transmission"][sks]), sc)
         spp = torch.tensor([m.signal_per_photon for m in models], dtype=dt, device=dev)[:, None, None]
-        scatter_add = sc + torch.sqrt(sc * spp) * scatter_normals[sks].to(device=dev, dtype=dt)
+        sn = scatter_normals[sks].to(device=dev, dtype=dt)
+        sigma = q["sks_texture_sigma"][sks].to(torch.float64) * min(h, w)  # sim.randomize.sks_texture
+        texture = gaussian_reflect(sn[:, 1], sigma) * col((2.0 * math.sqrt(math.pi)) * sigma).to(dt)
+        sc = sc * (1.0 + col(f["sks_texture"][sks]) * texture).clamp(min=0.0)
+        scatter_add = sc + torch.sqrt(sc * spp) * sn[:, 0]
     x = x + col(f["electronic_noise_fraction"] * i0) * normals.to(device=dev, dtype=dt)
     if sks.numel():
         x = x.index_add(0, sks, scatter_add)

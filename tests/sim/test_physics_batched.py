@@ -282,7 +282,7 @@ def test_apply_image_batched_sks_equals_apply_image():
         ref_field.append(field)
         stream = image_rng(SEED, i)
         normals.append(stream.standard_normal((h, w)))
-        scatter_normals.append(stream.standard_normal((h, w)))  # apply_image's second draw
+        scatter_normals.append(np.stack([stream.standard_normal((h, w)) for _ in range(2)]))  # its 2nd and 3rd draws
     ref = np.stack(ref).astype(np.int64)
     image, field = apply_image_batched(torch.from_numpy(raw), torch.from_numpy(i0), draw_tensors(draws, dtype=torch.float64),
                                        torch.from_numpy(np.stack(normals)), geometry=g, gap_mm=torch.from_numpy(gaps),
@@ -311,7 +311,7 @@ def test_apply_image_sks_needs_the_geometry_and_adds_physical_scatter():
     p = draw_tensors([d], dtype=torch.float64)
     with pytest.raises(PhysicsError, match="geometry"):
         apply_image_batched(torch.from_numpy(raw[None]), 1000.0, p, torch.zeros(1, h, w))
-    with pytest.raises(PhysicsError, match="scatter_normals"):
+    with pytest.raises(PhysicsError, match="scatter_normals of shape"):
         apply_image_batched(torch.from_numpy(raw[None]), 1000.0, p, torch.zeros(1, h, w), geometry=g)
     # a grid removes scatter, more of it at a higher ratio; a harder beam scatters more (no grid)
     table = default_table()
@@ -320,3 +320,18 @@ def test_apply_image_sks_needs_the_geometry_and_adds_physical_scatter():
            for key in ((60.0, 0.0), (130.0, 0.0), (95.0, 0.0), (95.0, 6.0), (95.0, 16.0))}
     assert spr[95.0, 16.0] < spr[95.0, 6.0] < 0.5 * spr[95.0, 0.0]
     assert spr[60.0, 0.0] < spr[130.0, 0.0]
+
+
+def test_the_sks_texture_has_the_drawn_strength_and_scale():
+    """sks_texture: mean 1, standard deviation the drawn strength (away from the mirrored edges;
+    512 x 512 px, sigma 6 px: the estimate's own spread is about 3 %), and its correlation length
+    the drawn sigma (the autocorrelation of a Gaussian-blurred white noise at lag d: exp(-d^2 / (4
+    sigma^2)))."""
+    from sim.randomize import sks_texture
+
+    t = sks_texture(np.random.default_rng(0).standard_normal((512, 512)), 0.1, 6.0)
+    inner = t[48:-48, 48:-48]
+    assert abs(inner.mean() - 1.0) < 0.01 and 0.09 < inner.std() < 0.11
+    z = (inner - inner.mean()) / inner.std()
+    lag = float((z[:, :-6] * z[:, 6:]).mean())
+    assert abs(lag - np.exp(-36 / 144)) < 0.06, lag
