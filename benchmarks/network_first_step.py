@@ -2,7 +2,8 @@
 
     .venv/bin/python benchmarks/network_first_step.py [--model pelvis_batched_small] [--cases 20] [--draws 4]
         [--study studies/domain_gap.toml] [--target fluoro-65kV] [--out runs/bench_search]
-        [--rows frame frame-pixels frame-pixels-poly frame-pixels-sks training training-vp line]
+        [--rows frame frame-pixels frame-pixels-poly frame-pixels-sks frame-pixels-sks-texture training
+                training-vp line]
 
 Registration from AP starts with a far pair, and there the network's prediction on the study's
 frames is far worse than on the training's far validation pairs (docs/benchmarks.md, "The network
@@ -28,6 +29,9 @@ network alone, the slow one):
   frames' air gap, of the exposure before the collimator as the frames' Monte Carlo is, with its
   quantum noise): whether the training's ``sks`` scatter does to the network what the frames'
   Monte Carlo scatter does;
+* ``frame-pixels-sks-texture``: the same with the ``sks`` texture of :data:`FRAME_TEXTURE`
+  (:func:`sim.randomize.sks_texture`), about the relative structure of the frames' Monte Carlo
+  scatter (its estimate's noise at 10^6 histories);
 * ``training`` (training pairs, real CT): targets of the training's own pipeline
   (:meth:`learn.batched.BatchedPairs.pairs`, the checkpoint's ``[train.randomize]`` with every
   target realistic, ``--draws`` draws per pose) on the real CT (a training subject);
@@ -58,8 +62,14 @@ from timing import input_problem  # noqa: E402  (benchmarks/timing.py)
 #: (``k * MAX_BATCH + i`` for k below 10^6), so their draws are not the training's.
 INDEX_BASE = 1 << 40
 
+#: ``(strength, sigma as a fraction of the shorter side)`` of the row ``frame-pixels-sks-texture``:
+#: a 65 kV frame's Monte Carlo scatter (128 x 128, 10^6 histories) has about 9 % relative structure
+#: at 8-16 px (its deviation from an 8 px Gaussian of itself).
+FRAME_TEXTURE = (0.1, 0.06)
+
 #: The rows, in order (module doc).
-ROWS = ("frame", "frame-pixels", "frame-pixels-poly", "frame-pixels-sks", "training", "training-vp", "line")
+ROWS = ("frame", "frame-pixels", "frame-pixels-poly", "frame-pixels-sks", "frame-pixels-sks-texture", "training",
+        "training-vp", "line")
 
 
 def _scores(g_pred: np.ndarray, g_true: np.ndarray) -> np.ndarray:
@@ -110,18 +120,23 @@ def _poly_frames(study_path, target: str, volume, center):
     return study_frames(study, replace(t, physics={**physics, "level": "poly"}), volume, center)
 
 
-def _with_sks(raw, simulator, physics, pose, seed: int):
+def _with_sks(raw, simulator, physics, pose, seed: int, texture=None):
     """``raw`` ``(H, W)`` (a ``poly`` frame, before its collimator) with the default scatter-kernel
     table's scatter at ``physics``' kV and grid ratio and ``pose``'s air gap added, with its
-    quantum noise (a normal draw of ``seed``)."""
+    quantum noise (a normal draw of ``seed``) and, given ``(strength, sigma fraction)``, a texture
+    (:func:`sim.randomize.sks_texture` of another draw)."""
     from sim.physics.scatter_kernel import default_table, detector_gap_mm
+    from sim.randomize import sks_texture
 
     g = simulator.imager.geometry
     model = default_table().model_for(float(physics.kvp), float(physics.grid_ratio))
     flat = float(simulator.imager.flat)
     tau = -np.log(np.maximum(raw, 1e-12 * flat) / flat)
     sc = model.predict(tau, g, flat_signal=flat, gap_mm=float(detector_gap_mm(pose, g)[0]))
-    noise = np.random.default_rng([seed, 28]).standard_normal(raw.shape)
+    rng = np.random.default_rng([seed, 28])
+    noise = rng.standard_normal(raw.shape)
+    if texture is not None:
+        sc = sc * sks_texture(rng.standard_normal(raw.shape), texture[0], texture[1] * min(raw.shape))
     return raw + sc + np.sqrt(sc * model.signal_per_photon) * noise
 
 
@@ -183,7 +198,8 @@ def main() -> int:
     seed = int((model.checkpoint.config or {}).get("seed", 0))
     for key, name in (("frame-pixels", "frame pixels, training's preparation (true field, polarity)"),
                       ("frame-pixels-poly", "the same, frames without scatter (poly)"),
-                      ("frame-pixels-sks", "the same, poly frames + the kernel model's scatter (sks)")):
+                      ("frame-pixels-sks", "the same, poly frames + the kernel model's scatter (sks)"),
+                      ("frame-pixels-sks-texture", "the same, sks with a texture")):
         if key not in a.rows:
             continue
         import torch
@@ -195,8 +211,9 @@ def main() -> int:
         shown = []
         for i, T_true, _ in cases:
             raw = simulator.raw(T_true, frames.seeds[i])
-            if key == "frame-pixels-sks":
-                raw = _with_sks(raw, simulator, frames.imager.physics, T_true, frames.seeds[i])
+            if key.startswith("frame-pixels-sks"):
+                raw = _with_sks(raw, simulator, frames.imager.physics, T_true, frames.seeds[i],
+                                FRAME_TEXTURE if key.endswith("texture") else None)
             pixels, _ = simulator.display(raw)
             shown.append(F.interpolate(torch.from_numpy(np.asarray(pixels, np.float64))[None, None], size=(h, w),
                                        mode="area")[0, 0])
