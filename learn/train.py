@@ -433,16 +433,22 @@ def _resume_checkpoint(path: Path, cfg: TrainConfig):
 
 def _init_checkpoint(cfg: TrainConfig):
     """``cfg.init_from`` read and checked against ``cfg``'s architecture (see :class:`TrainConfig`)."""
+    return _architecture_checkpoint(cfg, cfg.init_from, "train.init_from")
+
+
+def _architecture_checkpoint(cfg: TrainConfig, path, where: str):
+    """The checkpoint at ``path``, its backbone and head checked against ``cfg``'s; a refusal
+    (:class:`TrainConfigError`) starts with ``where``."""
     from learn.checkpoint import CheckpointError, load_checkpoint
 
-    path = Path(cfg.init_from)
+    path = Path(path)
     try:
         state = load_checkpoint(path)
     except CheckpointError as e:
-        raise TrainConfigError(f"train.init_from: {e}") from None
+        raise TrainConfigError(f"{where}: {e}") from None
     for key in ("backbone", "head_channels"):
         if getattr(state, key) != getattr(cfg, key):
-            raise TrainConfigError(f"train.init_from: {path} has {key} = {getattr(state, key)!r}, this run "
+            raise TrainConfigError(f"{where}: {path} has {key} = {getattr(state, key)!r}, this run "
                                    f"{getattr(cfg, key)!r}")
     return state
 
@@ -870,20 +876,13 @@ def validate_checkpoint(cfg: TrainConfig, checkpoint: str | os.PathLike, *, devi
     validation pairs are a function of its config: the same for any checkpoint); the checkpoint's
     backbone and head must be ``cfg``'s. Compares networks on one set of pairs (e.g. two
     randomizations' runs on each other's validation pairs: ``benchmarks/validate_checkpoints.py``)."""
-    from learn.checkpoint import CheckpointError, load_checkpoint, load_weights
+    from learn.checkpoint import load_weights
     from learn.model import Weights, pose_update_net
 
     if not cfg.online:
         raise TrainConfigError("validate_checkpoint: the config must draw its pairs online (train.pairs)")
     path = Path(checkpoint)
-    try:
-        state = load_checkpoint(path)
-    except CheckpointError as e:
-        raise TrainConfigError(f"validate_checkpoint: {e}") from None
-    for key in ("backbone", "head_channels"):
-        if getattr(state, key) != getattr(cfg, key):
-            raise TrainConfigError(f"validate_checkpoint: {path} has {key} = {getattr(state, key)!r}, the config "
-                                   f"{getattr(cfg, key)!r}")
+    state = _architecture_checkpoint(cfg, path, "validate_checkpoint")
     dev = resolve_device(device)
     model = pose_update_net(backbone=cfg.backbone, weights=Weights.NONE, head_channels=cfg.head_channels)
     load_weights(model, state.model_state, source=f"checkpoint {path}")
