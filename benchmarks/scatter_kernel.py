@@ -11,7 +11,7 @@ setting (80 and 120 kVp, without and with a ratio ``--grid-ratio`` grid) on ``--
 then evaluated on ``--test`` held-out poses, on a held-out kVp (100 kVp from the 80 and 120 kVp
 fits by :func:`interpolate_kvp`, 140 kVp extrapolated), and on a held-out subject (the built-in
 phantom, seed 0, with the pelvis fits); then the committed table
-(``sim/physics/data/scatter_kernels_pelvis.json``, training's ``sks`` scatter) at tube voltages and
+(``sim/physics/scatter_kernels_pelvis.json``, training's ``sks`` scatter) at tube voltages and
 grid ratios between its fits (65 and 110 kVp without a grid, 75 kVp ratio 10, 120 kVp ratio 12) and
 on the phantom (80 kVp), unless ``--no-table``.
 
@@ -171,7 +171,7 @@ def main(argv=None) -> int:
              interpolate_kvp([models[80.0, 0.0], models[120.0, 0.0]], 140.0))
     for grid in grids:
         evaluate("held-out subject (phantom)", "phantom", 120.0, grid, models[120.0, grid])
-    # the committed table (sim/physics/data/scatter_kernels_pelvis.json, what training's "sks"
+    # the committed table (sim/physics/scatter_kernels_pelvis.json, what training's "sks"
     # scatter draws from) at kVs and grid ratios it was not fitted at, and on the phantom
     if not args.no_table:
         table = default_table()

@@ -1,4 +1,4 @@
-"""Fit the committed scatter-kernel table (sim/physics/data/scatter_kernels_pelvis.json).
+"""Fit the committed scatter-kernel table (sim/physics/scatter_kernels_pelvis.json).
 
 Monte Carlo scatter (:mod:`sim.physics.scatter`) of the pelvis CT (``pelvis_abdomen_3mm``) at
 ``--poses`` poses drawn from the training protocol (phi +-40, theta +-20, psi +-20 deg, offsets
@@ -8,7 +8,7 @@ same thickness nodes, written as one :class:`ScatterKernelTable` (atomically). P
 rate and ETA on stderr; about 10 minutes on 2 cores at the defaults.
 
     .venv/bin/python scripts/fit_scatter_kernels.py [--kvps 60 95 130] [--grid-ratios 6 16]
-        [--poses 16] [--photons 100000] [--size 64] [--out sim/physics/data/scatter_kernels_pelvis.json]
+        [--poses 16] [--photons 100000] [--size 64] [--out sim/physics/scatter_kernels_pelvis.json]
 """
 
 from __future__ import annotations
@@ -30,7 +30,7 @@ def main(argv=None) -> int:
     ap.add_argument("--size", type=int, default=64, help="image side, px (default: 64)")
     ap.add_argument("--cell-px", type=int, default=4, help="Monte Carlo tally cell, px (default: 4)")
     ap.add_argument("--ct", default=str(REPO.parent / "shared" / "data" / "ct" / "pelvis_abdomen_3mm.nii.gz"))
-    ap.add_argument("--out", default=str(REPO / "sim" / "physics" / "data" / "scatter_kernels_pelvis.json"))
+    ap.add_argument("--out", default=str(REPO / "sim" / "physics" / "scatter_kernels_pelvis.json"))
     args = ap.parse_args(argv)
     if len(args.kvps) < 2 or any(k <= 0 for k in args.kvps) or any(r <= 0 for r in args.grid_ratios):
         ap.error("--kvps needs two or more positive kV values; --grid-ratios positive ratios")

@@ -820,7 +820,7 @@ class ScatterKernelTable:
 
 #: The committed table: the pelvis CT (``pelvis_abdomen_3mm``) fitted at 60-140 kV without a grid
 #: and with grids of ratio 6 and 16 (``scripts/fit_scatter_kernels.py``; ``docs/physics.md``).
-DEFAULT_TABLE = Path(__file__).with_name("data") / "scatter_kernels_pelvis.json"
+DEFAULT_TABLE = Path(__file__).with_name("scatter_kernels_pelvis.json")
 
 
 @functools.lru_cache(maxsize=4)
