@@ -5,10 +5,10 @@ Monte Carlo scatter (:mod:`sim.physics.scatter`) of the pelvis CT (``pelvis_abdo
 +-75 mm), at each tube voltage of ``--kvps`` without a grid and with grids of ``--grid-ratios``;
 one :class:`sim.physics.scatter_kernel.ScatterKernelModel` fitted per (kVp, grid), all on the
 same thickness nodes, written as one :class:`ScatterKernelTable` (atomically). Progress with
-rate and ETA on stderr; about 10 minutes on 2 cores at the defaults.
+rate and ETA on stderr; about 5 minutes on 2 cores at the defaults.
 
     .venv/bin/python scripts/fit_scatter_kernels.py [--kvps 60 95 130] [--grid-ratios 6 16]
-        [--poses 16] [--photons 100000] [--size 64] [--out sim/physics/scatter_kernels_pelvis.json]
+        [--poses 16] [--photons 1000000] [--size 64] [--out sim/physics/scatter_kernels_pelvis.json]
 """
 
 from __future__ import annotations
@@ -23,14 +23,17 @@ REPO = Path(__file__).resolve().parents[1]
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--kvps", type=float, nargs="+", default=[60.0, 95.0, 130.0], help="tube voltages, kV")
-    ap.add_argument("--grid-ratios", type=float, nargs="*", default=[6.0, 16.0], help="grid ratios (besides none)")
+    ap.add_argument("--kvps", type=float, nargs="+", default=[60.0, 95.0, 130.0], help="tube voltages, kV (default: 60 95 130)")
+    ap.add_argument("--grid-ratios", type=float, nargs="*", default=[6.0, 16.0], help="grid ratios besides no grid (default: 6 16)")
     ap.add_argument("--poses", type=int, default=16, help="fitting poses (default: 16)")
-    ap.add_argument("--photons", type=int, default=100_000, help="Monte Carlo histories per pose (default: 1e5)")
+    ap.add_argument("--photons", type=int, default=1_000_000,
+                    help="Monte Carlo histories per pose (default: 1e6, the committed table's)")
     ap.add_argument("--size", type=int, default=64, help="image side, px (default: 64)")
     ap.add_argument("--cell-px", type=int, default=4, help="Monte Carlo tally cell, px (default: 4)")
-    ap.add_argument("--ct", default=str(REPO.parent / "shared" / "data" / "ct" / "pelvis_abdomen_3mm.nii.gz"))
-    ap.add_argument("--out", default=str(REPO / "sim" / "physics" / "scatter_kernels_pelvis.json"))
+    ap.add_argument("--ct", default=str(REPO.parent / "shared" / "data" / "ct" / "pelvis_abdomen_3mm.nii.gz"),
+                    help="the CT (default: ../shared/data/ct/pelvis_abdomen_3mm.nii.gz)")
+    ap.add_argument("--out", default=str(REPO / "sim" / "physics" / "scatter_kernels_pelvis.json"),
+                    help="the table, written atomically (default: the committed one)")
     args = ap.parse_args(argv)
     if len(args.kvps) < 2 or any(k <= 0 for k in args.kvps) or any(r <= 0 for r in args.grid_ratios):
         ap.error("--kvps needs two or more positive kV values; --grid-ratios positive ratios")

@@ -576,8 +576,8 @@ def apply_image_batched(raw: torch.Tensor, i0, p: dict[str, torch.Tensor], norma
             raise PhysicsError(f"{where}: pairs with scatter sks need scatter_normals of shape {(b, 2, h, w)}")
         table = default_table() if sks_table is None else sks_table
         rows = sks.tolist()
-        kv, grid, ratio = (p[k][rows].tolist() for k in ("kvp", "grid", "grid_ratio"))
-        amp, wid = (p[k][rows].tolist() for k in ("sks_amplitude", "sks_width"))
+        kv, grid, ratio, amp, wid = (q[k][sks].tolist() for k in ("kvp", "grid", "grid_ratio", "sks_amplitude",
+                                                                     "sks_width"))
         models = [table.drawn(kv[j], ratio[j] if grid[j] else 0.0, amp[j], wid[j]) for j in range(len(rows))]
         gaps = None if gap_mm is None else [float(gap_mm[r]) for r in rows]
         opened = q["sks_open"][sks][:, None, None]
