@@ -466,8 +466,9 @@ DECLARATION: tuple[Randomized, ...] = (
                                             "on it: the structure the thickness-only kernel model smooths away, "
                                             "and a Monte Carlo estimate's own noise (the frames' scatter)",
         limits=(0.0, 1.0), when=("scatter", ("sks",))),
-    _u("sks_texture_sigma", "signal", 0.03, 0.1, "Gaussian sigma of the sks scatter's texture",
-       "fraction of the shorter side", limits=(0.0, 1.0), lo_open=True, when=("scatter", ("sks",))),
+    _lu("sks_texture_sigma", "signal", 0.02, 0.1, "Gaussian sigma of the sks scatter's texture (a Monte Carlo "
+                                                  "estimate's noise at 10^6 histories: about 0.03)",
+        "fraction of the shorter side", limits=(0.0, 1.0), when=("scatter", ("sks",))),
 )
 
 _DECLARED: dict[str, Randomized] = {r.name: r for r in DECLARATION}
