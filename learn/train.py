@@ -56,7 +56,7 @@ MAX_SKIPPED_FRACTION = 0.01
 
 #: Config keys a resumed run may change: how the steps are computed, not which steps (the device
 #: may change too). Each change is logged.
-RESUME_MAY_CHANGE = ("precision",)
+RESUME_MAY_CHANGE = ("precision", "lr", "lr_step", "lr_decay", "iterations")
 
 
 @dataclass(frozen=True)
@@ -84,7 +84,10 @@ class TrainConfig:
         preprocess: preprocessing step names applied to both images (:mod:`learn.preprocess`).
         batch_size: pairs per step; iterations: optimiser steps in all.
         lr: Adam learning rate; lr_decay / lr_step: multiply the rate by ``lr_decay`` every
-            ``lr_step`` iterations (the original: 0.3 every 30000).
+            ``lr_step`` iterations (the original: 0.3 every 30000). A run may resume with another
+            schedule (and another ``iterations``, :data:`RESUME_MAY_CHANGE`): from the resumed
+            step on, the rate is the new schedule's at that step, ``lr * lr_decay^(k // lr_step)``
+            (a plateau's rate drop without losing the optimiser's moments).
         pairs_per_epoch: pairs drawn per epoch (re-drawn each epoch from the seed).
         val_pairs: validation pairs (fixed); val_every / checkpoint_every: in iterations.
         near_fraction: share of near pairs (online only; default 0.5 there).
@@ -578,10 +581,15 @@ def train(cfg: TrainConfig, *, resume: bool = False, log=print, device: str = "a
         iteration = resumed.iteration
         restore_rng(resumed.rng, source=f"checkpoint {ckpt_path}")
         log(f"resumed at iteration {iteration}")
+        changed = set()
         for key in RESUME_MAY_CHANGE:
             was = resumed.config.get(key, next(f.default for f in fields(TrainConfig) if f.name == key))
             if _plain(was) != _plain(getattr(cfg, key)):
+                changed.add(key)
                 log(f"train.{key} {was!r} -> {getattr(cfg, key)!r} from here on")
+        if changed & {"lr", "lr_step", "lr_decay"}:
+            _follow_schedule(optimizer, scheduler, cfg, iteration)
+            log(f"learning rate {optimizer.param_groups[0]['lr']:.3g} at iteration {iteration}")
     log_path = out / "log.csv"
     rows = []
     if resume and log_path.exists():
@@ -602,6 +610,18 @@ def train(cfg: TrainConfig, *, resume: bool = False, log=print, device: str = "a
         log(f"loss.png not written: {e}")
     source.close()
     return last
+
+
+def _follow_schedule(optimizer, scheduler, cfg: TrainConfig, iteration: int) -> None:
+    """After a resume: the step schedule of ``cfg`` (``lr``, ``lr_step``, ``lr_decay``) in place of
+    the checkpoint's, its rate at ``iteration`` set on every parameter group (only where the
+    schedule changed: the restored state is otherwise bit for bit the checkpoint's)."""
+    scheduler.step_size, scheduler.gamma = cfg.lr_step, cfg.lr_decay
+    scheduler.base_lrs = [cfg.lr] * len(optimizer.param_groups)
+    rate = cfg.lr * cfg.lr_decay ** (iteration // cfg.lr_step)
+    for group in optimizer.param_groups:
+        group["initial_lr"], group["lr"] = cfg.lr, rate
+    scheduler._last_lr = [rate] * len(optimizer.param_groups)
 
 
 def _loop(cfg, source, model, optimizer, scheduler, device, iteration, rows, log_path, ckpt_path, bar, started,

@@ -55,8 +55,8 @@ def test_refusals_name_the_key(campaign, tmp_path):
     train(cfg, log=lambda *_: None)
     with pytest.raises(TrainConfigError, match="--resume"):
         train(cfg, log=lambda *_: None)
-    with pytest.raises(TrainConfigError, match=r"another config \(train.lr 0.001 -> 0.0005\)"):
-        train(replace(cfg, lr=5e-4), resume=True, log=lambda *_: None)
+    with pytest.raises(TrainConfigError, match=r"another config \(train.seed 5 -> 6\)"):
+        train(replace(cfg, seed=6), resume=True, log=lambda *_: None)
     with pytest.raises(TrainConfigError, match="train.precision must be one of fp32, bf16"):
         config(campaign, tmp_path, precision="fp16")
 
@@ -82,6 +82,39 @@ def test_a_run_resumes_in_bf16_and_its_steps_follow_the_fp32_run(campaign, tmp_p
     weights = [k for k in ref.model_state if "running_" not in k and ref.model_state[k].is_floating_point()]
     moved = max(float((ref.model_state[k] - got.model_state[k]).abs().max()) for k in weights)
     assert 0 < moved < 6e-3
+
+
+def test_a_run_resumes_with_another_rate_schedule_from_the_resumed_step(campaign, tmp_path, monkeypatch):
+    """train.lr / lr_step / lr_decay (and iterations) may change on resume: the rate from the
+    resumed step on is the new schedule's at that step, the logged rates say so, and the optimiser's
+    moments are the checkpoint's (the first step after the resume equals a step of the old run
+    scaled by the rates' ratio: Adam's update is linear in the rate)."""
+    import learn.train as tr
+    from learn.checkpoint import load_checkpoint
+
+    cfg_a = config(campaign, tmp_path / "a", iterations=7)
+    tr.train(cfg_a, log=lambda *_: None)  # the old schedule, uninterrupted to step 7
+    cfg_b = config(campaign, tmp_path / "b")
+    train_killed_after_first_checkpoint(cfg_b, monkeypatch)
+    at6 = load_checkpoint(tmp_path / "b" / "checkpoint.pt")
+    lines = []
+    tr.train(replace(cfg_b, lr_step=4, lr_decay=0.5, iterations=7), resume=True, log=lines.append)
+    assert "train.lr_step 30000 -> 4 from here on" in lines and "learning rate 0.0005 at iteration 6" in lines
+    rows = list(csv.DictReader(open(tmp_path / "b" / "log.csv")))
+    rates = {int(r["iteration"]): float(r["lr"]) for r in rows}
+    assert rates[7] == pytest.approx(1e-3 * 0.5)  # 1e-3 * 0.5^(7 // 4)
+    assert rates[6] == pytest.approx(1e-3)  # logged before the resume: the old schedule's
+    ref = load_checkpoint(tmp_path / "a" / "checkpoint.pt")
+    got = load_checkpoint(tmp_path / "b" / "checkpoint.pt")
+    assert got.iteration == 7 and got.config["lr_step"] == 4
+    weights = [k for k in ref.model_state if "running_" not in k and ref.model_state[k].is_floating_point()]
+    for k in weights:
+        step_old = ref.model_state[k] - at6.model_state[k]
+        step_new = got.model_state[k] - at6.model_state[k]
+        # float32 weights of size <= 1 differ from the difference of two of them by a few 1e-8;
+        # a step of the old rate (or of moments started afresh) would miss by ~1e-4
+        torch.testing.assert_close(step_new, 0.5 * step_old, rtol=0, atol=1e-6, msg=k)
+    assert max(float((ref.model_state[k] - at6.model_state[k]).abs().max()) for k in weights) > 1e-4
 
 
 def test_a_bf16_step_has_the_fp32_gradient_direction():
