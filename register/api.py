@@ -22,7 +22,7 @@ method (:func:`register.engines.methods.build_method`) and registers. ``ctxreg r
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any, Callable
 
@@ -37,7 +37,7 @@ from register.plots import checkerboard_png, convergence_plot, overlay_png, traj
 from register.xray.geometry import resolve_geometry
 from register.xray.io import XRayImage, check_orientation, load_xray
 from register.xray.network_view import network_view
-from register.xray.prepare import _DECISIVE_POLARITY, _fit_plan, confirm_polarity, fit_box, prepare_xray
+from register.xray.prepare import _fit_plan, confirm_polarity, fit_box, prepare_xray
 from register.xray.preprocess import DEFAULT_STEPS, Pipeline, PreprocessError
 from sim.atomic import atomic_path, write_json
 from sim.campaign.poses import PARAM_NAMES
@@ -310,8 +310,9 @@ def register_xray(ct, xray, *, method: str = "contextual+cmaes", model=None, ini
         search: ``"contextual+cmaes"``'s global search (:data:`SEARCH_MODES`): ``"auto"`` (the
             default) runs its grid where the network's pose scores below
             :attr:`register.engines.search.GlobalSearchSettings.found_above`; ``"off"`` never builds it
-            (the network's pose goes straight to the CMA-ES refinement, and the polarity check,
-            which scores on the search's grid, is not run: the intensity step's decision stands);
+            (the network's pose goes straight to the CMA-ES refinement; the polarity check still
+            scores the image and its inverse on a grid of poses around ``init``, as for the other
+            methods, and decides the polarity only);
             ``"always"`` runs the grid whatever the network's pose scored. Another value than
             ``"auto"`` with another method is refused. The result's ``search_ran`` says whether the
             grid ran.
@@ -382,11 +383,11 @@ def register_xray(ct, xray, *, method: str = "contextual+cmaes", model=None, ini
         grid = GlobalSearch(volume, GlobalSearchSettings(always_grid=search == "always"),
                             size=(geometry.height, geometry.width), scene=scene, geometry=geometry, center_lps=c,
                             physics=moving, label_materials=label_materials)
-    if method in SEARCH_METHODS and search == "off":
-        prepared = _polarity_unchecked(prepared)  # no grid to check on: the intensity step's decision stands
-    else:
-        prepared = confirm_polarity(prepared, volume, c, x0, physics=moving, label_materials=label_materials,
-                                    search=grid)
+    # the polarity check scores on the search's grid (its DRRs then serve the search); with search="off"
+    # on a grid of its own around the start, as for the other methods: it decides the image's polarity,
+    # never the pose
+    prepared = confirm_polarity(prepared, volume, c, x0, physics=moving, label_materials=label_materials,
+                                search=grid)
     log(prepared.sources.line())
     for line in _input_lines(prepared):
         log(line)
@@ -439,20 +440,6 @@ def _check_coarse_field(prepared, box, need: int) -> None:
         raise PreprocessError(f"--size {box[0]} {box[1]}: the X-ray's field, fitted into it ({h} x {w} px), leaves "
                               f"{left} pixels at the registration's coarsest level (1/4), fewer than {need}: give a "
                               f"larger --size")
-
-
-def _polarity_unchecked(prepared):
-    """``prepared`` with the polarity check recorded as not run (``search="off"``: the check scores
-    on the global search's grid, which such a run does not build), as
-    :func:`register.xray.prepare.confirm_polarity` records an image too small for the grid: the
-    decision stands. Nothing is recorded where an option or a decisive tag set the polarity (the
-    check would not run either)."""
-    decision = prepared.step("intensity")
-    if decision is None or decision.get("polarity_source") in _DECISIVE_POLARITY:
-        return prepared
-    measured = {"verdict": "inconclusive", "inverted": False, "polarity": decision["polarity"],
-                "reason": "--search off: the check scores on the global search's grid, which this run does not build"}
-    return replace(prepared, record=[*prepared.record, {"step": "polarity_check", "params": {}, "measured": measured}])
 
 
 def _input_lines(prepared) -> list[str]:

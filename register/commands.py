@@ -161,7 +161,8 @@ class RegisterCommand:
         "the global search of --method contextual+cmaes (a rotation / depth grid over the prior box around "
         "--init): auto runs it where the network's pose scores below "
         f"{GlobalSearchSettings.found_above:g} (gradient NCC), else refines the network's pose directly; off never builds it: the network's pose goes straight to the CMA-ES "
-        "refinement (the network measured on its own; the polarity check, which scores on the grid, is not run); "
+        "refinement (the network measured on its own; the polarity check still scores on a grid of its own, "
+        "deciding the polarity only); "
         "always runs it whatever the network's pose scored. result.json's search_ran / search_status say what "
         "it did (--method contextual+cmaes only)", group="pose", choices=SEARCH_MODES))
     scene: str = field(default="cios_fusion", metadata=opt(
