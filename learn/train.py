@@ -390,15 +390,17 @@ def _plain(value):
     return value
 
 
-def _config_changes(stored: dict, cfg: TrainConfig) -> list[str]:
+def _config_changes(stored: dict, cfg: TrainConfig, *, ignore=("precision",)) -> list[str]:
     """The keys in which a checkpoint's config differs from ``cfg``, as ``"train.KEY OLD -> NEW"``;
     keys added since it was written (absent from ``stored``) count as equal when ``cfg`` has
-    their default; the keys of :data:`RESUME_MAY_CHANGE` are not compared."""
+    their default; the keys of ``ignore`` are not compared (default ``precision``: how the steps
+    are computed, not which; ``--resume`` passes :data:`RESUME_MAY_CHANGE`, whereas a study asks
+    whether a checkpoint is its variant's training and so compares the schedule too)."""
     now = asdict(cfg)
     defaults = {f.name: f.default for f in fields(TrainConfig)}
     changes = []
     for key in sorted(set(stored) | set(now)):
-        if key in RESUME_MAY_CHANGE:
+        if key in ignore:
             continue
         if key not in now:
             changes.append(f"train.{key} {stored[key]!r} -> (no longer a key)")
@@ -423,7 +425,7 @@ def _resume_checkpoint(path: Path, cfg: TrainConfig):
     from learn.checkpoint import CheckpointError, load_checkpoint
 
     state = load_checkpoint(path)
-    changes = _config_changes(state.config, cfg)
+    changes = _config_changes(state.config, cfg, ignore=RESUME_MAY_CHANGE)
     if changes:
         raise TrainConfigError(f"{path} was written with another config ({'; '.join(changes)}): resume with the "
                                f"same config, or use another train.out")
