@@ -78,13 +78,17 @@ def _texture_arg(text: str) -> tuple[float, float]:
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--ct", default=str(ROOT.parent / "shared" / "data" / "ct" / "pelvis_abdomen_3mm.nii.gz"))
+    ap.add_argument("--ct", default=str(ROOT.parent / "shared" / "data" / "ct" / "pelvis_abdomen_3mm.nii.gz"),
+                    help="the CT of the frames (default ../shared/data/ct/pelvis_abdomen_3mm.nii.gz)")
     ap.add_argument("--cases", type=int, default=4, help="frames: the protocol's first N poses (default 4)")
-    ap.add_argument("--study", default=str(ROOT / "studies" / "domain_gap.toml"))
-    ap.add_argument("--target", default="fluoro-65kV", help="an xray target of --study at level full")
+    ap.add_argument("--study", default=str(ROOT / "studies" / "domain_gap.toml"),
+                    help="a study file (default studies/domain_gap.toml)")
+    ap.add_argument("--target", default="fluoro-65kV",
+                    help="an xray target of --study at physics level full (default fluoro-65kV)")
     ap.add_argument("--out", default=str(ROOT / "runs" / "bench_search"), help="frame cache (frames in OUT/TARGET)")
     ap.add_argument("--textures", nargs="+", type=_texture_arg, default=[(0.12, 0.03), (0.1, 0.06), (0.1, 0.015)],
-                    help="sks textures STRENGTH:SIGMA to compare (default 0.12:0.03 0.1:0.06 0.1:0.015)")
+                    help="sks textures STRENGTH:SIGMA to compare: relative std in [0, 1], Gaussian sigma as a "
+                         "fraction of the shorter side in (0, 1] (default 0.12:0.03 0.1:0.06 0.1:0.015)")
     a = ap.parse_args()
     problem = input_problem("scatter_structure", a.ct, a.cases)
     if problem:

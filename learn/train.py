@@ -54,8 +54,9 @@ PRECISIONS = ("fp32", "bf16")
 #: skips it); more than this fraction of a run's steps (at least 100 counted) stops it.
 MAX_SKIPPED_FRACTION = 0.01
 
-#: Config keys a resumed run may change: how the steps are computed, not which steps (the device
-#: may change too). Each change is logged.
+#: Config keys a resumed run may change, each change logged: how the steps are computed
+#: (``precision``; the device may change too), the rate schedule from the resumed step on, and
+#: the run's length. The rest would make the checkpoint another run's.
 RESUME_MAY_CHANGE = ("precision", "lr", "lr_step", "lr_decay", "iterations")
 
 

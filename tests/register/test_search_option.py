@@ -1,6 +1,7 @@
 """``register_xray(search=...)`` / ``ctxreg register --search``: contextual+cmaes with the global
 search's grid where the network's pose is lost (auto), never (off: the network measured on its own,
-the search not even built) or always; the result records whether the grid ran."""
+the search not even built; the polarity check scores on a grid of its own, deciding the polarity
+only) or always; the result records whether the grid ran."""
 
 from __future__ import annotations
 
