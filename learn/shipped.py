@@ -43,7 +43,7 @@ MODELS_DIR = Path(__file__).resolve().parents[1] / "models"
 CARD = "model.toml"
 WEIGHTS = "model.pt"
 #: The shipped model the contextual methods use when no ``--model`` is given.
-DEFAULT_MODEL = "pelvis_line"
+DEFAULT_MODEL = "pelvis_xray"
 
 
 class ModelCardError(CheckpointError):

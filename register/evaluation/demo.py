@@ -98,6 +98,19 @@ def demo_geometry(cmd: DemoCommand):
         raise OptionError(f"--size {cmd.size[0]} {cmd.size[1]}: {e}") from None
 
 
+def _network_line(rows: dict, search_status: str) -> str:
+    """One sentence on what the network did: its own iteration's mTRE (mm) against the start's, and
+    what the global search then did (``rows``: the error table's rows by pose; ``search_status``:
+    :attr:`register.api.XRayRegistration.search_status`)."""
+    start = rows["start (AP)"]["mtre_mm"]
+    if "after the network" not in rows:
+        return f"the network: no trajectory recorded (start mTRE {start:.1f} mm); global search {search_status}"
+    after = rows["after the network"]["mtre_mm"]
+    moved = "closer to" if after < start else "away from"
+    return (f"the network: mTRE {start:.1f} mm (AP) -> {after:.1f} mm, {moved} the truth; "
+            f"global search {search_status}")
+
+
 def check_demo_options(cmd: DemoCommand) -> None:
     """Refuse, naming the option, a ``--size`` the demo cannot register (below
     :data:`DEMO_MIN_SIDE_PX`, off the detector's aspect) and a ``--pose`` whose anatomy centre is
@@ -205,13 +218,15 @@ def run_demo(cmd: DemoCommand) -> list[Path]:
     times.append(f"| total | {sum(stages.times.values()):.1f} |")
     final = rows["final (contextual+CMA-ES)"]
     verdict = "registered" if final["mtre_mm"] < 10.0 else "NOT registered"
+    network = _network_line(rows, outcome.search_status)
     write_json(out / "demo.json", {
         "ct": volume.source, "true_params": list(map(float, cmd.pose)), "estimated_params": outcome.result.params.tolist(),
         "errors": rows, "stage_seconds": stages.times, "model": str(model),
-        "success_mtre_mm": 10.0, "registered": final["mtre_mm"] < 10.0,
+        "success_mtre_mm": 10.0, "registered": final["mtre_mm"] < 10.0, "search": outcome.search_status,
+        "network": network,
         "xray": {"physics": "full", "kvp": physics.kvp, "mas": physics.mas, "grid_ratio": physics.grid_ratio,
                  "collimator": "circle r 0.46", "display": "log, bone dark, gamma 0.8, unsharp, 12 bits"}})
     print("\n".join(["", *times, "", f"outputs in {out}: xray.dcm, overlay.png, checkerboard.png, trajectory.gif, "
                      "convergence.png, result.json, demo.json", "",
-                     f"ctxreg demo: {verdict} (mTRE {final['mtre_mm']:.1f} mm; success < 10 mm)", "", *table]))
+                     network, f"ctxreg demo: {verdict} (mTRE {final['mtre_mm']:.1f} mm; success < 10 mm)", "", *table]))
     return []  # the outputs are listed above: the error table stays the last thing printed
