@@ -14,9 +14,13 @@ virtual patients, 64 x 64 px, 4 subjects per batch) of three kinds, measured in 
 * ``realistic, no tools``: the same with ``tools = false``;
 * ``realistic, batched``: the same randomization through ``learn.batched.BatchedPairs``
   (``train.pairs = "batched"``): the two-basis model and every image stage batched in torch (on a
-  CPU the ray march is Dr.Jit's Siddon kernel; with ``--device cuda`` everything runs on the GPU).
+  CPU the ray march is Dr.Jit's Siddon kernel; with ``--device cuda`` everything runs on the GPU);
+* ``realistic, batched, sks``: the batched pairs with the randomization of the long training's
+  recipe (``configs/train_batched_small_sks.toml``'s ``[train.randomize]``, read from the file:
+  the scatter-kernel model fitted to the Monte Carlo, with its texture, on most targets; a share
+  of ideal line-DRR targets).
 
-``--kinds`` picks the rows (default all four); ``--device`` runs the network (and the batched
+``--kinds`` picks the rows (default all five); ``--device`` runs the network (and the batched
 pairs) there.
 
 The kinds' batches are interleaved (batch 1 of every kind, then batch 2, ...), so that a drift
@@ -47,7 +51,18 @@ REPO = Path(__file__).resolve().parents[1]
 
 
 #: The rows of the table, in order.
-KINDS = ("line", "realistic", "realistic, no tools", "realistic, batched")
+KINDS = ("line", "realistic", "realistic, no tools", "realistic, batched", "realistic, batched, sks")
+
+#: The config whose ``[train.randomize]`` table the ``realistic, batched, sks`` row draws from.
+SKS_RECIPE = REPO / "configs" / "train_batched_small_sks.toml"
+
+
+def _recipe_table(path: Path) -> dict:
+    """The ``[train.randomize]`` table of a training config (TOML)."""
+    import tomllib
+
+    with open(path, "rb") as f:
+        return dict(tomllib.load(f)["train"]["randomize"])
 
 #: Full-size batches each kind draws before the timing (batch indices WARM_BASE ..), after its
 #: one-off costs: the first few full batches run slower (allocations growing to their steady state).
@@ -62,10 +77,14 @@ def _source(kind: str, device="cpu"):
     from sim.randomize import DomainRandomization
 
     cfg = load_campaign(REPO / "campaigns" / "pelvis_vp.toml")
-    table = None if kind == "line" else {"scatter": ["none", "kernel"], **({"tools": False} if "no tools" in kind
-                                                                          else {})}
+    if kind == "line":
+        table = None
+    elif kind == "realistic, batched, sks":
+        table = _recipe_table(SKS_RECIPE)
+    else:
+        table = {"scatter": ["none", "kernel"], **({"tools": False} if "no tools" in kind else {})}
     randomization = None if table is None else DomainRandomization.from_table(table)
-    if kind == "realistic, batched":
+    if kind.startswith("realistic, batched"):
         from learn.batched import BatchedPairs
 
         return BatchedPairs(cfg, "train", near=NearPairs(), transform=build(["normalize"]), seed=0,
