@@ -64,6 +64,7 @@ def _recipe_table(path: Path) -> dict:
     with open(path, "rb") as f:
         return dict(tomllib.load(f)["train"]["randomize"])
 
+
 #: Full-size batches each kind draws before the timing (batch indices WARM_BASE ..), after its
 #: one-off costs: the first few full batches run slower (allocations growing to their steady state).
 WARM_BATCHES = 2
