@@ -52,8 +52,10 @@ class FrameTargetError(ValueError):
 
 def study_frame_files(study_path, target: str, ct, cases: int, out):
     """The first ``cases`` frames of a study's ``xray`` target from AP, simulated into
-    ``out/target`` where missing: ``(volume, centre (3,) mm, sod_mm, [(i, T_true (4, 4) mm, path)],
-    simulator)`` (the :class:`register.evaluation.frames.FrameSimulator` and the frames' seeds as
+    ``out/target`` where missing or made by other settings
+    (:meth:`register.evaluation.frames.FrameSimulator.cached`): ``(volume, centre (3,) mm, sod_mm,
+    [(i, T_true (4, 4) mm, path)], simulator)`` (the
+    :class:`register.evaluation.frames.FrameSimulator` and the frames' seeds as
     ``simulator.seeds``, ``{i: seed}``, to make a frame's pixels again).
     :class:`FrameTargetError` names an unknown target."""
     from register.evaluation.evaluate import EvaluationSettings, sample_cases
@@ -78,8 +80,7 @@ def study_frame_files(study_path, target: str, ct, cases: int, out):
     for i, params in enumerate(poses):
         T_true = pose_from_params(params, sod)
         path = folder / f"case_{i:03d}.dcm"
-        if not path.exists():
-            frames.simulate(path, T_true, frames.seeds[i])
+        frames.cached(path, T_true, frames.seeds[i])
         found.append((i, T_true, path))
     return volume, center, sod, found, frames
 

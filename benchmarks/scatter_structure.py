@@ -6,7 +6,8 @@
 The training's ``sks`` scatter (:func:`sim.randomize.apply_image`) is the fitted kernel model's
 smooth scatter times a random texture (:func:`sim.randomize.sks_texture`); the study's frames
 carry the ``full`` level's Monte Carlo estimate (:mod:`sim.physics.scatter`: 10^6 histories,
-8 px tally cells smoothed by 6 mm), which is not smooth. This script says how far the two differ
+8 px tally cells smoothed by 24 mm since 2026-11-27, by 6 mm before, when it was far from smooth:
+``benchmarks/scatter_denoise.py``). This script says how far the two differ
 and at which scales. For each frame (the first ``--cases`` poses of ``--target`` from AP, as
 ``benchmarks/network_first_step.py`` takes them) it renders the Monte Carlo scatter ``S_mc``
 (no noise: the estimate's expectation given its histories) and the primary, predicts the kernel

@@ -188,8 +188,7 @@ def _measure(a, study, target, volume, center):
     for i, params in enumerate(poses):
         T_true = pose_from_params(params, sod)
         path = folder / f"case_{i:03d}.dcm"
-        if not path.exists():
-            frames.simulate(path, T_true, frame_seed(study, i))
+        frames.cached(path, T_true, frame_seed(study, i))
         refused_frame = False
         for name, (key, kw) in methods.items():
             t0 = time.perf_counter()

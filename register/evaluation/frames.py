@@ -12,6 +12,8 @@ the chain's bits: a frame as a C-arm delivers it.
 
 from __future__ import annotations
 
+import hashlib
+import json
 from pathlib import Path
 
 import numpy as np
@@ -57,3 +59,28 @@ class FrameSimulator:
         """Render, display and write one frame at ``pose`` (``(4, 4)``) to ``path``; returns the path."""
         pixels, _ = self.display(self.raw(pose, seed))
         return self.write(path, pixels)
+
+    def fingerprint(self, pose: np.ndarray, seed: int) -> str:
+        """A hex digest of everything that makes the frame at ``pose`` ``(4, 4)`` (mm) and ``seed``:
+        the imager's physics and Monte Carlo settings, the display chain, the collimator, the
+        geometry, the pose and the seed."""
+        mc = self.imager.scatter
+        what = {"physics": self.imager.record(), "monte_carlo": None if mc is None else repr(mc.settings),
+                "chain": repr(self.chain), "collimator": repr(self.collimator), "geometry": repr(self.geometry),
+                "pose": np.asarray(pose, dtype=np.float64).round(9).tolist(), "seed": int(seed)}
+        return hashlib.sha256(json.dumps(what, sort_keys=True, default=repr).encode()).hexdigest()
+
+    def cached(self, path: str | Path, pose: np.ndarray, seed: int) -> Path:
+        """The frame at ``path``, simulated (:meth:`simulate`) unless ``path`` holds this very frame:
+        its stamp ``path + ".sim"`` records the :meth:`fingerprint` it was made with, so a frame
+        cached before a change of the simulator, the settings or the pose is made again."""
+        path = Path(path)
+        stamp = path.with_name(path.name + ".sim")
+        key = self.fingerprint(pose, seed)
+        if path.exists() and stamp.exists() and stamp.read_text().strip() == key:
+            return path
+        self.simulate(path, pose, seed)
+        tmp = stamp.with_name(stamp.name + ".tmp")
+        tmp.write_text(key + "\n")
+        tmp.replace(stamp)
+        return path

@@ -94,7 +94,7 @@ class XRayImager:
         cam_to_lps = np.linalg.inv(extrinsic_lps_to_camera(poses, self.renderer.center_lps))
         sig = np.empty((len(poses), g.height, g.width))
         cnt = np.empty_like(sig)
-        sigma = mc.settings.smooth_mm / (g.pixel_spacing_mm * mc.settings.cell_px)
+        sigma = mc.settings.smoothing_mm(g) / (g.pixel_spacing_mm * mc.settings.cell_px)
         seeds = [pose_seed(seed, 0 if self.fixed_scatter_seed else b) for b in range(len(poses))]
         # all poses in shared launches; pose b's result is that of mc.run with seeds[b]
         for b, out in enumerate(mc.run_batch(cam_to_lps, g, photons_per_pixel=ppp, seeds=seeds)):

@@ -72,7 +72,9 @@ class ScatterSettings:
             size; the setting ``scatter_voxel_mm``.
         cell_px: detector pixels per side of a tally cell (int >= 1; default 8).
         smooth_mm: Gaussian sigma (mm at the detector) applied to the cell tallies before they
-            are interpolated to pixels (0 = none).
+            are interpolated to pixels (0 = none; default None: :func:`auto_smooth_mm` of the
+            histories per detector area, the sigma of least error against a many-history
+            reference, :meth:`smoothing_mm`).
         max_scatter: collisions per history before it is stopped (tallied as truncated).
         macro_voxels: side (voxels) of the macro cells that hold the local majorants.
         e_cut_keV: photons below this energy are absorbed locally (keV).
@@ -86,7 +88,7 @@ class ScatterSettings:
     photons: int = SETTINGS["scatter_photons"].default
     voxel_mm: float = SETTINGS["scatter_voxel_mm"].default
     cell_px: int = 8
-    smooth_mm: float = 6.0
+    smooth_mm: float | None = None
     max_scatter: int = 40
     e_cut_keV: float = 5.0
     macro_voxels: int = 8
@@ -106,14 +108,60 @@ class ScatterSettings:
                 raise PhysicsError(f"scatter {name} must be an integer >= {lo}, got {v!r}")
         for name, lo, hi in (("smooth_mm", -1e-9, 1000.0), ("e_cut_keV", 1.0, 50.0), ("grid_transmission", 0.0, 1.0)):
             v = getattr(self, name)
+            if name == "smooth_mm" and v is None:
+                continue
             if not (isinstance(v, (int, float)) and math.isfinite(v) and lo < v <= hi):
                 raise PhysicsError(f"scatter {name} must be in ({max(lo, 0.0)}, {hi}], got {v!r}")
+
+    def smoothing_mm(self, geometry, photons: int | None = None) -> float:
+        """The Gaussian sigma (mm at the detector) of the cell tallies of a run of ``photons``
+        histories (default :attr:`photons`) on ``geometry``'s detector: :attr:`smooth_mm`, or
+        when that is None :func:`auto_smooth_mm` of the histories and the detector's area."""
+        if self.smooth_mm is not None:
+            return float(self.smooth_mm)
+        g = geometry
+        area_mm2 = g.height * g.width * g.pixel_spacing_mm ** 2
+        return auto_smooth_mm(int(photons or self.photons), area_mm2)
 
     @classmethod
     def of(cls, physics) -> ScatterSettings:
         """The Monte Carlo settings of a :class:`sim.physics.settings.PhysicsSettings` (its
         ``scatter_photons``, ``scatter_voxel_mm`` and ``grid_ratio``; the rest default)."""
         return cls(photons=physics.scatter_photons, voxel_mm=physics.scatter_voxel_mm, grid_ratio=physics.grid_ratio)
+
+
+#: The smoothing of least error at 10^6 histories over a 298 x 298 mm detector (mm at the
+#: detector; ``benchmarks/scatter_denoise.py``: the pelvis at 65 kV without a grid and at 125 kV
+#: with a ratio-10 grid, 8 px cells of 18.6 mm) and the histories per area it was measured at.
+SMOOTH_MM_REFERENCE = 24.0
+_HISTORIES_PER_MM2_REFERENCE = 1e6 / 298.0 ** 2
+#: How the least-error sigma falls with the histories per area: measured 32 / 24 / 18 mm at
+#: 0.25 / 1 / 4 million (a factor 0.75 per 4x, exponent 0.21), as kernel smoothing's
+#: bias-variance balance in two dimensions predicts (1/6 for a smooth signal).
+SMOOTH_EXPONENT = 0.2
+
+
+def auto_smooth_mm(histories: int, detector_area_mm2: float) -> float:
+    """The Gaussian sigma (mm at the detector, rounded to 0.1 mm) that smooths a Monte Carlo
+    scatter estimate of ``histories`` over a detector of ``detector_area_mm2`` (mm^2) to its least
+    error: :data:`SMOOTH_MM_REFERENCE` scaled by the histories per area to the power
+    ``-SMOOTH_EXPONENT``.
+
+    The estimate's noise is not physics: the scatter of a real exposure (10^9 photons and more) is
+    smooth at this scale, and its quantum noise is drawn per pixel with the primary's. Measured
+    on the pelvis at 10^6 histories over 298 x 298 mm (``benchmarks/scatter_denoise.py``, docs/physics.md):
+    relative error 11.6 % at the former 6 mm, 4.4 % at 24 mm.
+
+    >>> auto_smooth_mm(1_000_000, 298.0 ** 2)
+    24.0
+    >>> auto_smooth_mm(4_000_000, 298.0 ** 2)
+    18.2
+    """
+    if not (histories >= 1 and detector_area_mm2 > 0 and math.isfinite(detector_area_mm2)):
+        raise PhysicsError(f"auto_smooth_mm needs histories >= 1 and a positive detector area, got "
+                           f"{histories!r} and {detector_area_mm2!r} mm^2")
+    density = histories / detector_area_mm2
+    return round(SMOOTH_MM_REFERENCE * (density / _HISTORIES_PER_MM2_REFERENCE) ** -SMOOTH_EXPONENT, 1)
 
 
 def block_average(densities: np.ndarray, spacing_mm, voxel_mm: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -520,7 +520,8 @@ def monte_carlo_maps(imager, poses: np.ndarray, *, cell_px: int = 4, photons: in
         ``log`` ``(B, H, W)`` ``-ln(P/I0)``; ``primary`` ``(B, H, W)`` and ``flat`` (signal per
         pixel, grid in place); ``cells`` ``(B, Hc, Wc)`` scatter per pixel / flat (dimensionless);
         ``cell_counts`` ``(B, Hc, Wc)`` interacting scattered photons per pixel; ``image``
-        ``(B, H, W)`` the scatter signal as ``XRayImager`` makes it (6 mm Gaussian, bilinear);
+        ``(B, H, W)`` the scatter signal as ``XRayImager`` makes it (the Gaussian of
+        :meth:`sim.physics.scatter.ScatterSettings.smoothing_mm`, bilinear);
         ``gap_mm`` ``(B,)`` (:func:`detector_gap_mm`); ``signal_per_photon``; ``seconds`` of the
         transport; ``mc`` the transport (for ``mc=``).
     """
@@ -556,7 +557,7 @@ def monte_carlo_maps(imager, poses: np.ndarray, *, cell_px: int = 4, photons: in
     seconds = time.perf_counter() - t0
     cells = np.stack([r["scatter"] for r in runs])
     counts = np.stack([r["scatter_counts"] for r in runs])
-    sigma = settings.smooth_mm / (g.pixel_spacing_mm * settings.cell_px)
+    sigma = settings.smoothing_mm(g, photons) / (g.pixel_spacing_mm * settings.cell_px)
     image = np.stack([upsample_cells(c, g.height, g.width, settings.cell_px, sigma) for c in cells])
     spp = float(cells.sum() / counts.sum()) if counts.sum() > 0 else 1.0
     return {"log": log, "primary": primary, "flat": flat, "cells": cells / flat, "cell_counts": counts,
