@@ -47,8 +47,9 @@ class TrainConfigError(InputError):
 #: How realistic targets are made (``[train] pairs``; :class:`TrainConfig`).
 PAIRS = ("per-pair", "batched")
 
-#: The arithmetic of a training step's forward pass (``[train] precision``; :class:`TrainConfig`).
-PRECISIONS = ("fp32", "bf16")
+#: The arithmetic of a training step's forward pass (``[train] precision``; :class:`TrainConfig`):
+#: ``auto`` is bf16 where the device computes it natively, else fp32 (:func:`step_precision`).
+PRECISIONS = ("fp32", "bf16", "auto")
 
 #: With ``precision = "bf16"``, a step whose gradient is not finite is skipped (as a loss scaler
 #: skips it); more than this fraction of a run's steps (at least 100 counted) stops it.
@@ -133,14 +134,17 @@ class TrainConfig:
             (:data:`learn.online.FRAMINGS`): the pair cropped to the target's field, or the whole
             detector with the field masked; registration frames the X-ray the same way for the
             network (the checkpoint records it: :func:`register.xray.network_view.network_view`).
-        precision: ``"fp32"`` (default) or ``"bf16"`` (:data:`PRECISIONS`): the training step's
-            forward pass under ``torch.autocast`` with bfloat16 (the backbone's convolutions in
-            bfloat16; its heads, the weights, optimiser, loss and validation in float32). A step
-            whose gradient is not finite is skipped and counted in the log
-            (:data:`MAX_SKIPPED_FRACTION`). A step of the small backbone at batch 256 on this
-            machine's CPU (AVX-512 BF16) takes a third of float32's (docs/benchmarks.md), and
-            bfloat16 is the tensor cores' format on a GPU. A run may resume with another
-            precision (:data:`RESUME_MAY_CHANGE`).
+        precision: ``"fp32"`` (default), ``"bf16"`` or ``"auto"`` (:data:`PRECISIONS`): with
+            bf16 the training step's forward pass runs under ``torch.autocast`` with bfloat16
+            (the backbone's convolutions in bfloat16; its heads, the weights, optimiser, loss and
+            validation in float32). A step whose gradient is not finite is skipped and counted in
+            the log (:data:`MAX_SKIPPED_FRACTION`). A step of the small backbone at batch 256 on a
+            CPU with AVX-512 BF16 takes a third of float32's, but 4.9x float32's on one without
+            (an AMD EPYC with AVX2 only, 2026-11-27: bf16 is emulated there; docs/benchmarks.md);
+            bfloat16 is the tensor cores' format on a GPU. ``auto``: bf16 where the device
+            computes it natively, fp32 elsewhere (:func:`step_precision`; the log names the
+            choice); ``bf16`` on a CPU without it trains, with a warning. A run may resume with
+            another precision (:data:`RESUME_MAY_CHANGE`).
     """
 
     dataset: str
@@ -492,6 +496,27 @@ def resolve_device(device: str = "auto") -> torch.device:
     return torch.device(device)
 
 
+def native_bf16(device: torch.device) -> bool:
+    """Whether ``device`` computes bfloat16 convolutions natively: a CUDA GPU that supports it, a
+    CPU whose oneDNN has bf16 kernels (AVX-512 BF16 or AMX); elsewhere bf16 is emulated."""
+    if device.type == "cuda":
+        return bool(torch.cuda.is_bf16_supported())
+    try:
+        return bool(torch.ops.mkldnn._is_mkldnn_bf16_supported())
+    except (AttributeError, RuntimeError):  # a torch build without oneDNN: no native bf16
+        return False
+
+
+def step_precision(precision: str, device: torch.device) -> str:
+    """The arithmetic a training step uses on ``device``: ``"fp32"`` or ``"bf16"``; ``precision``
+    ``"auto"`` is bf16 where :func:`native_bf16`, else fp32."""
+    if precision not in PRECISIONS:
+        raise TrainConfigError(f"train.precision must be one of {', '.join(PRECISIONS)}, got {precision!r}")
+    if precision == "auto":
+        return "bf16" if native_bf16(device) else "fp32"
+    return precision
+
+
 class _StopOnSignal:
     """While training: the first SIGINT (Ctrl-C) or SIGTERM (a cluster's scheduler, ``kill``) asks the
     loop to stop after the current step with a checkpoint there (no validation), so ``--resume``
@@ -593,6 +618,12 @@ def train(cfg: TrainConfig, *, resume: bool = False, log=print, device: str = "a
         if changed & {"lr", "lr_step", "lr_decay"}:
             _follow_schedule(optimizer, scheduler, cfg, iteration)
             log(f"learning rate {optimizer.param_groups[0]['lr']:.3g} at iteration {iteration}")
+    precision = step_precision(cfg.precision, device)
+    if cfg.precision == "auto":
+        log(f"precision auto: {precision} on {device.type} (native bf16: {'yes' if precision == 'bf16' else 'no'})")
+    elif precision == "bf16" and not native_bf16(device):
+        log(f"warning: train.precision = 'bf16' on a {device.type} without native bf16 (emulated: a step can "
+            "take several times fp32's); precision = 'auto' chooses fp32 here")
     log_path = out / "log.csv"
     rows = []
     if resume and log_path.exists():
@@ -606,7 +637,7 @@ def train(cfg: TrainConfig, *, resume: bool = False, log=print, device: str = "a
                    rate_scale=cfg.batch_size)
     with _StopOnSignal() as signalled:
         last = _loop(cfg, source, model, optimizer, scheduler, device, iteration, rows, log_path, ckpt_path, bar,
-                     started, stop_after_s, signalled, log)
+                     started, stop_after_s, signalled, log, precision)
     try:
         _plot(rows, out / "loss.png")
     except ImportError as e:  # a bare GPU machine: the log.csv holds the curve
@@ -628,19 +659,19 @@ def _follow_schedule(optimizer, scheduler, cfg: TrainConfig, iteration: int) -> 
 
 
 def _loop(cfg, source, model, optimizer, scheduler, device, iteration, rows, log_path, ckpt_path, bar, started,
-          stop_after_s, signalled, log) -> dict:
-    """The training iterations from ``iteration`` to the end, a time limit or a signal; returns the
-    last log row."""
+          stop_after_s, signalled, log, precision: str) -> dict:
+    """The training iterations from ``iteration`` to the end, a time limit or a signal, in
+    ``precision`` (``fp32`` or ``bf16``, :func:`step_precision`); returns the last log row."""
     from learn.checkpoint import Checkpoint, capture_rng
 
     last = {}
     start_iteration = iteration
-    bf16, skipped = cfg.precision == "bf16", 0
+    bf16, skipped = precision == "bf16", 0
     params = [p for group in optimizer.param_groups for p in group["params"]]
     while iteration < cfg.iterations:
         # batches are a function of (seed, iteration) alone, so a resumed run takes the same steps
         *inputs, label = _on(device, source.train_batch(iteration))
-        with torch.autocast(device.type, dtype=torch.bfloat16, enabled=cfg.precision == "bf16"):
+        with torch.autocast(device.type, dtype=torch.bfloat16, enabled=bf16):
             output = source.forward(model, inputs)
         loss = _loss(type(output)(*(t.float() for t in output)), label, cfg)  # the loss in float32
         optimizer.zero_grad()

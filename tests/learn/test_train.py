@@ -57,8 +57,36 @@ def test_refusals_name_the_key(campaign, tmp_path):
         train(cfg, log=lambda *_: None)
     with pytest.raises(TrainConfigError, match=r"another config \(train.seed 5 -> 6\)"):
         train(replace(cfg, seed=6), resume=True, log=lambda *_: None)
-    with pytest.raises(TrainConfigError, match="train.precision must be one of fp32, bf16"):
+    with pytest.raises(TrainConfigError, match="train.precision must be one of fp32, bf16, auto"):
         config(campaign, tmp_path, precision="fp16")
+
+
+def test_auto_precision_is_bf16_only_where_the_device_computes_it_natively(campaign, tmp_path, monkeypatch):
+    """precision "auto" resolves to bf16 where the device has native bf16 and fp32 elsewhere; the
+    log names the choice; an explicit "bf16" on a device without it trains with a warning (bf16
+    emulated on an AVX2-only CPU took 4.9x fp32's step, docs/benchmarks.md)."""
+    import torch
+
+    import learn.train as tr
+
+    cpu = torch.device("cpu")
+    monkeypatch.setattr(tr, "native_bf16", lambda device: False)
+    assert tr.step_precision("auto", cpu) == "fp32"
+    assert tr.step_precision("bf16", cpu) == "bf16" and tr.step_precision("fp32", cpu) == "fp32"
+    with pytest.raises(tr.TrainConfigError, match="train.precision must be one of"):
+        tr.step_precision("fp16", cpu)
+    lines = []
+    tr.train(config(campaign, tmp_path / "a", precision="auto", iterations=2), log=lines.append)
+    assert "precision auto: fp32 on cpu (native bf16: no)" in lines
+    lines = []
+    tr.train(config(campaign, tmp_path / "b", precision="bf16", iterations=2), log=lines.append)
+    assert any(line.startswith("warning: train.precision = 'bf16' on a cpu without native bf16") for line in lines)
+    monkeypatch.setattr(tr, "native_bf16", lambda device: True)
+    assert tr.step_precision("auto", cpu) == "bf16"
+    lines = []
+    tr.train(config(campaign, tmp_path / "c", precision="auto", iterations=2), log=lines.append)
+    assert "precision auto: bf16 on cpu (native bf16: yes)" in lines
+    assert not any(line.startswith("warning") for line in lines)
 
 
 def test_a_run_resumes_in_bf16_and_its_steps_follow_the_fp32_run(campaign, tmp_path, monkeypatch):
