@@ -85,6 +85,31 @@ def study_frame_files(study_path, target: str, ct, cases: int, out):
     return volume, center, sod, found, frames
 
 
+def add_monte_carlo_frame_arguments(ap, *, cases: int) -> None:
+    """The frame options of the scripts that read a ``full`` target's Monte Carlo scatter
+    (``--ct``, ``--cases`` with its default ``cases``, ``--study``, ``--target``, ``--out``), for
+    :func:`monte_carlo_frames`."""
+    ap.add_argument("--ct", default=str(ROOT.parent / "shared" / "data" / "ct" / "pelvis_abdomen_3mm.nii.gz"),
+                    help="the CT of the frames (default ../shared/data/ct/pelvis_abdomen_3mm.nii.gz)")
+    ap.add_argument("--cases", type=int, default=cases, help=f"frames: the protocol's first N poses (default {cases})")
+    ap.add_argument("--study", default=str(ROOT / "studies" / "domain_gap.toml"),
+                    help="a study file (default studies/domain_gap.toml)")
+    ap.add_argument("--target", default="fluoro-65kV",
+                    help="an xray target of --study at physics level full (default fluoro-65kV)")
+    ap.add_argument("--out", default=str(ROOT / "runs" / "bench_search"), help="frame cache (frames in OUT/TARGET)")
+
+
+def monte_carlo_frames(study_path, target: str, ct, cases: int, out):
+    """:func:`study_frame_files`'s ``[(i, T_true, path)]`` and simulator for a target at physics level
+    ``full``; :class:`FrameTargetError` names an unknown target or one without Monte Carlo scatter."""
+    _, _, _, found, frames = study_frame_files(study_path, target, ct, cases, out)
+    im = frames.imager
+    if im.scatter is None:
+        raise FrameTargetError(f"target {target} has no Monte Carlo scatter (physics level "
+                               f"{im.physics.level!r}, not 'full')")
+    return found, frames
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--ct", default=str(ROOT.parent / "shared" / "data" / "ct" / "pelvis_abdomen_3mm.nii.gz"))

@@ -35,7 +35,8 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))  # the repository first: benchmarks/learn.py and register.py are not the packages
-from network_on_frames import FrameTargetError, study_frame_files  # noqa: E402  (benchmarks/)
+from network_on_frames import (  # noqa: E402  (benchmarks/)
+    FrameTargetError, add_monte_carlo_frame_arguments, monte_carlo_frames)
 from timing import input_problem  # noqa: E402  (benchmarks/timing.py)
 
 #: Border (px) left out: the Gaussians' mirrored edges.
@@ -58,14 +59,7 @@ def _nonneg(text: str) -> float:
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--ct", default=str(ROOT.parent / "shared" / "data" / "ct" / "pelvis_abdomen_3mm.nii.gz"),
-                    help="the CT of the frames (default ../shared/data/ct/pelvis_abdomen_3mm.nii.gz)")
-    ap.add_argument("--cases", type=int, default=3, help="frames: the protocol's first N poses (default 3)")
-    ap.add_argument("--study", default=str(ROOT / "studies" / "domain_gap.toml"),
-                    help="a study file (default studies/domain_gap.toml)")
-    ap.add_argument("--target", default="fluoro-65kV",
-                    help="an xray target of --study at physics level full (default fluoro-65kV)")
-    ap.add_argument("--out", default=str(ROOT / "runs" / "bench_search"), help="frame cache (frames in OUT/TARGET)")
+    add_monte_carlo_frame_arguments(ap, cases=3)
     ap.add_argument("--reference", type=int, default=16,
                     help="independent runs at the largest --photons averaged into the reference (default 16)")
     ap.add_argument("--photons", nargs="+", type=_positive_ints, default=[250_000, 1_000_000, 4_000_000],
@@ -84,16 +78,12 @@ def main() -> int:
     from sim.physics.scatter import upsample_cells
 
     try:
-        _, _, _, cases, frames = study_frame_files(a.study, a.target, a.ct, a.cases, a.out)
+        cases, frames = monte_carlo_frames(a.study, a.target, a.ct, a.cases, a.out)
     except FrameTargetError as e:
         print(f"scatter_denoise: {e}", file=sys.stderr)
         return 2
     im = frames.imager
     mc = im.scatter
-    if mc is None:
-        print(f"scatter_denoise: target {a.target} has no Monte Carlo scatter (physics level "
-              f"{im.physics.level!r}, not 'full')", file=sys.stderr)
-        return 2
     g = im.geometry
     cp = mc.settings.cell_px
     ppp = float(im.model.photons_per_pixel(**im.exposure).sum())

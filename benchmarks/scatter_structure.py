@@ -37,7 +37,8 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))  # the repository first: benchmarks/learn.py and register.py are not the packages
-from network_on_frames import FrameTargetError, study_frame_files  # noqa: E402  (benchmarks/)
+from network_on_frames import (  # noqa: E402  (benchmarks/)
+    FrameTargetError, add_monte_carlo_frame_arguments, monte_carlo_frames)
 from timing import input_problem  # noqa: E402  (benchmarks/timing.py)
 
 #: The Gaussian (px) that splits the large-scale deviation from the fine structure.
@@ -79,14 +80,7 @@ def _texture_arg(text: str) -> tuple[float, float]:
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--ct", default=str(ROOT.parent / "shared" / "data" / "ct" / "pelvis_abdomen_3mm.nii.gz"),
-                    help="the CT of the frames (default ../shared/data/ct/pelvis_abdomen_3mm.nii.gz)")
-    ap.add_argument("--cases", type=int, default=4, help="frames: the protocol's first N poses (default 4)")
-    ap.add_argument("--study", default=str(ROOT / "studies" / "domain_gap.toml"),
-                    help="a study file (default studies/domain_gap.toml)")
-    ap.add_argument("--target", default="fluoro-65kV",
-                    help="an xray target of --study at physics level full (default fluoro-65kV)")
-    ap.add_argument("--out", default=str(ROOT / "runs" / "bench_search"), help="frame cache (frames in OUT/TARGET)")
+    add_monte_carlo_frame_arguments(ap, cases=4)
     ap.add_argument("--textures", nargs="+", type=_texture_arg, default=[(0.12, 0.03), (0.1, 0.06), (0.1, 0.015)],
                     help="sks textures STRENGTH:SIGMA to compare: relative std in [0, 1], Gaussian sigma as a "
                          "fraction of the shorter side in (0, 1] (default 0.12:0.03 0.1:0.06 0.1:0.015)")
@@ -100,15 +94,11 @@ def main() -> int:
     from sim.randomize import sks_texture
 
     try:
-        _, _, _, cases, frames = study_frame_files(a.study, a.target, a.ct, a.cases, a.out)
+        cases, frames = monte_carlo_frames(a.study, a.target, a.ct, a.cases, a.out)
     except FrameTargetError as e:
         print(f"scatter_structure: {e}", file=sys.stderr)
         return 2
     im = frames.imager
-    if im.scatter is None:
-        print(f"scatter_structure: target {a.target} has no Monte Carlo scatter (physics level "
-              f"{im.physics.level!r}, not 'full')", file=sys.stderr)
-        return 2
     g, flat = im.geometry, float(im.flat)
     model = default_table().model_for(float(im.physics.kvp), float(im.physics.grid_ratio))
     t0 = time.perf_counter()
