@@ -43,17 +43,23 @@ from timing import input_problem  # noqa: E402  (benchmarks/timing.py)
 BORDER_PX = 16
 
 
-def _positive_ints(text: str) -> int:
-    v = int(text)
+def _histories(text: str) -> int:
+    try:
+        v = int(text)
+    except ValueError:
+        v = -1
     if v < 1000:
-        raise argparse.ArgumentTypeError(f"histories must be >= 1000, got {v}")
+        raise argparse.ArgumentTypeError(f"histories must be an integer >= 1000, got {text!r}")
     return v
 
 
-def _nonneg(text: str) -> float:
-    v = float(text)
+def _smoothing_mm(text: str) -> float:
+    try:
+        v = float(text)
+    except ValueError:
+        v = float("nan")
     if not (np.isfinite(v) and 0 <= v <= 1000):
-        raise argparse.ArgumentTypeError(f"a smoothing must be in [0, 1000] mm, got {text}")
+        raise argparse.ArgumentTypeError(f"a smoothing must be a number of mm in [0, 1000], got {text!r}")
     return v
 
 
@@ -62,9 +68,9 @@ def main() -> int:
     add_monte_carlo_frame_arguments(ap, cases=3)
     ap.add_argument("--reference", type=int, default=16,
                     help="independent runs at the largest --photons averaged into the reference (default 16)")
-    ap.add_argument("--photons", nargs="+", type=_positive_ints, default=[250_000, 1_000_000, 4_000_000],
+    ap.add_argument("--photons", nargs="+", type=_histories, default=[250_000, 1_000_000, 4_000_000],
                     help="history counts of the estimates (default 250000 1000000 4000000)")
-    ap.add_argument("--smooth-mm", nargs="+", type=_nonneg, default=[0, 6, 12, 18, 24, 32, 48],
+    ap.add_argument("--smooth-mm", nargs="+", type=_smoothing_mm, default=[0, 6, 12, 18, 24, 32, 48],
                     help="Gaussian sigmas at the detector, mm (default 0 6 12 18 24 32 48)")
     a = ap.parse_args()
     problem = input_problem("scatter_denoise", a.ct, a.cases)
