@@ -64,6 +64,12 @@ Method (deterministic; about 0.1 s for 512 x 512):
    i, full stops, the frayed rim of a clipped region) join it; isolated ones (noise touching the
    extreme) are kept.
 5. ``mask = field_mask & ~(overlay | saturated | empty)``.
+6. **Linear displays.** Where steps 1-5 leave too little field (under ``min_fraction``), they run
+   again on a logarithmic view of the image (:func:`log_view`: the log of each pixel's distance
+   from the extreme nearer the median, then from the other): a display of intensity rather than
+   its logarithm squeezes a thick body into the few grey levels next to one extreme, where the
+   outside's level swallows it (a 70 kV pelvis at 10 bits lies within 20 levels of black). The
+   mask is of the image's pixels either way; ``view`` records which view found it.
 
 Result (:class:`Field`): ``mask`` and ``field_mask`` ``(H, W)`` bool; ``kind`` (``"none"``,
 ``"circle"``, ``"rectangle"``, ``"polygon"``, ``"iris-blades"``); ``outside`` (``"black"``, ``"white"``
@@ -100,7 +106,7 @@ from scipy import ndimage
 from register.xray.io import XRayInputError
 from sim.atomic import jsonable
 
-__all__ = ["FieldError", "FieldSettings", "Field", "detect_field"]
+__all__ = ["FieldError", "FieldSettings", "Field", "detect_field", "log_view", "LOG_VIEWS"]
 
 #: Width (px) of the border ring whose mode gives the outside level.
 _RING_PX = 2
@@ -300,6 +306,7 @@ class Field:
     excluded: dict
     settings: FieldSettings = dataclasses.field(default_factory=FieldSettings)
     overlay: np.ndarray | None = None
+    view: str = "display"
 
     @property
     def valid_fraction(self) -> float:
@@ -315,6 +322,7 @@ class Field:
         """JSON-serialisable summary (no arrays): kind, outside, params, excluded, fractions, settings."""
         return {
             "kind": self.kind,
+            "view": self.view,
             "outside": self.outside,
             "params": jsonable(self.params),
             "excluded": {k: int(v) for k, v in self.excluded.items()},
@@ -1054,6 +1062,15 @@ def _exclusions(img: np.ndarray, within: np.ndarray, field: np.ndarray, lo: floa
 def detect_field(image: np.ndarray, settings: FieldSettings | None = None) -> Field:
     """Find the collimated field and the valid pixels of an X-ray image (method: module docstring).
 
+    Where the image as stored leaves too little field (:class:`FieldError`, the field or the valid
+    pixels under ``settings.min_fraction``), the detection runs again on its logarithmic views
+    (:data:`LOG_VIEWS`), the end where most pixels lie first: a linear display (intensity, not its
+    logarithm) squeezes the anatomy into the few grey levels next to one extreme, where it is hard
+    to tell from a painted or leaky-blade outside at that extreme (a 70 kV pelvis at 10 bits: the
+    anatomy within 20 counts of black), and the logarithm spreads those levels apart as a log
+    display would. The mask is of the image's own pixels either way; :attr:`Field.view` says which
+    view found it.
+
     Args:
         image: ``(H, W)`` real, finite values of any range and dtype (8-, 12-, 16-bit integers or
             floats), in the file's polarity (the outside may be black or white).
@@ -1064,7 +1081,7 @@ def detect_field(image: np.ndarray, settings: FieldSettings | None = None) -> Fi
 
     Raises:
         FieldError: input not 2-D / real / finite, a constant image, or valid pixels under
-            ``settings.min_fraction`` of the image.
+            ``settings.min_fraction`` of the image in every view.
     """
     s = FieldSettings() if settings is None else settings
     if not isinstance(s, FieldSettings):
@@ -1073,6 +1090,56 @@ def detect_field(image: np.ndarray, settings: FieldSettings | None = None) -> Fi
     lo, hi = float(img.min()), float(img.max())
     if hi == lo:
         raise FieldError(f"the image is constant (every pixel = {lo:g}): no anatomy to register")
+    try:
+        return _detect(img, s)
+    except _TooLittleField as first:
+        for view in _log_view_order(img, lo, hi):
+            try:
+                found = _detect(log_view(img, view), s)
+            except _TooLittleField:
+                continue
+            changes = {"view": view}
+            if view == "log-bright":  # the view is inverted: its black is the image's white, its empty saturated
+                ex = found.excluded
+                changes.update(outside={"black": "white", "white": "black"}.get(found.outside),
+                               excluded={**ex, "saturated": ex.get("empty", 0), "empty": ex.get("saturated", 0)})
+            return dataclasses.replace(found, **changes)
+        raise FieldError(f"{first} (in the image and in its logarithmic views)") from None
+
+
+#: The logarithmic views :func:`detect_field` falls back on (:func:`log_view`): ``"log-dark"``
+#: spreads the grey levels next to the image's minimum, ``"log-bright"`` those next to its maximum.
+LOG_VIEWS = ("log-dark", "log-bright")
+
+
+def log_view(image: np.ndarray, view: str) -> np.ndarray:
+    """``(H, W)`` the logarithm of each pixel's distance from the image's minimum (``"log-dark"``:
+    ``log(x - min + q)``) or maximum (``"log-bright"``: ``log(max - x + q)``, so that the maximum
+    becomes the minimum), ``q`` the image's quantisation step (its smallest difference between
+    values): neighbouring levels next to that extreme differ by a factor of two or more, those far
+    from it by little. For a linear display this is its log display, inverted or not."""
+    img = np.asarray(image, np.float64)
+    if view not in LOG_VIEWS:
+        raise FieldError(f"log view must be one of {LOG_VIEWS}, got {view!r}")
+    lo, hi = float(img.min()), float(img.max())
+    q = _quant_step(img, lo, hi)
+    if not q > 0:
+        raise FieldError("the image is constant: it has no logarithmic view")
+    return np.log((img - lo) + q) if view == "log-dark" else np.log((hi - img) + q)
+
+
+def _log_view_order(img: np.ndarray, lo: float, hi: float) -> tuple[str, ...]:
+    """:data:`LOG_VIEWS`, the one of the end nearer the image's median first."""
+    return LOG_VIEWS if np.median(img) - lo <= hi - np.median(img) else LOG_VIEWS[::-1]
+
+
+class _TooLittleField(FieldError):
+    """The field or the valid pixels cover less than ``min_fraction`` of the image."""
+
+
+def _detect(img: np.ndarray, s: FieldSettings) -> Field:
+    """:func:`detect_field` on one view ``img`` ``(H, W)`` float64, validated and not constant."""
+    lo, hi = float(img.min()), float(img.max())
     q = _quant_step(img, lo, hi)
     med = ndimage.median_filter(img, size=3, mode="nearest")
 
@@ -1100,12 +1167,12 @@ def detect_field(image: np.ndarray, settings: FieldSettings | None = None) -> Fi
                    excluded={k: int(v.sum()) for k, v in excl.items()}, settings=s, overlay=excl["overlay"])
     n = img.size
     if field_mask.sum() < s.min_fraction * n:
-        raise FieldError(
+        raise _TooLittleField(
             f"the detected field ({kind}) covers only {100 * field_mask.sum() / n:.1f} % of the image "
             f"(< {100 * s.min_fraction:g} %): too little anatomy to register")
     if mask.sum() < s.min_fraction * n:
         ex = ", ".join(f"{k} {v}" for k, v in result.excluded.items())
-        raise FieldError(
+        raise _TooLittleField(
             f"the valid pixels cover only {100 * mask.sum() / n:.1f} % of the image "
             f"(< {100 * s.min_fraction:g} %) after excluding overlays / plateaus ({ex} px)")
     return result

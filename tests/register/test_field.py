@@ -16,7 +16,7 @@ import pytest
 from PIL import Image, ImageDraw, ImageFont
 from scipy import ndimage
 
-from register.xray.field import Field, FieldError, FieldSettings, detect_field
+from register.xray.field import Field, FieldError, FieldSettings, detect_field, log_view
 from register.xray.io import XRayInputError
 
 PAD = 12
@@ -507,7 +507,7 @@ def test_bad_settings(kwargs, words):
 def test_to_dict_is_json_and_complete():
     f = detect_field(_compose(_circle(127.5, 127.5, 110)(S), _anatomy(S, 1)))
     d = json.loads(json.dumps(f.to_dict()))
-    assert set(d) == {"kind", "outside", "params", "excluded", "valid_fraction", "field_fraction", "settings"}
+    assert set(d) == {"kind", "view", "outside", "params", "excluded", "valid_fraction", "field_fraction", "settings"}
     assert d["kind"] == "circle" and set(d["params"]) == {"centre_x", "centre_y", "radius"}
     assert d["settings"]["margin_px"] == 2.0
     assert d["valid_fraction"] == pytest.approx(f.mask.mean(), abs=1e-5)
@@ -535,3 +535,61 @@ def test_speed_512():
         detect_field(img)
     per_call = (time.perf_counter() - t) / 3
     assert per_call < 0.6, f"{per_call:.3f} s per 512 x 512 image"  # ~0.1 s unloaded; slack for CI
+
+
+# ------------------------------------------------------------------------------------------
+# linear displays: the anatomy within a few grey levels of one extreme
+
+
+def _linear_display(truth, seed, bone_bright, leak=0.0):
+    """A 10-bit linear (intensity, not log) display of a thick body: line integrals 3.5-6.5 in the
+    field's upper three quarters (transmission 0.2-3 %: the anatomy within 30 of 1023 levels), air
+    below; outside the field a painted black (``leak`` 0) or blades passing ``leak`` of the beam;
+    bone-bright shows 1023 - I."""
+    H, W = truth.shape
+    line = 3.5 + 3.0 * _anatomy(truth.shape, seed, lo=0.0, hi=1.0)
+    rows = np.arange(H)[:, None] * np.ones((1, W))
+    air = 1.0 / (1.0 + np.exp(-(rows - 0.78 * H) / 2.0))  # a soft skin edge
+    intensity = np.exp(-line * (1.0 - air))
+    intensity = np.where(truth, intensity, leak * intensity)
+    counts = np.round(1023 * intensity)
+    return (1023 - counts if bone_bright else counts).astype(np.uint16)
+
+
+@pytest.mark.parametrize("bone_bright,view", [(False, "log-dark"), (True, "log-bright")])
+def test_linear_display_field_found_in_its_log_view(bone_bright, view):
+    truth_fn = _regular_polygon(128, 120, 120, 4, 0.3)
+    truth = truth_fn(S)
+    img = _linear_display(truth, 5, bone_bright)
+    f = detect_field(img)
+    assert f.view == view and f.kind == "polygon"
+    # the mask is of the image's own pixels; wrong pixels only at the blurred boundary, and the
+    # truth's own quantisation puts a few anatomy pixels at the extreme (excluded as empty)
+    wrong = (f.field_mask != truth) & (_boundary_distance(truth_fn, S) > 3.0)
+    assert wrong.sum() == 0
+    assert f.outside == ("white" if bone_bright else "black")
+    assert f.to_dict()["view"] == view
+
+
+def test_log_views_are_monotone_and_spread_the_extreme():
+    img = np.array([[0, 1, 2, 4], [100, 500, 1022, 1023]], np.uint16)
+    dark, bright = log_view(img, "log-dark"), log_view(img, "log-bright")
+    assert np.all(np.diff(dark.ravel()) > 0) and np.all(np.diff(bright.ravel()) < 0)
+    # next to its extreme a level is twice the last (log 2 apart); far from it they nearly merge
+    assert dark[0, 1] - dark[0, 0] == pytest.approx(np.log(2)) and bright[1, 2] - bright[1, 3] == pytest.approx(np.log(2))
+    assert dark[1, 3] - dark[1, 2] < 0.001
+    with pytest.raises(FieldError, match="log view must be one of"):
+        log_view(img, "log")
+    with pytest.raises(FieldError, match="constant"):
+        log_view(np.ones((4, 4)), "log-dark")
+
+
+def test_linear_display_behind_leaky_blades_keeps_its_field():
+    """Blades passing 0.3 % of the beam: outside, the air below the body leaks a few levels and the
+    rest is black, two levels no single outside explains, so no collimation is fitted; the
+    logarithmic view still keeps the anatomy (not refused) and leaves the black outside out."""
+    truth = _regular_polygon(128, 120, 120, 4, 0.3)(S)
+    f = detect_field(_linear_display(truth, 6, False, leak=0.003))
+    assert f.view == "log-dark"
+    assert f.mask[truth].mean() > 0.85
+    assert f.mask[~truth].mean() < 0.5
