@@ -42,6 +42,7 @@ from __future__ import annotations
 import argparse
 import sys
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -77,8 +78,14 @@ def main() -> int:
     ap.add_argument("--model", default=None,
                     help="the network of the contextual, off and network rows: a shipped model's name (ctxreg models) "
                          "or a ctxreg train checkpoint (default: the shipped default)")
+    ap.add_argument("--scatter-smooth-mm", type=float, default=None,
+                    help="the frames' Monte Carlo scatter smoothing sigma (mm at the detector; default the "
+                         "simulator's own, sim.physics.scatter.auto_smooth_mm): frames of another smoothing, e.g. "
+                         "6 for those made before 2026-11-27 (give them their own --out)")
     a = ap.parse_args()
     problem = input_problem("search", a.ct, a.cases)
+    if not problem and a.scatter_smooth_mm is not None and not (0 <= a.scatter_smooth_mm <= 1000):
+        problem = f"search: --scatter-smooth-mm must be a sigma in [0, 1000] mm, got {a.scatter_smooth_mm}"
     if problem:
         print(problem, file=sys.stderr)
         return 2
@@ -171,6 +178,9 @@ def _measure(a, study, target, volume, center):
     from sim.geometry import pose_from_params
 
     frames = study_frames(study, target, volume, center)
+    if a.scatter_smooth_mm is not None and frames.imager.scatter is not None:  # the frames' fingerprint has it
+        mc = frames.imager.scatter
+        mc.settings = replace(mc.settings, smooth_mm=a.scatter_smooth_mm)
     sod = frames.imager.geometry.sod_mm
     poses, _ = sample_cases(EvaluationSettings(cases=a.cases, seed=study.seed, size=study.size, start="ap"))
     points = bone_points(volume, 2000, 0)
