@@ -451,7 +451,11 @@ def _input_lines(prepared) -> list[str]:
     if fld is not None:
         kind = fld.get("kind")
         outside = f", {fld.get('outside')} outside" if fld.get("outside") else ""
-        lines.append(f"field: {kind}{outside}; {100 * fld.get('valid_fraction', 0):.0f} % of the pixels valid")
+        view = fld.get("view", "display")
+        seen = ("" if view == "display" else
+                f", found in the image's {view} view only (a linear display holds its anatomy in few grey levels: "
+                f"check the result)")
+        lines.append(f"field: {kind}{outside}{seen}; {100 * fld.get('valid_fraction', 0):.0f} % of the pixels valid")
     dec = prepared.step("intensity")
     if dec is not None:
         steps = " + ".join(dec["steps"]) or "nothing"

@@ -240,3 +240,23 @@ def test_polarity_check_and_search_render_the_grid_once_with_the_same_result():
     with pytest.raises(RegistrationError, match="another detector or physics"):
         ContextualPipeline(vol, lambda fixed, drr: np.zeros(6), size=(g.height, g.width), geometry=g,
                            center_lps=c, refine=REFINE_SETTINGS, search=other)
+
+
+def test_a_field_found_only_in_a_log_view_is_said_in_the_input_lines(tmp_path):
+    """A linear display whose anatomy lies within ~30 of 1023 levels of black behind a black
+    outside: the field is found in its log-dark view, and the user's field line says so."""
+    from register.api import _input_lines
+    from register.xray.prepare import prepare_xray
+
+    rng = np.random.default_rng(3)
+    yy, xx = np.mgrid[:256, :256]
+    truth = (np.abs(xx - 128) + np.abs(yy - 128)) < 120  # a diamond field, 44 % of the image
+    texture = ndimage.gaussian_filter(rng.uniform(size=(256, 256)), 6)
+    line = 3.5 + 3.0 * (texture - texture.min()) / (texture.max() - texture.min())  # 0.2-3 % transmitted
+    air = 1.0 / (1.0 + np.exp(-(yy - 200) / 2.0))
+    counts = np.round(1023 * np.exp(-line * (1.0 - air)) * truth).astype(np.uint16)
+    np.save(tmp_path / "linear.npy", counts)
+    prepared = prepare_xray(tmp_path / "linear.npy")
+    assert prepared.step("field")["view"] == "log-dark"
+    (field_line,) = [x for x in _input_lines(prepared) if x.startswith("field:")]
+    assert "log-dark view only" in field_line and "check the result" in field_line
