@@ -46,7 +46,9 @@ Method (deterministic; about 0.1 s for 512 x 512):
    candidate; it cuts at least 15 % of the radius into the circle; what it cuts off is the
    outside region of step 1, not anatomy), together explaining 60 % of the boundary; it is
    accepted one-sided: the candidate may not run beyond it (1 px per boundary px), the notches
-   inside it may reach 4 px per boundary px. Without blades this is a notched ``"circle"``;
+   inside it may reach 4 px per boundary px (both at a 256 px image, scaled with a larger
+   image's side: 8 x at 1024 px, where the notches of clipped anatomy measured 15 px per
+   boundary px; the other px thresholds do not scale yet). Without blades this is a notched ``"circle"``;
    with them, kind ``"iris-blades"``. A candidate that none fits (not convex: a body outline,
    dark anatomy) means no collimation: kind ``"none"``, the field is the whole image (a painted
    outside is then still excluded as an empty / saturated plateau).
@@ -148,6 +150,9 @@ _IRIS_MAX_NOTCH_PX = 4.0
 #: Largest area of the candidate beyond an iris-with-blades model per boundary px (px): a blade's
 #: edge fitted through notches may tilt by a px or two over its length.
 _IRIS_MAX_BEYOND_PX = 1.0
+#: The image side (px) at which the two limits above hold; a larger image scales them with its
+#: side: a notch's mean depth (its area per boundary px) grows with the pixel count across it.
+_IRIS_REFERENCE_SIDE_PX = 256.0
 #: Width (px) of the strip just beyond a blade (past ``circle_inlier_px``, inside the circle) that
 #: must be outside: a blade is a supporting line of the field.
 _IRIS_STRIP_PX = 3.0
@@ -959,7 +964,9 @@ def _fit_model(cand: np.ndarray, s: FieldSettings, outside: np.ndarray | None = 
         n = max(1, _boundary_len(fit[0]))
         devs[f"notched {kind} (beyond)"] = float((cand & ~fit[0]).sum()) / n
         devs[f"notched {kind} (notches)"] = float((fit[0] & ~cand).sum()) / n
-        if devs[f"notched {kind} (beyond)"] <= _IRIS_MAX_BEYOND_PX and devs[f"notched {kind} (notches)"] <= _IRIS_MAX_NOTCH_PX:
+        scale = max(1.0, max(cand.shape) / _IRIS_REFERENCE_SIDE_PX)  # the same iris at a finer pixel
+        if (devs[f"notched {kind} (beyond)"] <= _IRIS_MAX_BEYOND_PX * scale
+                and devs[f"notched {kind} (notches)"] <= _IRIS_MAX_NOTCH_PX * scale):
             return kind, fit[0], fit[1]
     txt = ", ".join(f"{k} {v:.2f} px" for k, v in devs.items())
     return "none", None, {"reason": f"no field model fits the candidate (mean boundary deviation: {txt})"}

@@ -593,3 +593,17 @@ def test_linear_display_behind_leaky_blades_keeps_its_field():
     assert f.view == "log-dark"
     assert f.mask[truth].mean() > 0.85
     assert f.mask[~truth].mean() < 0.5
+
+
+def test_a_notched_circle_is_found_at_a_finer_detector_resolution():
+    """The same notched field at 2x the pixels (512 px): a notch's mean depth in px grows with the
+    resolution, and the notch limits (set at 256 px) grow with the image's side, so the circle is
+    still found (before they scaled, 1024 px irises with clipped anatomy were kind ``none``)."""
+    truth_fn = _circle(130, 124, 112)
+    truth = truth_fn(S)
+    img = _compose(truth, _notched(_anatomy(S, 21), truth, 0.0, 21, count=8))
+    fine = _as(ndimage.zoom(img, 2, order=1), "u12")
+    f = detect_field(fine)
+    assert f.kind == "circle", f.params
+    assert abs(f.params["radius"] - 2 * 112) <= 3.0  # 1.5 px at 256 px
+    assert abs(f.field_mask.mean() - truth.mean()) < 0.01
