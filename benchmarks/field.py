@@ -71,7 +71,8 @@ def main() -> int:
             return 2
         chosen += [(path, t) for t in load_study(path).targets if t.kind == "xray" and a.target in ("all", t.name)]
     if not chosen:
-        print(f"field: no xray target {a.target!r} in {a.study}", file=sys.stderr)
+        names = sorted({t.name for p in a.study for t in load_study(p).targets if t.kind == "xray"})
+        print(f"field: --target must be 'all' or one of {names}, got {a.target!r}", file=sys.stderr)
         return 2
     rows, notes = [], []
     t_all = time.perf_counter()

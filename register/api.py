@@ -453,8 +453,8 @@ def _input_lines(prepared) -> list[str]:
         outside = f", {fld.get('outside')} outside" if fld.get("outside") else ""
         view = fld.get("view", "display")
         seen = ("" if view == "display" else
-                f", found in the image's {view} view only (a linear display holds its anatomy in few grey levels: "
-                f"check the result)")
+                f", found in the image's {view} view only (its anatomy lies in few grey levels, as on a linear or "
+                f"narrow-window display: check the result)")
         lines.append(f"field: {kind}{outside}{seen}; {100 * fld.get('valid_fraction', 0):.0f} % of the pixels valid")
     dec = prepared.step("intensity")
     if dec is not None:
