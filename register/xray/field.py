@@ -23,6 +23,17 @@ Method (deterministic; about 0.1 s for 512 x 512):
    the outside covers at least ``min_outside_fraction`` of the image and is flat (robust spread of
    its 7 x 7 local means, after removing a plane for smooth shading, at most
    ``max_outside_texture * C``: a painted or noise-only shadow, not dark anatomy).
+   **1b. A second outside level** (leaky blades). Where the outside of one level leaves no shape
+   model (steps 2-3), the border ring's pixels outside that region give a second level (the mode
+   of their values, at least ``min_border_fraction`` of the ring, at least ``level_tolerance`` of
+   the contrast from the first): the air behind blades that pass a few per cent of the beam,
+   clipped at the other extreme or a smooth grey, while the body's shadow lies at the first level.
+   Its region is grown from those border pixels over pixels within half its distance from the
+   first level and locally flat, must be flat as in step 1, and the seam between the two regions
+   (within 10 px of both: the blurred skin edge behind the blades) joins them. Up to
+   ``_MAX_OUTSIDE_LEVELS`` (3) levels are tried, each kept only where a model then fits
+   (``params["outside_levels"]``), so the air inside a field that runs off the image is never
+   taken out of a field that fits without it.
 2. **Candidate.** The rest, opened with a radius-2 disk (glyph strokes crossing the field edge go),
    its largest 8-connected component with holes filled (glyphs in the outside corners and text
    over the anatomy go). A second component larger than 10 % of it means no single field (a body
@@ -49,7 +60,15 @@ Method (deterministic; about 0.1 s for 512 x 512):
    inside it may reach 4 px per boundary px (both at a 256 px image, scaled with a larger
    image's side: 8 x at 1024 px, where the notches of clipped anatomy measured 15 px per
    boundary px; the other px thresholds do not scale yet). Without blades this is a notched ``"circle"``;
-   with them, kind ``"iris-blades"``. A candidate that none fits (not convex: a body outline,
+   with them, kind ``"iris-blades"``. Last, a **deeply notched circle**: where clipped anatomy
+   notches a round field beyond those limits (20-40 px per boundary px on 1024 px irises, up to a
+   third of the circle), a circle is fitted (RANSAC, inlier distance scaled with the side) to the
+   boundary points, and accepted when its inliers cover at least half of its circumference inside
+   the image (1-degree bins; ``params["arc_cover"]``), the candidate runs beyond it by at most
+   1 px per boundary px (scaled), and at least 70 % of what it lacks inside the circle is the
+   outside region (clipped at the outside's level, not textured anatomy). This one model is also
+   tried on a candidate split into large parts by a notch running through the field (otherwise
+   "not one field"). A candidate that none fits (not convex: a body outline,
    dark anatomy) means no collimation: kind ``"none"``, the field is the whole image (a painted
    outside is then still excluded as an empty / saturated plateau).
    The field mask is the model's mask (not the raw candidate) eroded by ``margin_px`` from the
@@ -92,7 +111,11 @@ where the anatomy itself reaches the outside's value at the field edge (saturate
 anatomy touching the edge) the edge is invisible there: circles and rectangles are fitted to the
 rest of the edge, a polygon loses that corner; a convex dark body outline on a flat black
 background can be taken for a polygonal field; a field that is not convex is reported as
-``"none"``; a rotated rectangle is reported as a 4-vertex polygon.
+``"none"``; a rotated rectangle is reported as a 4-vertex polygon. Behind leaky blades on a linear
+display the body's shadow and the anatomy in the field share the few grey levels next to the
+extreme (a 70 kV pelvis at 10 bits: both within 20 levels of black), no level tells them apart, and
+the field is reported as ``"none"`` (its outside partly kept); a circle seen along less than half of
+its circumference (the rest clipped anatomy or leaked air) is not fitted.
 """
 
 from __future__ import annotations
@@ -160,6 +183,12 @@ _IRIS_STRIP_PX = 3.0
 _IRIS_BLADE_SPILL = 0.2
 #: Share of the circle's part cut off by a blade that must be the outside region (step 1).
 _IRIS_CUT_OUTSIDE = 0.7
+#: Share of a notched circle's circumference inside the image its clean arc must cover.
+_NOTCHED_MIN_COVER = 0.5
+#: Share of a notched circle's notches (inside it, not candidate) that must be the outside region.
+_NOTCHED_OUTSIDE = 0.7
+#: Most outside levels (step 1b): the body's shadow, the air's clipped and the air's grey.
+_MAX_OUTSIDE_LEVELS = 3
 #: Most blades cutting an iris (two pairs of shutter blades).
 _IRIS_MAX_BLADES = 4
 
@@ -486,6 +515,68 @@ def _find_outside(img: np.ndarray, med: np.ndarray, ext_hi: np.ndarray, ext_lo: 
     return _Outside(level, inside_level, tol, region, colour), ""
 
 
+def _with_second_level(out: _Outside, img: np.ndarray, med: np.ndarray, lo: float, hi: float,
+                       s: FieldSettings) -> _Outside | None:
+    """Step 1b: ``out`` with a second outside level added to its region, or ``None`` where the
+    border shows none.
+
+    Leaky blades (a collimator passing a few per cent of the beam) show a dimmed copy of what lies
+    behind them: the body's shadow at the outside's own level, and the air's, far brighter, as a
+    second flat level (clipped at the other extreme, or a smooth grey), into which the field
+    candidate runs. The second level is the mode of the border ring (the outer 2 px) outside the
+    first region, when at least ``min_border_fraction`` of the ring lies there; its region is
+    grown from those border pixels, as in step 1, over pixels within half its distance from the
+    first level and locally flat (3 x 3 standard deviation at most 3 x the seeds' median, or 1 %
+    of the contrast): a bright air shadow is smooth, anatomy is not. It must cover at least
+    ``min_outside_fraction`` of the image and be flat (``max_outside_texture``, after a plane). The
+    seam between the two regions (pixels within 10 px, twice the edge band, of both: a blurred
+    skin edge behind the blades) joins them.
+    :func:`_detect` tries this only where the outside of one level leaves no field model, and
+    keeps it only where a model then fits, so the air inside a field that runs off the image is not
+    taken out of fields that fit without it."""
+    H, W = img.shape
+    ring = np.zeros((H, W), dtype=bool)
+    ring[:_RING_PX] = ring[-_RING_PX:] = True
+    ring[:, :_RING_PX] = ring[:, -_RING_PX:] = True
+    seeds = ring & ~out.region
+    if seeds.sum() < s.min_border_fraction * ring.sum():
+        return None
+    v = med[seeds]
+    hist, edges = np.histogram(v, bins=_HIST_BINS, range=(lo, hi))
+    k = int(np.argmax(hist))
+    level = float(np.median(v[np.abs(v - 0.5 * (edges[k] + edges[k + 1])) <= (hi - lo) / _HIST_BINS]))
+    contrast = abs(out.inside_level - out.level)
+    apart = abs(level - out.level)
+    if apart < s.level_tolerance * contrast:
+        return None
+    m1 = ndimage.uniform_filter(med, size=3, mode="nearest")
+    m2 = ndimage.uniform_filter(med * med, size=3, mode="nearest")
+    sd3 = np.sqrt(np.maximum(m2 - m1 * m1, 0.0))
+    near = seeds & (np.abs(med - level) <= 0.5 * apart)
+    if near.sum() < s.min_border_fraction * ring.sum():
+        return None
+    flat_thr = max(3.0 * float(np.median(sd3[near])), 0.01 * contrast)
+    compat = (np.abs(med - level) <= 0.5 * apart) & (sd3 <= flat_thr) & ~out.region
+    lab, _ = ndimage.label(compat)  # 4-neighbours
+    start = np.unique(lab[near])
+    region = np.isin(lab, start[start > 0])
+    if region.mean() < s.min_outside_fraction:
+        return None
+    rr, cc = np.nonzero(region)
+    vals = med[region]
+    if vals.size >= 3:  # a smooth shading (heel effect, scatter) is flat too: remove a plane
+        design = np.column_stack([np.ones(vals.size), rr / H, cc / W])
+        coef, *_ = np.linalg.lstsq(design[::7], vals[::7], rcond=None)
+        vals = vals - design @ coef
+    if _mad_sigma(vals) > s.max_outside_texture * contrast:
+        return None
+    # the seam between the two levels (a blurred skin edge behind the blades, between the body's
+    # shadow and the air's) is neither flat nor at a level: it joins the outside where it lies
+    # within twice the edge band of both regions
+    seam = _dilate(out.region, 2 * _EDGE_BAND_PX) & _dilate(region, 2 * _EDGE_BAND_PX)
+    return dataclasses.replace(out, region=out.region | region | seam)
+
+
 # --------------------------------------------------------------------------------------------
 # step 2: the candidate
 
@@ -504,7 +595,9 @@ def _largest_filled(mask: np.ndarray) -> tuple[np.ndarray, float]:
 
 
 def _candidate(med: np.ndarray, out: _Outside) -> tuple[np.ndarray, str]:
-    """The field candidate ``(H, W)`` bool, or an empty mask and the reason there is none."""
+    """The field candidate ``(H, W)`` bool and ``""``, or the reason there is none and an empty
+    mask, or, where the region inside the outside level is split into large parts, the parts
+    (holes filled) and that reason."""
     # padded with the edge values: the field continues beyond the image, so the opening must
     # not round the corners where the field's boundary meets the image edge
     p = _OPEN_RADIUS + 1
@@ -512,9 +605,13 @@ def _candidate(med: np.ndarray, out: _Outside) -> tuple[np.ndarray, str]:
     cand, second = _largest_filled(rest)
     if not cand.any():
         return cand, "nothing but the outside level"
-    if second > _MAX_SECOND_PART:
-        return np.zeros_like(cand), (f"the region inside the outside level is split into parts "
-                                     f"(the second is {100 * second:.0f} % of the largest): not one field")
+    if second > _MAX_SECOND_PART:  # the parts, for a round field notched through (:func:`_fit_outside`)
+        lab, _ = ndimage.label(rest, structure=np.ones((3, 3), bool))
+        sizes = np.bincount(lab.ravel())
+        sizes[0] = 0
+        parts = ndimage.binary_fill_holes(np.isin(lab, np.flatnonzero(sizes >= _MAX_SECOND_PART * sizes.max())))
+        return parts, (f"the region inside the outside level is split into parts "
+                       f"(the second is {100 * second:.0f} % of the largest): not one field")
     full = np.ones((3, 3), bool)
     inner = ndimage.binary_erosion(cand, structure=full, iterations=_EDGE_BAND_PX, border_value=1)
     deep = ndimage.binary_erosion(inner, structure=full, iterations=_EDGE_BAND_PX, border_value=1)
@@ -558,11 +655,14 @@ def _deviation(model: np.ndarray, cand: np.ndarray) -> float:
     return float((model ^ cand).sum()) / max(1, _boundary_len(model))
 
 
-def _contour(cand: np.ndarray) -> np.ndarray:
-    """Sub-pixel outer contour (N, 2) as (row, col); runs along the image edge at -0.5 / H-0.5."""
+def _contour(cand: np.ndarray, *, every: bool = False) -> np.ndarray:
+    """Sub-pixel outer contour (N, 2) as (row, col); runs along the image edge at -0.5 / H-0.5.
+    ``every``: the points of every contour (a candidate in parts), not only the longest's."""
     from skimage import measure  # imported on use: the command line starts without it
 
     contours = measure.find_contours(np.pad(cand, 1).astype(np.float32), 0.5)
+    if every:
+        return np.concatenate(contours) - 1.0
     pts = max(contours, key=len) - 1.0
     return pts
 
@@ -761,6 +861,56 @@ def _fit_iris_blades(cand: np.ndarray, pts: np.ndarray, s: FieldSettings,
         return None
     params = {"centre_x": float(cx), "centre_y": float(cy), "radius": float(rad)}
     return model, (params | {"blades": blades} if blades else params)
+
+def _fit_notched_circle(cand: np.ndarray, pts: np.ndarray, s: FieldSettings,
+                        outside: np.ndarray | None) -> tuple[np.ndarray, dict] | None:
+    """A round field whose edge is clean along most of its visible circumference, notched deeply
+    elsewhere by anatomy clipped at the outside's level (dense bone shown black next to a black
+    outside, at high resolution: notches of 20-40 px per boundary px at 1024 px).
+
+    The circle is fitted (seeded RANSAC) to the boundary points off the image edges, its inlier
+    distance scaled with the image side like the iris limits (:data:`_IRIS_REFERENCE_SIDE_PX`: the
+    edge's blur spans more pixels at a finer pixel). It is accepted when its inliers cover at least
+    :data:`_NOTCHED_MIN_COVER` of the circumference inside the image (1-degree bins: the ragged
+    outlines of the notches add boundary points, not arc), the candidate runs beyond it by at most
+    ``_IRIS_MAX_BEYOND_PX`` (scaled) per boundary px, and what it lacks inside the circle (the
+    notches) lies in the outside region grown over the flat outside level (step 1), not in
+    textured anatomy. ``(mask, params)`` or ``None``."""
+    H, W = cand.shape
+    if outside is None:
+        return None
+    scale = max(1.0, max(H, W) / _IRIS_REFERENCE_SIDE_PX)
+    r, c = pts[:, 0], pts[:, 1]
+    off = (r > -0.25) & (r < H - 0.75) & (c > -0.25) & (c < W - 0.75)
+    if off.sum() < 20:
+        return None
+    inlier_px = s.circle_inlier_px * scale
+    fit = _fit_circle_points(c[off], r[off], inlier_px)
+    if fit is None:
+        return None
+    cx, cy, rad, inl = fit
+    if not (3.0 < rad < 4.0 * max(H, W)) or inl.sum() < 20:
+        return None
+    ang = np.deg2rad(np.arange(360) + 0.5)
+    ax, ay = cx + rad * np.cos(ang), cy + rad * np.sin(ang)
+    visible = (ax >= -0.5) & (ax <= W - 0.5) & (ay >= -0.5) & (ay <= H - 0.5)
+    if visible.sum() < 90:  # a quarter of the circle at least in view
+        return None
+    hit = np.zeros(360, bool)
+    hit[(np.rad2deg(np.arctan2(r[off][inl] - cy, c[off][inl] - cx)).astype(np.int64) % 360)] = True
+    cover = float((hit & visible).sum() / visible.sum())
+    if cover < _NOTCHED_MIN_COVER:
+        return None
+    model = _circle_mask((H, W), cx, cy, rad)
+    n = max(1, _boundary_len(model))
+    if float((cand & ~model).sum()) / n > _IRIS_MAX_BEYOND_PX * scale:
+        return None
+    notches = model & ~cand
+    if notches.any() and (outside & notches).sum() < _NOTCHED_OUTSIDE * notches.sum():
+        return None
+    return model, {"centre_x": float(cx), "centre_y": float(cy), "radius": float(rad),
+                   "arc_cover": round(cover, 3), "notched": round(float(notches.sum()) / n, 2)}
+
 
 def _fit_polygon(cand: np.ndarray, pts: np.ndarray, s: FieldSettings) -> tuple[np.ndarray, dict] | None:
     """Convex polygon: hull of the boundary points, simplified and refined to straight edges."""
@@ -968,6 +1118,9 @@ def _fit_model(cand: np.ndarray, s: FieldSettings, outside: np.ndarray | None = 
         if (devs[f"notched {kind} (beyond)"] <= _IRIS_MAX_BEYOND_PX * scale
                 and devs[f"notched {kind} (notches)"] <= _IRIS_MAX_NOTCH_PX * scale):
             return kind, fit[0], fit[1]
+    fit = _fit_notched_circle(cand, pts, s, outside)
+    if fit is not None:
+        return "circle", fit[0], fit[1]
     txt = ", ".join(f"{k} {v:.2f} px" for k, v in devs.items())
     return "none", None, {"reason": f"no field model fits the candidate (mean boundary deviation: {txt})"}
 
@@ -1144,6 +1297,20 @@ class _TooLittleField(FieldError):
     """The field or the valid pixels cover less than ``min_fraction`` of the image."""
 
 
+def _fit_outside(med: np.ndarray, out: _Outside, s: FieldSettings) -> tuple[str, np.ndarray | None, dict, str]:
+    """Steps 2-3 for one outside region: ``(kind, model mask or None, params, reason)``."""
+    cand, reason = _candidate(med, out)
+    if reason and cand.any():  # in parts: one round field whose notches reach through it may join them
+        fit = _fit_notched_circle(cand, _contour(cand, every=True), s, out.region)
+        return ("circle", fit[0], fit[1], "") if fit is not None else ("none", None, {}, reason)
+    if not reason and (cand.sum() < 0.001 * cand.size or cand.all()):
+        reason = "no field candidate inside the outside region"
+    if reason:
+        return "none", None, {}, reason
+    kind, model, params = _fit_model(cand, s, out.region)
+    return kind, model, params, ""
+
+
 def _detect(img: np.ndarray, s: FieldSettings) -> Field:
     """:func:`detect_field` on one view ``img`` ``(H, W)`` float64, validated and not constant."""
     lo, hi = float(img.min()), float(img.max())
@@ -1154,13 +1321,20 @@ def _detect(img: np.ndarray, s: FieldSettings) -> Field:
     model = None
     out, reason = _find_outside(img, med, img >= hi - q, img <= lo + q, lo, hi, s)
     if out is not None:
-        cand, reason = _candidate(med, out)
-        if not reason and (cand.sum() < 0.001 * cand.size or cand.all()):
-            reason = "no field candidate inside the outside region"
-        if not reason:
-            kind, model, params = _fit_model(cand, s, out.region)
-            if model is not None:
-                outside_colour = out.colour
+        kind, model, params, reason = _fit_outside(med, out, s)
+        if model is None:  # step 1b: leaky blades, the air behind them a second outside level
+            more, levels = out, 1
+            while model is None and levels < _MAX_OUTSIDE_LEVELS:
+                more = _with_second_level(more, img, med, lo, hi, s)
+                if more is None:
+                    break
+                levels += 1
+                fit = _fit_outside(med, more, s)
+                if fit[1] is not None:
+                    kind, model, params, reason = fit
+                    params = {**params, "outside_levels": levels}
+        if model is not None:
+            outside_colour = out.colour
     if model is None:
         field_mask = within = np.ones(img.shape, dtype=bool)
         kind = "none"

@@ -607,3 +607,70 @@ def test_a_notched_circle_is_found_at_a_finer_detector_resolution():
     assert f.kind == "circle", f.params
     assert abs(f.params["radius"] - 2 * 112) <= 3.0  # 1.5 px at 256 px
     assert abs(f.field_mask.mean() - truth.mean()) < 0.01
+
+
+# ------------------------------------------------------------------------------------------
+# leaky blades and deep notches: the outside at two levels, a circle seen along part of its edge
+
+
+def _leaky_iris(truth, seed, air_outside):
+    """A round field over a body whose lower quarter is air (a soft skin edge at row 0.72 H): in the
+    field anatomy in [0.25, 0.85] and the air clipped white (1.0); behind the blades the body's
+    shadow clipped black (0.0) and the air's at ``air_outside`` (1.0: clipped too; less: a smooth
+    grey, darker towards the edge as a heel effect would make it)."""
+    H, W = truth.shape
+    rows = np.arange(H)[:, None] * np.ones((1, W))
+    air = 1.0 / (1.0 + np.exp(-(rows - 0.72 * H) / 1.5))
+    inside = (1.0 - air) * _anatomy(truth.shape, seed) + air * 1.0
+    cols = np.ones((H, 1)) * np.arange(W)[None, :]
+    outside = air * air_outside * (1.0 - 0.1 * cols / W)
+    return np.where(truth, inside, outside)
+
+
+@pytest.mark.parametrize("air_outside", [1.0, 0.4])
+def test_leaky_iris_with_the_air_behind_it_at_a_second_level(air_outside):
+    """The air behind leaky blades is a second outside level (clipped white, or a smooth grey) that
+    the field candidate runs into: no single outside level leaves a shape model (kind ``none``
+    before step 1b); grown as a second level from the border, it leaves the circle (centre and
+    radius within 1.5 px), and the field keeps no pixel of the air behind the blades."""
+    truth_fn = _circle(128, 110, 100)
+    truth = truth_fn(S)
+    img = _as(_leaky_iris(truth, 31, air_outside), "u12")
+    f = detect_field(img)
+    assert f.kind == "circle", f.params
+    assert f.params["outside_levels"] == 2
+    cx, cy, r = truth_fn.circle
+    p = f.params
+    assert abs(p["centre_x"] - cx) <= 1.5 and abs(p["centre_y"] - cy) <= 1.5 and abs(p["radius"] - r) <= 1.5
+    dist = _boundary_distance(truth_fn, S)
+    assert ((f.field_mask != truth) & (dist > 3)).sum() == 0
+    assert not (f.mask & ~truth).any()
+
+
+def test_deeply_notched_circle_is_found_by_its_clean_arc():
+    """Four discs of anatomy at the outside's level, 45 px in radius, on a 110 px circle's edge: the
+    notches (about 14 px of area per boundary px, over the iris limits) leave about 60 % of the
+    circumference clean. The circle is found from that arc (within 1.5 px; ``arc_cover`` recorded),
+    the notches are excluded as empty plateaus, not cut from the field."""
+    truth_fn = _circle(128, 128, 110)
+    truth = truth_fn(S)
+    img = _as(_compose(truth, _notched(_anatomy(S, 41), truth, 0.0, 41, count=4, radius=45)), "u12")
+    f = detect_field(img)
+    assert f.kind == "circle", f.params
+    assert 0.5 <= f.params["arc_cover"] < 0.9 and f.params["notched"] > 4.0
+    assert abs(f.params["radius"] - 110) <= 1.5
+    assert ((f.field_mask != truth) & (_boundary_distance(truth_fn, S) > 3)).sum() == 0
+
+
+def test_a_body_outline_on_air_is_not_a_notched_circle():
+    """An open field: a round-ish body (an ellipse with lobes, not convex) on a flat black background
+    and, beside it, a smaller second part. Neither the body's outline nor the two parts together
+    cover half of any circle's circumference cleanly: kind ``none``."""
+    yy, xx = np.mgrid[:256, :256]
+    ang = np.arctan2(yy - 128, xx - 128)
+    body = ((xx - 128) / 100) ** 2 + ((yy - 128) / 90) ** 2 + 0.25 * np.sin(4 * ang) <= 1
+    f = detect_field(_compose(body, _anatomy(S, 43)))
+    assert f.kind == "none", f.params
+    legs = (((xx - 80) / 45) ** 2 + ((yy - 140) / 120) ** 2 <= 1) | (((xx - 176) / 45) ** 2 + ((yy - 140) / 120) ** 2 <= 1)
+    f = detect_field(_compose(legs, _anatomy(S, 44)))
+    assert f.kind == "none" and "split" in f.params["reason"]
