@@ -68,7 +68,12 @@ Method (deterministic; about 0.1 s for 512 x 512):
    1 px per boundary px (scaled), and at least 70 % of what it lacks inside the circle is the
    outside region (clipped at the outside's level, not textured anatomy). This one model is also
    tried on a candidate split into large parts by a notch running through the field (otherwise
-   "not one field"). A candidate that none fits (not convex: a body outline,
+   "not one field"). And a **notched polygon**: the convex polygon of step 3 accepted one-sided
+   where dark anatomy at the edge (cut by the 50 % threshold) notches shutter blades: at most 8
+   vertices, the candidate's boundary within ``circle_inlier_px`` (scaled) of at least 80 % of its
+   perimeter inside the image and 30 % of each edge (``params["edge_cover"]``), the iris's limits on
+   what runs beyond it and what it lacks, and at least a quarter of the image (smaller one-sided
+   polygons were parts of a field on the study frames: the air in it, a region of bone). A candidate that none fits (not convex: a body outline,
    dark anatomy) means no collimation: kind ``"none"``, the field is the whole image (a painted
    outside is then still excluded as an empty / saturated plateau).
    The field mask is the model's mask (not the raw candidate) eroded by ``margin_px`` from the
@@ -187,6 +192,17 @@ _IRIS_CUT_OUTSIDE = 0.7
 _NOTCHED_MIN_COVER = 0.5
 #: Share of a notched circle's notches (inside it, not candidate) that must be the outside region.
 _NOTCHED_OUTSIDE = 0.7
+#: Most vertices of a notched polygon (shutter blades: a rotated rectangle and two corner cuts).
+_NOTCHED_POLY_MAX_VERTICES = 8
+#: Share of a notched polygon's perimeter inside the image its candidate's boundary must follow.
+#: On the study frames the right notched polygons measured 0.83-0.99; polygons around a part of
+#: the field (the air in it, a dark bone region; linear displays) 0.67-0.75, one 0.99.
+_NOTCHED_POLY_COVER = 0.8
+#: Least share of the image a notched polygon must cover: that one (a 0.99 cover) covered 16 % of
+#: the image, the right ones 48-67 %, the smallest field of the studies (a small iris) 41 %.
+_NOTCHED_POLY_MIN_AREA = 0.25
+#: Share of each of its edges inside the image the boundary must follow.
+_NOTCHED_POLY_EDGE_COVER = 0.3
 #: Most outside levels (step 1b): the body's shadow, the air's clipped and the air's grey.
 _MAX_OUTSIDE_LEVELS = 3
 #: Most blades cutting an iris (two pairs of shutter blades).
@@ -942,6 +958,55 @@ def _fit_polygon(cand: np.ndarray, pts: np.ndarray, s: FieldSettings) -> tuple[n
     return model, {"vertices": vertices}
 
 
+def _notched_polygon(cand: np.ndarray, pts: np.ndarray, fit: tuple[np.ndarray, dict],
+                     s: FieldSettings) -> tuple[np.ndarray, dict] | None:
+    """The convex polygon ``fit`` (:func:`_fit_polygon`) accepted one-sided, as the notched circle
+    is: shutter blades whose straight edges are notched by anatomy clipped at the outside's level.
+
+    Accepted when it has at most :data:`_NOTCHED_POLY_MAX_VERTICES` vertices (shutters, not the
+    hull of a rounded outline), covers at least :data:`_NOTCHED_POLY_MIN_AREA` of the image (a
+    small one-sided polygon was a part of the field: the air in it, a region of bone), the candidate's boundary points lie within ``circle_inlier_px``
+    (scaled with the side) of at least :data:`_NOTCHED_POLY_COVER` of its perimeter inside the image
+    and of :data:`_NOTCHED_POLY_EDGE_COVER` of each edge's (a hull edge bridging a concavity of a
+    body outline has support at its ends only; 1 px samples, not counting the image's edges, where
+    the field runs off it), and the candidate runs beyond it and lacks inside it no more than the
+    iris's limits allow (``_IRIS_MAX_BEYOND_PX``, ``_IRIS_MAX_NOTCH_PX`` per boundary px, scaled):
+    the notches are dark anatomy at the edge that the 50 % threshold of step 2 cut, not clipped
+    (the hull of a lobed outline lacks whole bays). ``(mask, params)`` with ``edge_cover`` and
+    ``notched`` added, or ``None``."""
+    from scipy.spatial import cKDTree  # imported on use: the command line starts without it
+
+    model, params = fit
+    H, W = cand.shape
+    verts = np.array([[v[1], v[0]] for v in params["vertices"]])  # (row, col)
+    if len(verts) > _NOTCHED_POLY_MAX_VERTICES or len(pts) < 20:
+        return None
+    scale = max(1.0, max(H, W) / _IRIS_REFERENCE_SIDE_PX)
+    tree = cKDTree(pts)
+    covered = total = 0
+    for a, b in zip(verts, np.roll(verts, -1, axis=0)):
+        t = np.linspace(0.0, 1.0, max(2, int(np.ceil(np.hypot(*(b - a))))) + 1)
+        q = a[None, :] + t[:, None] * (b - a)[None, :]
+        inside = (q[:, 0] > 0.0) & (q[:, 0] < H - 1.0) & (q[:, 1] > 0.0) & (q[:, 1] < W - 1.0)
+        if inside.sum() < 10:
+            continue
+        d, _ = tree.query(q[inside])
+        hit = d <= s.circle_inlier_px * scale
+        if hit.mean() < _NOTCHED_POLY_EDGE_COVER:
+            return None
+        covered += int(hit.sum())
+        total += int(inside.sum())
+    if total == 0 or covered < _NOTCHED_POLY_COVER * total:
+        return None
+    if model.mean() < _NOTCHED_POLY_MIN_AREA:
+        return None
+    n = max(1, _boundary_len(model))
+    notched = float((model & ~cand).sum()) / n
+    if float((cand & ~model).sum()) / n > _IRIS_MAX_BEYOND_PX * scale or notched > _IRIS_MAX_NOTCH_PX * scale:
+        return None
+    return model, {**params, "edge_cover": round(covered / total, 3), "notched": round(notched, 2)}
+
+
 def _convex_polygon_mask(shape: tuple[int, int], poly: np.ndarray) -> np.ndarray:
     """``(H, W)`` bool: pixel centres inside (or on) the convex polygon ``poly`` (N, 2) (row, col)."""
     H, W = shape
@@ -1101,11 +1166,11 @@ def _fit_model(cand: np.ndarray, s: FieldSettings, outside: np.ndarray | None = 
         devs["circle"] = _deviation(fit[0], cand)
         if devs["circle"] <= s.max_boundary_px:
             return "circle", fit[0], fit[1]
-    fit = _fit_polygon(cand, pts, s)
-    if fit is not None:
-        devs["polygon"] = _deviation(fit[0], cand)
+    polygon = _fit_polygon(cand, pts, s)
+    if polygon is not None:
+        devs["polygon"] = _deviation(polygon[0], cand)
         if devs["polygon"] <= s.max_boundary_px:
-            return "polygon", fit[0], fit[1]
+            return "polygon", polygon[0], polygon[1]
     fit = _fit_iris_blades(cand, pts, s, outside)
     if fit is not None:
         # one-sided: dark (or bright) anatomy at the outside's level may notch the candidate deeply
@@ -1121,6 +1186,9 @@ def _fit_model(cand: np.ndarray, s: FieldSettings, outside: np.ndarray | None = 
     fit = _fit_notched_circle(cand, pts, s, outside)
     if fit is not None:
         return "circle", fit[0], fit[1]
+    fit = _notched_polygon(cand, pts, polygon, s) if polygon is not None else None
+    if fit is not None:
+        return "polygon", fit[0], fit[1]
     txt = ", ".join(f"{k} {v:.2f} px" for k, v in devs.items())
     return "none", None, {"reason": f"no field model fits the candidate (mean boundary deviation: {txt})"}
 

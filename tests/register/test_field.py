@@ -674,3 +674,22 @@ def test_a_body_outline_on_air_is_not_a_notched_circle():
     legs = (((xx - 80) / 45) ** 2 + ((yy - 140) / 120) ** 2 <= 1) | (((xx - 176) / 45) ** 2 + ((yy - 140) / 120) ** 2 <= 1)
     f = detect_field(_compose(legs, _anatomy(S, 44)))
     assert f.kind == "none" and "split" in f.params["reason"]
+
+
+def test_notched_shutter_polygon_is_found_one_sided():
+    """A rotated square field notched by six discs of anatomy at the outside's level on its edges
+    (no model within 0.5 px: kind ``none`` before the one-sided polygon): its hull is accepted, as
+    its edges are followed by the candidate's boundary along most of their length (``edge_cover``
+    >= 0.8) and it covers over a quarter of the image; the field within 3 px of the truth. The same
+    field at a third of the area (under a quarter of the image: a part of a field is as likely) is
+    not accepted one-sided."""
+    truth_fn = _regular_polygon(128, 124, 130, 4, 0.35)
+    truth = truth_fn(S)
+    img = _as(_compose(truth, _notched(_anatomy(S, 51), truth, 0.0, 51, count=6, radius=12), blur=0.8), "u12")
+    f = detect_field(img)
+    assert f.kind == "polygon" and len(f.params["vertices"]) == 4, f.params
+    assert f.params["edge_cover"] >= 0.8 and f.params["notched"] > 0.5
+    assert ((f.field_mask != truth) & (_boundary_distance(truth_fn, S) > 3)).sum() == 0
+    small = _regular_polygon(128, 124, 75, 4, 0.35)(S)
+    g = detect_field(_as(_compose(small, _notched(_anatomy(S, 51), small, 0.0, 51, count=6, radius=12), blur=0.8), "u12"))
+    assert small.mean() < 0.25 and "edge_cover" not in g.params
