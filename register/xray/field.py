@@ -1385,31 +1385,39 @@ def _detect(img: np.ndarray, s: FieldSettings) -> Field:
     q = _quant_step(img, lo, hi)
     med = ndimage.median_filter(img, size=3, mode="nearest")
 
-    kind, outside_colour, params = "none", None, {}
-    model = None
+    kind, params, model, leveled = "none", {}, None, False
     out, reason = _find_outside(img, med, img >= hi - q, img <= lo + q, lo, hi, s)
     if out is not None:
         kind, model, params, reason = _fit_outside(med, out, s)
-        if model is None:  # step 1b: leaky blades, the air behind them a second outside level
-            more, levels = out, 1
-            while model is None and levels < _MAX_OUTSIDE_LEVELS:
-                more = _with_second_level(more, img, med, lo, hi, s)
-                if more is None:
-                    break
-                levels += 1
-                fit = _fit_outside(med, more, s)
-                if fit[1] is not None:
-                    kind, model, params, reason = fit
-                    params = {**params, "outside_levels": levels}
-        if model is not None:
-            outside_colour = out.colour
+        more, levels = out, 1
+        while model is None and levels < _MAX_OUTSIDE_LEVELS:  # step 1b: leaky blades
+            more = _with_second_level(more, img, med, lo, hi, s)
+            if more is None:
+                break
+            levels += 1
+            fit = _fit_outside(med, more, s)
+            if fit[1] is not None:
+                kind, model, params, _ = fit
+                params, leveled = {**params, "outside_levels": levels}, True
+    if model is not None:
+        try:
+            return _field_result(img, med, lo, hi, q, s, kind, model, params, out.colour)
+        except _TooLittleField:
+            if not leveled:
+                raise
+            # a field of a second level that leaves too little (a region of the air taken for the
+            # field) is not kept: the image reads as without a fitted field, as before step 1b
+    return _field_result(img, med, lo, hi, q, s, "none", None, {"reason": reason}, None)
+
+
+def _field_result(img: np.ndarray, med: np.ndarray, lo: float, hi: float, q: float, s: FieldSettings, kind: str,
+                  model: np.ndarray | None, params: dict, outside_colour: str | None) -> Field:
+    """Steps 4-5 for a fitted model (``None``: kind ``"none"``, the whole image): the
+    :class:`Field`, or :class:`_TooLittleField` where the field or the valid pixels are too few."""
     if model is None:
         field_mask = within = np.ones(img.shape, dtype=bool)
-        kind = "none"
-        params = params if params else {"reason": reason}
     else:
         field_mask, within = _erode_model(kind, model, params, (s.margin_px, min(s.margin_px, 1.0)))
-
     excl = _exclusions(img, within, field_mask, lo, hi, q, med, s)
     mask = field_mask & ~(excl["overlay"] | excl["saturated"] | excl["empty"])
     result = Field(mask=mask, field_mask=field_mask, kind=kind, outside=outside_colour, params=params,
