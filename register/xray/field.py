@@ -1403,10 +1403,11 @@ def _detect(img: np.ndarray, s: FieldSettings) -> Field:
         try:
             return _field_result(img, med, lo, hi, q, s, kind, model, params, out.colour)
         except _TooLittleField:
-            if not leveled:
+            if not (leveled or "arc_cover" in params or "edge_cover" in params):
                 raise
-            # a field of a second level that leaves too little (a region of the air taken for the
-            # field) is not kept: the image reads as without a fitted field, as before step 1b
+            # a field of a second level or a one-sided fit (a notched circle or polygon) that
+            # leaves too little (a region of the air taken for the field) is not kept: the image
+            # reads as without a fitted field, as before those models
     return _field_result(img, med, lo, hi, q, s, "none", None, {"reason": reason}, None)
 
 

@@ -693,3 +693,27 @@ def test_notched_shutter_polygon_is_found_one_sided():
     small = _regular_polygon(128, 124, 75, 4, 0.35)(S)
     g = detect_field(_as(_compose(small, _notched(_anatomy(S, 51), small, 0.0, 51, count=6, radius=12), blur=0.8), "u12"))
     assert small.mean() < 0.25 and "edge_cover" not in g.params
+
+
+def test_a_one_sided_fit_leaving_too_little_is_dropped_not_refused(monkeypatch):
+    """A field from a second outside level or a one-sided (notched) fit that leaves under
+    ``min_fraction`` valid pixels (on a study frame: a region of air taken for the field) is
+    dropped, and the image reads as without a fitted field; a clean fit that small still refuses."""
+    import register.xray.field as field_module
+
+    img = _as(_compose(_circle(128, 128, 100)(S), _anatomy(S, 61)), "u12")
+    tiny = _circle(128, 128, 20)(S)
+
+    def one_sided(med, out, s):
+        return "circle", tiny, {"centre_x": 128.0, "centre_y": 128.0, "radius": 20.0, "arc_cover": 0.6}, ""
+
+    monkeypatch.setattr(field_module, "_fit_outside", one_sided)
+    f = detect_field(img)
+    assert f.kind == "none" and f.view == "display" and f.field_mask.all()
+
+    def clean(med, out, s):
+        return "circle", tiny, {"centre_x": 128.0, "centre_y": 128.0, "radius": 20.0}, ""
+
+    monkeypatch.setattr(field_module, "_fit_outside", clean)
+    with pytest.raises(FieldError, match="covers only"):
+        detect_field(img)
