@@ -447,6 +447,14 @@ class _Outside:
     colour: str
 
 
+def _border_ring(shape: tuple[int, int]) -> np.ndarray:
+    """``(H, W)`` bool: the outer :data:`_RING_PX` px of the image, whose levels give the outside's."""
+    ring = np.zeros(shape, dtype=bool)
+    ring[:_RING_PX] = ring[-_RING_PX:] = True
+    ring[:, :_RING_PX] = ring[:, -_RING_PX:] = True
+    return ring
+
+
 def _thin_parts(mask: np.ndarray, max_width: float) -> np.ndarray:
     """The 8-connected components of ``mask`` no wider than ``max_width`` px (strokes, not blobs)."""
     if not mask.any():
@@ -464,10 +472,7 @@ def _find_outside(img: np.ndarray, med: np.ndarray, ext_hi: np.ndarray, ext_lo: 
     (one line) why the image shows no collimator."""
     H, W = img.shape
     rng = hi - lo
-    ring = np.zeros((H, W), dtype=bool)
-    b = _RING_PX
-    ring[:b] = ring[-b:] = True
-    ring[:, :b] = ring[:, -b:] = True
+    ring = _border_ring((H, W))
     v = med[ring]
     hist, edges = np.histogram(v, bins=_HIST_BINS, range=(lo, hi))
     k = int(np.argmax(hist))
@@ -551,9 +556,7 @@ def _with_second_level(out: _Outside, img: np.ndarray, med: np.ndarray, lo: floa
     keeps it only where a model then fits, so the air inside a field that runs off the image is not
     taken out of fields that fit without it."""
     H, W = img.shape
-    ring = np.zeros((H, W), dtype=bool)
-    ring[:_RING_PX] = ring[-_RING_PX:] = True
-    ring[:, :_RING_PX] = ring[:, -_RING_PX:] = True
+    ring = _border_ring((H, W))
     seeds = ring & ~out.region
     if seeds.sum() < s.min_border_fraction * ring.sum():
         return None
