@@ -10,7 +10,7 @@ key                 content
 ``format``          :data:`FORMAT` (marks a ctxreg checkpoint)
 ``format_version``  int, :data:`FORMAT_VERSION` when written by this code
 ``model``           the :class:`learn.model.PoseUpdateNet` state dict (name -> tensor)
-``architecture``    ``{"backbone": "tiny" | "small" | "densenet121" | "densenet161", "head_channels": int}``
+``architecture``    ``{"backbone": "tiny" | "small" | "medium" | "densenet121" | "densenet161", "head_channels": int}``
 ``image_size``      ``[H, W]`` pixels of the training images (the network's input size)
 ``preprocess``      the :mod:`learn.preprocess` steps (names or records) applied to both images
 ``physics``         the campaign ``[[physics]]`` entry (dict) of the training target images

@@ -105,6 +105,7 @@ class Backbone(str, enum.Enum):
     DENSENET121 = "densenet121"  #: smaller: growth 32, blocks (6, 12, 24, 16), 64 init
     TINY = "tiny"  #: for CPU tests and fast training: growth 8, blocks (2, 2, 2, 2), 16 init
     SMALL = "small"  #: the tiny one widened and deepened for GPU training: growth 16, blocks (3, 4, 6, 4), 32 init
+    MEDIUM = "medium"  #: the small one widened and deepened where it flattened: growth 24, blocks (4, 6, 8, 6), 48 init
 
 
 # (growth_rate, block_config, num_init_features) as torchvision's DenseNet takes them.
@@ -113,6 +114,7 @@ _BACKBONE_CONFIG: dict[Backbone, tuple[int, tuple[int, int, int, int], int]] = {
     Backbone.DENSENET121: (32, (6, 12, 24, 16), 64),
     Backbone.TINY: (8, (2, 2, 2, 2), 16),
     Backbone.SMALL: (16, (3, 4, 6, 4), 32),
+    Backbone.MEDIUM: (24, (4, 6, 8, 6), 48),
 }
 
 # torchvision's ImageNet checkpoint file names (torch.hub cache names).
@@ -493,7 +495,7 @@ def pose_update_net(
     """Build a :class:`PoseUpdateNet`.
 
     Args:
-        backbone: ``"densenet161"`` (as in the method), ``"densenet121"``, ``"small"`` or ``"tiny"``.
+        backbone: ``"densenet161"`` (as in the method), ``"densenet121"``, ``"medium"``, ``"small"`` or ``"tiny"``.
         weights: :attr:`Weights.NONE` (random) or :attr:`Weights.IMAGENET_LOCAL` (torchvision's
             ImageNet checkpoint from ``weights_path``, default :func:`default_weights_path`).
         weights_path: the checkpoint file for ``IMAGENET_LOCAL``; must be None for ``NONE``.

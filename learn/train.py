@@ -69,7 +69,7 @@ class TrainConfig:
         dataset: campaign folder (written by ``ctxreg simulate``), or a campaign ``.toml`` file to
             render pairs on the fly (:class:`learn.online.OnlinePairs`).
         out: output folder for checkpoints and logs.
-        backbone: "tiny", "small", "densenet121" or "densenet161" (:class:`learn.model.Backbone`).
+        backbone: "tiny", "small", "medium", "densenet121" or "densenet161" (:class:`learn.model.Backbone`).
         weights: "none" or "imagenet_local" (needs ``weights_path``).
         weights_path: local torchvision DenseNet checkpoint (no download is possible).
         freeze_backbone: train the heads only.
@@ -949,7 +949,9 @@ def validate_checkpoint(cfg: TrainConfig, checkpoint: str | os.PathLike, *, devi
         source.close()
 
 
+@torch.no_grad()
 def _validate(model, source, cfg: TrainConfig, device=None) -> dict:
+    """Validation errors by group; no autograd graph (it kept every validation batch's)."""
     from learn.labels import LabelNormalizer
 
     model.eval()

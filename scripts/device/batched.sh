@@ -2,7 +2,7 @@
 # batched_bundle.sh): probes, then trains every config at once on the one GPU for BUDGET seconds in
 # all (each stopping with a checkpoint: ctxreg train --stop-after), each resuming from its out
 # folder's checkpoint when that was carried; each run's checkpoint, log.csv and train.log go to
-# $OUT/<run folder name>/.
+# $OUT/<run folder name>/ (a checkpoint over 15 MB in parts: cat checkpoint.pt.part.* > checkpoint.pt).
 #   bash scripts/device/batched.sh 540 [CONFIG ...]
 set -o pipefail
 T0=$SECONDS; BUDGET=${1:-540}; shift; CONFIGS=("$@"); [ ${#CONFIGS[@]} -eq 0 ] && CONFIGS=(configs/train_batched_gpu.toml)
@@ -28,7 +28,14 @@ for CONFIG in "${CONFIGS[@]}"; do
   # learn's own entry (ctxreg train's run_train), so that nothing of register/ is imported
   ( python3 -c "from learn.commands import TrainCommand, run_train; run_train(TrainCommand(config='$CONFIG', resume=bool('$resume'), device='${DEVICE:-cuda}', stop_after=float($left)))" 2>&1 \
       | python3 $R/scripts/device/ts.py | tr '\r' '\n' | grep -v "ETA" > $OUT/$NAME/train.log
-    cp $RUN/checkpoint.pt $RUN/log.csv $OUT/$NAME/ 2>/dev/null ) &
+    cp $RUN/log.csv $OUT/$NAME/ 2>/dev/null
+    # files come back up to 16 MiB each: a larger checkpoint (medium: 19 MB) comes in parts,
+    # joined here with: cat checkpoint.pt.part.* > checkpoint.pt (sha256 in train.log)
+    if [ -f $RUN/checkpoint.pt ]; then
+      sha256sum $RUN/checkpoint.pt >> $OUT/$NAME/train.log
+      if [ $(stat -c %s $RUN/checkpoint.pt) -gt 15000000 ]; then split -b 15000000 $RUN/checkpoint.pt $OUT/$NAME/checkpoint.pt.part.
+      else cp $RUN/checkpoint.pt $OUT/$NAME/; fi
+    fi ) &
 done
 wait
 for d in $OUT/*/; do echo "== $d"; tail -15 $d/train.log; done
