@@ -387,6 +387,26 @@ def test_densenet161_builds_and_runs():
     assert time.perf_counter() - t0 < 10, f"{n_total:,} params, took {time.perf_counter() - t0:.1f} s"
 
 
+def test_the_medium_backbone_is_the_small_one_wider_and_deeper():
+    """``medium`` (growth 24, blocks 4-6-8-6, 48 init): DenseNet's feature counts follow from the
+    config (init + blocks x growth, halved at each transition), so its taps' channels are known in
+    closed form; about twice ``small``'s parameters, and the same output shapes."""
+    import torch
+
+    from learn.model import pose_update_net
+
+    small, medium = pose_update_net(backbone="small"), pose_update_net(backbone="medium")
+    n_small = sum(p.numel() for p in small.parameters())
+    n_medium = sum(p.numel() for p in medium.parameters())
+    assert 1.8 * n_small < n_medium < 2.2 * n_small, (n_small, n_medium)
+    # features: 48 -> +4x24 = 144 -> 72 -> +6x24 = 216 -> 108 -> +8x24 = 300 -> 150 -> +6x24 = 294
+    assert medium.backbone.channels[-1] == 294, medium.backbone.channels
+    x = torch.randn(2, 1, 64, 64)
+    out = medium(x, x)
+    assert out.g.shape == (2, 6) and out.g_levels.shape == (2, 3, 6)
+    assert bool(torch.isfinite(out.g).all())
+
+
 def test_the_small_backbone_is_the_tiny_one_wider_and_deeper():
     """``small`` (growth 16, blocks 3-4-6-4): more parameters than ``tiny``, the same outputs' shapes
     and taps at the same strides, so checkpoints record it and heads fit it like the others."""
