@@ -331,6 +331,11 @@ class BatchedPairs(OnlinePairs):
             q = {k: v[rows] for k, v in p.items()}
             display[rows], field[rows] = self._realistic(subject[real_rows], t_a[real_rows], index[real_rows], q,
                                                          [draws[i] for i in real_rows])
+        # a field registration missed (field_missed): the whole detector shown, the shadow or shutter
+        # outside the field included, as registration shows a field read as none
+        missed = p["field_missed"].bool() & (p["field_code"] != 0) & ~ideal
+        if bool(missed.any()):
+            field[missed] = True
         log_display = p["log"].bool() | ideal
         bone_dark = (p["polarity"] == 0) & ~ideal  # choice 0: "bone-dark"
         return self._prepared(display, field, current, log_display, bone_dark, t_a, t_b)

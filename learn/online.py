@@ -445,6 +445,8 @@ class OnlinePairs:
                         continue
                     gap = float(self.realistic.geometry.sdd_mm - T_a[i][2, 3])  # detector_gap_mm of the target
                     display, field, _ = self.realistic.image(L[at[j]], int(k) * MAX_BATCH + int(i), gap)
+                    if draw["field_missed"] and draw["field"] != "none":  # shown as a field read as none
+                        field = np.ones_like(field)
                     images[0, i], images[1, i] = prepare_like_registration(
                         display, field, current[j], log_display=bool(draw["log"]),
                         bone_dark=draw["polarity"] == "bone-dark", mask_current=mask_current, tone=toned)

@@ -469,6 +469,11 @@ DECLARATION: tuple[Randomized, ...] = (
     _lu("sks_texture_sigma", "signal", 0.02, 0.1, "Gaussian sigma of the sks scatter's texture (a Monte Carlo "
                                                   "estimate's noise at 10^6 histories: about 0.03)",
         "fraction of the shorter side", limits=(0.0, 1.0), when=("scatter", ("sks",))),
+    _b("field_missed", "collimator", 0.0, "registration's field detection missed this collimated field: the "
+                                         "network is shown the whole detector, the blades' shadow or the "
+                                         "shutter outside the field included (what registration shows for a "
+                                         "field read as none); realistic targets only (an ideal target has no "
+                                         "shadow)", when=_FIELD),
 )
 
 _DECLARED: dict[str, Randomized] = {r.name: r for r in DECLARATION}

@@ -153,6 +153,54 @@ def test_displayed_pairs_of_a_batch_displays_are_the_batch(both, monkeypatch):
                                 log_display=True, bone_dark=False)
 
 
+def test_a_missed_field_shows_the_whole_detector(campaign, tmp_path, monkeypatch):
+    """``field_missed`` (a field registration read as none): the same draws otherwise (the setting
+    is appended to the stream), the same displayed images, but each collimated realistic target is
+    prepared over the whole detector (its shadow or shutter shown), while open fields and ideal
+    targets keep theirs; per-pair and batched paths agree within the first test's bounds where a shutter
+    covers the outside."""
+    from learn.batched import BatchedPairs
+
+    k, n = 3, 16
+    runs = {}
+    real = BatchedPairs._prepared
+    for p_missed in (0.0, 1.0):
+        r = DomainRandomization.from_table({**TABLE, "field_missed": p_missed})
+        batched = BatchedPairs(campaign, "train", seed=5, randomization=r, tables=tmp_path)
+        seen = {}
+
+        def capture(self, display, field, *rest, seen=seen):
+            seen.update(display=display.clone(), field=field.clone())
+            return real(self, display, field, *rest)
+
+        monkeypatch.setattr(BatchedPairs, "_prepared", capture)
+        out = batched.batch(k, n)
+        monkeypatch.setattr(BatchedPairs, "_prepared", real)
+        runs[p_missed] = (r, batched, seen, out)
+    r1, batched1, seen1, out1 = runs[1.0]
+    _, _, seen0, out0 = runs[0.0]
+    draws = [r1.draw(5, k * (1 << 16) + i) for i in range(n)]
+    missed = [i for i, d in enumerate(draws) if d["field"] != "none" and not d["ideal"]]
+    kept = [i for i in range(n) if i not in missed]
+    assert missed and kept
+    torch.testing.assert_close(seen1["display"], seen0["display"], rtol=0, atol=0)
+    assert bool(seen1["field"][missed].all())
+    assert not bool(seen0["field"][missed].all(dim=(1, 2)).any())  # each had a field to miss
+    torch.testing.assert_close(seen1["field"][kept], seen0["field"][kept], rtol=0, atol=0)
+    torch.testing.assert_close(out1[0][kept], out0[0][kept], rtol=0, atol=0)
+    torch.testing.assert_close(out1[2], out0[2], rtol=0, atol=0)
+    assert all(float((out1[0][i] - out0[0][i]).abs().mean()) > 1e-3 for i in missed)
+    # the per-pair path agrees where the outside is a shutter (black or white); where it is the
+    # processed shadow (shutter none) the two paths' photon-starved shadows differ (one pair of these
+    # 16: 0.40 mean absolute difference, correlation 0.44; not yet explained, docs/training.md)
+    per_pair = OnlinePairs(campaign, "train", seed=5, randomization=r1)
+    a1, _, _ = per_pair.batch(k, n)
+    shuttered = [i for i in missed if draws[i]["shutter"] != "none"]
+    assert len(shuttered) >= 3
+    mad = [float(np.abs(a1.numpy()[i] - out1[0].numpy()[i]).mean()) for i in shuttered]
+    assert max(mad) < 0.08 and np.median(mad) < 0.03, mad
+
+
 def test_the_ap_pairs_are_the_batch_targets_with_the_current_image_at_ap(both, campaign):
     """``ap_batch(k, n)``: batch k's targets unchanged, every current image the AP start's (pose
     parameters zero, as ``register.api.parse_init("ap")``), labels from that start."""
