@@ -23,6 +23,11 @@ left=$((BUDGET - (SECONDS - T0) - 75))
 for CONFIG in "${CONFIGS[@]}"; do
   RUN=$(python3 -c "import sys, tomllib, os; c = tomllib.load(open(sys.argv[1], 'rb'))['train']; print(os.path.normpath(os.path.join(os.path.dirname(sys.argv[1]), c['out'])))" $CONFIG)
   NAME=$(basename $RUN); mkdir -p $OUT/$NAME
+  # the committed resume state travels with the tree (resume/<name>/): a run with no checkpoint of
+  # its own carried starts from it, so that only the tables need carrying (the tree's 64 MiB)
+  if [ ! -f $RUN/checkpoint.pt ] && [ -f resume/$NAME/checkpoint.pt ]; then
+    mkdir -p $RUN && cp resume/$NAME/checkpoint.pt resume/$NAME/log.csv $RUN/; echo "$NAME: from resume/$NAME"
+  fi
   resume=; [ -f $RUN/checkpoint.pt ] && resume=--resume
   echo "set-up $((SECONDS - T0)) s; $CONFIG -> $RUN: training for $left s $resume"
   # learn's own entry (ctxreg train's run_train), so that nothing of register/ is imported
