@@ -37,8 +37,12 @@ class CMAESSettings:
         size: ``(rows, cols)`` of the finest rendering before ``levels`` divide it.
         sigma_deg / sigma_mm: initial CMA-ES step sizes of the rotation / translation parameters
             at the first level; later levels start at ``sigma_shrink`` times them.
+        sigma_depth_mm: initial step size of the depth ``tz`` (mm), None = ``sigma_mm``: a single
+            view constrains depth (the magnification) least, and a start from the network is off in
+            depth by several times its in-plane error (docs/results.md).
         sigma_shrink: step-size factor from one level to the next.
         range_deg / range_mm: the search box: start +- range (rotations, translations).
+        range_depth_mm: the box's half-width in depth ``tz`` (mm), None = ``range_mm``.
         popsize: CMA-ES population per generation (rendered as one batch).
         generations: the most generations per level (one number for all levels, or one per level).
         metrics: similarity per level (names of :data:`register.engines.metrics.METRICS`); one name for
@@ -63,6 +67,8 @@ class CMAESSettings:
     sigma_shrink: float = 0.3
     range_deg: float = 60.0
     range_mm: float = 150.0
+    sigma_depth_mm: float | None = None
+    range_depth_mm: float | None = None
     popsize: int = 24
     generations: tuple[int, ...] = (60, 40)
     metrics: tuple[str, ...] = ("gncc", "gncc")
@@ -77,10 +83,13 @@ class CMAESSettings:
             raise RegistrationError(f"levels must be downsampling factors >= 1, got {self.levels}")
         if any(s % max(self.levels) for s in self.size):
             raise RegistrationError(f"size {self.size} must be divisible by every level factor {self.levels}")
-        for name in ("sigma_deg", "sigma_mm", "range_deg", "range_mm", "sigma_shrink"):
+        for name in ("sigma_deg", "sigma_mm", "range_deg", "range_mm", "sigma_shrink", "sigma_depth_mm",
+                     "range_depth_mm"):
             v = getattr(self, name)
-            if not (np.isfinite(v) and v > 0):
-                raise RegistrationError(f"{name} must be positive, got {v}")
+            if v is None and name.endswith("depth_mm"):
+                continue
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not (np.isfinite(v) and v > 0):
+                raise RegistrationError(f"{name} must be a positive number, got {v!r}")
         if not (isinstance(self.restarts, int) and 0 <= self.restarts <= 10):
             raise RegistrationError(f"restarts must be an integer in [0, 10], got {self.restarts}")
         if not (np.isfinite(self.restart_below) and -1.0 <= self.restart_below <= 1.0):
@@ -96,6 +105,12 @@ class CMAESSettings:
                 get_metric(m)
             except InputError as e:
                 raise RegistrationError(f"metrics: {e}") from None
+
+    def depth(self, what: str) -> float:
+        """The depth's ``"sigma"`` or ``"range"`` (mm): ``sigma_depth_mm`` / ``range_depth_mm``, or
+        the translations' where None."""
+        v = getattr(self, f"{what}_depth_mm")
+        return float(getattr(self, f"{what}_mm") if v is None else v)
 
     def per_level(self, name: str, level: int):
         v = getattr(self, name)
@@ -255,7 +270,7 @@ class CMAESRegistration:
     def _scale(self) -> np.ndarray:
         """``(6,)``: CMA-ES searches in deg-like units, translations divided by sigma_mm / sigma_deg."""
         s = self.settings
-        return np.array([1.0] * 3 + [s.sigma_mm / s.sigma_deg] * 3)
+        return np.array([1.0] * 3 + [s.sigma_mm / s.sigma_deg] * 2 + [s.depth("sigma") / s.sigma_deg])
 
     def _checked(self, fixed) -> np.ndarray:
         """``fixed`` as float64 ``(H, W)`` at ``settings.size``, finite."""
@@ -270,7 +285,7 @@ class CMAESRegistration:
     def _box(self, x0):
         """The search box ``(lo, hi)`` ``(6,)`` around a start (deg, mm)."""
         s = self.settings
-        half = np.array([s.range_deg] * 3 + [s.range_mm] * 3)
+        half = np.array([s.range_deg] * 3 + [s.range_mm] * 2 + [s.depth("range")])
         return x0 - half, x0 + half
 
     def polish(self, fixed: np.ndarray, params, *, start=None, mask: np.ndarray | None = None

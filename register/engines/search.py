@@ -70,6 +70,9 @@ class GlobalSearchSettings:
             than one step in some angle, or one depth step, or 20 mm in-plane).
         local_sigma_deg / local_sigma_mm: the local CMA-ES's initial steps (3 deg, 8 mm).
         local_range_deg / local_range_mm: its box around each start (12 deg, 35 mm).
+        local_sigma_depth_mm / local_range_depth_mm: its step and box in depth ``tz`` (mm; None: the
+            translations' ``local_sigma_mm`` / ``local_range_mm``), as the refinement's
+            (:data:`register.engines.pipeline.REFINE_SETTINGS`, :class:`register.engines.cmaes.CMAESSettings`).
         local_generations / local_fine_generations: a start from the grid's own ranking (or a given
             one) runs ``local_generations`` (default 25) at ``factor``, whose wide basins reach a
             pose half a grid step away, then ``local_fine_generations`` (default 10; 0: none) at
@@ -109,6 +112,8 @@ class GlobalSearchSettings:
     local_sigma_mm: float = 8.0
     local_range_deg: float = 12.0
     local_range_mm: float = 35.0
+    local_sigma_depth_mm: float | None = None
+    local_range_depth_mm: float | None = None
     local_generations: int = 25
     local_fine_generations: int = 10
     local_popsize: int = 16
@@ -123,9 +128,12 @@ class GlobalSearchSettings:
         if len(r) != 3 or not all(np.isfinite(v) and 0 <= v <= 180 for v in r):
             raise RegistrationError(f"range_deg must be three half-widths in [0, 180] deg, got {self.range_deg}")
         object.__setattr__(self, "range_deg", r)
-        for name in ("step_deg", "range_mm", "local_sigma_deg", "local_sigma_mm", "local_range_deg", "local_range_mm"):
+        for name in ("step_deg", "range_mm", "local_sigma_deg", "local_sigma_mm", "local_range_deg", "local_range_mm",
+                     "local_sigma_depth_mm", "local_range_depth_mm"):
             v = getattr(self, name)
-            if not (isinstance(v, (int, float)) and np.isfinite(v) and v > 0):
+            if v is None and name.endswith("depth_mm"):
+                continue
+            if isinstance(v, bool) or not (isinstance(v, (int, float)) and np.isfinite(v) and v > 0):
                 raise RegistrationError(f"{name} must be a positive number, got {v!r}")
         for name, lo in (("depths", 1), ("factor", 1), ("local_factor", 1), ("rescore", 0), ("candidates", 1),
                          ("finalists", 1), ("local_generations", 1), ("local_fine_generations", 0),
@@ -243,7 +251,9 @@ class GlobalSearch:
         self.center_lps = np.asarray(anatomy_center(volume) if center_lps is None else center_lps, float)
         self.physics = physics  # of the local search's moving images (None: line DRRs)
         common = dict(size=size, sigma_deg=s.local_sigma_deg, sigma_mm=s.local_sigma_mm, range_deg=s.local_range_deg,
-                      range_mm=s.local_range_mm, popsize=s.local_popsize, metrics=(s.metric,), polish=False, seed=s.seed)
+                      range_mm=s.local_range_mm, sigma_depth_mm=s.local_sigma_depth_mm,
+                      range_depth_mm=s.local_range_depth_mm, popsize=s.local_popsize, metrics=(s.metric,), polish=False,
+                      seed=s.seed)
         where = dict(scene=scene, geometry=geometry, center_lps=self.center_lps, physics=physics,
                      label_materials=label_materials)
         coarse = ((s.factor, s.local_factor), (s.local_generations, s.local_fine_generations))

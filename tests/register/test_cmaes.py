@@ -125,6 +125,30 @@ def test_the_polish_recovers_a_depth_error_along_the_view_ray(phantom):
     assert abs(plain.params[5] - truth[5]) > 20.0 and plain.similarity < polished.similarity
 
 
+def test_the_depth_gets_its_own_box_and_step(phantom):
+    """A start 50 mm off in depth alone (what the network's pose often is: docs/results.md): a box of
+    +-30 mm in every translation leaves the search on its edge, 20 mm from the truth; the depth's own
+    box and step (``range_depth_mm``, ``sigma_depth_mm``, the refinement's) reach the truth. The
+    other translations keep ``range_mm``."""
+    from dataclasses import replace
+
+    vol, c = phantom
+    truth = np.array([4.0, -3.0, 2.0, 6.0, -4.0, 5.0])
+    narrow = CMAESSettings(levels=(1,), size=(64, 64), popsize=12, generations=(30,), sigma_deg=3.0, sigma_mm=8.0,
+                           range_deg=10.0, range_mm=30.0, metrics=("gncc",), polish=False)
+    engine = CMAESRegistration(vol, narrow, center_lps=c)
+    target = engine.render(truth, 1)[0]
+    start = truth + np.array([0.0, 0.0, 0.0, 0.0, 0.0, 50.0])
+    boxed = engine.register(target, start)
+    assert boxed.params[5] == pytest.approx(start[5] - 30.0, abs=1.0), boxed.params  # on the box's edge
+    deep = CMAESRegistration(vol, replace(narrow, sigma_depth_mm=24.0, range_depth_mm=90.0), center_lps=c)
+    found = deep.register(target, start)
+    assert abs(found.params[5] - truth[5]) < 3.0 and found.similarity > boxed.similarity, found.params
+    lo, hi = deep._box(start)
+    np.testing.assert_allclose(hi - start, [10.0] * 3 + [30.0, 30.0, 90.0])
+    assert narrow.depth("range") == 30.0 and narrow.depth("sigma") == 8.0 and deep.settings.depth("sigma") == 24.0
+
+
 def test_searches_in_lockstep_give_each_start_its_own_result(phantom):
     """register_many renders every search's population in one batch; each search draws from its own
     generator, so each start gets exactly the result register gives it alone."""
@@ -172,6 +196,11 @@ def test_bad_settings_and_inputs_are_named(phantom):
         CMAESSettings(levels=(3,), size=(64, 64))
     with pytest.raises(RegistrationError, match="popsize"):
         CMAESSettings(popsize=2)
+    for bad_depth in (0.0, -5.0, float("nan"), "30", True):
+        with pytest.raises(RegistrationError, match="range_depth_mm"):
+            CMAESSettings(range_depth_mm=bad_depth)
+    with pytest.raises(RegistrationError, match="sigma_depth_mm"):
+        CMAESSettings(sigma_depth_mm=float("inf"))
     with pytest.raises(RegistrationError, match="one per level"):
         CMAESSettings(levels=(4, 2, 1), generations=(10, 10))
     vol, c = phantom

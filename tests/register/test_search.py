@@ -60,6 +60,8 @@ def test_settings_are_checked():
                        (dict(rescore=-1), "rescore"), (dict(local_factor=0), "local_factor"),
                        (dict(finalists=0), "finalists"), (dict(local_generations=0), "local_generations"),
                        (dict(local_fine_generations=-1), "local_fine_generations"),
+                       (dict(local_range_depth_mm=0.0), "local_range_depth_mm"),
+                       (dict(local_sigma_depth_mm=float("nan")), "local_sigma_depth_mm"),
                        (dict(metric="mutual_information"), "metric: .*unknown name 'mutual_information'")]:
         with pytest.raises(RegistrationError, match=match):
             GlobalSearchSettings(**bad)
