@@ -43,12 +43,13 @@ __all__ = ["ContextualPipeline", "REFINE_SETTINGS"]
 #: gradient NCC (:func:`register.engines.metrics.tone_tolerant_gradient_ncc`): half of it blind to the
 #: display's curve. An image of line integrals (a raw or log X-ray, a DRR) is scored by gradient NCC:
 #: on 50 line DRRs the tone-tolerant score lost a case (98 % against 100 %) and cost 0.5 s.
-#: Depth (``tz``) gets three times the box and step: the network's depth, read from the
-#: magnification alone, is off by 20-75 mm where its in-plane translation is off by 0-13 mm
-#: (docs/results.md, "The refinement's box in depth"), and a 30 mm box left such starts on its edge.
+#: Depth (``tz``) gets three times the box: the network's depth, read from the magnification alone,
+#: is off by 20-75 mm where its in-plane translation is off by 0-13 mm (docs/results.md, "The
+#: refinement's box in depth"), and a 30 mm box left such starts on its edge. Its first step stays
+#: the translations' 8 mm (CMA-ES lengthens it where the way is long): three times that step sent
+#: one of 50 line DRRs into another basin.
 REFINE_SETTINGS = CMAESSettings(levels=(2,), sigma_deg=3.0, sigma_mm=8.0, range_deg=10.0, range_mm=30.0,
-                                sigma_depth_mm=24.0, range_depth_mm=90.0, generations=(40,),
-                                metrics=("tone_tolerant_gncc",))
+                                range_depth_mm=90.0, generations=(40,), metrics=("tone_tolerant_gncc",))
 
 
 class ContextualPipeline:

@@ -128,25 +128,28 @@ def test_the_polish_recovers_a_depth_error_along_the_view_ray(phantom):
 def test_the_depth_gets_its_own_box_and_step(phantom):
     """A start 50 mm off in depth alone (what the network's pose often is: docs/results.md): a box of
     +-30 mm in every translation leaves the search on its edge, 20 mm from the truth; the depth's own
-    box and step (``range_depth_mm``, ``sigma_depth_mm``, the refinement's) reach the truth. The
-    other translations keep ``range_mm``."""
+    box (``range_depth_mm``, the refinement's) reaches the truth, with the translations' first step
+    or a longer one of its own (``sigma_depth_mm``). The other translations keep ``range_mm``."""
     from dataclasses import replace
 
     vol, c = phantom
     truth = np.array([4.0, -3.0, 2.0, 6.0, -4.0, 5.0])
-    narrow = CMAESSettings(levels=(1,), size=(64, 64), popsize=12, generations=(30,), sigma_deg=3.0, sigma_mm=8.0,
+    narrow = CMAESSettings(levels=(1,), size=(64, 64), popsize=24, generations=(40,), sigma_deg=3.0, sigma_mm=8.0,
                            range_deg=10.0, range_mm=30.0, metrics=("gncc",), polish=False)
     engine = CMAESRegistration(vol, narrow, center_lps=c)
     target = engine.render(truth, 1)[0]
     start = truth + np.array([0.0, 0.0, 0.0, 0.0, 0.0, 50.0])
     boxed = engine.register(target, start)
     assert boxed.params[5] == pytest.approx(start[5] - 30.0, abs=1.0), boxed.params  # on the box's edge
-    deep = CMAESRegistration(vol, replace(narrow, sigma_depth_mm=24.0, range_depth_mm=90.0), center_lps=c)
-    found = deep.register(target, start)
-    assert abs(found.params[5] - truth[5]) < 3.0 and found.similarity > boxed.similarity, found.params
-    lo, hi = deep._box(start)
-    np.testing.assert_allclose(hi - start, [10.0] * 3 + [30.0, 30.0, 90.0])
-    assert narrow.depth("range") == 30.0 and narrow.depth("sigma") == 8.0 and deep.settings.depth("sigma") == 24.0
+    for sigma_depth in (None, 24.0):
+        deep = CMAESRegistration(vol, replace(narrow, sigma_depth_mm=sigma_depth, range_depth_mm=90.0), center_lps=c)
+        found = deep.register(target, start)
+        assert abs(found.params[5] - truth[5]) < 3.0 and found.similarity > boxed.similarity, (sigma_depth,
+                                                                                               found.params)
+        lo, hi = deep._box(start)
+        np.testing.assert_allclose(hi - start, [10.0] * 3 + [30.0, 30.0, 90.0])
+        np.testing.assert_allclose(deep._scale()[3:], [8.0 / 3.0] * 2 + [(sigma_depth or 8.0) / 3.0])
+    assert narrow.depth("range") == 30.0 and narrow.depth("sigma") == 8.0
 
 
 def test_searches_in_lockstep_give_each_start_its_own_result(phantom):

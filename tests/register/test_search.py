@@ -108,6 +108,21 @@ def test_the_grid_finds_the_in_plane_translation_of_a_grid_rotation(phantom):
     assert pose_from_params(params[0], g.sod_mm).shape == (4, 4)
 
 
+def test_the_local_searches_take_the_depth_box_given(phantom):
+    """``local_range_depth_mm`` / ``local_sigma_depth_mm`` reach both local CMA-ES engines (the
+    refinement's own depth box: register.engines.pipeline.REFINE_SETTINGS); unset, depth keeps the
+    translations' box and step."""
+    vol, c = phantom
+    deep = GlobalSearch(vol, GlobalSearchSettings(local_range_depth_mm=90.0, local_sigma_depth_mm=12.0), size=(64, 64),
+                        center_lps=c)
+    plain = GlobalSearch(vol, GlobalSearchSettings(), size=(64, 64), center_lps=c)
+    for engine in (deep.local, deep.local_fine):
+        assert engine.settings.depth("range") == 90.0 and engine.settings.depth("sigma") == 12.0
+        assert engine.settings.range_mm == 35.0
+    for engine in (plain.local, plain.local_fine):
+        assert engine.settings.depth("range") == 35.0 and engine.settings.depth("sigma") == 8.0
+
+
 def test_the_search_finds_a_far_pose_and_skips_the_grid_for_a_good_one(phantom):
     from sim.geometry import pose_from_params
     from sim.se3 import rotation_error_deg
