@@ -10,9 +10,9 @@ start, the winner polished.
    ``search.found_above``; otherwise a grid over the prior box supplies further starts, and the
    search's finalists (its best distinct local results, ``search.finalists``) are the starts.
    Without a search the network's pose is the one start;
-3. :meth:`~ContextualPipeline.refine`: CMA-ES in a narrowed box (:data:`REFINE_SETTINGS`) from each
-   start (no polish where there are several); the highest similarity at full resolution wins (ties:
-   the earlier start);
+3. :meth:`~ContextualPipeline.refine`: CMA-ES in a narrowed box (:data:`REFINE_SETTINGS`; without
+   a search, +-:data:`NETWORK_DEPTH_RANGE_MM` in depth) from each start (no polish where there are
+   several); the highest similarity at full resolution wins (ties: the earlier start);
 4. :meth:`~ContextualPipeline.polish`: only the winner is polished (several starts);
 5. :meth:`~ContextualPipeline.result`: the winner with the whole run's stage times (summed over
    the refinements), history, renders, the iteration's trajectory and the search's record (adding
@@ -25,6 +25,8 @@ on an image outside its training domain costs time, not the registration.
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 
 from register.engines.cmaes import CMAESRegistration, CMAESSettings
@@ -33,7 +35,7 @@ from register.engines.metrics import plain_equivalent
 from register.engines.result import RegistrationError, RegistrationResult
 from register.engines.search import GlobalSearch, GlobalSearchSettings
 
-__all__ = ["ContextualPipeline", "REFINE_SETTINGS"]
+__all__ = ["ContextualPipeline", "NETWORK_DEPTH_RANGE_MM", "REFINE_SETTINGS"]
 
 #: The narrowed CMA-ES box after the contextual iteration (degrees, mm): one level at 1/2 resolution,
 #: then the polish at full resolution. A first level at 1/4 resolution (as CMA-ES from afar uses)
@@ -43,13 +45,18 @@ __all__ = ["ContextualPipeline", "REFINE_SETTINGS"]
 #: gradient NCC (:func:`register.engines.metrics.tone_tolerant_gradient_ncc`): half of it blind to the
 #: display's curve. An image of line integrals (a raw or log X-ray, a DRR) is scored by gradient NCC:
 #: on 50 line DRRs the tone-tolerant score lost a case (98 % against 100 %) and cost 0.5 s.
-#: Depth (``tz``) gets three times the box: the network's depth, read from the magnification alone,
-#: is off by 20-75 mm where its in-plane translation is off by 0-13 mm (docs/results.md, "The
-#: refinement's box in depth"), and a 30 mm box left such starts on its edge. Its first step stays
-#: the translations' 8 mm (CMA-ES lengthens it where the way is long): three times that step sent
-#: one of 50 line DRRs into another basin.
 REFINE_SETTINGS = CMAESSettings(levels=(2,), sigma_deg=3.0, sigma_mm=8.0, range_deg=10.0, range_mm=30.0,
-                                range_depth_mm=90.0, generations=(40,), metrics=("tone_tolerant_gncc",))
+                                generations=(40,), metrics=("tone_tolerant_gncc",))
+
+#: The refinement's half-width in depth ``tz`` (mm) around the network's own pose, where no global
+#: search ran (``search="off"``): three times the in-plane box, as the network's depth, read from the
+#: magnification alone, is off by 20-75 mm where its in-plane translation is off by 0-13 mm
+#: (docs/results.md, "The refinement's box in depth"), and the 30 mm box left such starts on its
+#: edge. Its first step stays the translations' 8 mm (CMA-ES lengthens it where the way is long;
+#: three times that step sent one of 50 line DRRs into another basin). After a search its starts'
+#: depths are searched already (the grid spans +-75 mm), and the narrower box stays: the wide one let
+#: a start of a frame whose field was misread follow its similarity 20 mm off in depth.
+NETWORK_DEPTH_RANGE_MM = 90.0
 
 
 class ContextualPipeline:
@@ -58,7 +65,8 @@ class ContextualPipeline:
     (:class:`register.engines.search.GlobalSearch`, built from its settings, or one the caller built
     for the same detector and physics, e.g. to share its grid's DRRs with the polarity check
     :func:`register.xray.prepare.confirm_polarity`), or None: the network's pose goes straight to the
-    refinement. The other arguments are :class:`register.engines.contextual.ContextualRegistration`'s."""
+    refinement, whose box in depth is then +-:data:`NETWORK_DEPTH_RANGE_MM` unless ``refine`` sets
+    ``range_depth_mm``. The other arguments are :class:`register.engines.contextual.ContextualRegistration`'s."""
 
     def __init__(self, volume, predictor, settings: ContextualSettings | None = None, *, refine: CMAESSettings,
                  size=(128, 128), scene: str = "cios_fusion", geometry=None, center_lps=None,
@@ -80,6 +88,8 @@ class ContextualPipeline:
         elif search is not None:
             self.search = GlobalSearch(volume, search, size=size, scene=scene, geometry=geometry,
                                        center_lps=self.center_lps, physics=physics, label_materials=label_materials)
+        if self.search is None and refine.range_depth_mm is None:  # the network's pose as it is: its depth least sure
+            refine = replace(refine, range_depth_mm=NETWORK_DEPTH_RANGE_MM)
         self.refinement = CMAESRegistration(volume, refine, scene=scene, geometry=geometry,
                                             center_lps=self.center_lps, physics=physics,
                                             label_materials=label_materials)

@@ -79,7 +79,7 @@ def test_a_lost_network_pose_goes_through_the_global_search(phantom):
     recovers from. A network that is right skips the grid."""
     from dataclasses import replace
 
-    from register.engines.pipeline import REFINE_SETTINGS, ContextualPipeline
+    from register.engines.pipeline import NETWORK_DEPTH_RANGE_MM, REFINE_SETTINGS, ContextualPipeline
     from register.engines.search import GlobalSearchSettings, describe_search
     from sim.geometry import pose_from_params
     from sim.se3 import rotation_error_deg
@@ -118,9 +118,17 @@ def test_a_lost_network_pose_goes_through_the_global_search(phantom):
     assert [h[0] for h in chosen.history].count("polish") == 1 and chosen.history[-1][0] == "polish"
     assert "kept the second best (a grid pose" in describe_search(chosen.search)
     # without the search the same network stays lost
-    alone = ContextualPipeline(vol, wrong, ContextualSettings(max_iterations=10), size=size, center_lps=c,
-                               refine=refine).register(fixed, np.zeros(6))
+    no_search = ContextualPipeline(vol, wrong, ContextualSettings(max_iterations=10), size=size, center_lps=c,
+                                   refine=refine)
+    alone = no_search.register(fixed, np.zeros(6))
     assert rotation_error_deg(alone.pose, T_true) > 5.0 and alone.similarity < res.similarity
+    # the refinement's depth box: wide around the network's own pose (no search), the translations'
+    # after a search, whose starts' depths are searched; a depth box the caller set is kept
+    assert no_search.refinement.settings.depth("range") == NETWORK_DEPTH_RANGE_MM == 90.0
+    assert reg.refinement.settings.depth("range") == refine.range_mm == 30.0
+    assert no_search.refinement.settings.depth("sigma") == reg.refinement.settings.depth("sigma") == 8.0
+    kept = ContextualPipeline(vol, wrong, size=size, center_lps=c, refine=replace(refine, range_depth_mm=40.0))
+    assert kept.refinement.settings.depth("range") == 40.0
     # a right network (the oracle): its pose is kept, no grid
     good = ContextualPipeline(vol, None, ContextualSettings(), size=size, center_lps=c, refine=refine,
                               search=search)
