@@ -16,6 +16,7 @@ inside a box around the start. Everything is seeded.
 from __future__ import annotations
 
 import copy
+import numbers
 import time
 from dataclasses import dataclass, replace
 
@@ -88,7 +89,7 @@ class CMAESSettings:
             v = getattr(self, name)
             if v is None and name.endswith("depth_mm"):
                 continue
-            if isinstance(v, bool) or not isinstance(v, (int, float)) or not (np.isfinite(v) and v > 0):
+            if isinstance(v, bool) or not isinstance(v, numbers.Real) or not (np.isfinite(v) and v > 0):
                 raise RegistrationError(f"{name} must be a positive number, got {v!r}")
         if not (isinstance(self.restarts, int) and 0 <= self.restarts <= 10):
             raise RegistrationError(f"restarts must be an integer in [0, 10], got {self.restarts}")
@@ -268,7 +269,8 @@ class CMAESRegistration:
         return np.count_nonzero(drrs > 1e-3, axis=(1, 2)) >= 0.01 * drrs[0].size
 
     def _scale(self) -> np.ndarray:
-        """``(6,)``: CMA-ES searches in deg-like units, translations divided by sigma_mm / sigma_deg."""
+        """``(6,)``: CMA-ES searches in deg-like units: in-plane translations divided by
+        sigma_mm / sigma_deg, the depth by its own first step (:meth:`CMAESSettings.depth`) / sigma_deg."""
         s = self.settings
         return np.array([1.0] * 3 + [s.sigma_mm / s.sigma_deg] * 2 + [s.depth("sigma") / s.sigma_deg])
 

@@ -71,8 +71,10 @@ class GlobalSearchSettings:
         local_sigma_deg / local_sigma_mm: the local CMA-ES's initial steps (3 deg, 8 mm).
         local_range_deg / local_range_mm: its box around each start (12 deg, 35 mm).
         local_sigma_depth_mm / local_range_depth_mm: its step and box in depth ``tz`` (mm; None: the
-            translations' ``local_sigma_mm`` / ``local_range_mm``), as the refinement's
-            (:data:`register.engines.pipeline.REFINE_SETTINGS`, :class:`register.engines.cmaes.CMAESSettings`).
+            translations' ``local_sigma_mm`` / ``local_range_mm``; the grid spans +-``range_mm`` in depth
+            already), as :class:`register.engines.cmaes.CMAESSettings`' ``sigma_depth_mm`` /
+            ``range_depth_mm`` (the refinement of the network's own pose without a search:
+            :data:`register.engines.pipeline.NETWORK_DEPTH_RANGE_MM`).
         local_generations / local_fine_generations: a start from the grid's own ranking (or a given
             one) runs ``local_generations`` (default 25) at ``factor``, whose wide basins reach a
             pose half a grid step away, then ``local_fine_generations`` (default 10; 0: none) at

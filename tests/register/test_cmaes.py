@@ -204,6 +204,7 @@ def test_bad_settings_and_inputs_are_named(phantom):
             CMAESSettings(range_depth_mm=bad_depth)
     with pytest.raises(RegistrationError, match="sigma_depth_mm"):
         CMAESSettings(sigma_depth_mm=float("inf"))
+    assert CMAESSettings(range_depth_mm=np.int64(90), sigma_mm=np.float32(8.0)).depth("range") == 90.0  # numpy numbers
     with pytest.raises(RegistrationError, match="one per level"):
         CMAESSettings(levels=(4, 2, 1), generations=(10, 10))
     vol, c = phantom
