@@ -19,6 +19,7 @@ from register.api import (OUTPUT_FILES, REGISTER_RESTARTS, REGISTER_SCATTER_PHOT
                           SEARCH_MODES, parse_init, register_xray)
 from register.engines.cmaes import CMAESSettings
 from register.engines.methods import METHOD_NAMES, build_method, load_predictor, needs_model
+from register.engines.pipeline import NETWORK_DEPTH_RANGE_MM
 from register.engines.search import GlobalSearchSettings
 from register.evaluation.evaluate import (LOCAL_ROT_DEG, LOCAL_TRANS_MM, EvaluationError, EvaluationSettings,
                                           evaluate)
@@ -161,7 +162,8 @@ class RegisterCommand:
         "the global search of --method contextual+cmaes (a rotation / depth grid over the prior box around "
         "--init): auto runs it where the network's pose scores below "
         f"{GlobalSearchSettings.found_above:g} (gradient NCC), else refines the network's pose directly; off never builds it: the network's pose goes straight to the CMA-ES "
-        "refinement (the network measured on its own; the polarity check still scores on a grid of its own, "
+        f"refinement, whose box is +-{NETWORK_DEPTH_RANGE_MM:g} mm in depth, where the network is least sure "
+        "(the network measured on its own; the polarity check still scores on a grid of its own, "
         "deciding the polarity only); "
         "always runs it whatever the network's pose scored. result.json's search_ran / search_status say what "
         "it did (--method contextual+cmaes only)", group="pose", choices=SEARCH_MODES))
