@@ -2,8 +2,9 @@
 6-vector step towards the target pose.
 
 Both images, ``(B, 1, H, W)`` log-corrected and normalised to about ``[-1, 1]``, pass through
-the convolutional part of one DenseNet (torchvision; the SAME module with shared weights for
-both images; its first convolution takes one channel, the RGB mean of ImageNet's). Feature maps
+the convolutional part of one DenseNet (:mod:`learn.densenet`, torchvision's layout; the SAME
+module with shared weights for both images; its first convolution takes one channel, the RGB
+mean of ImageNet's). Feature maps
 are tapped at three depths (:data:`TAP_MODULES`):
 
 * level 0: the output of ``denseblock2`` (stride 8 pixels),
@@ -39,8 +40,8 @@ from typing import NamedTuple
 import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
-from torchvision.models import DenseNet
 
+from learn.densenet import densenet_features
 from learn.torch_file import read_plain_torch_file  # tensors and plain data only; one-line refusals
 from sim.errors import InputError
 
@@ -356,14 +357,15 @@ class PoseUpdateOutput(NamedTuple):
 class FeatureExtractor(nn.Module):
     """The shared one-channel DenseNet: ``(target, current) -> 3 maps (B, 2 C_i, h_i, w_i)``.
 
-    ``features`` is torchvision's ``DenseNet(...).features`` with ``conv0`` taking 1 channel.
+    ``features`` is :func:`learn.densenet.densenet_features` (torchvision's ``DenseNet(...).features``
+    layout) with ``conv0`` taking 1 channel.
     Both images go through it as one batch of ``2 B`` (so batch-norm statistics in training
     are shared); each level's map is ``cat(target's, current's)`` along channels."""
 
     def __init__(self, backbone: Backbone) -> None:
         super().__init__()
         growth, blocks, init = _BACKBONE_CONFIG[backbone]
-        features = DenseNet(growth_rate=growth, block_config=blocks, num_init_features=init).features
+        features = densenet_features(growth_rate=growth, block_config=blocks, num_init_features=init)
         conv0 = nn.Conv2d(1, init, kernel_size=7, stride=2, padding=3, bias=False)
         nn.init.kaiming_normal_(conv0.weight)  # as DenseNet initialises its convolutions
         features.conv0 = conv0
