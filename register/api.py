@@ -22,6 +22,7 @@ method (:func:`register.engines.methods.build_method`) and registers. ``ctxreg r
 
 from __future__ import annotations
 
+import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any, Callable
@@ -43,6 +44,7 @@ from sim.atomic import atomic_path, write_json
 from sim.campaign.poses import PARAM_NAMES
 from sim.cliargs import check_memory
 from sim.outputs import check_output_dir
+from sim.progress import StageClock
 
 __all__ = ["register_xray", "XRayRegistration", "parse_init", "REGISTER_RESTARTS", "REGISTER_SCATTER_PHOTONS",
            "OUTPUT_FILES", "SEARCH_MODES", "SEARCH_METHODS"]
@@ -126,6 +128,12 @@ class XRayRegistration:
         search_ran: whether the global search's grid ran (False where it was skipped, off, or not
             part of the method); ``result.search`` keeps the search's record where it was built,
             :attr:`search_status` says it in words.
+        timings: wall seconds by stage of the whole call, in order: ``model`` (the network's
+            load), ``xray``, ``ct`` (its load and anatomy centre), ``prepare`` (field, intensity,
+            the optimiser's image), ``search_setup`` (the global search's grid, where built),
+            ``polarity`` (the check against the CT), ``engine_setup``, ``register`` (split further
+            in ``result.stage_seconds``), and ``write`` once :meth:`write` ran; a CLI call adds
+            ``startup`` first (the process's start-up and imports, before the call).
     """
 
     method: str
@@ -139,6 +147,7 @@ class XRayRegistration:
     notes: list[str] = field(default_factory=list)
     search_mode: str | None = None
     search_ran: bool = False
+    timings: dict[str, float] = field(default_factory=dict)
 
     @property
     def search_status(self) -> str:
@@ -198,7 +207,8 @@ class XRayRegistration:
         g = self.geometry
         return {
             **self.result.to_dict(), "method": self.method, "search_mode": self.search_mode,
-            "search_ran": bool(self.search_ran), "search_status": self.search_status, "ct": self.volume.source,
+            "search_ran": bool(self.search_ran), "search_status": self.search_status,
+            "timings_s": {k: round(v, 4) for k, v in self.timings.items()}, "ct": self.volume.source,
             "xray": self.prepared.xray.source, "init_params": self.init_params.tolist(),
             "anatomy_center_lps_mm": self.center_lps.tolist(), "xray_input": self.xray_input,
             "preprocessing": self.prepared.record,
@@ -216,9 +226,11 @@ class XRayRegistration:
         ``trajectory_errors``, one caption per frame, e.g. the error against a known truth),
         ``overlay.png`` (DRR edges
         and the field outline over the X-ray at its full resolution), ``checkerboard.png``,
-        ``convergence.png`` and ``result.json`` (:meth:`to_dict`), each atomically. Returns the paths."""
+        ``convergence.png`` and ``result.json`` (:meth:`to_dict`), each atomically. Returns the paths.
+        Its seconds (up to ``result.json``) go to ``timings["write"]``."""
         from sim.drr import DRRRenderer, RenderSettings
 
+        t0 = time.perf_counter()
         out = check_output_dir(out, OUTPUT_FILES)
         result, prepared = self.result, self.prepared
         image = prepared.image
@@ -250,6 +262,7 @@ class XRayRegistration:
         overlay_png(prepared.xray.pixels, full_drr, out / "overlay.png", mask=prepared.full_mask)
         checkerboard_png(prepared.full_image, full_drr, out / "checkerboard.png", mask=prepared.full_mask)
         convergence_plot(result.history, out / "convergence.png")
+        self.timings["write"] = time.perf_counter() - t0
         write_json(out / "result.json", self.to_dict())
         return [out / "result.json", out / "overlay.png", out / "checkerboard.png", out / "convergence.png", *written]
 
@@ -360,48 +373,57 @@ def register_xray(ct, xray, *, method: str = "contextual+cmaes", model=None, ini
                                 f"per side (its coarsest level works at 1/4 and must keep a field there); give e.g. "
                                 f"--size 128 128")
     moving = _moving_physics(physics)
-    predictor = load_predictor(model) if needs_model(method) else None
+    clock = StageClock()
+    with clock("model"):
+        predictor = load_predictor(model) if needs_model(method) else None
     # -- the X-ray and its geometry (a quick read: its refusals come first), the memory the size
     # asks for, the CT, the view at the start
-    xr = (xray if isinstance(xray, XRayImage) else load_xray(xray)).reoriented(orient)
+    with clock("xray"):
+        xr = (xray if isinstance(xray, XRayImage) else load_xray(xray)).reoriented(orient)
     if not xr.attenuation_bright and not {"intensity", "log", "invert"} & set(steps):
         raise RegistrationError(f"{xr.source}: raw detector data (bone dark): add 'intensity' or 'log' to --preprocess")
     full_geometry, _ = resolve_geometry(xr, scene, sdd_mm=sdd_mm, sod_mm=sod_mm, pixel_spacing_mm=pixel_spacing_mm)
     check_registration_memory(box, (xr.pixels.shape[0], xr.pixels.shape[1]), full_geometry)
-    volume = load_ct(ct, label_map=label_map)
-    c = np.asarray(center, float) if center is not None else anatomy_center(volume)
+    with clock("ct"):
+        volume = load_ct(ct, label_map=label_map)
+        c = np.asarray(center, float) if center is not None else anatomy_center(volume)
     check_in_view(volume, full_geometry, pose_from_params(x0, full_geometry.sod_mm), c,
                   what="the start pose (--init, with the anatomy centre --center)")
     # -- the work
-    prepared = prepare_xray(xr, volume=volume, center_lps=c, init_params=x0, scene=scene, steps=steps,
-                            scale=intensity, polarity=polarity, tone=tone, size=box, sdd_mm=sdd_mm, sod_mm=sod_mm,
-                            pixel_spacing_mm=pixel_spacing_mm)
+    with clock("prepare"):
+        prepared = prepare_xray(xr, volume=volume, center_lps=c, init_params=x0, scene=scene, steps=steps,
+                                scale=intensity, polarity=polarity, tone=tone, size=box, sdd_mm=sdd_mm,
+                                sod_mm=sod_mm, pixel_spacing_mm=pixel_spacing_mm)
     geometry = prepared.geometry
     _check_coarse_field(prepared, box, need=MIN_COARSE_FIELD_PX if method in SEARCH_METHODS and search != "off" else 1)
     grid = None  # contextual+cmaes's global search, built once: the polarity check scores on its grid
     if method in SEARCH_METHODS and search != "off":
-        grid = GlobalSearch(volume, GlobalSearchSettings(always_grid=search == "always"),
-                            size=(geometry.height, geometry.width), scene=scene, geometry=geometry, center_lps=c,
-                            physics=moving, label_materials=label_materials)
+        with clock("search_setup"):
+            grid = GlobalSearch(volume, GlobalSearchSettings(always_grid=search == "always"),
+                                size=(geometry.height, geometry.width), scene=scene, geometry=geometry,
+                                center_lps=c, physics=moving, label_materials=label_materials)
     # the polarity check scores on the search's grid (its DRRs then serve the search); with search="off"
     # on a grid of its own around the start, as for the other methods: it decides the image's polarity,
     # never the pose
-    prepared = confirm_polarity(prepared, volume, c, x0, physics=moving, label_materials=label_materials,
-                                search=grid)
+    with clock("polarity"):
+        prepared = confirm_polarity(prepared, volume, c, x0, physics=moving, label_materials=label_materials,
+                                    search=grid)
     log(prepared.sources.line())
     for line in _input_lines(prepared):
         log(line)
-    engine = build_method(method, volume, center_lps=c, size=(geometry.height, geometry.width), geometry=geometry,
-                          scene=scene, model=predictor, physics=moving, label_materials=label_materials,
-                          restarts=restarts if method == "cmaes" else 0, keep_drrs=True, note=remark,
-                          search=grid)
-
-    view = network_view(predictor, prepared) if predictor is not None else None  # what the network sees
-    result = engine.register(prepared.image, x0, mask=prepared.mask, toned=prepared.toned, network_view=view)
+    with clock("engine_setup"):
+        engine = build_method(method, volume, center_lps=c, size=(geometry.height, geometry.width),
+                              geometry=geometry, scene=scene, model=predictor, physics=moving,
+                              label_materials=label_materials, restarts=restarts if method == "cmaes" else 0,
+                              keep_drrs=True, note=remark, search=grid)
+        view = network_view(predictor, prepared) if predictor is not None else None  # what the network sees
+    with clock("register"):
+        result = engine.register(prepared.image, x0, mask=prepared.mask, toned=prepared.toned, network_view=view)
     ran = result.search is not None and bool(result.search.get("grid_poses"))
     return XRayRegistration(method=method, result=result, prepared=prepared, volume=volume, center_lps=c,
                             init_params=x0, physics=moving, label_materials=label_materials, notes=notes,
-                            search_mode=search if method in SEARCH_METHODS else None, search_ran=ran)
+                            search_mode=search if method in SEARCH_METHODS else None, search_ran=ran,
+                            timings=clock.seconds)
 
 
 def grid_bytes(box, shape, geometry) -> float:

@@ -28,6 +28,7 @@ from register.xray.io import ORIENTATIONS
 from sim.cli import CT_HELP
 from sim.cliargs import IMAGE_SIDE_PX, Range, opt, refuse_unused, refuse_unused_label_map
 from sim.outputs import check_output_dir
+from sim.progress import process_seconds
 from sim.physics.options import (check_level_options, label_materials, level_field, physics_option,
                                  physics_settings)
 
@@ -224,6 +225,10 @@ class RegisterCommand:
         "folder for result.json, overlay.png (DRR edges and the field outline over the X-ray at its full "
         "resolution), checkerboard.png, convergence.png (and trajectory.npz, trajectory.png, trajectory.gif for the "
         "contextual methods)", group="output", metavar="DIR"))
+    verbose: bool = field(default=False, metadata=opt(
+        "print where the call's seconds went (start-up and imports, model, X-ray, CT, preparation, polarity check, "
+        "registration stages, outputs) to stderr; result.json keeps them either way (timings_s, stage_seconds)",
+        group="output"))
 
 
 def run_register(cmd: RegisterCommand) -> list[Path]:
@@ -244,6 +249,7 @@ def run_register(cmd: RegisterCommand) -> list[Path]:
     physics = physics_settings(cmd, noise=False)
     materials = label_materials(cmd)
     out = check_output_dir(cmd.out, OUTPUT_FILES)
+    startup = process_seconds()  # the interpreter's start-up and the imports, before any work
     outcome = register_xray(
         cmd.ct, cmd.xray, method=cmd.method, model=cmd.model, init=cmd.init, center=cmd.center,
         label_map=cmd.label_map, scene=cmd.scene, sdd_mm=cmd.sdd, sod_mm=cmd.sod, pixel_spacing_mm=cmd.pixel_spacing,
@@ -252,8 +258,16 @@ def run_register(cmd: RegisterCommand) -> list[Path]:
         restarts=cmd.restarts if cmd.method in RESTART_METHODS else None,
         search=cmd.search if cmd.method in SEARCH_METHODS else "auto", log=print,
         note=lambda text: print(f"ctxreg register: note: {text}", file=sys.stderr))
+    if startup is not None:
+        outcome.timings = {"startup": startup, **outcome.timings}
     written = outcome.write(out)
     print(outcome.summary())
+    if cmd.verbose:
+        total = process_seconds()
+        lines = [f"  {k}: {v:.2f} s" for k, v in outcome.timings.items()]
+        lines += [f"    {k}: {v:.2f} s" for k, v in outcome.result.stage_seconds.items()]
+        print("ctxreg register: where the seconds went (wall; the indented ones split register):\n" + "\n".join(lines)
+              + (f"\n  total since the process started: {total:.2f} s" if total is not None else ""), file=sys.stderr)
     return written
 
 

@@ -5,6 +5,10 @@ otherwise as a new line every 5 s (a log file gets a readable history), always a
 at the end. ``update(n)`` adds ``n`` items; ``rate_scale`` turns items into the unit shown
 (a training shows iterations done and pairs per second: ``rate_unit="pairs/s"``,
 ``rate_scale=batch_size``). Used by ``ctxreg simulate``, ``train``, ``evaluate`` and ``study``.
+
+:class:`StageClock` times the stages of one piece of work (wall seconds by stage name), and
+:func:`process_seconds` says how long this process has run (its start-up and imports included):
+``ctxreg register`` keeps both in ``result.json`` (``timings_s``) and prints them with ``--verbose``.
 """
 
 from __future__ import annotations
@@ -13,7 +17,63 @@ import math
 import sys
 import time
 
-__all__ = ["Progress"]
+__all__ = ["Progress", "StageClock", "process_seconds"]
+
+
+def process_seconds() -> float | None:
+    """Wall seconds since this process started (its interpreter's start-up and imports included),
+    from ``/proc`` (Linux); None where that is not readable."""
+    import os
+
+    try:
+        with open("/proc/self/stat") as f:
+            start_ticks = int(f.read().rsplit(")", 1)[1].split()[19])  # field 22: starttime, after the name
+        with open("/proc/uptime") as f:
+            uptime = float(f.read().split()[0])
+        return max(uptime - start_ticks / os.sysconf("SC_CLK_TCK"), 0.0)
+    except (OSError, ValueError, IndexError):
+        return None
+
+
+class StageClock:
+    """Wall seconds of named stages, in the order they ran.
+
+    ``with clock("ct"): ...`` adds the block's seconds to stage ``"ct"`` (a stage that runs twice
+    sums); ``clock.seconds`` is the ``{stage: s}`` dict, ``clock.lines()`` one line per stage.
+
+    Example::
+
+        >>> clock = StageClock()
+        >>> with clock("load"):
+        ...     pass
+        >>> list(clock.seconds)
+        ['load']
+    """
+
+    def __init__(self) -> None:
+        self.seconds: dict[str, float] = {}
+
+    def __call__(self, stage: str):
+        return _Stage(self, stage)
+
+    def add(self, stage: str, seconds: float) -> None:
+        self.seconds[stage] = self.seconds.get(stage, 0.0) + float(seconds)
+
+    def lines(self) -> list[str]:
+        """``"stage: 1.23 s"`` per stage."""
+        return [f"{k}: {v:.2f} s" for k, v in self.seconds.items()]
+
+
+class _Stage:
+    def __init__(self, clock: StageClock, stage: str) -> None:
+        self.clock, self.stage = clock, stage
+
+    def __enter__(self):
+        self.t0 = time.perf_counter()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.clock.add(self.stage, time.perf_counter() - self.t0)
 
 
 class Progress:

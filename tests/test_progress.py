@@ -4,7 +4,9 @@ from __future__ import annotations
 
 import re
 
-from sim.progress import Progress
+import pytest
+
+from sim.progress import Progress, StageClock, process_seconds
 
 
 def test_progress_line_counts_rate_and_eta(capsys, monkeypatch):
@@ -35,3 +37,34 @@ def test_a_training_run_shows_its_progress_on_stderr(tmp_path, capsys):
     train(cfg, log=lambda s: None)
     err = capsys.readouterr().err
     assert "train t: 0/2 iterations" in err and "train t: 2/2 iterations (100.0 %)" in err and "pairs/s" in err
+
+
+def test_the_stage_clock_sums_each_stage_in_the_order_they_ran(monkeypatch):
+    now = [10.0]
+    monkeypatch.setattr("sim.progress.time.perf_counter", lambda: now[0])
+    clock = StageClock()
+    for stage, seconds in (("ct", 1.5), ("register", 2.0), ("ct", 0.25)):
+        with clock(stage):
+            now[0] += seconds
+    assert clock.seconds == {"ct": 1.75, "register": 2.0}
+    assert clock.lines() == ["ct: 1.75 s", "register: 2.00 s"]
+    with pytest.raises(KeyError):  # a stage that raised still counts its seconds
+        with clock("write"):
+            now[0] += 0.5
+            raise KeyError("x")
+    assert clock.seconds["write"] == 0.5
+
+
+def test_process_seconds_counts_from_the_process_start():
+    """A fresh interpreter that sleeps 0.5 s first says at least that (the /proc clock ticks at
+    10 ms), and less than the whole subprocess took."""
+    import subprocess
+    import sys
+    import time
+
+    t0 = time.perf_counter()
+    out = subprocess.run([sys.executable, "-c", "import time; time.sleep(0.5); "
+                          "from sim.progress import process_seconds; print(process_seconds())"],
+                         capture_output=True, text=True, check=True)
+    took = time.perf_counter() - t0
+    assert 0.48 <= float(out.stdout) <= took + 0.02

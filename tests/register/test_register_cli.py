@@ -57,7 +57,7 @@ def test_register_recovers_the_pose_of_a_synthetic_dicom(synthetic_case, tmp_pat
     start = truth + np.array([4.0, 3.0, -3.0, -8.0, 6.0, 15.0])
     out = tmp_path / "out"
     r = run_cli("register", "--ct", ct, "--xray", xray, "--init", *start, "--size", 96, 96,
-                "--center", *center, "--out", out)
+                "--center", *center, "--out", out, "--verbose")
     assert r.returncode == 0, r.stderr
     # geometry from the DICOM tags, image resampled 192 -> 96 px; the DRRs match the target up
     # to the 16-bit storage and the resampling, so the pose comes back within a degree / few mm
@@ -71,6 +71,15 @@ def test_register_recovers_the_pose_of_a_synthetic_dicom(synthetic_case, tmp_pat
     for name in ("overlay.png", "checkerboard.png", "convergence.png"):
         assert (out / name).read_bytes()[:4] == b"\x89PNG"
     assert np.asarray(Image.open(out / "overlay.png")).shape == (192, 192, 3)  # the X-ray's own size
+    # where the seconds went: every stage of the call (the default method: the network, the search),
+    # in order, each >= 0, printed with --verbose; the registration's own split stays in stage_seconds
+    timings = result["timings_s"]
+    assert list(timings) == ["startup", "model", "xray", "ct", "prepare", "search_setup", "polarity", "engine_setup",
+                             "register", "write"]
+    assert all(v >= 0 for v in timings.values()) and timings["startup"] > 0
+    assert sum(result["stage_seconds"].values()) <= timings["register"] + 1e-3
+    said = r.stderr[r.stderr.index("where the seconds went"):]
+    assert all(f"  {k}: " in said for k in timings) and "total since the process started" in said
 
 
 @pytest.fixture(scope="module")
