@@ -1,5 +1,5 @@
-"""`ctxreg` entry point on the device (register.cli:main, as the console script does)."""
+"""`ctxreg` entry point on the device (register.cli:entry, as the console script does)."""
 import sys
 sys.argv[0] = "ctxreg"
-from register.cli import main
-sys.exit(main())
+from register.cli import entry
+entry()

@@ -93,3 +93,28 @@ def test_a_missing_command_or_option_is_one_line_pointing_to_the_help(argv, caps
     err = capsys.readouterr().err
     assert raised.value.code == 2 and err.count("\n") == 1 and err.startswith("ctxreg")
     assert ": error: " in err and "--help)" in err
+
+
+@pytest.mark.parametrize("argv, code, fast", [(["register", "--ct", "x"], 0, True), (["render"], 0, True),
+                                              (["register"], 2, False), (["train", "c.toml"], 0, False)])
+def test_the_program_skips_the_teardown_only_after_a_finished_register_or_render(monkeypatch, capsys, argv, code,
+                                                                                  fast):
+    """``entry`` flushes what was printed and ends the process with ``os._exit`` after a successful
+    register or render; a failure and the other commands (workers, logs) exit normally."""
+    exits = []
+
+    def fake_main():
+        print("wrote out/result.json")
+        return code
+
+    monkeypatch.setattr(cli, "main", fake_main)
+    monkeypatch.setattr(cli.sys, "argv", ["ctxreg", *argv])
+    def fake_exit(c):  # os._exit does not return
+        exits.append(c)
+        raise SystemExit(c)
+
+    monkeypatch.setattr(cli.os, "_exit", fake_exit)
+    with pytest.raises(SystemExit) as e:
+        cli.entry()
+    assert e.value.code == code and exits == ([code] if fast else [])
+    assert capsys.readouterr().out == "wrote out/result.json\n"
