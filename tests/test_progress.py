@@ -68,3 +68,11 @@ def test_process_seconds_counts_from_the_process_start():
                          capture_output=True, text=True, check=True)
     took = time.perf_counter() - t0
     assert 0.48 <= float(out.stdout) <= took + 0.02
+
+
+def test_the_stage_clocks_example_runs():
+    import doctest
+
+    import sim.progress
+
+    assert doctest.testmod(sim.progress).failed == 0

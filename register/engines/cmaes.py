@@ -22,7 +22,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from register.engines.metrics import downsample, get_metric
+from register.engines.metrics import bind_metric, downsample, get_metric
 from register.engines.result import RegistrationError, RegistrationResult
 from sim.errors import InputError
 from sim.geometry import pose_from_params
@@ -299,16 +299,18 @@ class CMAESRegistration:
         fixed = self._checked(fixed)
         x = np.asarray(params, float).reshape(6)
         lo, hi = self._box(x if start is None else np.asarray(start, float).reshape(6))
-        metric = get_metric(s.per_level("metrics", len(s.levels) - 1))
+        score = bind_metric(s.per_level("metrics", len(s.levels) - 1), fixed, mask)
         t0 = time.perf_counter()
-        best, value, renders = self._polish(fixed, mask, x, lo, hi, metric)
+        best, value, renders = self._polish(score, x, lo, hi)
         pose = pose_from_params(best, self.geometry.sod_mm)
         return RegistrationResult(params=best, pose=pose, projection=self.by_factor[1].projection_matrix(pose),
                                   similarity=value, renders=renders, stage_seconds={"polish": time.perf_counter() - t0},
                                   history=[("polish", value, best.tolist())])
 
-    def _polish(self, fixed, mask, best, lo, hi, metric):
-        """Powell from ``best`` inside ``[lo, hi]``: ``(params, similarity at full resolution, renders)``."""
+    def _polish(self, score, best, lo, hi):
+        """Powell from ``best`` inside ``[lo, hi]``, ``score`` the finest level's metric with the
+        X-ray bound (:func:`register.engines.metrics.bind_metric`): ``(params, similarity at full
+        resolution, renders)``."""
         from scipy.optimize import minimize
 
         renders = 0
@@ -316,7 +318,7 @@ class CMAESRegistration:
         def polish_cost(x):
             nonlocal renders
             renders += 1
-            return -float(metric(fixed, self.render(np.clip(x, lo, hi), 1), mask=mask)[0])
+            return -float(score(self.render(np.clip(x, lo, hi), 1))[0])
 
         # Powell's first directions: each angle and tx, ty, then depth along the view ray (2 mm)
         direc = np.diag([0.5, 0.5, 0.5, 1.0, 1.0, 2.0])
@@ -353,11 +355,11 @@ class CMAESRegistration:
         sigma = s.sigma_deg
         for level, factor in enumerate(s.levels):
             t0 = time.perf_counter()
-            metric = get_metric(s.per_level("metrics", level))
             target = downsample(fixed, factor) if factor > 1 else fixed
             lvl_mask = None
             if mask is not None:
                 lvl_mask = downsample(mask.astype(np.float64), factor) > 0.999 if factor > 1 else mask
+            score = bind_metric(s.per_level("metrics", level), target, lvl_mask)  # the X-ray's part once
             opts = {"popsize": popsize, "seed": seed + 1 + level, "verbose": -9,
                     "maxiter": s.per_level("generations", level), "tolfun": 1e-6, "tolx": 1e-3}
             # each search draws from its own generator (cma's default is numpy's global one, seeded by
@@ -371,7 +373,7 @@ class CMAESRegistration:
             while active:
                 zs = [ess[k].ask() for k in active]
                 xs = [np.clip(np.asarray(z) * scale, los[k], his[k]) for z, k in zip(zs, active)]
-                values = -metric(target, self.render(np.concatenate(xs), factor), mask=lvl_mask)
+                values = -score(self.render(np.concatenate(xs), factor))
                 at = 0
                 for z, x, k in zip(zs, xs, active):
                     ess[k].tell(z, values[at:at + len(x)].tolist())
@@ -384,15 +386,15 @@ class CMAESRegistration:
             bests = [np.clip(np.asarray(ess[k].result.xbest) * scale, los[k], his[k]) for k in range(K)]
             sigma *= s.sigma_shrink
             stages[stage] = time.perf_counter() - t0
-        finest_metric = get_metric(s.per_level("metrics", len(s.levels) - 1))
+        finest = bind_metric(s.per_level("metrics", len(s.levels) - 1), fixed, mask)
         if polish:
             t0 = time.perf_counter()
             out = []
             for k in range(K):
-                best, final, n = self._polish(fixed, mask, bests[k], los[k], his[k], finest_metric)
+                best, final, n = self._polish(finest, bests[k], los[k], his[k])
                 histories[k].append((f"{prefix}polish", final, best.tolist()))
                 out.append((best, final, renders[k] + n))
             stages[f"{prefix}polish"] = time.perf_counter() - t0
             return out
-        finals = finest_metric(fixed, self.render(np.array(bests), 1), mask=mask)
+        finals = finest(self.render(np.array(bests), 1))
         return [(bests[k], float(finals[k]), renders[k] + 1) for k in range(K)]

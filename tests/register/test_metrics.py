@@ -16,6 +16,7 @@ from scipy import ndimage
 from register.engines.metrics import (
     METRICS,
     MetricError,
+    bind_metric,
     downsample,
     get_metric,
     gradient_ncc,
@@ -386,3 +387,54 @@ def test_plain_equivalent_maps_the_display_tolerant_metrics_to_gradient_ncc():
         assert plain_equivalent(name) in METRICS
         if "tone" not in name:
             assert plain_equivalent(name) == name
+
+
+# --------------------------------------------------------------------- a bound fixed image
+
+
+@pytest.mark.parametrize("name", sorted(METRICS))
+@pytest.mark.parametrize("levels", [None, 12])
+def test_a_bound_metric_scores_as_the_metric_to_the_bit(name, rng, mask, levels):
+    """bind_metric prepares the X-ray's side once: the same scores, bit for bit, for every metric
+    (the patch metrics at their default options), with and without a mask, over several batches of
+    one fixed image: a noisy one without ties, and one quantised to 12 grey levels, whose ties the
+    rank match averages."""
+    f = smooth_image(rng)
+    if levels is not None:
+        f = np.round((f - f.min()) / np.ptp(f) * (levels - 1))
+    for k in (None, mask):
+        score = bind_metric(name, f, k)
+        for b in (1, 3):
+            m = np.stack([smooth_image(rng) for _ in range(b)])
+            np.testing.assert_array_equal(score(m), get_metric(name)(f, m, mask=k))
+        np.testing.assert_array_equal(score(m[0]), get_metric(name)(f, m[0], mask=k))  # (H, W): a batch of one
+
+
+def _with_nan(f):
+    g = np.array(f, np.float64)
+    g[3, 4] = np.nan
+    return g
+
+
+def test_a_bound_metric_checks_its_inputs(rng, mask):
+    """The name, the fixed image and the mask when bound; each moving batch when scored."""
+    f = smooth_image(rng)
+    with pytest.raises(MetricError, match="unknown name"):
+        bind_metric("gradient", f)
+    with pytest.raises(MetricError, match="mask: empty"):
+        bind_metric("gncc", f, np.zeros_like(mask))
+    with pytest.raises(MetricError, match="fixed: contains 1 NaN"):
+        bind_metric("tone_tolerant_gncc", _with_nan(f))
+    score = bind_metric("tone_tolerant_gncc", f, mask)
+    with pytest.raises(MetricError, match="does not match fixed"):
+        score(f[:-1])
+    with pytest.raises(MetricError, match="moving: contains 1 NaN"):
+        score(_with_nan(f))
+
+
+def test_the_modules_examples_run():
+    import doctest
+
+    import register.engines.metrics as metrics
+
+    assert doctest.testmod(metrics).failed == 0
