@@ -103,34 +103,64 @@ def convergence_plot(history, path: str | Path) -> None:
     save_figure(fig, path)
 
 
-def trajectory_figure(xray: np.ndarray, drrs: np.ndarray, params: np.ndarray, path: str | Path,
-                      panels: int = 6) -> None:
-    """The contextual iteration at ``panels`` evenly spaced steps: the X-ray with the DRR's
-    strongest edges in red (as :func:`overlay_png`), titled with the iteration and pose.
+#: The trajectory figures' palette (indices of an 8-bit palette image): :data:`_GREYS` grey levels,
+#: then the edges' red, white (separators, captions) and the errors' yellow. Built as indices, the
+#: frames need no colour quantisation (an adaptive palette per frame took 0.8 s of a registration's
+#: outputs) and no matplotlib.
+_GREYS = 250
+_RED, _WHITE, _YELLOW = _GREYS, _GREYS + 1, _GREYS + 2
+_PALETTE = ([v for i in range(_GREYS) for v in (round(255 * i / (_GREYS - 1)),) * 3]
+            + [255, 26, 26, 255, 255, 255, 255, 220, 120])
 
-    ``xray`` ``(H, W)``; ``drrs`` ``(K, H, W)``; ``params`` ``(>= K, 6)`` (deg, mm)."""
-    import matplotlib
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+def _indices(img: np.ndarray, edges_of: np.ndarray | None = None) -> np.ndarray:
+    """``img`` ``(H, W)`` windowed (:func:`_window`) to grey palette indices ``(H, W)`` uint8, with the
+    strongest edges of ``edges_of`` (its Sobel magnitude above the 92nd percentile) in red."""
     from scipy import ndimage
 
+    idx = np.rint(_window(np.asarray(img, float)) * (_GREYS - 1)).astype(np.uint8)
+    if edges_of is not None:
+        mag = np.hypot(ndimage.sobel(edges_of, 0), ndimage.sobel(edges_of, 1))
+        idx[mag > np.percentile(mag, 92)] = _RED
+    return idx
+
+
+def _palette_image(idx: np.ndarray, scale: int):
+    """A palette image of indices ``idx`` ``(H, W)``, each pixel ``scale x scale``."""
+    from PIL import Image
+
+    im = Image.fromarray(np.repeat(np.repeat(idx, scale, axis=0), scale, axis=1), mode="P")
+    im.putpalette(_PALETTE)
+    return im
+
+
+def trajectory_figure(xray: np.ndarray, drrs: np.ndarray, params: np.ndarray, path: str | Path,
+                      panels: int = 6, *, scale: int = 2) -> None:
+    """The contextual iteration at ``panels`` evenly spaced steps, side by side: the X-ray with the
+    DRR's strongest edges in red (as :func:`overlay_png`), captioned with the iteration and pose.
+
+    ``xray`` ``(H, W)``; ``drrs`` ``(K, H, W)``; ``params`` ``(>= K, 6)`` (deg, mm); ``scale``
+    pixels per image pixel. A PNG, written atomically (Pillow)."""
+    from PIL import ImageDraw
+
     k = len(drrs)
+    if k == 0:
+        raise ValueError("trajectory_figure: no DRRs to show")  # a caller's bug: the iteration keeps one per step
     steps = sorted(set(np.linspace(0, k - 1, min(panels, k)).round().astype(int).tolist()))
-    fig, axes = plt.subplots(1, len(steps), figsize=(2.6 * len(steps), 2.9), squeeze=False)
-    grey = _window(np.asarray(xray, float))
-    for ax, i in zip(axes[0], steps):
-        drr = drrs[i]
-        mag = np.hypot(ndimage.sobel(drr, 0), ndimage.sobel(drr, 1))
-        rgb = np.stack([grey] * 3, -1)
-        rgb[mag > np.percentile(mag, 92)] = (1.0, 0.1, 0.1)
-        ax.imshow(rgb)
-        ax.set_axis_off()
+    xray = np.asarray(xray, float)
+    h, w = xray.shape
+    caption, gap = 40, 4
+    tiles = [np.pad(_indices(xray, np.asarray(drrs[i], float)), ((0, 0), (0, gap)), constant_values=_WHITE)
+             for i in steps]
+    canvas = np.concatenate(tiles, axis=1)[:, :-gap]
+    img = _palette_image(np.pad(canvas, ((caption // scale + 1, 0), (0, 0)), constant_values=_WHITE), scale)
+    draw = ImageDraw.Draw(img)
+    for j, i in enumerate(steps):
         p = params[i]
-        ax.set_title(f"iteration {i}\n{p[0]:.0f} {p[1]:.0f} {p[2]:.0f} deg\n{p[3]:.0f} {p[4]:.0f} {p[5]:.0f} mm",
-                     fontsize=7)
-    fig.tight_layout()
-    save_figure(fig, path)
+        draw.multiline_text((j * (w + gap) * scale + 2, 1), f"iteration {i}\n{p[0]:.0f}, {p[1]:.0f}, {p[2]:.0f} deg\n"
+                            f"{p[3]:.0f}, {p[4]:.0f}, {p[5]:.0f} mm", fill=0, spacing=1)
+    with atomic_path(Path(path)) as tmp:
+        img.save(tmp, format="PNG")
 
 
 def trajectory_gif(xray: np.ndarray, drrs: np.ndarray, params: np.ndarray, path: str | Path, *,
@@ -144,30 +174,25 @@ def trajectory_gif(xray: np.ndarray, drrs: np.ndarray, params: np.ndarray, path:
     ``xray`` ``(H, W)``; ``drrs`` ``(K, H, W)``; ``params`` ``(>= K, 6)`` (deg, mm); ``scale``
     pixels per image pixel; the last frame is held for 2 s. Written atomically (Pillow)."""
     from PIL import Image, ImageDraw
-    from scipy import ndimage
 
-    grey = _window(np.asarray(xray, float))
-    h, w = grey.shape
+    xray = np.asarray(xray, float)
+    h, w = xray.shape
     caption = 30
     frames = []
     for i, drr in enumerate(np.asarray(drrs, float)):
-        mag = np.hypot(ndimage.sobel(drr, 0), ndimage.sobel(drr, 1))
-        left = np.stack([grey] * 3, -1)
-        left[mag > np.percentile(mag, 92)] = (1.0, 0.1, 0.1)
-        right = np.stack([_window(drr)] * 3, -1)
-        canvas = np.concatenate([left, np.ones((h, 2, 3)), right], axis=1)
-        img = Image.fromarray((np.clip(canvas, 0, 1) * 255).astype(np.uint8)).resize(
-            ((2 * w + 2) * scale, h * scale), Image.NEAREST)
-        frame = Image.new("RGB", (img.width, img.height + caption), "black")
+        canvas = np.concatenate([_indices(xray, drr), np.full((h, 2), _WHITE, np.uint8), _indices(drr)], axis=1)
+        img = _palette_image(canvas, scale)
+        frame = Image.new("P", (img.width, img.height + caption), 0)
+        frame.putpalette(_PALETTE)
         frame.paste(img, (0, caption))
         p = params[i]
         name = labels[i] if labels is not None and i < len(labels) else f"iteration {i}"
-        text = f"{name}: {p[0]:.0f} {p[1]:.0f} {p[2]:.0f} deg, {p[3]:.0f} {p[4]:.0f} {p[5]:.0f} mm"
+        text = f"{name}: {p[0]:.0f}, {p[1]:.0f}, {p[2]:.0f} deg; {p[3]:.0f}, {p[4]:.0f}, {p[5]:.0f} mm"
         draw = ImageDraw.Draw(frame)
-        draw.text((4, 2), text, fill="white")
+        draw.text((4, 2), text, fill=_WHITE)
         if errors is not None and i < len(errors):
-            draw.text((4, 15), errors[i], fill=(255, 220, 120))
-        frames.append(frame.convert("P", palette=Image.ADAPTIVE))
+            draw.text((4, 15), errors[i], fill=_YELLOW)
+        frames.append(frame)
     if not frames:
         raise ValueError("trajectory_gif: no DRRs to animate")  # a caller's bug: the iteration keeps one per step
     durations = [frame_ms] * (len(frames) - 1) + [2000]

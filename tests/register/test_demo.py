@@ -67,3 +67,22 @@ def test_the_demo_registers_a_realistic_xray_of_the_pelvis_within_10_mm(tmp_path
     assert errors["after the network"]["mtre_mm"] < 0.6 * errors["start (AP)"]["mtre_mm"], errors
     for name in ("xray.dcm", "overlay.png", "checkerboard.png", "trajectory.gif", "convergence.png", "result.json"):
         assert (tmp_path / "demo" / name).is_file(), name
+
+
+def test_the_trajectory_figure_shows_evenly_spaced_iterations_with_the_drrs_edges(tmp_path):
+    """Six panels of the X-ray (20 x 24 px at scale 2, 4 px apart) under a 40 px caption, the
+    DRR's strongest edges in red: a palette image, no colour quantisation."""
+    from PIL import Image
+
+    from register.plots import trajectory_figure
+
+    rng = np.random.default_rng(0)
+    xray, drrs = rng.random((20, 24)), rng.random((9, 20, 24))
+    trajectory_figure(xray, drrs, np.zeros((9, 6)), tmp_path / "t.png", scale=2)
+    im = Image.open(tmp_path / "t.png")
+    assert im.mode == "P" and im.size == ((6 * 24 + 5 * 4) * 2, (20 + 40 // 2 + 1) * 2)
+    rgb = np.asarray(im.convert("RGB"))
+    red = (rgb[..., 0] == 255) & (rgb[..., 1] == 26)
+    assert 0.07 < red.sum() / (6 * 20 * 24 * 2 * 2) < 0.09  # 8 % of each panel: edges above the 92nd percentile
+    with pytest.raises(ValueError, match="no DRRs"):
+        trajectory_figure(xray, drrs[:0], np.zeros((0, 6)), tmp_path / "u.png")
