@@ -31,14 +31,15 @@ import numpy as np
 from scipy import ndimage
 
 from register.engines.methods import build_method, check_method, load_predictor, needs_model
-from register.engines.metrics import downsample
+from register.engines.metrics import downsample, gradient_ncc
 from register.engines.result import RegistrationError
 from register.engines.search import GlobalSearch, GlobalSearchSettings, describe_search
 from register.plots import checkerboard_png, convergence_plot, overlay_png, trajectory_figure, trajectory_gif
 from register.xray.geometry import resolve_geometry
 from register.xray.io import XRayImage, check_orientation, load_xray
 from register.xray.network_view import network_view
-from register.xray.prepare import _fit_plan, confirm_polarity, fit_box, prepare_xray
+from register.xray.prepare import (_fit_plan, confirm_polarity, confirm_polarity_by_pose, fit_box,
+                                   polarity_needs_check, prepare_xray)
 from register.xray.preprocess import DEFAULT_STEPS, Pipeline, PreprocessError
 from sim.atomic import atomic_path, write_json
 from sim.campaign.poses import PARAM_NAMES
@@ -402,12 +403,6 @@ def register_xray(ct, xray, *, method: str = "contextual+cmaes", model=None, ini
             grid = GlobalSearch(volume, GlobalSearchSettings(always_grid=search == "always"),
                                 size=(geometry.height, geometry.width), scene=scene, geometry=geometry,
                                 center_lps=c, physics=moving, label_materials=label_materials)
-    # the polarity check scores on the search's grid (its DRRs then serve the search); with search="off"
-    # on a grid of its own around the start, as for the other methods: it decides the image's polarity,
-    # never the pose
-    with clock("polarity"):
-        prepared = confirm_polarity(prepared, volume, c, x0, physics=moving, label_materials=label_materials,
-                                    search=grid)
     log(prepared.sources.line())
     for line in _input_lines(prepared):
         log(line)
@@ -419,6 +414,25 @@ def register_xray(ct, xray, *, method: str = "contextual+cmaes", model=None, ini
         view = network_view(predictor, prepared) if predictor is not None else None  # what the network sees
     with clock("register"):
         result = engine.register(prepared.image, x0, mask=prepared.mask, toned=prepared.toned, network_view=view)
+    if polarity_needs_check(prepared):
+        # the decided polarity is checked after the registration: a pose that matches the X-ray as
+        # decided confirms it; else the check scores the image and its inverse over the global search's
+        # grid (rendered and correlated by the search already where it ran; else a grid of its own
+        # around the start), and where it inverts the image the registration runs again on the inverse
+        with clock("polarity"):
+            checked = confirm_polarity_by_pose(prepared, _plain_score(volume, c, prepared, result.pose), result.params)
+            if checked is None:
+                checked = confirm_polarity(prepared, volume, c, x0, physics=moving, label_materials=label_materials,
+                                           search=grid)
+        inverted = checked.step("polarity_check").get("inverted", False)
+        prepared = checked
+        if inverted:
+            view = network_view(predictor, prepared) if predictor is not None else None
+            with clock("register"):
+                result = engine.register(prepared.image, x0, mask=prepared.mask, toned=prepared.toned,
+                                         network_view=view)
+        for line in _input_lines(prepared, only=("polarity_check",)):
+            log(line)
     ran = result.search is not None and bool(result.search.get("grid_poses"))
     return XRayRegistration(method=method, result=result, prepared=prepared, volume=volume, center_lps=c,
                             init_params=x0, physics=moving, label_materials=label_materials, notes=notes,
@@ -464,9 +478,23 @@ def _check_coarse_field(prepared, box, need: int) -> None:
                               f"larger --size")
 
 
-def _input_lines(prepared) -> list[str]:
-    """One line each for the field and the intensity decision (what a user should check first)."""
+def _plain_score(volume, center_lps, prepared, pose) -> float:
+    """The gradient NCC of the prepared X-ray (as decided, over its field) with the line DRR at
+    ``pose`` ``(4, 4)``, at the optimiser's size: the score that confirms a polarity
+    (:func:`register.xray.prepare.confirm_polarity_by_pose`)."""
+    from sim.drr import DRRRenderer, RenderSettings
+
+    g = prepared.geometry
+    drr = DRRRenderer(volume, RenderSettings(size=(g.height, g.width)), center_lps=center_lps, geometry=g).render(pose)
+    return float(gradient_ncc(prepared.image, drr, mask=prepared.mask)[0])
+
+
+def _input_lines(prepared, only: tuple[str, ...] | None = None) -> list[str]:
+    """One line each for the field, the intensity decision and the polarity check (what a user
+    should check first); ``only`` the steps named."""
     lines = []
+    if only is not None:
+        return [line for line, step in zip(_input_lines(prepared), _input_steps(prepared)) if step in only]
     if prepared.xray.meta.get("orientation"):
         lines.append(f"orientation: {prepared.xray.meta['orientation']} (--orient), as the CT's view")
     fld = prepared.step("field")
@@ -490,7 +518,19 @@ def _input_lines(prepared) -> list[str]:
                    "inconclusive": "inconclusive, the decision stands"}[check["verdict"]]
         if "reason" in check:
             lines.append(f"polarity check against the CT: not run ({check['reason']}): {check['polarity']}")
+        elif check.get("by") == "pose":
+            lines.append(f"polarity check against the CT: confirmed by the registered pose (similarity "
+                         f"{check['similarity_as_decided']:.3f} >= {check['threshold']:.2f} as decided): "
+                         f"{check['polarity']}")
         else:
             lines.append(f"polarity check against the CT: {verdict} (similarity {check['similarity_as_decided']:.3f} "
                          f"as decided, {check['similarity_inverted']:.3f} inverted): {check['polarity']}")
     return lines
+
+
+def _input_steps(prepared) -> list[str]:
+    """The step each line of :func:`_input_lines` (without ``only``) stands for, in order."""
+    return [step for step, present in (("orient", bool(prepared.xray.meta.get("orientation"))),
+                                       ("field", prepared.step("field") is not None),
+                                       ("intensity", prepared.step("intensity") is not None),
+                                       ("polarity_check", prepared.step("polarity_check") is not None)) if present]

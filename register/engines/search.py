@@ -281,6 +281,7 @@ class GlobalSearch:
         self.rescore_pad = 2 * max(s.factor // s.local_factor, 1)
         self.rescore_padded = self._padded_renderer(volume, scene, self.rescore_geometry, self.rescore_pad)
         self._grid_drrs = None  # (key, DRRs) of the last grid rendered (:meth:`_drrs`)
+        self._grid_extremes: dict = {}  # each image's best and worst grid score of the last grid (:meth:`_surfaces`)
 
     def built_for(self, geometry, physics=_ANY_PHYSICS) -> bool:
         """Whether this search renders ``geometry``'s detector (:class:`sim.geometry.CArmGeometry`,
@@ -356,7 +357,15 @@ class GlobalSearch:
         if times is not None:
             times["render"] = times.get("render", 0.0) + t1 - t0
             times["ncc"] = times.get("ncc", 0.0) + time.perf_counter() - t1
+        if renderer is self.padded:  # the grid's: each image's extremes, for the polarity check after it
+            self._grid_extremes = {self._grid_key(f, mk, params): (float(sc.max()), float(sc.min()))
+                                   for (f, mk), sc in zip(fields, score)}
         return score
+
+    @staticmethod
+    def _grid_key(f, m, params) -> tuple:
+        """What makes two grid score surfaces the same: the field image, its mask and the poses."""
+        return (f.shape, f.tobytes(), m.tobytes(), np.ascontiguousarray(params, np.float64).tobytes())
 
     def polarity_scores(self, fixed: np.ndarray, init_params=np.zeros(6), *,
                         mask: np.ndarray | None = None) -> tuple[float, float]:
@@ -369,6 +378,9 @@ class GlobalSearch:
         s = self.settings
         field = self._field(fixed, mask, s.factor)
         params = np.asarray(init_params, float).reshape(6) + s.grid_offsets()
+        known = self._grid_extremes.get(self._grid_key(*field, params))
+        if known is not None:  # the search ranked this image on this grid already: the same surface
+            return known[0], -known[1]
         score = self._surfaces([field], params, self.padded, self.level_geometry)[0]
         return float(score.max()), float(-score.min())
 
@@ -519,7 +531,7 @@ class GlobalSearch:
             # prepared one the views whose histogram the tone's reference poses do not share
             images = [fixed] if toned is None else [fixed, np.asarray(toned, np.float64)]
             ranked = [p for p, _ in self.grids(images, init_params, mask=mask, times=grid_times)]
-            self._grid_drrs = None  # used: the polarity check's render served it (tens of MB freed)
+            self._grid_drrs = None  # used (tens of MB freed); the polarity check reads the surfaces' extremes
             grid_poses = len(ranked[0])
             renders += grid_poses
             # half the candidates from the rankings at local_factor's resolution (sharper at the

@@ -37,9 +37,9 @@ from sim.geometry import pose_from_params
 from sim.prepare import invert, masked_fill, normalize, percentile_bounds
 from sim.seeds import KIND_POLARITY_POSES, rng_for
 
-__all__ = ["PreparedXRay", "prepare_xray", "confirm_polarity", "fit_to_size", "fit_box", "reference_drrs",
-           "recorded_tone_curve", "toned_image",
-           "REFERENCE_POSES", "REFERENCE_SIZE", "POLARITY_FLIP_MARGIN"]
+__all__ = ["PreparedXRay", "prepare_xray", "confirm_polarity", "confirm_polarity_by_pose", "polarity_needs_check",
+           "fit_to_size", "fit_box", "reference_drrs", "recorded_tone_curve", "toned_image",
+           "REFERENCE_POSES", "REFERENCE_SIZE", "POLARITY_FLIP_MARGIN", "POLARITY_CONFIRMED_ABOVE"]
 
 #: Number of DRRs (poses around the start) of the polarity reference, and their longer side (px).
 REFERENCE_POSES = 96
@@ -285,6 +285,14 @@ def toned_image(image: np.ndarray, mask: np.ndarray | None, curve) -> np.ndarray
 #: Polarity sources that a registration check does not question: the user's option and a decisive tag.
 _DECISIVE_POLARITY = ("option", "DICOM PixelIntensityRelationshipSign")
 
+#: A registered pose whose gradient NCC with the X-ray as decided (plain, at the optimiser's size,
+#: against a line DRR) reaches this confirms the decided polarity without the grid check
+#: (:func:`confirm_polarity_by_pose`): the inverse scores minus that at the same pose, and where a
+#: decision was wrong its best grid pose scored at most about 0.5 (:data:`POLARITY_FLIP_MARGIN`'s
+#: frames). The global search's skip threshold (``GlobalSearchSettings.found_above``), on the same
+#: score.
+POLARITY_CONFIRMED_ABOVE = 0.85
+
 #: The inverse must score better by this much (the best gradient NCC over the global search's grid,
 #: :meth:`register.engines.search.GlobalSearch.polarity_scores`) to overturn the decided polarity. On
 #: realistic frames (four display chains, 22 frames) the right polarity's best was 0.38-0.96; where
@@ -310,9 +318,9 @@ def confirm_polarity(prepared: PreparedXRay, volume, center_lps, init_params, *,
     built for ``prepared.geometry`` (default settings) to score on; it keeps the grid's DRRs, so a
     registration that searches with it next renders the grid once (about a second saved).
     """
-    decision = prepared.step("intensity")
-    if decision is None or decision.get("polarity_source") in _DECISIVE_POLARITY:
+    if not polarity_needs_check(prepared):
         return prepared
+    decision = prepared.step("intensity")
     if search is not None and not search.built_for(prepared.geometry):
         raise ValueError("confirm_polarity: search was built for another detector than the prepared X-ray's")
     g = prepared.geometry
@@ -344,6 +352,30 @@ def confirm_polarity(prepared: PreparedXRay, volume, center_lps, init_params, *,
                    invert(prepared.network_image, prepared.network_mask)[0])
     return replace(prepared, image=inverse, full_image=full_inverse, record=record,
                    toned=toned_image(inverse, prepared.mask, recorded_tone_curve(prepared.record)), network_image=net_inverse)
+
+
+def polarity_needs_check(prepared: PreparedXRay) -> bool:
+    """Whether the decided polarity is open to the check against the CT: an intensity step decided
+    it, and neither an option nor a decisive tag."""
+    decision = prepared.step("intensity")
+    return decision is not None and decision.get("polarity_source") not in _DECISIVE_POLARITY
+
+
+def confirm_polarity_by_pose(prepared: PreparedXRay, similarity: float, pose_params) -> PreparedXRay | None:
+    """The X-ray with its decided polarity confirmed by a registered pose whose gradient NCC with it
+    (plain, at the optimiser's size) is ``similarity`` >= :data:`POLARITY_CONFIRMED_ABOVE` (its
+    inverse scores ``-similarity`` there), recorded as step ``polarity_check`` with ``"by": "pose"``,
+    the pose (``pose_params`` ``(6,)`` deg, mm) and no grid; None where ``similarity`` is lower
+    (:func:`confirm_polarity` must decide). The registration then needs no grid of its own for the
+    check (about 3 s on 2 cores where the global search is skipped or not part of the method)."""
+    if not polarity_needs_check(prepared) or not similarity >= POLARITY_CONFIRMED_ABOVE:
+        return None
+    decision = prepared.step("intensity")
+    measured = {"by": "pose", "similarity_as_decided": float(similarity), "similarity_inverted": -float(similarity),
+                "threshold": POLARITY_CONFIRMED_ABOVE, "verdict": "confirmed", "inverted": False,
+                "polarity": decision["polarity"], "pose_params": np.asarray(pose_params, float).reshape(6).tolist()}
+    return replace(prepared, record=[*prepared.record, {"step": "polarity_check", "params": {"by": "pose"},
+                                                        "measured": measured}])
 
 
 def recorded_tone_curve(record) -> np.ndarray | None:

@@ -260,3 +260,32 @@ def test_a_field_found_only_in_a_log_view_is_said_in_the_input_lines(tmp_path):
     assert prepared.step("field")["view"] == "log-dark"
     (field_line,) = [x for x in _input_lines(prepared) if x.startswith("field:")]
     assert "log-dark view only" in field_line and "check the result" in field_line
+
+
+def test_a_pose_confirms_a_polarity_only_above_the_threshold_and_never_a_decisive_one():
+    """confirm_polarity_by_pose records a confirmation (by the pose, its score, the inverse's minus
+    it, no grid) from a score >= POLARITY_CONFIRMED_ABOVE, and nothing (None) below it or where an
+    option decided the polarity."""
+    from register.xray.io import XRayImage
+    from register.xray.prepare import (POLARITY_CONFIRMED_ABOVE, confirm_polarity_by_pose, polarity_needs_check,
+                                       prepare_xray)
+    from sim.anatomy import anatomy_center
+    from sim.phantom import make_pelvis_phantom
+
+    vol = make_pelvis_phantom(0, spacing_mm=4.0)
+    c = anatomy_center(vol)
+    drr = DRRRenderer(vol, RenderSettings(size=(64, 64)), center_lps=c).render_params(np.zeros(6))[0]
+    kw = dict(volume=vol, center_lps=c, init_params=np.zeros(6), size=64)
+    auto = prepare_xray(XRayImage(drr.astype(np.float32), source="drr"), **kw)
+    assert polarity_needs_check(auto)
+    pose = [1.0, 2.0, 3.0, 4.0, 5.0, 6.0]
+    assert confirm_polarity_by_pose(auto, POLARITY_CONFIRMED_ABOVE - 1e-9, pose) is None
+    assert confirm_polarity_by_pose(auto, float("nan"), pose) is None
+    done = confirm_polarity_by_pose(auto, 0.9, pose)
+    assert done.record[:-1] == auto.record and done.image is auto.image
+    check = done.step("polarity_check")
+    assert check == {"by": "pose", "similarity_as_decided": 0.9, "similarity_inverted": -0.9,
+                     "threshold": POLARITY_CONFIRMED_ABOVE, "verdict": "confirmed", "inverted": False,
+                     "polarity": auto.step("intensity")["polarity"], "pose_params": pose}
+    given = prepare_xray(XRayImage(drr.astype(np.float32), source="drr"), polarity="bone-bright", **kw)
+    assert not polarity_needs_check(given) and confirm_polarity_by_pose(given, 0.99, pose) is None

@@ -1,7 +1,7 @@
 """``register_xray(search=...)`` / ``ctxreg register --search``: contextual+cmaes with the global
 search's grid where the network's pose is lost (auto), never (off: the network measured on its own,
-the search not even built; the polarity check scores on a grid of its own, deciding the polarity
-only) or always; the result records whether the grid ran."""
+the search not even built; the polarity is confirmed by the registered pose or scored on a grid of
+its own, deciding the polarity only) or always; the result records whether the grid ran."""
 
 from __future__ import annotations
 
@@ -73,9 +73,10 @@ def test_search_off_never_builds_the_global_search(phantom, monkeypatch, tmp_pat
     assert not any(k.startswith("search") for k in res.result.stage_seconds)
     assert any(k.startswith("cmaes_") for k in res.result.stage_seconds)
     assert np.abs(np.array(list(res.params.values()))[:3] - NEAR[:3]).max() < 2.0, res.params
-    # the polarity check ran on a grid of its own (it decides the polarity, never the pose)
+    # the polarity was checked (it decides the polarity, never the pose): here by the registered pose,
+    # which scores above the threshold as decided
     check = res.prepared.step("polarity_check")
-    assert check["verdict"] == "confirmed" and not check["inverted"] and check["similarity_as_decided"] > 0.5
+    assert check["verdict"] == "confirmed" and not check["inverted"] and check["similarity_as_decided"] >= 0.85
     res.write(tmp_path)
     saved = json.loads((tmp_path / "result.json").read_text())
     assert saved["search_mode"] == "off" and saved["search_ran"] is False and saved["search_status"] == "off"
@@ -181,3 +182,69 @@ def test_cli_passes_search_on(monkeypatch, capsys, tmp_path):
         cli.main(["register", "--help"])
     help_text = " ".join(capsys.readouterr().out.split())
     assert "--search {auto,off,always}" in help_text and "contextual+cmaes only) (default: auto)" in help_text
+
+
+@pytest.mark.parametrize("search", ["auto", "off", "always"])
+def test_a_registered_pose_that_matches_confirms_the_polarity_without_a_grid_of_its_own(phantom, monkeypatch,
+                                                                                        search):
+    """The polarity is checked after the registration: a pose whose gradient NCC with the X-ray as
+    decided reaches 0.85 confirms it, and no grid is scored for the check (a grid the search ran is
+    read, not scored again); the record says by what, and the inverse scores minus that there."""
+    import register.engines.search
+    from register.xray.prepare import POLARITY_CONFIRMED_ABOVE
+
+    def no_grid_check(self, *a, **k):
+        raise AssertionError("the polarity was scored on a grid")
+
+    monkeypatch.setattr(register.engines.search.GlobalSearch, "polarity_scores", no_grid_check)
+    res = register_drr(phantom, NEAR, search=search)
+    check = res.prepared.step("polarity_check")
+    assert check["by"] == "pose" and check["verdict"] == "confirmed" and not check["inverted"]
+    assert check["similarity_as_decided"] >= POLARITY_CONFIRMED_ABOVE
+    assert check["similarity_inverted"] == -check["similarity_as_decided"]
+    assert np.allclose(check["pose_params"], list(res.params.values()))
+    assert res.timings["polarity"] < res.timings["register"]
+    assert list(res.timings)[-2:] == ["register", "polarity"]
+
+
+def test_the_check_reads_the_searchs_grid_and_a_flip_registers_again(phantom, tmp_path, monkeypatch):
+    """A frame shown the other way round whose pose is lost: the search's grid ran on the image as
+    decided, the check reads that grid's best and worst scores (no second scoring) and inverts the
+    image, and the registration runs again on the inverse and finds the pose."""
+    import register.engines.search
+    import register.xray.prepare
+    from register.xray.io import write_xray_dicom
+
+    monkeypatch.setattr(register.xray.prepare, "reference_drrs", lambda *a, **k: None)
+    drr = xray_at(phantom, FAR)
+    pixels = np.round(drr.pixels / drr.pixels.max() * 4000).astype(np.uint16)
+    path = write_xray_dicom(tmp_path / "x.dcm", pixels, pixel_spacing_mm=drr.pixel_spacing_mm, sdd_mm=drr.sdd_mm,
+                            sod_mm=drr.sod_mm, bits_stored=12, modality="RF")  # read as bone dark: wrong
+    calls = {"surfaces": 0, "register": 0, "surfaces_in_check": 0}
+    real_surfaces = register.engines.search.GlobalSearch._surfaces
+    real_register = register.engines.search.GlobalSearch.register
+    real_scores = register.engines.search.GlobalSearch.polarity_scores
+
+    def surfaces(self, *a, **k):
+        calls["surfaces"] += 1
+        return real_surfaces(self, *a, **k)
+
+    def search_register(self, *a, **k):
+        calls["register"] += 1
+        return real_register(self, *a, **k)
+
+    def scores(self, *a, **k):
+        before = calls["surfaces"]
+        out = real_scores(self, *a, **k)
+        calls["surfaces_in_check"] += calls["surfaces"] - before
+        return out
+
+    monkeypatch.setattr(register.engines.search.GlobalSearch, "_surfaces", surfaces)
+    monkeypatch.setattr(register.engines.search.GlobalSearch, "register", search_register)
+    monkeypatch.setattr(register.engines.search.GlobalSearch, "polarity_scores", scores)
+    res = register_image(phantom, path)
+    check = res.prepared.step("polarity_check")
+    assert check["verdict"] == "inverted" and check["inverted"] and "by" not in check, check
+    assert calls["register"] == 2  # the search ran on the image as decided, then on the inverse
+    assert calls["surfaces_in_check"] == 0  # the check read the search's grid: no scoring of its own
+    assert np.abs(np.array(list(res.params.values()))[:3] - np.array(FAR[:3])).max() < 2.0, res.params
