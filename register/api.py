@@ -412,27 +412,47 @@ def register_xray(ct, xray, *, method: str = "contextual+cmaes", model=None, ini
                               label_materials=label_materials, restarts=restarts if method == "cmaes" else 0,
                               keep_drrs=True, note=remark, search=grid)
         view = network_view(predictor, prepared) if predictor is not None else None  # what the network sees
+    # The decided polarity is checked against the CT (unless an option or a decisive tag set it):
+    # - where the global search is about to run its grid, on that grid (its DRRs then serve the
+    #   search; the search stops where the image is to be inverted, and starts again on the inverse);
+    # - else after the registration: a registered pose that matches the X-ray as decided confirms it
+    #   (no grid at all), or a grid of its own around the start decides, and where it inverts the
+    #   image the registration runs again on the inverse.
+    pending = polarity_needs_check(prepared)
+    checked_on_grid = []
+
+    def grid_check() -> bool:  # GlobalSearch.register's before_grid: True stops it (to be inverted)
+        nonlocal prepared
+        with clock("polarity"):
+            prepared = confirm_polarity(prepared, volume, c, x0, physics=moving, label_materials=label_materials,
+                                        search=grid)
+        checked_on_grid.append(clock.seconds["polarity"])
+        return bool(prepared.step("polarity_check").get("inverted", False))
+
+    hook = {"before_grid": grid_check} if pending and grid is not None else {}
     with clock("register"):
-        result = engine.register(prepared.image, x0, mask=prepared.mask, toned=prepared.toned, network_view=view)
-    if polarity_needs_check(prepared):
-        # the decided polarity is checked after the registration: a pose that matches the X-ray as
-        # decided confirms it; else the check scores the image and its inverse over the global search's
-        # grid (rendered and correlated by the search already where it ran; else a grid of its own
-        # around the start), and where it inverts the image the registration runs again on the inverse
+        result = engine.register(prepared.image, x0, mask=prepared.mask, toned=prepared.toned, network_view=view,
+                                 **hook)
+        if result is None:  # the grid's check inverted the image: the registration of the inverse
+            view = network_view(predictor, prepared) if predictor is not None else None
+            result = engine.register(prepared.image, x0, mask=prepared.mask, toned=prepared.toned,
+                                     network_view=view)
+    if checked_on_grid:  # the stages stay disjoint: the check's seconds are its own
+        clock.add("register", -checked_on_grid[-1])
+    elif pending:
         with clock("polarity"):
             checked = confirm_polarity_by_pose(prepared, _plain_score(volume, c, prepared, result.pose), result.params)
             if checked is None:
                 checked = confirm_polarity(prepared, volume, c, x0, physics=moving, label_materials=label_materials,
                                            search=grid)
-        inverted = checked.step("polarity_check").get("inverted", False)
         prepared = checked
-        if inverted:
+        if prepared.step("polarity_check").get("inverted", False):
             view = network_view(predictor, prepared) if predictor is not None else None
             with clock("register"):
                 result = engine.register(prepared.image, x0, mask=prepared.mask, toned=prepared.toned,
                                          network_view=view)
-        for line in _input_lines(prepared, only=("polarity_check",)):
-            log(line)
+    for line in _input_lines(prepared, only=("polarity_check",)):
+        log(line)
     ran = result.search is not None and bool(result.search.get("grid_poses"))
     return XRayRegistration(method=method, result=result, prepared=prepared, volume=volume, center_lps=c,
                             init_params=x0, physics=moving, label_materials=label_materials, notes=notes,

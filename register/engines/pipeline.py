@@ -25,6 +25,7 @@ on an image outside its training domain costs time, not the registration.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import replace
 
 import numpy as np
@@ -57,6 +58,10 @@ REFINE_SETTINGS = CMAESSettings(levels=(2,), sigma_deg=3.0, sigma_mm=8.0, range_
 #: depths are searched already (the grid spans +-75 mm), and the narrower box stays: the wide one let
 #: a start of a frame whose field was misread follow its similarity 20 mm off in depth.
 NETWORK_DEPTH_RANGE_MM = 90.0
+
+
+#: :meth:`ContextualPipeline.starts`' answer where ``before_grid`` stopped the search.
+_STOPPED = object()
 
 
 class ContextualPipeline:
@@ -100,14 +105,19 @@ class ContextualPipeline:
         return self.contextual.renderer
 
     def register(self, fixed: np.ndarray, init_params=np.zeros(6), *, mask: np.ndarray | None = None,
-                 toned: np.ndarray | None = None, network_view=None) -> RegistrationResult:
+                 toned: np.ndarray | None = None, network_view=None,
+                 before_grid: Callable[[], bool] | None = None) -> RegistrationResult | None:
         """Register ``fixed`` ``(H, W)`` from ``init_params`` (deg, mm): the steps of the module doc.
         ``mask``, ``toned`` and ``network_view`` as
         :meth:`register.engines.contextual.ContextualRegistration.register`; CMA-ES and the final
-        similarity use the valid pixels only, and the global search ranks its grid on ``toned`` too."""
+        similarity use the valid pixels only, and the global search ranks its grid on ``toned`` too.
+        ``before_grid``: :meth:`register.engines.search.GlobalSearch.register`'s; where it stops the
+        search, the registration stops too and returns None."""
         fixed, mask = checked_inputs(fixed, mask, toned)
         it = self.iterate(fixed, init_params, mask=mask, toned=toned, network_view=network_view)
-        found = self.starts(fixed, init_params, it, mask=mask, toned=toned)
+        found = self.starts(fixed, init_params, it, mask=mask, toned=toned, before_grid=before_grid)
+        if found is _STOPPED:
+            return None
         starts = [it.params] if found is None else [np.asarray(f["params"], float) for f in found.search["finalists"]]
         refine = self.scored(toned)
         refined = self.refine(refine, fixed, starts, mask=mask)
@@ -119,12 +129,15 @@ class ContextualPipeline:
         """Step 1: the network's iteration."""
         return self.contextual.iterate(fixed, init_params, mask=mask, toned=toned, network_view=network_view)
 
-    def starts(self, fixed, init_params, it: Iteration, *, mask=None, toned=None) -> RegistrationResult | None:
+    def starts(self, fixed, init_params, it: Iteration, *, mask=None, toned=None, before_grid=None):
         """Step 2: the global search from the network's pose (its result, whose record's
-        ``finalists`` are the refinement's starts), or None without a search."""
+        ``finalists`` are the refinement's starts), None without a search, or ``_STOPPED`` where
+        ``before_grid`` stopped it."""
         if self.search is None:
             return None
-        return self.search.register(fixed, init_params, mask=mask, poses=[it.params], toned=toned)
+        found = self.search.register(fixed, init_params, mask=mask, poses=[it.params], toned=toned,
+                                     before_grid=before_grid)
+        return _STOPPED if found is None else found
 
     def scored(self, toned) -> CMAESRegistration:
         """The refinement's CMA-ES as it scores this X-ray: a display image (with a toned version)

@@ -32,6 +32,7 @@ Use (``volume`` a CT, ``xray`` ``(128, 128)`` prepared bone-bright, ``field`` it
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -457,7 +458,8 @@ class GlobalSearch:
                                   mask=mask)[0])
 
     def register(self, fixed: np.ndarray, init_params=np.zeros(6), *, mask: np.ndarray | None = None,
-                 poses=(), toned: np.ndarray | None = None) -> RegistrationResult:
+                 poses=(), toned: np.ndarray | None = None,
+                 before_grid: Callable[[], bool] | None = None) -> RegistrationResult | None:
         """The best pose the search finds for ``fixed`` ``(H, W)`` around ``init_params`` (deg, mm).
 
         ``toned``: ``(H, W)`` the X-ray's toned version (:attr:`register.xray.prepare.PreparedXRay.toned`)
@@ -477,7 +479,12 @@ class GlobalSearch:
         skipped), "finalists": the best distinct local results, best first (the first is the
         result), at most ``settings.finalists`` when the grid ran and 1 otherwise: ``[{"params":
         (6,) deg/mm, "similarity", "start": "given" or "grid"}, ...]``}``; the refinement starts
-        from each (:class:`register.engines.pipeline.ContextualPipeline`)."""
+        from each (:class:`register.engines.pipeline.ContextualPipeline`).
+
+        ``before_grid``: called once just before the grid is rendered and ranked (not where it is
+        skipped); where it returns True the search stops there and returns None. ``register_xray``
+        checks the X-ray's polarity on this search's grid there (its DRRs then serve the ranking), so
+        that an image to be inverted costs no grid search on the wrong one."""
         s = self.settings
         fixed = np.asarray(fixed, np.float64)
         if mask is not None:
@@ -525,6 +532,8 @@ class GlobalSearch:
         grid_poses = candidates = 0
         grid_times = {"render": 0.0, "ncc": 0.0}  # the grid's and the rescoring's
         if given_score is None or s.always_grid or given_score < s.found_above:
+            if before_grid is not None and before_grid():
+                return None
             t0 = time.perf_counter()
             # the grid ranks the X-ray as prepared and, for a display image, its toned version too:
             # the toned one finds strongly curved displays (a gamma 2.6, a linear display), the

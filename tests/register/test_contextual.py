@@ -106,7 +106,7 @@ def test_a_lost_network_pose_goes_through_the_global_search(phantom):
     # the refinement runs from each finalist: a wrong search winner (as at 1/4 resolution on realistic
     # frames) loses to the right runner-up once both are refined at full resolution
     far = truth + np.array([-25.0, 12.0, -10.0, -40.0, 30.0, -35.0])
-    reg.search.register = lambda fixed, init, mask=None, poses=(), toned=None: type(res)(
+    reg.search.register = lambda fixed, init, mask=None, poses=(), toned=None, before_grid=None: type(res)(
         params=far, pose=np.eye(4), projection=np.eye(3, 4), similarity=0.9, renders=0,
         stage_seconds={"search_local": 0.0}, search={**record, "finalists": [
             {"params": far.tolist(), "similarity": 0.9, "start": "grid"},

@@ -184,12 +184,12 @@ def test_cli_passes_search_on(monkeypatch, capsys, tmp_path):
     assert "--search {auto,off,always}" in help_text and "contextual+cmaes only) (default: auto)" in help_text
 
 
-@pytest.mark.parametrize("search", ["auto", "off", "always"])
+@pytest.mark.parametrize("search", ["auto", "off"])
 def test_a_registered_pose_that_matches_confirms_the_polarity_without_a_grid_of_its_own(phantom, monkeypatch,
                                                                                         search):
-    """The polarity is checked after the registration: a pose whose gradient NCC with the X-ray as
-    decided reaches 0.85 confirms it, and no grid is scored for the check (a grid the search ran is
-    read, not scored again); the record says by what, and the inverse scores minus that there."""
+    """Where no grid is searched, the polarity is checked after the registration: a pose whose
+    gradient NCC with the X-ray as decided reaches 0.85 confirms it, and no grid is scored for the
+    check; the record says by what, and the inverse scores minus that there."""
     import register.engines.search
     from register.xray.prepare import POLARITY_CONFIRMED_ABOVE
 
@@ -198,19 +198,43 @@ def test_a_registered_pose_that_matches_confirms_the_polarity_without_a_grid_of_
 
     monkeypatch.setattr(register.engines.search.GlobalSearch, "polarity_scores", no_grid_check)
     res = register_drr(phantom, NEAR, search=search)
+    assert not res.search_ran
     check = res.prepared.step("polarity_check")
     assert check["by"] == "pose" and check["verdict"] == "confirmed" and not check["inverted"]
     assert check["similarity_as_decided"] >= POLARITY_CONFIRMED_ABOVE
     assert check["similarity_inverted"] == -check["similarity_as_decided"]
     assert np.allclose(check["pose_params"], list(res.params.values()))
-    assert res.timings["polarity"] < res.timings["register"]
-    assert list(res.timings)[-2:] == ["register", "polarity"]
+    assert list(res.timings)[-2:] == ["register", "polarity"] and res.timings["polarity"] < res.timings["register"]
 
 
-def test_the_check_reads_the_searchs_grid_and_a_flip_registers_again(phantom, tmp_path, monkeypatch):
-    """A frame shown the other way round whose pose is lost: the search's grid ran on the image as
-    decided, the check reads that grid's best and worst scores (no second scoring) and inverts the
-    image, and the registration runs again on the inverse and finds the pose."""
+def test_where_the_grid_runs_the_polarity_is_checked_on_it_first_and_rendered_once(phantom, monkeypatch):
+    """search="always": the check scores the image on the search's grid just before the search
+    ranks it, and the grid's DRRs are rendered once for both."""
+    import register.engines.search
+
+    renders = []
+    real = register.engines.search.GlobalSearch._drrs
+
+    def drrs(self, params, renderer, g):
+        if renderer is self.padded and not (self._grid_drrs is not None
+                                             and self._grid_drrs[0][1] == np.ascontiguousarray(params).tobytes()):
+            renders.append(len(params))
+        return real(self, params, renderer, g)
+
+    monkeypatch.setattr(register.engines.search.GlobalSearch, "_drrs", drrs)
+    res = register_drr(phantom, NEAR, search="always")
+    check = res.prepared.step("polarity_check")
+    assert res.search_ran and "by" not in check and check["verdict"] == "confirmed" and not check["inverted"]
+    assert len(renders) == 1  # the grid, once
+    assert 0 < res.timings["polarity"] and 0 < res.timings["register"]  # disjoint: the check's seconds its own
+
+
+def test_a_wrong_polarity_stops_the_search_before_its_grid_and_the_inverse_is_registered(phantom, tmp_path,
+                                                                                      monkeypatch):
+    """A frame shown the other way round whose pose is lost: the search is about to rank its grid,
+    the check scores the image on that grid first and inverts it, the search stops (no grid search
+    on the wrong image) and the registration runs again on the inverse, the grid's DRRs rendered once
+    for all of it."""
     import register.engines.search
     import register.xray.prepare
     from register.xray.io import write_xray_dicom
@@ -220,31 +244,26 @@ def test_the_check_reads_the_searchs_grid_and_a_flip_registers_again(phantom, tm
     pixels = np.round(drr.pixels / drr.pixels.max() * 4000).astype(np.uint16)
     path = write_xray_dicom(tmp_path / "x.dcm", pixels, pixel_spacing_mm=drr.pixel_spacing_mm, sdd_mm=drr.sdd_mm,
                             sod_mm=drr.sod_mm, bits_stored=12, modality="RF")  # read as bone dark: wrong
-    calls = {"surfaces": 0, "register": 0, "surfaces_in_check": 0}
-    real_surfaces = register.engines.search.GlobalSearch._surfaces
+    answers, renders = [], []
     real_register = register.engines.search.GlobalSearch.register
-    real_scores = register.engines.search.GlobalSearch.polarity_scores
-
-    def surfaces(self, *a, **k):
-        calls["surfaces"] += 1
-        return real_surfaces(self, *a, **k)
+    real_render = register.engines.search.GlobalSearch._drrs
 
     def search_register(self, *a, **k):
-        calls["register"] += 1
-        return real_register(self, *a, **k)
+        answers.append(real_register(self, *a, **k))
+        return answers[-1]
 
-    def scores(self, *a, **k):
-        before = calls["surfaces"]
-        out = real_scores(self, *a, **k)
-        calls["surfaces_in_check"] += calls["surfaces"] - before
-        return out
+    def drrs(self, params, renderer, g):
+        if renderer is self.padded and not (self._grid_drrs is not None
+                                             and self._grid_drrs[0][1] == np.ascontiguousarray(params).tobytes()):
+            renders.append(len(params))
+        return real_render(self, params, renderer, g)
 
-    monkeypatch.setattr(register.engines.search.GlobalSearch, "_surfaces", surfaces)
     monkeypatch.setattr(register.engines.search.GlobalSearch, "register", search_register)
-    monkeypatch.setattr(register.engines.search.GlobalSearch, "polarity_scores", scores)
+    monkeypatch.setattr(register.engines.search.GlobalSearch, "_drrs", drrs)
     res = register_image(phantom, path)
     check = res.prepared.step("polarity_check")
     assert check["verdict"] == "inverted" and check["inverted"] and "by" not in check, check
-    assert calls["register"] == 2  # the search ran on the image as decided, then on the inverse
-    assert calls["surfaces_in_check"] == 0  # the check read the search's grid: no scoring of its own
+    assert len(answers) == 2 and answers[0] is None and answers[1] is not None  # stopped, then the inverse
+    assert len(renders) == 1  # the grid, once
+    assert res.search_ran
     assert np.abs(np.array(list(res.params.values()))[:3] - np.array(FAR[:3])).max() < 2.0, res.params
