@@ -43,6 +43,24 @@ NEAR = [6.0, -4.0, 3.0, 8.0, -6.0, 10.0]     # the start (AP) scores well: a rig
 FAR = [26.0, -12.0, 10.0, 35.0, -25.0, 30.0]  # AP scores low: a lost network's pose
 
 
+def count_grid_renders(monkeypatch) -> list:
+    """A list that gets the pose count of every grid the global searches render (a grid whose DRRs
+    they keep from the call before is not rendered again)."""
+    import register.engines.search
+
+    renders = []
+    real = register.engines.search.GlobalSearch._drrs
+
+    def drrs(self, params, renderer, g):
+        kept = self._grid_drrs is not None and self._grid_drrs[0][1] == np.ascontiguousarray(params).tobytes()
+        if renderer is self.padded and not kept:
+            renders.append(len(params))
+        return real(self, params, renderer, g)
+
+    monkeypatch.setattr(register.engines.search.GlobalSearch, "_drrs", drrs)
+    return renders
+
+
 def register_drr(phantom, truth, **kw):
     return register_image(phantom, xray_at(phantom, truth), **kw)
 
@@ -210,18 +228,7 @@ def test_a_registered_pose_that_matches_confirms_the_polarity_without_a_grid_of_
 def test_where_the_grid_runs_the_polarity_is_checked_on_it_first_and_rendered_once(phantom, monkeypatch):
     """search="always": the check scores the image on the search's grid just before the search
     ranks it, and the grid's DRRs are rendered once for both."""
-    import register.engines.search
-
-    renders = []
-    real = register.engines.search.GlobalSearch._drrs
-
-    def drrs(self, params, renderer, g):
-        if renderer is self.padded and not (self._grid_drrs is not None
-                                             and self._grid_drrs[0][1] == np.ascontiguousarray(params).tobytes()):
-            renders.append(len(params))
-        return real(self, params, renderer, g)
-
-    monkeypatch.setattr(register.engines.search.GlobalSearch, "_drrs", drrs)
+    renders = count_grid_renders(monkeypatch)
     res = register_drr(phantom, NEAR, search="always")
     check = res.prepared.step("polarity_check")
     assert res.search_ran and "by" not in check and check["verdict"] == "confirmed" and not check["inverted"]
@@ -244,22 +251,15 @@ def test_a_wrong_polarity_stops_the_search_before_its_grid_and_the_inverse_is_re
     pixels = np.round(drr.pixels / drr.pixels.max() * 4000).astype(np.uint16)
     path = write_xray_dicom(tmp_path / "x.dcm", pixels, pixel_spacing_mm=drr.pixel_spacing_mm, sdd_mm=drr.sdd_mm,
                             sod_mm=drr.sod_mm, bits_stored=12, modality="RF")  # read as bone dark: wrong
-    answers, renders = [], []
+    answers = []
     real_register = register.engines.search.GlobalSearch.register
-    real_render = register.engines.search.GlobalSearch._drrs
 
     def search_register(self, *a, **k):
         answers.append(real_register(self, *a, **k))
         return answers[-1]
 
-    def drrs(self, params, renderer, g):
-        if renderer is self.padded and not (self._grid_drrs is not None
-                                             and self._grid_drrs[0][1] == np.ascontiguousarray(params).tobytes()):
-            renders.append(len(params))
-        return real_render(self, params, renderer, g)
-
     monkeypatch.setattr(register.engines.search.GlobalSearch, "register", search_register)
-    monkeypatch.setattr(register.engines.search.GlobalSearch, "_drrs", drrs)
+    renders = count_grid_renders(monkeypatch)
     res = register_image(phantom, path)
     check = res.prepared.step("polarity_check")
     assert check["verdict"] == "inverted" and check["inverted"] and "by" not in check, check
