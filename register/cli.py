@@ -15,7 +15,7 @@ import sys
 
 from sim.cliargs import HelpFormatter, add_options, from_namespace
 from learn.commands import AccuracyCommand, ModelsCommand, TrainCommand
-from register.commands import EvaluateCommand, RegisterCommand, StudyCommand
+from register.commands import EvaluateCommand, RegisterCommand, ServeCommand, StudyCommand
 from register.evaluation.demo import DemoCommand
 from sim.cli import RenderCommand, SimulateCommand
 
@@ -25,6 +25,8 @@ COMMANDS = {
                  "sim.cli:run_simulate"),
     "register": (RegisterCommand, "register an X-ray to a CT (pose, overlay, convergence plot)",
                  "register.commands:run_register"),
+    "serve": (ServeCommand, "register a case's frames as they arrive, in one process (CT, network and kernels "
+                            "loaded once; paths on stdin or a watched folder)", "register.commands:run_serve"),
     "evaluate": (EvaluateCommand, "evaluate registration methods on sampled target poses of a CT",
                  "register.commands:run_evaluate"),
     "train": (TrainCommand, "train the contextual pose-update network on a campaign",
@@ -98,11 +100,11 @@ def main(argv: list[str] | None = None) -> int:
 
 #: Commands after which :func:`entry` ends the process at once: every output written atomically and
 #: flushed, nothing left for the interpreter's teardown to do.
-FAST_EXIT_COMMANDS = ("register", "render")
+FAST_EXIT_COMMANDS = ("register", "serve", "render")
 
 
 def entry() -> None:
-    """The ``ctxreg`` program: :func:`main`, then the exit. After ``register`` and ``render``
+    """The ``ctxreg`` program: :func:`main`, then the exit. After ``register``, ``serve`` and ``render``
     (:data:`FAST_EXIT_COMMANDS`) the process ends without the interpreter's teardown, which after a
     registration takes about 1.2 s on 2 cores (Dr.Jit's JIT state, torch's thread pools and every
     module freed one by one) while the user waits; their outputs are written atomically and the

@@ -18,6 +18,7 @@ import numpy as np
 from register.api import (OUTPUT_FILES, REGISTER_RESTARTS, REGISTER_SCATTER_PHOTONS, RESTART_METHODS, SEARCH_METHODS,
                           SEARCH_MODES, parse_init, register_xray)
 from register.engines.cmaes import CMAESSettings
+from register.engines.result import RegistrationError
 from register.engines.methods import METHOD_NAMES, build_method, load_predictor, needs_model
 from register.engines.pipeline import NETWORK_DEPTH_RANGE_MM
 from register.engines.search import GlobalSearchSettings
@@ -164,8 +165,8 @@ class RegisterCommand:
         "--init): auto runs it where the network's pose scores below "
         f"{GlobalSearchSettings.found_above:g} (gradient NCC), else refines the network's pose directly; off never builds it: the network's pose goes straight to the CMA-ES "
         f"refinement, whose box is +-{NETWORK_DEPTH_RANGE_MM:g} mm in depth, where the network is least sure "
-        "(the network measured on its own; the polarity check still scores on a grid of its own, "
-        "deciding the polarity only); "
+        "(the network measured on its own; the polarity is still checked, by the registered pose or on a grid "
+        "of its own, deciding the polarity only); "
         "always runs it whatever the network's pose scored. result.json's search_ran / search_status say what "
         "it did (--method contextual+cmaes only)", group="pose", choices=SEARCH_MODES))
     scene: str = field(default="cios_fusion", metadata=opt(
@@ -231,9 +232,10 @@ class RegisterCommand:
         group="output"))
 
 
-def run_register(cmd: RegisterCommand) -> list[Path]:
-    """Check the options and the output folder, register (:func:`register.api.register_xray`: it
-    checks the method, model, start, CT, X-ray and geometry before the work) and write the outputs."""
+def _register_keywords(cmd: RegisterCommand, command: str = "register") -> dict:
+    """Check the options of a ``register`` (or ``serve``) command and return
+    :func:`register.api.register_xray`'s keywords from them (all but the CT, the X-ray, the model and
+    the label map)."""
     parse_init(cmd.init)
     refuse_unused_label_map(cmd)
     refuse_unused(cmd, ("restarts",), applies=cmd.method in RESTART_METHODS,
@@ -246,18 +248,22 @@ def run_register(cmd: RegisterCommand) -> list[Path]:
                   why="meaningful with the 'intensity' step of --preprocess only; this run's steps are "
                       + (" ".join(steps) or "none"))
     check_level_options(cmd)
-    physics = physics_settings(cmd, noise=False)
-    materials = label_materials(cmd)
+    return dict(method=cmd.method, init=cmd.init, center=cmd.center, scene=cmd.scene, sdd_mm=cmd.sdd,
+                sod_mm=cmd.sod, pixel_spacing_mm=cmd.pixel_spacing, size=tuple(cmd.size),
+                physics=physics_settings(cmd, noise=False), label_materials=label_materials(cmd), preprocess=steps,
+                intensity=cmd.intensity, polarity=cmd.polarity, tone=cmd.tone, orient=cmd.orient,
+                restarts=cmd.restarts if cmd.method in RESTART_METHODS else None,
+                search=cmd.search if cmd.method in SEARCH_METHODS else "auto",
+                note=lambda text: print(f"ctxreg {command}: note: {text}", file=sys.stderr))
+
+
+def run_register(cmd: RegisterCommand) -> list[Path]:
+    """Check the options and the output folder, register (:func:`register.api.register_xray`: it
+    checks the method, model, start, CT, X-ray and geometry before the work) and write the outputs."""
+    keywords = _register_keywords(cmd)
     out = check_output_dir(cmd.out, OUTPUT_FILES)
     startup = process_seconds()  # the interpreter's start-up and the imports, before any work
-    outcome = register_xray(
-        cmd.ct, cmd.xray, method=cmd.method, model=cmd.model, init=cmd.init, center=cmd.center,
-        label_map=cmd.label_map, scene=cmd.scene, sdd_mm=cmd.sdd, sod_mm=cmd.sod, pixel_spacing_mm=cmd.pixel_spacing,
-        size=tuple(cmd.size), physics=physics, label_materials=materials, preprocess=steps, intensity=cmd.intensity,
-        polarity=cmd.polarity, tone=cmd.tone, orient=cmd.orient,
-        restarts=cmd.restarts if cmd.method in RESTART_METHODS else None,
-        search=cmd.search if cmd.method in SEARCH_METHODS else "auto", log=print,
-        note=lambda text: print(f"ctxreg register: note: {text}", file=sys.stderr))
+    outcome = register_xray(cmd.ct, cmd.xray, model=cmd.model, label_map=cmd.label_map, log=print, **keywords)
     if startup is not None:
         outcome.timings = {"startup": startup, **outcome.timings}
     written = outcome.write(out)
@@ -269,6 +275,113 @@ def run_register(cmd: RegisterCommand) -> list[Path]:
         print("ctxreg register: where the seconds went (wall; the indented ones split register):\n" + "\n".join(lines)
               + (f"\n  total since the process started: {total:.2f} s" if total is not None else ""), file=sys.stderr)
     return written
+
+
+#: File names ``ctxreg serve`` takes from a watched folder as X-rays (DICOM files often have no suffix).
+SERVE_SUFFIXES = ("", ".dcm", ".dicom", ".ima", ".png", ".tif", ".tiff", ".jpg", ".jpeg", ".npy")
+#: Seconds between two looks at a watched folder; a file is taken once its size held for one look.
+SERVE_POLL_S = 0.5
+
+
+class ServeError(RegistrationError):
+    """A ``ctxreg serve`` option that cannot work (the message names it)."""
+
+
+@dataclass(frozen=True)
+class ServeCommand(RegisterCommand):
+    """Defaults of ``ctxreg serve``: ``ctxreg register``'s options, for a case's frames in one process."""
+
+    xray: str = field(default="-", metadata=opt(
+        "where the frames come from: '-' reads X-ray paths from stdin, one per line, until its end; a folder is "
+        "watched for new X-ray files (DICOM, PNG, TIFF, JPEG, .npy; each taken once its size holds, in name order) "
+        "until --frames or Ctrl-C", group="input", metavar="-|DIR"))
+    out: str = field(default="out/serve", metadata=opt(
+        "folder that gets one folder per frame (its file name's stem; _2, _3, ... where taken) with register's "
+        "outputs", group="output", metavar="DIR"))
+    frames: int = field(default=0, metadata=opt(
+        "stop after this many frames (0: at the end of stdin, or never for a folder)", group="input", metavar="N",
+        bounds=Range(0, 1_000_000)))
+
+
+def _stdin_frames():
+    for line in sys.stdin:
+        if line.strip():
+            yield Path(line.strip())
+
+
+def _folder_frames(folder: Path):
+    """New X-ray files of ``folder`` as they arrive, in name order, each once its size held for one look."""
+    import time
+
+    seen: set[str] = set()
+    sizes: dict[str, int] = {}
+    while True:
+        for path in sorted(folder.iterdir()):
+            if path.name in seen or not path.is_file() or path.name.startswith(".") \
+                    or path.suffix.lower() not in SERVE_SUFFIXES:
+                continue
+            size = path.stat().st_size
+            if sizes.get(path.name) == size and size > 0:
+                seen.add(path.name)
+                yield path
+            else:
+                sizes[path.name] = size
+        time.sleep(SERVE_POLL_S)
+
+
+def _frame_out(root: Path, stem: str) -> Path:
+    """``root/stem``, or ``root/stem_2``, ``_3``, ... where that is taken."""
+    out, k = root / stem, 1
+    while out.exists():
+        k += 1
+        out = root / f"{stem}_{k}"
+    return out
+
+
+def run_serve(cmd: ServeCommand) -> list[Path]:
+    """Register a case's frames in one process: the CT, its anatomy centre and the network loaded
+    once, Dr.Jit's kernels compiled once, each frame as it arrives (stdin or a watched folder). One
+    JSON line per frame on stdout (``xray``, ``out``, ``params`` deg/mm, ``similarity``, ``seconds``,
+    ``search_status``; or ``error`` where the frame was refused: the next frame goes on)."""
+    import json
+    import time
+
+    from sim import load_ct
+    from sim.anatomy import anatomy_center
+    from sim.errors import USER_OS_ERRORS, CtxregError
+
+    keywords = _register_keywords(cmd, "serve")
+    source = None if cmd.xray == "-" else Path(cmd.xray)
+    if source is not None and not source.is_dir():
+        raise ServeError(f"--xray {cmd.xray}: not a folder to watch (or '-' for paths on stdin)")
+    root = Path(cmd.out)
+    root.mkdir(parents=True, exist_ok=True)
+    volume = load_ct(cmd.ct, label_map=cmd.label_map)
+    if keywords["center"] is None:
+        keywords["center"] = anatomy_center(volume)
+    model = load_predictor(cmd.model) if needs_model(cmd.method) else None
+    print(f"ctxreg serve: {volume.source} and the {cmd.method} method ready; frames from "
+          f"{'stdin' if source is None else source}", file=sys.stderr, flush=True)
+    done = 0
+    for path in (_stdin_frames() if source is None else _folder_frames(source)):
+        out = _frame_out(root, path.stem if path.suffix else path.name)
+        t0 = time.perf_counter()
+        try:
+            outcome = register_xray(volume, path, model=model, **keywords)
+            outcome.write(out)
+        except (CtxregError, *USER_OS_ERRORS) as e:
+            line = {"xray": str(path), "error": str(e)}
+        else:
+            line = {"xray": str(path), "out": str(out), "params": outcome.params, "similarity": outcome.similarity,
+                    "seconds": round(time.perf_counter() - t0, 3), "search_status": outcome.search_status}
+            if cmd.verbose:
+                print(f"ctxreg serve: {path.name}: " + ", ".join(f"{k} {v:.2f} s" for k, v in outcome.timings.items()),
+                      file=sys.stderr)
+        print(json.dumps(line), flush=True)
+        done += 1
+        if cmd.frames and done >= cmd.frames:
+            break
+    return [root]
 
 
 @dataclass(frozen=True)

@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import subprocess
 import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -278,3 +279,35 @@ def test_register_undoes_a_stored_mirror_or_rotation_with_orient(synthetic_case,
     est = np.array([json.loads((out / "result.json").read_text())["params"][k]
                     for k in ("phi", "theta", "psi", "tx", "ty", "tz")])
     assert np.abs(est[:3] - truth[:3]).max() > 2.0 or np.abs(est[3:5] - truth[3:5]).max() > 5.0, est
+
+
+def test_serve_registers_each_frame_of_a_case_in_one_process(synthetic_case, tmp_path):
+    """Paths on stdin, one JSON line per frame: the pose of each (the same frame twice gets its own
+    folders, the second _2), a refused frame named with its error while the next goes on; then a
+    watched folder, stopped after --frames."""
+    ct, xray, truth, center = synthetic_case
+    start = truth + np.array([4.0, 3.0, -3.0, -8.0, 6.0, 15.0])
+    common = ("--ct", ct, "--init", *start, "--size", 64, 64, "--center", *center, "--method", "cmaes")
+    out = tmp_path / "serve"
+    r = subprocess.run([sys.executable, "-m", "register.cli", "serve", *map(str, common), "--out", str(out)],
+                       input=f"{xray}\n{tmp_path / 'missing.dcm'}\n\n{xray}\n", capture_output=True, text=True,
+                       cwd=REPO, timeout=600)
+    assert r.returncode == 0, r.stderr
+    lines = [json.loads(line) for line in r.stdout.splitlines() if line.startswith("{")]
+    assert [line.get("out") for line in lines] == [str(out / "xray"), None, str(out / "xray_2")]
+    assert "missing.dcm" in lines[1]["xray"] and "not found" in lines[1]["error"]
+    for line in (lines[0], lines[2]):
+        _assert_recovered(Path(line["out"]), truth)
+        assert line["seconds"] > 0 and line["search_status"].startswith("none")
+    assert r.stderr.count("ready; frames from stdin") == 1  # the CT and method loaded once
+    folder = tmp_path / "incoming"
+    folder.mkdir()
+    (folder / "frame1.dcm").write_bytes(Path(xray).read_bytes())
+    (folder / "notes.txt").write_text("not an X-ray")
+    r = run_cli("serve", *common, "--xray", folder, "--frames", 1, "--out", tmp_path / "watched")
+    assert r.returncode == 0, r.stderr
+    (line,) = [json.loads(x) for x in r.stdout.splitlines() if x.startswith("{")]
+    assert line["out"] == str(tmp_path / "watched" / "frame1")
+    _assert_recovered(tmp_path / "watched" / "frame1", truth)
+    bad = run_cli("serve", *common, "--xray", tmp_path / "nowhere")
+    assert bad.returncode == 2 and "not a folder to watch" in bad.stderr
