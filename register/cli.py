@@ -25,8 +25,7 @@ COMMANDS = {
                  "sim.cli:run_simulate"),
     "register": (RegisterCommand, "register an X-ray to a CT (pose, overlay, convergence plot)",
                  "register.commands:run_register"),
-    "serve": (ServeCommand, "register a case's frames as they arrive, in one process (CT, network and kernels "
-                            "loaded once; paths on stdin or a watched folder)", "register.commands:run_serve"),
+    "serve": (ServeCommand, "register a case's frames as they arrive, in one process", "register.commands:run_serve"),
     "evaluate": (EvaluateCommand, "evaluate registration methods on sampled target poses of a CT",
                  "register.commands:run_evaluate"),
     "train": (TrainCommand, "train the contextual pose-update network on a campaign",
