@@ -129,12 +129,14 @@ class XRayRegistration:
         search_ran: whether the global search's grid ran (False where it was skipped, off, or not
             part of the method); ``result.search`` keeps the search's record where it was built,
             :attr:`search_status` says it in words.
-        timings: wall seconds by stage of the whole call, in order: ``model`` (the network's
-            load), ``xray``, ``ct`` (its load and anatomy centre), ``prepare`` (field, intensity,
-            the optimiser's image), ``search_setup`` (the global search's grid, where built),
-            ``polarity`` (the check against the CT), ``engine_setup``, ``register`` (split further
-            in ``result.stage_seconds``), and ``write`` once :meth:`write` ran; a CLI call adds
-            ``startup`` first (the process's start-up and imports, before the call).
+        timings: wall seconds by stage of the whole call, disjoint, in the order they finished:
+            ``model`` (the network's load), ``xray``, ``ct`` (its load and anatomy centre),
+            ``prepare`` (field, intensity, the optimiser's image), ``search_setup`` (the global
+            search, where built), ``engine_setup``, ``register`` (split further in
+            ``result.stage_seconds``), ``polarity`` (the check against the CT: before ``register``
+            where it ran on the search's grid, whose render it then holds), and ``write`` once
+            :meth:`write` ran; a CLI call adds ``startup`` first (the process's start-up and
+            imports, before the call).
     """
 
     method: str
@@ -411,47 +413,41 @@ def register_xray(ct, xray, *, method: str = "contextual+cmaes", model=None, ini
                               geometry=geometry, scene=scene, model=predictor, physics=moving,
                               label_materials=label_materials, restarts=restarts if method == "cmaes" else 0,
                               keep_drrs=True, note=remark, search=grid)
-        view = network_view(predictor, prepared) if predictor is not None else None  # what the network sees
     # The decided polarity is checked against the CT (unless an option or a decisive tag set it):
     # - where the global search is about to run its grid, on that grid (its DRRs then serve the
     #   search; the search stops where the image is to be inverted, and starts again on the inverse);
     # - else after the registration: a registered pose that matches the X-ray as decided confirms it
     #   (no grid at all), or a grid of its own around the start decides, and where it inverts the
     #   image the registration runs again on the inverse.
-    pending = polarity_needs_check(prepared)
-    checked_on_grid = []
+    def register_prepared(**hook):
+        view = network_view(predictor, prepared) if predictor is not None else None  # what the network sees
+        return engine.register(prepared.image, x0, mask=prepared.mask, toned=prepared.toned, network_view=view,
+                               **hook)
 
     def grid_check() -> bool:  # GlobalSearch.register's before_grid: True stops it (to be inverted)
         nonlocal prepared
         with clock("polarity"):
             prepared = confirm_polarity(prepared, volume, c, x0, physics=moving, label_materials=label_materials,
                                         search=grid)
-        checked_on_grid.append(clock.seconds["polarity"])
-        return bool(prepared.step("polarity_check").get("inverted", False))
+        return bool(prepared.step("polarity_check")["inverted"])
 
-    hook = {"before_grid": grid_check} if pending and grid is not None else {}
+    pending = polarity_needs_check(prepared)
     with clock("register"):
-        result = engine.register(prepared.image, x0, mask=prepared.mask, toned=prepared.toned, network_view=view,
-                                 **hook)
+        result = register_prepared(**({"before_grid": grid_check} if pending and grid is not None else {}))
         if result is None:  # the grid's check inverted the image: the registration of the inverse
-            view = network_view(predictor, prepared) if predictor is not None else None
-            result = engine.register(prepared.image, x0, mask=prepared.mask, toned=prepared.toned,
-                                     network_view=view)
-    if checked_on_grid:  # the stages stay disjoint: the check's seconds are its own
-        clock.add("register", -checked_on_grid[-1])
-    elif pending:
+            result = register_prepared()
+    if pending and prepared.step("polarity_check") is None:
         with clock("polarity"):
             checked = confirm_polarity_by_pose(prepared, _plain_score(volume, c, prepared, result.pose), result.params)
             if checked is None:
                 checked = confirm_polarity(prepared, volume, c, x0, physics=moving, label_materials=label_materials,
                                            search=grid)
         prepared = checked
-        if prepared.step("polarity_check").get("inverted", False):
-            view = network_view(predictor, prepared) if predictor is not None else None
+        if prepared.step("polarity_check")["inverted"]:
             with clock("register"):
-                result = engine.register(prepared.image, x0, mask=prepared.mask, toned=prepared.toned,
-                                         network_view=view)
-    for line in _input_lines(prepared, only=("polarity_check",)):
+                result = register_prepared()
+    line = _polarity_line(prepared)
+    if line is not None:
         log(line)
     ran = result.search is not None and bool(result.search.get("grid_poses"))
     return XRayRegistration(method=method, result=result, prepared=prepared, volume=volume, center_lps=c,
@@ -509,12 +505,10 @@ def _plain_score(volume, center_lps, prepared, pose) -> float:
     return float(gradient_ncc(prepared.image, drr, mask=prepared.mask)[0])
 
 
-def _input_lines(prepared, only: tuple[str, ...] | None = None) -> list[str]:
-    """One line each for the field, the intensity decision and the polarity check (what a user
-    should check first); ``only`` the steps named."""
+def _input_lines(prepared) -> list[str]:
+    """One line each for the orientation, the field, the intensity decision and the polarity check
+    (what a user should check first)."""
     lines = []
-    if only is not None:
-        return [line for line, step in zip(_input_lines(prepared), _input_steps(prepared)) if step in only]
     if prepared.xray.meta.get("orientation"):
         lines.append(f"orientation: {prepared.xray.meta['orientation']} (--orient), as the CT's view")
     fld = prepared.step("field")
@@ -532,25 +526,21 @@ def _input_lines(prepared, only: tuple[str, ...] | None = None) -> list[str]:
         tone = f"; tone: {dec['tone']}" if dec.get("tone") else ""
         lines.append(f"intensity: {dec['scale']} ({dec['scale_source']}), {dec['polarity']} "
                      f"({dec['polarity_source']}): {steps}{tone}")
+    polarity = _polarity_line(prepared)
+    return lines if polarity is None else [*lines, polarity]
+
+
+def _polarity_line(prepared) -> str | None:
+    """The polarity check's line (None before or without the check)."""
     check = prepared.step("polarity_check")
-    if check is not None:
-        verdict = {"inverted": "inverted the image", "confirmed": "confirmed",
-                   "inconclusive": "inconclusive, the decision stands"}[check["verdict"]]
-        if "reason" in check:
-            lines.append(f"polarity check against the CT: not run ({check['reason']}): {check['polarity']}")
-        elif check.get("by") == "pose":
-            lines.append(f"polarity check against the CT: confirmed by the registered pose (similarity "
-                         f"{check['similarity_as_decided']:.3f} >= {check['threshold']:.2f} as decided): "
-                         f"{check['polarity']}")
-        else:
-            lines.append(f"polarity check against the CT: {verdict} (similarity {check['similarity_as_decided']:.3f} "
-                         f"as decided, {check['similarity_inverted']:.3f} inverted): {check['polarity']}")
-    return lines
-
-
-def _input_steps(prepared) -> list[str]:
-    """The step each line of :func:`_input_lines` (without ``only``) stands for, in order."""
-    return [step for step, present in (("orient", bool(prepared.xray.meta.get("orientation"))),
-                                       ("field", prepared.step("field") is not None),
-                                       ("intensity", prepared.step("intensity") is not None),
-                                       ("polarity_check", prepared.step("polarity_check") is not None)) if present]
+    if check is None:
+        return None
+    if "reason" in check:
+        return f"polarity check against the CT: not run ({check['reason']}): {check['polarity']}"
+    if check.get("by") == "pose":
+        return (f"polarity check against the CT: confirmed by the registered pose (similarity "
+                f"{check['similarity_as_decided']:.3f} >= {check['threshold']:.2f} as decided): {check['polarity']}")
+    verdict = {"inverted": "inverted the image", "confirmed": "confirmed",
+               "inconclusive": "inconclusive, the decision stands"}[check["verdict"]]
+    return (f"polarity check against the CT: {verdict} (similarity {check['similarity_as_decided']:.3f} "
+            f"as decided, {check['similarity_inverted']:.3f} inverted): {check['polarity']}")

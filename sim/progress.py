@@ -36,22 +36,26 @@ def process_seconds() -> float | None:
 
 
 class StageClock:
-    """Wall seconds of named stages, in the order they ran.
+    """Wall seconds of named stages, disjoint, in the order they finished.
 
     ``with clock("ct"): ...`` adds the block's seconds to stage ``"ct"`` (a stage that runs twice
-    sums); ``clock.seconds`` is the ``{stage: s}`` dict, ``clock.lines()`` one line per stage.
+    sums). A stage entered inside another is its own: the outer stage's seconds leave it out, so
+    the stages add up to the wall time they cover. ``clock.seconds`` is the ``{stage: s}`` dict,
+    ``clock.lines()`` one line per stage.
 
     Example::
 
         >>> clock = StageClock()
-        >>> with clock("load"):
-        ...     pass
+        >>> with clock("register"):
+        ...     with clock("polarity"):
+        ...         pass
         >>> list(clock.seconds)
-        ['load']
+        ['polarity', 'register']
     """
 
     def __init__(self) -> None:
         self.seconds: dict[str, float] = {}
+        self._open: list[_Stage] = []
 
     def __call__(self, stage: str):
         return _Stage(self, stage)
@@ -67,13 +71,19 @@ class StageClock:
 class _Stage:
     def __init__(self, clock: StageClock, stage: str) -> None:
         self.clock, self.stage = clock, stage
+        self.inner = 0.0  # seconds of the stages entered inside this one
 
     def __enter__(self):
         self.t0 = time.perf_counter()
+        self.clock._open.append(self)
         return self
 
     def __exit__(self, *exc) -> None:
-        self.clock.add(self.stage, time.perf_counter() - self.t0)
+        elapsed = time.perf_counter() - self.t0
+        self.clock._open.pop()
+        if self.clock._open:
+            self.clock._open[-1].inner += elapsed
+        self.clock.add(self.stage, elapsed - self.inner)
 
 
 class Progress:

@@ -53,6 +53,12 @@ def test_the_stage_clock_sums_each_stage_in_the_order_they_ran(monkeypatch):
             now[0] += 0.5
             raise KeyError("x")
     assert clock.seconds["write"] == 0.5
+    with clock("register"):  # a stage inside another is its own: the outer one leaves it out
+        now[0] += 1.0
+        with clock("polarity"):
+            now[0] += 3.0
+        now[0] += 0.5
+    assert clock.seconds["polarity"] == 3.0 and clock.seconds["register"] == 2.0 + 1.5
 
 
 def test_process_seconds_counts_from_the_process_start():
