@@ -13,10 +13,17 @@ the Cios Fusion scene, it prints:
   batch of 16 poses per launch (ms per image);
 * DiffDRR 0.6.1 (CPU, 2 torch threads) Siddon and trilinear (its default 500 points, and
   a step of half the smallest voxel), when it is installed (``pip install -e ".[bench]"``);
-* the relative L2 difference of each image to ctxreg's Siddon image, and the speed ratio.
+* the relative L2 difference of each image to ctxreg's Siddon image, and the speed ratio;
+* the gather floor (:func:`gather_floor`): a Dr.Jit symbolic loop that does nothing but read the
+  CT's stored volume (its size and layout), two gathers per iteration, neighbouring lanes reading
+  neighbouring voxels and marching along the slowest axis as an AP ray does ("coherent"), or from
+  scattered places ("scattered"); and each Siddon row's time over the floor's time for its voxel
+  steps ("x floor"): the Siddon loop does one gather per voxel step plus the traversal's
+  arithmetic, so this ratio is what the traversal costs beyond its memory reads.
 
-The last line reads ``speedup_vs_diffdrr: R``: DiffDRR's faster renderer's median over ctxreg
-Siddon's median for the 256 x 256 chest case (``n/a`` without DiffDRR).
+The last lines read ``speedup_vs_diffdrr: R`` (DiffDRR's faster renderer's median over ctxreg
+Siddon's median for the 256 x 256 chest case, ``n/a`` without DiffDRR) and ``kernel_vs_floor: R``
+(the same Siddon median over the coherent floor's time for its voxel steps).
 """
 
 from __future__ import annotations
@@ -64,6 +71,51 @@ def voxel_steps(renderer, pose) -> int:
     return int((np.abs(p_out - p_in).sum(1) + 1).sum())
 
 
+def gather_floor(shape_words: tuple[int, int, int], repeats: int, *, coherent: bool,
+                 rays: tuple[int, int] = (256, 256)) -> float:
+    """Gathers per second of a loop that only gathers: ``rays`` ``(rows, cols)`` lanes each read
+    ``shape_words[0] - 1`` voxels of a ``(slow, middle, fast)`` float32 volume (the stored CT), one
+    per step along the slow axis, two per loop iteration (the loop's own overhead halved).
+
+    ``coherent``: lane ``(r, c)`` starts at fast index ``2 c`` and middle index ``r // 3`` (an AP
+    ray at 256 x 256 over a 512-wide CT: neighbouring lanes two voxels apart, three rows per
+    slice), so one SIMD packet's reads share cache lines; else at scattered places (a hash)."""
+    import numpy as np
+
+    from sim.backend import ensure_variant
+
+    ensure_variant()
+    import drjit as dr
+    import mitsuba as mi
+
+    n_slow, n_mid, n_fast = shape_words
+    volume = mi.Float(np.random.default_rng(0).random(n_slow * n_mid * n_fast, dtype=np.float32))
+    n_rays = rays[0] * rays[1]
+    steps = (n_slow - 1) // 2 * 2
+
+    def run():
+        lane = dr.arange(mi.UInt32, n_rays)
+        row = lane // rays[1]
+        col = lane - row * rays[1]
+        if coherent:
+            base = (col * 2) % n_fast + ((row // 3) % n_mid) * n_fast
+        else:
+            base = (lane * 2654435761) % (n_mid * n_fast)
+        stride = dr.opaque(mi.UInt32, n_mid * n_fast)
+        end = dr.opaque(mi.UInt32, steps)
+
+        def body(k, acc):
+            at = base + k * stride
+            return k + 2, acc + dr.gather(mi.Float, volume, at) + dr.gather(mi.Float, volume, at + stride)
+
+        _, acc = dr.while_loop((mi.UInt32(0), mi.Float(0.0)), lambda k, acc: k < end, body)
+        dr.eval(acc)
+        dr.sync_thread()
+
+    run()
+    return n_rays * steps / (median_ms(run, repeats) / 1e3)
+
+
 def rel_l2(a, b) -> float:
     import numpy as np
 
@@ -102,13 +154,21 @@ def main(argv=None) -> int:
         peer_ok = False
 
     rows = []
-    speedup = None
+    speedup = floor_ratio = None
+    floors = []  # (CT, kind, G gathers/s)
     rng = np.random.default_rng(0)
     for ct_name in args.cts:
         if not CTS[ct_name].is_file():
             print(f"# {CTS[ct_name]} not found; skipping {ct_name}")
             continue
         vol = load_ct(CTS[ct_name])
+        from sim.drr import memory_order
+
+        order = memory_order(vol.affine)
+        stored = tuple(vol.shape[a] + 2 for a in order)  # the integrator's padded volume, slowest first
+        floor = {kind: gather_floor(stored, args.repeats, coherent=kind == "coherent")
+                 for kind in ("coherent", "scattered")}
+        floors += [(ct_name, stored, kind, rate) for kind, rate in floor.items()]
         for size in args.sizes:
             ref = None
             results, images = {}, {}
@@ -133,7 +193,11 @@ def main(argv=None) -> int:
                              rel_l2(img, ref), None, None))
                 if model == "siddon":  # loop iterations per second: one gather each
                     steps = voxel_steps(r, pose)
-                    rows[-1] = rows[-1][:2] + (f"{name} ({steps / ms / 1e6:.2f} G voxel steps/s)",) + rows[-1][3:]
+                    over = ms / (steps / floor["coherent"] * 1e3)
+                    rows[-1] = rows[-1][:2] + (f"{name} ({steps / ms / 1e6:.2f} G voxel steps/s, "
+                                               f"{over:.1f}x floor)",) + rows[-1][3:]
+                    if ct_name == "chest" and size == 256:
+                        floor_ratio = over
             if peer_ok:
                 extr = extrinsic_lps_to_camera(pose, r.center_lps)
                 g = r.geometry
@@ -165,7 +229,13 @@ def main(argv=None) -> int:
                  "" if batch is None else f"{batch:.1f}", f"{setup:.0f}", f"{l2:.5f}",
                  "" if l2_same is None else f"{l2_same:.5f}", "" if ratio is None else f"{ratio:.0f}x"]
         print("| " + " | ".join(cells) + " |")
+    print()
+    print("| CT | stored volume (slow, middle, fast) | gather floor | G gathers/s |")
+    print("|---|---|---|---|")
+    for ct, shape, kind, rate in floors:
+        print(f"| {ct} | {shape} | {kind} | {rate / 1e9:.2f} |")
     print(f"speedup_vs_diffdrr: {'n/a' if speedup is None else f'{speedup:.1f}'}")
+    print(f"kernel_vs_floor: {'n/a' if floor_ratio is None else f'{floor_ratio:.2f}'}")
     return 0
 
 

@@ -48,6 +48,8 @@ exposed to ``mi.traverse`` as ``volume`` (flat, read-only shape) and ``world_to_
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import drjit as dr
 import mitsuba as mi
 import numpy as np
@@ -80,8 +82,10 @@ class DRRIntegrator(mi.SamplingIntegrator):
         self.n_poses = 1
 
     # ------------------------------------------------------------------ data
-    def set_volume(self, data: np.ndarray, spacing_mm, memory_order=(0, 1, 2), storage: str = "float32") -> None:
-        """Upload a volume once; later renders reuse it.
+    def set_volume(self, data: np.ndarray, spacing_mm, memory_order=(0, 1, 2),
+                   storage: str = "float32") -> "StoredVolume":
+        """Upload a volume once; later renders reuse it. Returns the uploaded volume, which
+        :meth:`use_volume` gives to other integrators of the same scene type without a copy.
 
         Args:
             data: ``(C, I, J, K)`` float32, channel-first, indexed like the CT (``[c, i, j, k]``).
@@ -92,33 +96,21 @@ class DRRIntegrator(mi.SamplingIntegrator):
                 :meth:`sim.drr.DRRRenderer` for the choice). Only the strides change.
             storage: ``"float32"`` or ``"fixed16"`` (``C = 2`` only; module doc).
         """
-        data = np.asarray(data, dtype=np.float32)
-        if data.ndim != 4 or min(data.shape[1:]) < 1 or data.shape[0] < 1:
-            raise ValueError(f"ctxreg_drr: volume must be (C, I, J, K), got shape {data.shape}")
-        if not np.all(np.isfinite(data)):
-            raise ValueError("ctxreg_drr: volume contains NaN or infinite values")
-        order = tuple(int(a) for a in memory_order)
-        if sorted(order) != [0, 1, 2]:
-            raise ValueError(f"ctxreg_drr: memory_order must be a permutation of (0, 1, 2), got {memory_order}")
-        if storage not in STORAGES:
-            raise ValueError(f"ctxreg_drr: storage must be one of {STORAGES}, got {storage!r}")
-        c = data.shape[0]
-        if storage == "fixed16" and c != 2:
-            raise ValueError(f"ctxreg_drr: storage 'fixed16' packs exactly 2 channels, got {c}")
-        padded = np.zeros((data.shape[1] + 2, data.shape[2] + 2, data.shape[3] + 2, c), np.float32)
-        padded[1:-1, 1:-1, 1:-1, :] = np.moveaxis(data, 0, -1)
-        stored = np.ascontiguousarray(np.transpose(padded, order + (3,)))
-        if storage == "fixed16":
-            stored, self.fixed16 = _pack_fixed16(stored)
-        else:
-            self.fixed16 = None
-        # strides (in 32-bit words) of index axes i, j, k in the stored array
-        self.strides = tuple(int(stored.strides[order.index(a)] // 4) for a in range(3))
-        self.volume = mi.UInt32(stored.ravel()) if storage == "fixed16" else mi.Float(stored.ravel())
-        self.storage = storage
-        self.shape = tuple(int(n) for n in data.shape[1:])
-        self.channels = c
-        self.min_spacing_mm = float(np.min(spacing_mm))
+        stored = store_volume(data, spacing_mm, memory_order, storage)
+        self.use_volume(stored)
+        return stored
+
+    def use_volume(self, stored: "StoredVolume") -> None:
+        """Render ``stored`` (a :meth:`set_volume` result, possibly another integrator's)."""
+        if not isinstance(stored, StoredVolume):
+            raise ValueError(f"ctxreg_drr: use_volume takes a StoredVolume, got {type(stored).__name__}")
+        self.volume = stored.array
+        self.strides = stored.strides
+        self.fixed16 = stored.fixed16
+        self.storage = stored.storage
+        self.shape = stored.shape
+        self.channels = stored.channels
+        self.min_spacing_mm = stored.min_spacing_mm
 
     def _values(self, index, mask):
         """The ``channels`` values of the voxel at flat word ``index`` (masked lanes read 0)."""
@@ -250,9 +242,10 @@ class DRRIntegrator(mi.SamplingIntegrator):
         # s_next = min(t_max) is >= the current s, and segments are never negative.
         t_max = dr.maximum((mi.Vector3f(v) + dr.select(d > 0, 1.0, 0.0) - p) * inv, s_in)
         t_delta = dr.abs(inv)
-        flat = v.x * si + v.y * sj + v.z * sk
-        dflat = mi.Vector3i(step.x * si, step.y * sj, step.z * sk)
-        size = dr.opaque(mi.Int32, dr.width(volume))
+        # unsigned flat index: one compare bounds it on both sides
+        flat = mi.UInt32(v.x * si + v.y * sj + v.z * sk)
+        dflat = mi.Vector3u(mi.UInt32(step.x * si), mi.UInt32(step.y * sj), mi.UInt32(step.z * sk))
+        size = dr.opaque(mi.UInt32, dr.width(volume))
         acc = [mi.Float(0.0) for _ in range(c_count)]
         s = mi.Float(s_in)
 
@@ -260,24 +253,25 @@ class DRRIntegrator(mi.SamplingIntegrator):
             return active
 
         def body(active, s, flat, t_max, *acc):
-            s_next = dr.minimum(dr.min(t_max), s_out)
+            t_min = dr.min(t_max)
+            s_next = dr.minimum(t_min, s_out)
             seg = s_next - s
             # The zero padding absorbs the single step past the exit face that rounding can
-            # cause; the bounds check only guards memory.
-            inside = (flat >= 0) & (flat < size)
+            # cause; the bounds check only guards memory (a negative index wraps to a large one).
+            inside = flat < size
             acc = [dr.fma(val, seg, a) for val, a in zip(self._values(flat, active & inside), acc)]
-            mx = (t_max.x <= t_max.y) & (t_max.x <= t_max.z)
-            my = ~mx & (t_max.y <= t_max.z)
+            # the axis whose boundary comes first (ties: x, then y), as Siddon's order counts them
+            mx = t_max.x == t_min
+            my = ~mx & (t_max.y == t_min)
             mz = ~mx & ~my
             flat = flat + dr.select(mx, dflat.x, dr.select(my, dflat.y, dflat.z))
             t_max = mi.Vector3f(
-                t_max.x + dr.select(mx, t_delta.x, 0.0),
-                t_max.y + dr.select(my, t_delta.y, 0.0),
-                t_max.z + dr.select(mz, t_delta.z, 0.0),
+                dr.select(mx, t_max.x + t_delta.x, t_max.x),
+                dr.select(my, t_max.y + t_delta.y, t_max.y),
+                dr.select(mz, t_max.z + t_delta.z, t_max.z),
             )
-            s = s_next
-            active = active & (s < s_out) & inside
-            return (active, s, flat, t_max, *acc)
+            active = active & (s_next < s_out) & inside
+            return (active, s_next, flat, t_max, *acc)
 
         state = dr.while_loop(
             state=(hit, s, flat, t_max, *acc), cond=cond, body=body, label="ctxreg_siddon"
@@ -322,6 +316,59 @@ class DRRIntegrator(mi.SamplingIntegrator):
 
         state = dr.while_loop(state=(k, *acc), cond=cond, body=body, label="ctxreg_trilinear")
         return [a * ds for a in state[1:]]
+
+
+@dataclass(frozen=True, eq=False)
+class StoredVolume:
+    """A volume as the integrator reads it (:func:`store_volume`): zero-padded by one voxel,
+    permuted to ``memory_order``, flat in Dr.Jit memory. Immutable once made; integrators share it.
+
+    Attributes:
+        array: ``mi.Float`` (``float32``: ``C`` floats per voxel) or ``mi.UInt32`` (``fixed16``).
+        strides: words between neighbouring voxels along index axes i, j, k.
+        shape: ``(I, J, K)`` unpadded; channels: ``C``; storage: ``"float32"`` or ``"fixed16"``.
+        fixed16: ``((step, zero code), (step, zero code))`` of the two channels, or None.
+        min_spacing_mm: the smallest voxel spacing (mm), for the trilinear step.
+        nbytes: the bytes the array holds.
+    """
+
+    array: object
+    strides: tuple[int, int, int]
+    shape: tuple[int, int, int]
+    channels: int
+    storage: str
+    fixed16: tuple[tuple[float, float], tuple[float, float]] | None
+    min_spacing_mm: float
+    nbytes: int
+
+
+def store_volume(data: np.ndarray, spacing_mm, memory_order=(0, 1, 2), storage: str = "float32") -> StoredVolume:
+    """Upload ``data`` ``(C, I, J, K)`` for the integrator; arguments as :meth:`DRRIntegrator.set_volume`."""
+    data = np.asarray(data, dtype=np.float32)
+    if data.ndim != 4 or min(data.shape[1:]) < 1 or data.shape[0] < 1:
+        raise ValueError(f"ctxreg_drr: volume must be (C, I, J, K), got shape {data.shape}")
+    if not np.all(np.isfinite(data)):
+        raise ValueError("ctxreg_drr: volume contains NaN or infinite values")
+    order = tuple(int(a) for a in memory_order)
+    if sorted(order) != [0, 1, 2]:
+        raise ValueError(f"ctxreg_drr: memory_order must be a permutation of (0, 1, 2), got {memory_order}")
+    if storage not in STORAGES:
+        raise ValueError(f"ctxreg_drr: storage must be one of {STORAGES}, got {storage!r}")
+    c = data.shape[0]
+    if storage == "fixed16" and c != 2:
+        raise ValueError(f"ctxreg_drr: storage 'fixed16' packs exactly 2 channels, got {c}")
+    padded_shape = tuple(data.shape[1 + a] + 2 for a in order) + (c,)
+    stored = np.zeros(padded_shape, np.float32)  # in memory order: one copy of the data
+    stored[1:-1, 1:-1, 1:-1, :] = np.transpose(data, (order[0] + 1, order[1] + 1, order[2] + 1, 0))
+    fixed16 = None
+    if storage == "fixed16":
+        stored, fixed16 = _pack_fixed16(stored)
+    # strides (in 32-bit words) of index axes i, j, k in the stored array
+    strides = tuple(int(stored.strides[order.index(a)] // 4) for a in range(3))
+    array = mi.UInt32(stored.ravel()) if storage == "fixed16" else mi.Float(stored.ravel())
+    return StoredVolume(array=array, strides=strides, shape=tuple(int(n) for n in data.shape[1:]), channels=c,
+                        storage=storage, fixed16=fixed16, min_spacing_mm=float(np.min(spacing_mm)),
+                        nbytes=int(stored.nbytes))
 
 
 def _pack_fixed16(stored: np.ndarray):
