@@ -288,7 +288,7 @@ def register_xray(ct, xray, *, method: str = "contextual+cmaes", model=None, ini
                   pixel_spacing_mm: float | None = None, size=(128, 128), physics="line",
                   label_materials: dict[int, str] | None = None, preprocess=None, intensity: str = "auto",
                   polarity: str = "auto", tone: str = "ct", orient: str = "none", restarts: int | None = None,
-                  search: str = "auto", log: Callable[[str], None] | None = None,
+                  search: str = "auto", ct_cache=False, log: Callable[[str], None] | None = None,
                   note: Callable[[str], None] | None = None
                   ) -> XRayRegistration:
     """Register the X-ray ``xray`` to the CT ``ct``: its pose, as ``ctxreg register`` finds it.
@@ -298,6 +298,8 @@ def register_xray(ct, xray, *, method: str = "contextual+cmaes", model=None, ini
             (a NIfTI file, a DICOM series folder, ``"phantom"``).
         xray: a file (DICOM: geometry from its tags where present; PNG / TIFF / JPEG / ``.npy``) or
             a :class:`register.xray.io.XRayImage`.
+        ct_cache: read a CT file through the CT cache (:mod:`sim.ct_cache`; ``cache`` of
+            :func:`sim.load_ct`): False (default), True (the default folder) or a folder.
         method: ``"cmaes"``, ``"contextual"`` or ``"contextual+cmaes"`` (:mod:`register.engines.methods`).
         model: the ``ctxreg train`` checkpoint (path or loaded predictor) of the contextual methods.
         init: the start pose: ``"ap"`` or six numbers (phi theta psi deg, tx ty tz mm).
@@ -388,7 +390,7 @@ def register_xray(ct, xray, *, method: str = "contextual+cmaes", model=None, ini
     full_geometry, _ = resolve_geometry(xr, scene, sdd_mm=sdd_mm, sod_mm=sod_mm, pixel_spacing_mm=pixel_spacing_mm)
     check_registration_memory(box, (xr.pixels.shape[0], xr.pixels.shape[1]), full_geometry)
     with clock("ct"):
-        volume = load_ct(ct, label_map=label_map)
+        volume = load_ct(ct, label_map=label_map, cache=ct_cache, log=log)
         c = np.asarray(center, float) if center is not None else anatomy_center(volume)
     check_in_view(volume, full_geometry, pose_from_params(x0, full_geometry.sod_mm), c,
                   what="the start pose (--init, with the anatomy centre --center)")

@@ -226,6 +226,10 @@ class RegisterCommand:
         "folder for result.json, overlay.png (DRR edges and the field outline over the X-ray at its full "
         "resolution), checkerboard.png, convergence.png (and trajectory.npz, trajectory.png, trajectory.gif for the "
         "contextual methods)", group="output", metavar="DIR"))
+    ct_cache: str = field(default="auto", metadata=opt(
+        "folder of loaded CTs (a CT is read once, then from one file with its anatomy centre; a changed CT misses): "
+        "'auto' = $CTXREG_CT_CACHE or ~/.cache/ctxreg/ct, 'off' = read the CT's files every time",
+        group="input", metavar="DIR|auto|off"))
     verbose: bool = field(default=False, metadata=opt(
         "print where the call's seconds went (start-up and imports, model, X-ray, CT, preparation, polarity check, "
         "registration stages, outputs) to stderr; result.json keeps them either way (timings_s, stage_seconds)",
@@ -254,6 +258,7 @@ def _register_keywords(cmd: RegisterCommand, command: str = "register") -> dict:
                 intensity=cmd.intensity, polarity=cmd.polarity, tone=cmd.tone, orient=cmd.orient,
                 restarts=cmd.restarts if cmd.method in RESTART_METHODS else None,
                 search=cmd.search if cmd.method in SEARCH_METHODS else "auto",
+                ct_cache={"auto": True, "off": False}.get(cmd.ct_cache, cmd.ct_cache),
                 note=lambda text: print(f"ctxreg {command}: note: {text}", file=sys.stderr))
 
 
@@ -356,7 +361,8 @@ def run_serve(cmd: ServeCommand) -> list[Path]:
         raise ServeError(f"--xray {cmd.xray}: not a folder to watch (or '-' for paths on stdin)")
     root = Path(cmd.out)
     root.mkdir(parents=True, exist_ok=True)
-    volume = load_ct(cmd.ct, label_map=cmd.label_map)
+    volume = load_ct(cmd.ct, label_map=cmd.label_map, cache=keywords.pop("ct_cache"),
+                     log=lambda line: print(f"ctxreg serve: {line}", file=sys.stderr))
     if keywords["center"] is None:
         keywords["center"] = anatomy_center(volume)
     model = load_predictor(cmd.model) if needs_model(cmd.method) else None

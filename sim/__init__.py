@@ -22,7 +22,7 @@ __version__ = "0.1.0"
 __all__ = ["load_ct", "render", "__version__"]
 
 
-def load_ct(ct, *, label_map=None, resample_mm=None):
+def load_ct(ct, *, label_map=None, resample_mm=None, cache=False, log=None):
     """A CT as a :class:`sim.volume.CTVolume` (HU float32 ``(I, J, K)`` and its voxel-to-LPS-mm affine).
 
     Args:
@@ -32,16 +32,27 @@ def load_ct(ct, *, label_map=None, resample_mm=None):
         label_map: a label volume on the CT's grid (NIfTI or DICOM folder); its centroid becomes the
             default anatomy centre, and ``--label-material`` style overrides use it.
         resample_mm: a new voxel spacing in mm (one value or three, along i, j, k).
+        cache: read a CT file or series through the CT cache (:mod:`sim.ct_cache`: once read, a CT
+            loads from one uncompressed file with its anatomy centre; a changed CT misses):
+            False (default) reads the files, True uses the default cache folder, a path that
+            folder. Not used with a label map, the phantom or a CTVolume.
+        log: with ``cache``, called with a line where an entry is written or rebuilt.
 
     Raises :class:`sim.volume.CTInputError` (an :class:`sim.errors.InputError`) naming the file and
     the problem.
     """
-    from sim.ct_io import load_ct_spec, resample
+    from sim.ct_io import is_phantom_spec, load_ct_spec, resample
     from sim.volume import CTInputError, CTVolume
 
     if isinstance(ct, CTVolume) and label_map is not None:
         raise CTInputError(f"{ct.source}: a loaded CTVolume keeps its own labels; load the CT with label_map=...")
-    volume = ct if isinstance(ct, CTVolume) else load_ct_spec(ct, label_map=label_map)
+    if cache is not False and cache is not None and label_map is None and not isinstance(ct, CTVolume) \
+            and not is_phantom_spec(ct):
+        from sim.ct_cache import load_ct_cached
+
+        volume = load_ct_cached(ct, cache_dir=None if cache is True else cache, log=log)
+    else:
+        volume = ct if isinstance(ct, CTVolume) else load_ct_spec(ct, label_map=label_map)
     return volume if resample_mm is None else resample(volume, resample_mm)
 
 

@@ -8,6 +8,7 @@ volume's affine (exact, the affine being linear).
 
 from __future__ import annotations
 
+import weakref
 from typing import Sequence
 
 import numpy as np
@@ -24,6 +25,10 @@ BONE_HU_THRESHOLD = 200.0
 
 #: 26-connectivity: voxels touching by a face, an edge or a corner are connected.
 _CONNECTIVITY_26 = np.ones((3, 3, 3), dtype=bool)
+
+
+#: Default anatomy centres known without computing (:func:`remember_center`: the CT cache's).
+_KNOWN_CENTERS: "weakref.WeakKeyDictionary[CTVolume, np.ndarray]" = weakref.WeakKeyDictionary()
 
 
 class AnatomyError(InputError):
@@ -51,6 +56,15 @@ def bone_mask(volume: CTVolume, threshold_hu: float = BONE_HU_THRESHOLD) -> np.n
     sizes = np.bincount(labels.ravel(), minlength=n + 1)
     sizes[0] = 0
     return labels == int(np.argmax(sizes))
+
+
+def remember_center(volume: CTVolume, center_lps) -> None:
+    """Record ``volume``'s default anatomy centre ``(3,)`` LPS mm (bone, no label map), computed
+    earlier (the CT cache, :mod:`sim.ct_cache`): :func:`anatomy_center` then returns it at once."""
+    c = np.asarray(center_lps, dtype=np.float64).reshape(-1)
+    if c.shape != (3,) or not np.all(np.isfinite(c)):
+        raise AnatomyError(f"{volume.source}: an anatomy centre must be 3 finite LPS mm values, got {center_lps}")
+    _KNOWN_CENTERS[volume] = c
 
 
 def mask_centroid_lps(volume: CTVolume, mask: np.ndarray) -> np.ndarray:
@@ -90,6 +104,8 @@ def anatomy_center(volume: CTVolume, *, label_map: np.ndarray | None = None,
     if lab is None:
         if labels is not None:
             raise AnatomyError(f"{volume.source}: labels={list(labels)} given but there is no label map")
+        if threshold_hu == BONE_HU_THRESHOLD and volume in _KNOWN_CENTERS:
+            return _KNOWN_CENTERS[volume].copy()
         return mask_centroid_lps(volume, bone_mask(volume, threshold_hu))
     lab = np.asarray(lab)
     if lab.shape != volume.shape:

@@ -75,6 +75,12 @@ _NIFTI_SUFFIXES = (".nii", ".nii.gz")
 # --------------------------------------------------------------------------------------------
 
 
+def is_phantom_spec(spec) -> bool:
+    """Whether a CT named on the command line is the built-in phantom (``phantom[:SEED]``)."""
+    text = str(spec)
+    return text == "phantom" or text.startswith("phantom:")
+
+
 def load_ct_spec(spec: str | os.PathLike, *, label_map: str | os.PathLike | None = None) -> CTVolume:
     """A CT named as on the command line or in campaign files: a path, or ``phantom[:SEED]``.
 
@@ -82,7 +88,7 @@ def load_ct_spec(spec: str | os.PathLike, *, label_map: str | os.PathLike | None
     default); anything else goes to :func:`load_ct`.
     """
     text = str(spec)
-    if text == "phantom" or text.startswith("phantom:"):
+    if is_phantom_spec(text):
         from sim.phantom import make_pelvis_phantom
 
         seed_text = text.partition(":")[2] or "0"

@@ -18,6 +18,20 @@ def shared_file(relative: str) -> Path:
     return path
 
 
+@pytest.fixture(scope="session", autouse=True)
+def private_ct_cache(tmp_path_factory):
+    """The CT cache (sim.ct_cache) of the tests: a folder of their own, never the user's."""
+    import os
+
+    before = os.environ.get("CTXREG_CT_CACHE")
+    os.environ["CTXREG_CT_CACHE"] = str(tmp_path_factory.mktemp("ct_cache"))
+    yield Path(os.environ["CTXREG_CT_CACHE"])
+    if before is None:
+        os.environ.pop("CTXREG_CT_CACHE", None)
+    else:
+        os.environ["CTXREG_CT_CACHE"] = before
+
+
 @pytest.fixture(scope="session")
 def pelvis_ct_path() -> Path:
     return shared_file("ct/pelvis_abdomen_3mm.nii.gz")

@@ -169,7 +169,7 @@ class CMAESRegistration:
             size = (s.size[0] // factor, s.size[1] // factor)
             r = moving_renderer(volume, physics, scene=scene, size=size, ray_model=ray_model,
                                 center_lps=self.center_lps, label_materials=label_materials,
-                                geometry=None if geometry is None else geometry.resized(*size))
+                                geometry=None if geometry is None else geometry.resized(*size), coarsen=True)
             self.renderers.append((factor, r))
         self.by_factor = dict(self.renderers)
         self.geometry = self.by_factor[1].geometry

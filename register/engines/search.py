@@ -312,7 +312,7 @@ class GlobalSearch:
         padded = CArmGeometry(g.sdd_mm, g.sod_mm, g.height + 2 * pad, g.width + 2 * pad, g.pixel_spacing_mm,
                               cx + pad, cy + pad)
         return moving_renderer(volume, None, scene=scene, size=(padded.height, padded.width),
-                               center_lps=self.center_lps, geometry=padded)
+                               center_lps=self.center_lps, geometry=padded, coarsen=True)
 
     def _field(self, fixed, mask, factor):
         """``fixed`` downsampled by ``factor`` and its field eroded by one pixel (as gradient_ncc)."""

@@ -151,7 +151,7 @@ class LogImageRenderer:
 
 def moving_renderer(volume, physics: PhysicsSettings | None = None, *, scene: str = "cios_fusion", size=None,
                     ray_model: str = "siddon", center_lps=None, geometry=None,
-                    label_materials: dict[int, str] | None = None):
+                    label_materials: dict[int, str] | None = None, coarsen: bool = False):
     """The renderer of a registration's moving images ("DRRs") at a physics level.
 
     ``line`` (or ``physics=None``): a :class:`sim.drr.DRRRenderer` of line integrals of mu.
@@ -160,7 +160,9 @@ def moving_renderer(volume, physics: PhysicsSettings | None = None, *, scene: st
     only make the similarity noisy), and for ``full`` with the same Monte Carlo seed for every
     pose (``fixed_scatter_seed``), so the objective is deterministic. ``label_materials``
     needs ``poly`` or ``full``. Both renderers have ``render(poses (B, 4, 4) or (4, 4)) ->
-    (B, H, W)``, ``geometry``, ``center_lps`` and ``projection_matrix``.
+    (B, H, W)``, ``geometry``, ``center_lps`` and ``projection_matrix``. ``coarsen``: line DRRs
+    from a CT averaged to the image's resolution (:attr:`sim.drr.RenderSettings.coarsen`); the
+    physics levels always render the CT's own voxels.
     """
     from dataclasses import replace
 
@@ -169,7 +171,7 @@ def moving_renderer(volume, physics: PhysicsSettings | None = None, *, scene: st
 
         if label_materials:
             raise PhysicsError("label materials need physics poly or full (line DRRs use mu from HU)")
-        return DRRRenderer(volume, RenderSettings(scene=scene, size=size, ray_model=ray_model),
+        return DRRRenderer(volume, RenderSettings(scene=scene, size=size, ray_model=ray_model, coarsen=coarsen),
                            center_lps=center_lps, geometry=geometry)
     return LogImageRenderer(volume, replace(physics, noise=False), scene=scene, size=size, ray_model=ray_model,
                             center_lps=center_lps, geometry=geometry, label_materials=label_materials,
