@@ -374,15 +374,20 @@ class FeatureExtractor(nn.Module):
         #: layout of the maps (channels last: see :class:`PoseUpdateNet`)
         self.memory_format = torch.channels_last
 
-    def forward(self, target: Tensor, current: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-        b = target.shape[0]
-        x = torch.cat((target, current), dim=0).contiguous(memory_format=self.memory_format)
+    def taps(self, x: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        """``(N, 1, H, W)`` images -> their three levels' ``(N, C_i, h_i, w_i)`` maps, each image on
+        its own in eval mode (a target's maps can then be kept while the current image changes)."""
+        x = x.contiguous(memory_format=self.memory_format)
         taps = []
         for name, module in self.features.named_children():
             x = module(x)
             if name in TAP_MODULES:
-                taps.append(torch.cat((x[:b], x[b:]), dim=1))
+                taps.append(x)
         return tuple(taps)  # type: ignore[return-value]
+
+    def forward(self, target: Tensor, current: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        b = target.shape[0]
+        return tuple(torch.cat((x[:b], x[b:]), dim=1) for x in self.taps(torch.cat((target, current), dim=0)))
 
 
 class PoseUpdateNet(nn.Module):

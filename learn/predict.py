@@ -11,6 +11,7 @@ area-averaged to it first, then preprocessed as in training.
 
 from __future__ import annotations
 
+import hashlib
 from typing import NamedTuple
 
 import numpy as np
@@ -33,8 +34,9 @@ class NetworkPredictor:
     refused in one line if it is missing, damaged, foreign, pickles objects or holds NaN
     weights). ``predictor(fixed, drr)``: one pair ``(H, W)`` each -> ``g`` ``(6,)``;
     :meth:`predict`: ``(N, H, W)`` each -> :class:`Prediction`, in batches of :attr:`batch_size`
-    pairs. Either way each batch's target images and current images go through the preprocessing
-    as one stack (targets first), the same arithmetic for one pair or many.
+    pairs. The preprocessing and the backbone treat each image on its own (eval mode), so the
+    target images' maps are kept from one call to the next while they do not change (the
+    registration's iteration: one X-ray, a new DRR each step).
 
     Attributes:
         model: the :class:`learn.model.PoseUpdateNet`, eval mode.
@@ -56,6 +58,10 @@ class NetworkPredictor:
 
     #: Pairs per forward pass in :meth:`predict`.
     batch_size = 32
+    #: The last batch of targets and their backbone maps (``(key, maps)``): the registration's
+    #: iteration shows the network one X-ray with a new DRR each step, and the model in eval mode
+    #: maps each image on its own, so the X-ray's maps are computed once (half the backbone's work).
+    _targets = None
 
     def __init__(self, checkpoint):
         from learn.checkpoint import Checkpoint, load_checkpoint
@@ -146,16 +152,22 @@ class NetworkPredictor:
             raise PoseInputError(f"fixed and drr must be (N, H, W) of one shape, got {fixed.shape} and {drr.shape}")
         if len(fixed) == 0:
             return Prediction(np.zeros((0, 6)), np.zeros((0, 3, 6)))
+        def prepared(images):  # (b, H, W) -> (b, 1, h, w) at the training size, preprocessed
+            x = torch.from_numpy(np.asarray(images, np.float32))[:, None]
+            if self.size is not None and tuple(x.shape[-2:]) != self.size:
+                x = F.interpolate(x, size=self.size, mode="area")
+            return self.transform(x)
+
         g, levels = [], []
         with torch.no_grad():
             for start in range(0, len(fixed), self.batch_size):
                 stop = min(start + self.batch_size, len(fixed))
-                b = stop - start
-                x = torch.from_numpy(np.concatenate([fixed[start:stop], drr[start:stop]]).astype(np.float32))[:, None]
-                if self.size is not None and tuple(x.shape[-2:]) != self.size:
-                    x = F.interpolate(x, size=self.size, mode="area")
-                x = self.transform(x)
-                out = self.model(x[:b], x[b:])
+                targets = fixed[start:stop]
+                key = (targets.shape, targets.dtype.str, hashlib.blake2b(targets.tobytes(), digest_size=16).digest())
+                if self._targets is None or self._targets[0] != key:
+                    self._targets = (key, self.model.backbone.taps(prepared(targets)))
+                current = self.model.backbone.taps(prepared(drr[start:stop]))
+                out = self.model.heads_forward([torch.cat((t, c), dim=1) for t, c in zip(self._targets[1], current)])
                 g.append(self.normalizer.denormalize(out.g.double()).numpy())
                 levels.append(self.normalizer.denormalize(out.g_levels.double()).numpy())
         return Prediction(np.concatenate(g), np.concatenate(levels))

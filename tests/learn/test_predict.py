@@ -80,6 +80,35 @@ def test_a_batch_gives_each_pairs_single_prediction(campaign, trained, monkeypat
     assert predictor.predict(fixed[:0], drr[:0]).g.shape == (0, 6)
 
 
+def test_the_targets_maps_are_kept_while_the_target_does_not_change(campaign, trained, monkeypatch):
+    """The iteration's calls (one X-ray, a new DRR each time) run the backbone on the DRR only, and
+    give the model's own numbers; a changed target (even one pixel, in place) is mapped again."""
+    from learn.predict import NetworkPredictor
+
+    predictor = NetworkPredictor(str(trained))
+    images = [np.array(campaign[i]["images"]["line"], np.float64) for i in range(4)]
+    target = images[0].copy()
+
+    def model_g(f, d):  # the model on the pair as one stack, as in training
+        with torch.no_grad():
+            x = predictor.transform(torch.from_numpy(np.stack([f, d]).astype(np.float32))[:, None])
+            return predictor.normalizer.denormalize(predictor.model(x[:1], x[1:]).g.double()).numpy()[0]
+
+    expected = [model_g(target, d) for d in images[1:]]
+    changed = target.copy()
+    changed[5, 7] += 0.5
+    expected_changed = model_g(changed, images[1])
+    seen = []
+    taps = predictor.model.backbone.taps
+    monkeypatch.setattr(predictor.model.backbone, "taps", lambda x: (seen.append(len(x)), taps(x))[1])
+    for d, e in zip(images[1:], expected):
+        np.testing.assert_allclose(predictor(target, d), e, rtol=1e-5, atol=1e-6)
+    assert seen == [1, 1, 1, 1]  # the target once, then each DRR
+    target[5, 7] += 0.5  # the same array, changed in place
+    np.testing.assert_allclose(predictor(target, images[1]), expected_changed, rtol=1e-5, atol=1e-6)
+    assert seen == [1, 1, 1, 1, 1, 1]  # the changed target mapped again
+
+
 def test_bad_checkpoints_are_named_in_one_line(tmp_path):
     from learn.checkpoint import CheckpointError
     from learn.predict import NetworkPredictor
