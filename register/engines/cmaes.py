@@ -28,6 +28,13 @@ from sim.errors import InputError
 from sim.geometry import pose_from_params
 
 
+#: The polish's optimisers (:attr:`CMAESSettings.polish_method`).
+POLISH_METHODS = ("powell", "pattern")
+#: The pattern polish's step sizes (times its first directions) and its most sweeps per size.
+PATTERN_SCALES = (1.0, 0.5, 0.25, 0.125, 0.0625, 0.03125)
+PATTERN_SWEEPS = 3
+
+
 @dataclass(frozen=True)
 class CMAESSettings:
     """CMA-ES registration settings. Units: degrees and mm.
@@ -52,6 +59,9 @@ class CMAESSettings:
             angle, tx, ty, and depth along the view ray through the anatomy centre, the direction an
             X-ray constrains least; :func:`along_view_ray`).
         polish_evals: the most similarity evaluations of the polish.
+        polish_method: ``"powell"`` (scipy's Powell, one render per evaluation) or ``"pattern"``
+            (a batched pattern search with parabolic moves: 13 evaluations per sweep, 12 of them
+            rendered as one batch).
         seed: CMA-ES seed.
         restarts: the most restarts of the whole search (IPOP-CMA-ES, Auger & Hansen 2005: each
             restart starts again at the start pose with a new seed and twice the population) while
@@ -75,6 +85,7 @@ class CMAESSettings:
     metrics: tuple[str, ...] = ("gncc", "gncc")
     polish: bool = True
     polish_evals: int = 300
+    polish_method: str = "powell"
     seed: int = 0
     restarts: int = 0
     restart_below: float = 0.6
@@ -95,6 +106,8 @@ class CMAESSettings:
             raise RegistrationError(f"restarts must be an integer in [0, 10], got {self.restarts}")
         if not (np.isfinite(self.restart_below) and -1.0 <= self.restart_below <= 1.0):
             raise RegistrationError(f"restart_below must be a similarity in [-1, 1], got {self.restart_below}")
+        if self.polish_method not in POLISH_METHODS:
+            raise RegistrationError(f"polish_method must be one of {POLISH_METHODS}, got {self.polish_method!r}")
         if self.popsize < 4:
             raise RegistrationError(f"popsize must be >= 4, got {self.popsize}")
         for name in ("generations", "metrics"):
@@ -308,9 +321,15 @@ class CMAESRegistration:
                                   history=[("polish", value, best.tolist())])
 
     def _polish(self, score, best, lo, hi):
-        """Powell from ``best`` inside ``[lo, hi]``, ``score`` the finest level's metric with the
+        """The polish from ``best`` inside ``[lo, hi]``, ``score`` the finest level's metric with the
         X-ray bound (:func:`register.engines.metrics.bind_metric`): ``(params, similarity at full
-        resolution, renders)``."""
+        resolution, renders)``. Its first directions: each angle (0.5 deg) and tx, ty (1 mm), then
+        depth along the view ray (2 mm). ``settings.polish_method``: ``"powell"`` (scipy's Powell,
+        ``polish_evals``) or ``"pattern"`` (:meth:`_pattern_polish`)."""
+        direc = np.diag([0.5, 0.5, 0.5, 1.0, 1.0, 2.0])
+        direc[5] = along_view_ray(best, [2.0], self.geometry.sod_mm)[0] - best
+        if self.settings.polish_method == "pattern":
+            return self._pattern_polish(score, best, lo, hi, direc)
         from scipy.optimize import minimize
 
         renders = 0
@@ -320,15 +339,48 @@ class CMAESRegistration:
             renders += 1
             return -float(score(self.render(np.clip(x, lo, hi), 1))[0])
 
-        # Powell's first directions: each angle and tx, ty, then depth along the view ray (2 mm)
-        direc = np.diag([0.5, 0.5, 0.5, 1.0, 1.0, 2.0])
-        direc[5] = along_view_ray(best, [2.0], self.geometry.sod_mm)[0] - best
         res = minimize(polish_cost, best, method="Powell",
                        options={"maxfev": self.settings.polish_evals, "xtol": 1e-3, "ftol": 1e-7, "direc": direc})
         start_cost = polish_cost(best)
         if res.fun <= start_cost:
             return np.clip(res.x, lo, hi), float(-res.fun), renders
         return best, float(-start_cost), renders
+
+    def _pattern_polish(self, score, best, lo, hi, direc):
+        """A batched pattern search: at each step size (``direc``'s rows times :data:`PATTERN_SCALES`),
+        the 12 poses one step either side of the pose along each direction are rendered and
+        scored as one batch; a parabola through each direction's three scores gives its best move,
+        and the pose moves to the best of the probes and the combined parabolic move (one more
+        render); a step size is swept again while it improves (at most :data:`PATTERN_SWEEPS`
+        times). At most ``polish_evals`` evaluations."""
+        renders = 0
+
+        def costs(xs):
+            nonlocal renders
+            xs = np.clip(np.atleast_2d(xs), lo, hi)
+            renders += len(xs)
+            return -np.asarray(score(self.render(xs, 1)), float), xs
+
+        (f,), (x,) = costs(best)
+        x, f = x.copy(), float(f)
+        for scale in PATTERN_SCALES:
+            for _ in range(PATTERN_SWEEPS):
+                if renders + 13 > self.settings.polish_evals:
+                    return x, -f, renders
+                probes = np.concatenate([x + scale * direc, x - scale * direc])  # (12, 6): + then -
+                fp, probes = costs(probes)
+                f_plus, f_minus = fp[:6], fp[6:]
+                curvature = f_plus + f_minus - 2.0 * f
+                with np.errstate(divide="ignore", invalid="ignore"):
+                    t = np.where(curvature > 0, 0.5 * (f_minus - f_plus) / curvature,
+                                 np.where(f_plus < f_minus, 1.0, -1.0))
+                t = np.clip(np.nan_to_num(t), -2.0, 2.0)
+                (f_move,), (moved,) = costs(x + scale * (t @ direc))
+                k = int(np.argmin(fp))
+                if min(f_move, fp[k]) >= f:
+                    break
+                x, f = (moved.copy(), float(f_move)) if f_move <= fp[k] else (probes[k].copy(), float(fp[k]))
+        return x, -f, renders
 
     def _search(self, fixed, mask, x0, lo, hi, scale, *, seed, popsize, prefix, stages, history, progress,
                 polish):
