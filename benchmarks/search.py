@@ -82,7 +82,14 @@ def main() -> int:
                     help="the frames' Monte Carlo scatter smoothing sigma (mm at the detector; default the "
                          "simulator's own, sim.physics.scatter.auto_smooth_mm): frames of another smoothing, e.g. "
                          "6 for those made before 2026-11-27 (give them their own --out)")
+    ap.add_argument("--refine-polish", choices=("pattern", "powell"), default=None,
+                    help="the refinement's polish (register.engines.pipeline.REFINE_SETTINGS.polish_method; default "
+                         "the pipeline's own): to measure one against the other on the same frames")
     a = ap.parse_args()
+    if a.refine_polish is not None:  # the pipeline's refinement is built from this module constant
+        import register.engines.methods as methods
+
+        methods.REFINE_SETTINGS = replace(methods.REFINE_SETTINGS, polish_method=a.refine_polish)
     problem = input_problem("search", a.ct, a.cases)
     if not problem and a.scatter_smooth_mm is not None and not (0 <= a.scatter_smooth_mm <= 1000):
         problem = f"search: --scatter-smooth-mm must be a sigma in [0, 1000] mm, got {a.scatter_smooth_mm}"
