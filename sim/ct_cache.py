@@ -13,7 +13,9 @@ what :func:`sim.ct_io.load_ct` returns, with the anatomy centre, in one ``.npz``
   is a whole number in int16's range, else float32), ``affine`` ``(4, 4)`` LPS mm, ``center``
   ``(3,)`` LPS mm (NaN where the CT has no bone to centre on) and ``meta`` (JSON text: format,
   key, source path, shape). Written atomically (:func:`sim.atomic.atomic_path`); an entry that
-  cannot be read or does not match its key is removed and rebuilt, with a line to ``log``.
+  cannot be read or does not match its key is removed and rebuilt, with a line to ``log``. A
+  folder that cannot be written (a full disk, a read-only home) costs the cache, not the CT: a
+  line to ``log``, and the CT as read from its file.
 * **Folder**: ``$CTXREG_CT_CACHE`` if set, else ``$XDG_CACHE_HOME/ctxreg/ct`` (default
   ``~/.cache/ctxreg/ct``). It holds at most :data:`MAX_CACHE_MB` MB (``$CTXREG_CT_CACHE_MB``):
   after a write, the least recently used entries (by modification time, touched on every hit)
@@ -106,7 +108,8 @@ def load_ct_cached(path: str | os.PathLike, *, cache_dir: str | os.PathLike | No
         log: called with a line where an entry is written or rebuilt (default: silence).
 
     Raises :class:`sim.volume.CTInputError` as :func:`load_ct` does (a missing or bad CT), and
-    :class:`CTCacheError` when the cache folder cannot be made or written.
+    :class:`CTCacheError` when ``cache_dir`` is a file or the size limit is not a number; a folder
+    that cannot be written only loses the cache (a line to ``log``).
     """
     log = log or (lambda line: None)
     path = Path(path)
@@ -127,7 +130,12 @@ def load_ct_cached(path: str | os.PathLike, *, cache_dir: str | os.PathLike | No
         center = anatomy_center(volume)
     except AnatomyError:
         center = np.full(3, np.nan)
-    _write_entry(entry, key, path, volume, center)
+    try:
+        _write_entry(entry, key, path, volume, center)
+    except OSError as e:  # a full disk or a read-only home must not stop the work the CT is for
+        log(f"CT cache: cannot write {entry} ({e.strerror or e}); the CT was read from {path} and is not cached "
+            f"(set CTXREG_CT_CACHE to a writable folder, or turn the cache off)")
+        return volume
     log(f"CT cache: {path} stored as {entry} ({entry.stat().st_size / 1e6:.0f} MB)")
     evict(folder, keep=entry)
     return volume
@@ -163,15 +171,11 @@ def _write_entry(entry: Path, key: str, path: Path, volume: CTVolume, center: np
     if np.array_equal(as_int, hu) and as_int.min() >= np.iinfo(np.int16).min and as_int.max() <= np.iinfo(np.int16).max:
         hu = as_int.astype(np.int16)
     meta = {"format": CACHE_FORMAT, "key": key, "source": str(path), "shape": list(volume.shape)}
-    try:
-        entry.parent.mkdir(parents=True, exist_ok=True)
-        with atomic_path(entry) as tmp:
-            with open(tmp, "wb") as fh:
-                np.savez(fh, hu=hu, affine=volume.affine, center=np.asarray(center, np.float64),
-                         meta=np.array(json.dumps(meta)))
-    except OSError as e:
-        raise CTCacheError(f"CT cache {entry.parent}: cannot write ({e.strerror or e}); set CTXREG_CT_CACHE to a "
-                           f"writable folder or turn the cache off") from e
+    entry.parent.mkdir(parents=True, exist_ok=True)
+    with atomic_path(entry) as tmp:
+        with open(tmp, "wb") as fh:
+            np.savez(fh, hu=hu, affine=volume.affine, center=np.asarray(center, np.float64),
+                     meta=np.array(json.dumps(meta)))
 
 
 def _read_entry(entry: Path, key: str, path: Path, log) -> CTVolume | None:

@@ -162,6 +162,20 @@ def test_bad_settings_and_inputs_are_named(tmp_path, monkeypatch):
     assert not list((tmp_path / "c4").glob("*.npz"))
 
 
+def test_a_folder_that_cannot_be_written_costs_the_cache_not_the_ct(tmp_path, monkeypatch):
+    path = _saved(tmp_path, 1)
+
+    def full_disk(*a, **k):
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(ct_cache.np, "savez", full_disk)
+    lines = []
+    v = load_ct_cached(path, cache_dir=tmp_path / "cache", log=lines.append)
+    np.testing.assert_array_equal(v.hu, load_ct(path).hu)
+    assert len(lines) == 1 and "cannot write" in lines[0] and "No space left" in lines[0]
+    assert not list((tmp_path / "cache").glob("*"))  # no half-written entry left
+
+
 def test_sim_load_ct_uses_the_cache_for_files_only(tmp_path, monkeypatch):
     monkeypatch.setenv("CTXREG_CT_CACHE", str(tmp_path / "default"))
     path = _saved(tmp_path, 1)
