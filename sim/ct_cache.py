@@ -118,6 +118,7 @@ def load_ct_cached(path: str | os.PathLike, *, cache_dir: str | os.PathLike | No
     folder = Path(cache_dir).expanduser() if cache_dir is not None else default_cache_dir()
     if folder.exists() and not folder.is_dir():
         raise CTCacheError(f"CT cache {folder}: not a folder")
+    limit = cache_limit_bytes()  # a bad limit is refused before any work
     key = ct_hash(path)
     entry = folder / f"{key}.npz"
     if entry.is_file():
@@ -137,7 +138,7 @@ def load_ct_cached(path: str | os.PathLike, *, cache_dir: str | os.PathLike | No
             f"(set CTXREG_CT_CACHE to a writable folder, or turn the cache off)")
         return volume
     log(f"CT cache: {path} stored as {entry} ({entry.stat().st_size / 1e6:.0f} MB)")
-    evict(folder, keep=entry)
+    evict(folder, keep=entry, limit_bytes=limit)
     return volume
 
 
