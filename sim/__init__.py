@@ -46,8 +46,7 @@ def load_ct(ct, *, label_map=None, resample_mm=None, cache=False, log=None):
 
     if isinstance(ct, CTVolume) and label_map is not None:
         raise CTInputError(f"{ct.source}: a loaded CTVolume keeps its own labels; load the CT with label_map=...")
-    if cache is not False and cache is not None and label_map is None and not isinstance(ct, CTVolume) \
-            and not is_phantom_spec(ct):
+    if cache and label_map is None and not isinstance(ct, CTVolume) and not is_phantom_spec(ct):
         from sim.ct_cache import load_ct_cached
 
         volume = load_ct_cached(ct, cache_dir=None if cache is True else cache, log=log)

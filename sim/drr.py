@@ -84,7 +84,7 @@ class RenderSettings:
             resolves (:func:`coarsening`): each axis is averaged over 2, 4, ... voxels while its
             spacing stays at most half the pixel's footprint at the isocentre (pixel pitch x SOD
             / SDD). Fewer voxel steps for nearly the same image (a 512 x 512 x 133 chest CT at
-            0.7 mm: 64 x 64 images from 1.4 mm voxels, tested in ``tests/sim/test_ct_cache.py``).
+            0.7 mm: 64 x 64 images from 1.4 mm voxels, tested in ``tests/sim/test_drr_volumes.py``).
             Default False: the CT's own voxels.
     """
 
