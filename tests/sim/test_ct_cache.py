@@ -13,25 +13,14 @@ from sim import ct_cache
 from sim.anatomy import anatomy_center
 from sim.ct_cache import CTCacheError, ct_hash, evict, load_ct_cached
 from sim.ct_io import load_ct, save_nifti
-from sim.volume import CTInputError, CTVolume
+from sim.volume import CTInputError
 
-
-def _ct(seed: int, *, fractional: bool = False) -> CTVolume:
-    """A 24 x 20 x 16 CT of soft tissue with a bone block whose place depends on the seed."""
-    rng = np.random.default_rng(seed)
-    hu = rng.integers(-100, 100, (24, 20, 16)).astype(np.float32)
-    i = 4 + seed % 8
-    hu[i:i + 8, 5:12, 4:10] = 1200.0
-    if fractional:
-        hu += 0.25
-    affine = np.diag([1.5, 1.5, 2.0, 1.0])
-    affine[:3, 3] = (-20.0, -15.0, 10.0)
-    return CTVolume(hu=hu, affine=affine, source=f"test:{seed}")
+from tests.sim.small_ct import small_ct
 
 
 def _saved(tmp_path, seed: int, name: str = "ct.nii", **kw):
     path = tmp_path / name
-    save_nifti(_ct(seed, **kw), path)
+    save_nifti(small_ct(seed, **kw), path)
     return path
 
 
@@ -62,7 +51,7 @@ def test_a_changed_ct_is_never_served_from_the_old_entry(tmp_path):
     cache = tmp_path / "cache"
     old = load_ct_cached(path, cache_dir=cache)
     stat = path.stat()
-    save_nifti(_ct(2), path)  # uncompressed NIfTI of the same shape: the same size
+    save_nifti(small_ct(2), path)  # uncompressed NIfTI of the same shape: the same size
     os.utime(path, ns=(stat.st_atime_ns, stat.st_mtime_ns))
     assert path.stat().st_size == stat.st_size and path.stat().st_mtime_ns == stat.st_mtime_ns
     new = load_ct_cached(path, cache_dir=cache)

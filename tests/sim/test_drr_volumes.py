@@ -8,18 +8,7 @@ import numpy as np
 
 from sim.volume import CTVolume
 
-
-def _ct(seed: int, *, fractional: bool = False) -> CTVolume:
-    """A 24 x 20 x 16 CT of soft tissue with a bone block whose place depends on the seed."""
-    rng = np.random.default_rng(seed)
-    hu = rng.integers(-100, 100, (24, 20, 16)).astype(np.float32)
-    i = 4 + seed % 8
-    hu[i:i + 8, 5:12, 4:10] = 1200.0
-    if fractional:
-        hu += 0.25
-    affine = np.diag([1.5, 1.5, 2.0, 1.0])
-    affine[:3, 3] = (-20.0, -15.0, 10.0)
-    return CTVolume(hu=hu, affine=affine, source=f"test:{seed}")
+from tests.sim.small_ct import small_ct
 
 
 
@@ -27,7 +16,7 @@ def test_renderers_of_one_ct_share_one_upload_and_render_the_same_images():
     from sim.drr import DRRRenderer, RenderSettings, _UPLOADS
     from sim.geometry import pose_from_params
 
-    ct = _ct(2)
+    ct = small_ct(2)
     a = DRRRenderer(ct, RenderSettings(size=(24, 24)))
     b = DRRRenderer(ct, RenderSettings(size=(16, 16), ray_model="trilinear"))
     assert a.integrator.volume is b.integrator.volume and len(_UPLOADS[ct]) == 1
