@@ -22,8 +22,8 @@ from register.engines.result import RegistrationError
 from register.engines.methods import METHOD_NAMES, build_method, load_predictor, needs_model
 from register.engines.pipeline import NETWORK_DEPTH_RANGE_MM
 from register.engines.search import GlobalSearchSettings
-from register.evaluation.evaluate import (LOCAL_ROT_DEG, LOCAL_TRANS_MM, EvaluationError, EvaluationSettings,
-                                          evaluate)
+from register.evaluation.evaluate import (LOCAL_ROT_DEG, LOCAL_TRANS_MM, START_MODES, EvaluationError,
+                                          EvaluationSettings, evaluate)
 from register.xray.intensity import POLARITIES, SCALES, TONES
 from register.xray.io import ORIENTATIONS
 from sim.cli import CT_HELP
@@ -44,22 +44,36 @@ EVALUATE_FILES = ("cases.csv", "summary.json", "table.md", "violins.png", "traje
 class EvaluateCommand:
     """Defaults of ``ctxreg evaluate``."""
 
-    ct: str = field(metadata=opt(CT_HELP, group="input", metavar="PATH|phantom"))
+    ct: str | None = field(default=None, metadata=opt(
+        CT_HELP + " (the simulated protocol: required unless --deepfluoro)", group="input", metavar="PATH|phantom"))
+    deepfluoro: str | None = field(default=None, metadata=opt(
+        "the DeepFluoro full-resolution HDF5 file (ipcai_2020_full_res_data.h5): register its real frames against "
+        "their ground truth instead of simulated cases (docs/deepfluoro.md)", group="input", metavar="FILE"))
+    specimen: tuple[str, ...] = field(default=(), metadata=opt(
+        "--deepfluoro: the specimens, by name (17-1882) or number 1-6 (default: all)", group="input", nargs="+",
+        metavar="ID"))
+    frames: int | None = field(default=None, metadata=opt(
+        "--deepfluoro: at most N frames per specimen, the first ones (default: all)", group="input", metavar="N",
+        bounds=Range(1)))
     label_map: str | None = field(default=None, metadata=opt(
         "label map on the CT's grid: its centroid is the anatomy centre", group="input", metavar="PATH"))
     center: tuple[float, float, float] | None = field(default=None, metadata=opt(
         "anatomy centre c in LPS", group="input", unit="mm", nargs=3, metavar=("X", "Y", "Z")))
     cases: int = field(default=20, metadata=opt("number of target poses", group="protocol", metavar="N",
                                                 bounds=Range(1)))
-    method: tuple[str, ...] = field(default=("cmaes",), metadata=opt(
-        "registration methods to compare", group="protocol", nargs="+", choices=METHOD_NAMES))
+    method: tuple[str, ...] | None = field(default=None, metadata=opt(
+        "registration methods to compare (default: cmaes; with --deepfluoro contextual+cmaes, as ctxreg register)",
+        group="protocol", nargs="+", choices=METHOD_NAMES))
     model: str | None = field(default=None, metadata=opt(
         "the contextual methods' network: a shipped model's name (ctxreg models), a model folder or a ctxreg train "
         "checkpoint "
         "(default: the shipped default model)", group="protocol", metavar="NAME|CKPT"))
     start: str = field(default="ap", metadata=opt(
-        "start every case at AP, or near the truth (--local-rot / --local-trans)", group="protocol",
-        choices=("ap", "local")))
+        "start every case at AP, at --init (pose), near the truth (local: --local-rot / --local-trans) or at the "
+        "truth itself (a check: the error must stay near 0)", group="protocol", choices=START_MODES))
+    init: tuple[float, float, float, float, float, float] | None = field(default=None, metadata=opt(
+        "the start pose of --start pose: PHI THETA PSI TX TY TZ", group="protocol", unit="deg deg deg mm mm mm",
+        nargs=6, metavar=("PHI", "THETA", "PSI", "TX", "TY", "TZ")))
     local_rot: float = field(default=5.0, metadata=opt(
         "largest start offset in rotation for --start local", group="protocol", unit="deg", bounds=LOCAL_ROT_DEG))
     local_trans: float = field(default=10.0, metadata=opt(
@@ -95,18 +109,27 @@ def run_evaluate(cmd: EvaluateCommand) -> list[Path]:
     from sim.physics.imaging import LogImageRenderer, PhysicsSettings
     from sim.drr import DRRRenderer, RenderSettings
 
-    contextual = [m for m in cmd.method if needs_model(m)]
-    if len(set(cmd.method)) < len(cmd.method):
-        raise EvaluationError(f"--method {' '.join(cmd.method)}: a method is listed twice")
+    methods = cmd.method or (("contextual+cmaes",) if cmd.deepfluoro else ("cmaes",))
+    contextual = [m for m in methods if needs_model(m)]
+    if len(set(methods)) < len(methods):
+        raise EvaluationError(f"--method {' '.join(methods)}: a method is listed twice")
     refuse_unused(cmd, ("model",), applies=bool(contextual),
-                  why="meaningful with the contextual methods only; this run compares " + " ".join(cmd.method))
+                  why="meaningful with the contextual methods only; this run compares " + " ".join(methods))
     refuse_unused(cmd, ("local_rot", "local_trans"), applies=cmd.start == "local",
                   why=f"meaningful with --start local only; this run is --start {cmd.start}")
+    if (cmd.init is not None) != (cmd.start == "pose"):
+        raise EvaluationError("--init gives the start of --start pose: give both or neither")
+    if cmd.deepfluoro is not None:
+        return _run_deepfluoro(cmd, methods)
+    refuse_unused(cmd, ("specimen", "frames"), applies=False, why="meaningful with --deepfluoro only")
+    if cmd.ct is None:
+        raise EvaluationError("--ct: required (the CT of the simulated cases), unless --deepfluoro FILE is given")
     refuse_unused_label_map(cmd)
     if cmd.target_physics == "line" and cmd.target_mas != 2.5:
         raise EvaluationError("--target-mas only applies with --target-physics poly or full")
     settings = EvaluationSettings(cases=cmd.cases, seed=cmd.seed, size=tuple(cmd.size), start=cmd.start,
-                                  local_rot_deg=cmd.local_rot, local_trans_mm=cmd.local_trans)
+                                  local_rot_deg=cmd.local_rot, local_trans_mm=cmd.local_trans,
+                                  init=None if cmd.init is None else tuple(cmd.init))
     out = check_output_dir(cmd.out, EVALUATE_FILES)
     predictor = load_predictor(cmd.model) if contextual else None
     volume = load_ct_spec(cmd.ct, label_map=cmd.label_map)
@@ -125,15 +148,38 @@ def run_evaluate(cmd: EvaluateCommand) -> list[Path]:
     def note(text: str) -> None:
         print(f"ctxreg evaluate: note: {text}", file=sys.stderr)
 
-    methods = {name: build_method(name, volume, center_lps=center, size=tuple(cmd.size), scene=cmd.scene,
-                                  model=predictor if needs_model(name) else None, physics=moving, note=note)
-               for name in cmd.method}
+    built = {name: build_method(name, volume, center_lps=center, size=tuple(cmd.size), scene=cmd.scene,
+                                model=predictor if needs_model(name) else None, physics=moving, note=note)
+             for name in methods}
     physics_record = {"target_physics": cmd.target_physics if cmd.target_physics == "line" else asdict(physics),
                       "moving_physics": "line" if moving is None else asdict(moving)}
-    result = evaluate(volume, methods, settings, out, center_lps=center,
+    result = evaluate(volume, built, settings, out, center_lps=center,
                       geometry=target_renderer.geometry, target_renderer=target_renderer, record=physics_record)
     print(result["table"])
     return [out / name for name in ("cases.csv", "summary.json", "table.md", "violins.png")]
+
+
+#: The simulated protocol's options that a --deepfluoro run has no use for (the file gives the CT,
+#: the frames and their physics).
+_SIMULATED_ONLY = ("ct", "label_map", "center", "cases", "target_ray_model", "target_physics", "target_mas", "physics")
+
+
+def _run_deepfluoro(cmd: EvaluateCommand, methods: tuple[str, ...]) -> list[Path]:
+    """``ctxreg evaluate --deepfluoro FILE``: :func:`register.evaluation.deepfluoro.evaluate_deepfluoro`."""
+    from register.evaluation.deepfluoro import DEEPFLUORO_FILES, DeepFluoroSettings, evaluate_deepfluoro
+    from sim.scene import load_scene
+
+    refuse_unused(cmd, _SIMULATED_ONLY, applies=False,
+                  why="the simulated protocol's; --deepfluoro takes the CT, the frames and the truth from the file")
+    settings = DeepFluoroSettings(specimens=tuple(cmd.specimen), frames=cmd.frames, methods=tuple(methods),
+                                  start=cmd.start, init=None if cmd.init is None else tuple(cmd.init),
+                                  local_rot_deg=cmd.local_rot, local_trans_mm=cmd.local_trans, seed=cmd.seed,
+                                  sod_mm=load_scene(cmd.scene).geometry.sod_mm, size=tuple(cmd.size), scene=cmd.scene)
+    out = check_output_dir(cmd.out, DEEPFLUORO_FILES)
+    result = evaluate_deepfluoro(cmd.deepfluoro, settings, out, model=cmd.model,
+                                 log=lambda line: print(line, flush=True))
+    print(result["table"])
+    return [out / name for name in DEEPFLUORO_FILES]
 
 
 @dataclass(frozen=True)

@@ -36,7 +36,9 @@ from sim.geometry import pose_from_params
 from sim.progress import Progress
 from sim.seeds import KIND_EVALUATE_CASES, rng_for
 
-START_MODES = ("ap", "local")
+#: ``ap``: ctxreg's AP pose; ``pose``: ``init``; ``local``: the truth moved by a seeded random offset;
+#: ``truth``: the truth itself (a check: a method must stay there).
+START_MODES = ("ap", "pose", "local", "truth")
 #: The largest start offsets of ``start="local"`` a protocol may ask for: rotation (deg) and
 #: translation (mm). Beyond them "local" means nothing (the original capture range is 40 deg, 75 mm).
 LOCAL_ROT_DEG = Range(0.0, 90.0, lo_open=True)
@@ -62,12 +64,17 @@ class EvaluationSettings:
     success_mtre_mm: float = 10.0
     success_rot_deg: float = 1.0
     max_points: int = 5000
+    init: tuple[float, ...] | None = None
 
     def __post_init__(self) -> None:
         if self.cases < 1:
             raise EvaluationError(f"cases must be >= 1, got {self.cases}")
         if self.start not in START_MODES:
             raise EvaluationError(f"start must be one of {START_MODES}, got {self.start!r}")
+        if (self.init is not None) != (self.start == "pose"):
+            raise EvaluationError("init gives the start of start='pose', and only of it")
+        if self.init is not None and (len(self.init) != 6 or not np.all(np.isfinite(self.init))):
+            raise EvaluationError(f"init: six finite numbers (deg, mm), got {self.init}")
         for name, bounds in (("local_rot_deg", LOCAL_ROT_DEG), ("local_trans_mm", LOCAL_TRANS_MM)):
             if not (np.isfinite(getattr(self, name)) and getattr(self, name) in bounds):
                 raise EvaluationError(f"{name} must be {bounds}, got {getattr(self, name)}")
@@ -86,6 +93,10 @@ def sample_cases(settings: EvaluationSettings, distribution=None) -> tuple[np.nd
     targets = dist.sample(rng, settings.cases)
     if settings.start == "ap":
         starts = np.zeros_like(targets)
+    elif settings.start == "pose":
+        starts = np.tile(np.asarray(settings.init, np.float64), (len(targets), 1))
+    elif settings.start == "truth":
+        starts = targets.copy()
     else:
         # uniform direction and uniform magnitude up to the limits, rotation and translation apart
         def ball(n, radius):

@@ -102,6 +102,9 @@ STUDY_FILES = ("study.json", "table.md", "results.json", "study.png", "commands.
 TARGET_KINDS = ("drr", "xray")
 _NAME_CHARS = set("abcdefghijklmnopqrstuvwxyzABCDEFGHIJKLMNOPQRSTUVWXYZ0123456789-_.+")
 
+#: The starts a study may use: those of :data:`START_MODES` that need no pose of their own.
+STUDY_STARTS = tuple(m for m in START_MODES if m != "pose")
+
 
 class StudyError(InputError):
     """A study file or its output folder cannot be used; the message names the key."""
@@ -201,8 +204,8 @@ def load_study(path: str | Path) -> Study:
     if not isinstance(ct, str) or not ct:
         raise StudyError(f"{path}: study.ct: the evaluation CT (a NIfTI file, DICOM folder or 'phantom'), got {ct!r}")
     start = head.get("start", "ap")
-    if start not in START_MODES:
-        raise StudyError(f"{path}: study.start: one of {', '.join(START_MODES)}, got {start!r}")
+    if start not in STUDY_STARTS:
+        raise StudyError(f"{path}: study.start: one of {', '.join(STUDY_STARTS)}, got {start!r}")
     methods = head.get("methods", ["contextual", "contextual+cmaes"])
     if (not isinstance(methods, list) or not methods or len(set(map(str, methods))) < len(methods)
             or any(m not in METHOD_NAMES or not needs_model(m) for m in methods)):

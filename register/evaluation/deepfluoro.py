@@ -1,0 +1,292 @@
+"""Registering the DeepFluoro data set's real frames and scoring them as the field does.
+
+Every chosen frame is registered as ``ctxreg register`` registers a file (:func:`register.api.register_xray`,
+its defaults: method, network, global search, size), from a start of the protocol's
+(:data:`START_MODES`), and scored against the file's ground truth on the specimen's 3-D landmarks:
+
+* **mTRE** (mm): the mean 3-D distance between the landmarks placed by the estimated and by the true
+  pose (xvr's ``mTRE``, the field's main number);
+* **mPD** (mm): the mean distance between their projections by the two poses, at the detector plane
+  (pixels x 0.194 mm; xvr's ``mPE``);
+* **mRPE** (mm): the mean distance at the detector between the landmarks projected by the estimated
+  pose and the file's annotated 2-D landmarks (those on the detector), which includes the
+  annotation's own error (about 1 px, the reprojection check);
+* rotation error (deg, geodesic) and translation error of the anatomy centre (mm).
+
+Each error is measured at the start too ("initial"); a frame counts as registered below 10 mm mTRE
+(xvr's and ProST's failure threshold) and as sub-millimetre below 1 mm. Per specimen and over all
+frames: the mean and median, the shares under 10 mm and 1 mm, initial and final, and the seconds
+per frame. Before the first registration the command prints the file's own geometry check (the 3-D
+landmarks projected with the file's intrinsics and ground-truth poses against the 2-D landmarks).
+
+Outputs (``out``): ``cases.csv`` (a row per frame and method), ``summary.json``, ``table.md`` and
+``worst/``: overlays (the registered DRR's edges in red over the frame) of the worst frames.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+from register.api import register_xray
+from register.datasets.deepfluoro import DeepFluoroError, DeepFluoroFile, DeepFluoroProjection, DeepFluoroSpecimen
+from register.engines.methods import METHOD_NAMES, load_predictor, needs_model
+from register.evaluation.errors import pose_errors
+from register.plots import overlay_png
+from register.xray.prepare import fit_to_size
+from sim.atomic import atomic_path, write_csv, write_json
+from sim.outputs import check_output_dir
+from sim.geometry import params_from_pose, pose_from_params, project_points, projection_matrix
+from sim.progress import Progress
+from sim.seeds import KIND_EVALUATE_CASES, rng_for
+
+__all__ = ["DeepFluoroSettings", "evaluate_deepfluoro", "frame_errors", "START_MODES", "DEEPFLUORO_FILES"]
+
+#: ``ap``: ctxreg's AP pose (zeros) at the scene's isocentre; ``pose``: the six numbers of ``init``;
+#: ``local``: the truth moved by a seeded random offset (at most ``local_rot_deg`` / ``local_trans_mm``);
+#: ``truth``: the ground-truth pose itself (a check of the file's reading: the error must stay near 0).
+START_MODES = ("ap", "pose", "local", "truth")
+
+#: The thresholds the shares are reported at (mm of mTRE).
+SUCCESS_MM = (10.0, 1.0)
+
+DEEPFLUORO_FILES = ("cases.csv", "summary.json", "table.md")
+
+_ERRORS = ("mtre_mm", "mpd_mm", "mrpe_mm", "rot_err_deg", "trans_err_mm")
+
+
+@dataclass(frozen=True)
+class DeepFluoroSettings:
+    """The protocol. Units: degrees, mm.
+
+    Attributes:
+        specimens: names or numbers 1-6 (empty: every specimen of the file).
+        frames: at most this many frames per specimen, the first ones (None: all).
+        methods: registration methods (:data:`register.engines.methods.METHOD_NAMES`).
+        start: one of :data:`START_MODES`; init: ``(6,)`` the start of ``start="pose"``.
+        local_rot_deg, local_trans_mm: the largest offsets of ``start="local"``; seed: their stream.
+        sod_mm: the isocentre distance of the start and of the pose parameters (the Cios Fusion's 700).
+        size: the optimiser's image box ``(H, W)`` (``register_xray``'s ``size``).
+        scene: the C-arm scene of the values the file does not give.
+        worst: overlays of this many worst frames (by final mTRE).
+    """
+
+    specimens: tuple[str, ...] = ()
+    frames: int | None = None
+    methods: tuple[str, ...] = ("contextual+cmaes",)
+    start: str = "ap"
+    init: tuple[float, ...] | None = None
+    local_rot_deg: float = 5.0
+    local_trans_mm: float = 10.0
+    seed: int = 0
+    sod_mm: float = 700.0
+    size: tuple[int, int] = (128, 128)
+    scene: str = "cios_fusion"
+    worst: int = 3
+
+    def __post_init__(self) -> None:
+        if self.start not in START_MODES:
+            raise DeepFluoroError(f"start must be one of {', '.join(START_MODES)}, got {self.start!r}")
+        if (self.init is not None) != (self.start == "pose"):
+            raise DeepFluoroError("--init gives the start of --start pose, and only of it")
+        if self.init is not None and (len(self.init) != 6 or not all(math.isfinite(v) for v in self.init)):
+            raise DeepFluoroError(f"--init: six finite numbers (deg, mm), got {self.init}")
+        if self.frames is not None and self.frames < 1:
+            raise DeepFluoroError(f"--frames must be >= 1, got {self.frames}")
+        bad = [m for m in self.methods if m not in METHOD_NAMES]
+        if bad or not self.methods or len(set(self.methods)) < len(self.methods):
+            raise DeepFluoroError(f"methods: distinct names of {', '.join(METHOD_NAMES)}, got {list(self.methods)}")
+        if not (math.isfinite(self.sod_mm) and self.sod_mm > 0):
+            raise DeepFluoroError(f"sod_mm must be positive, got {self.sod_mm}")
+        if self.worst < 0:
+            raise DeepFluoroError(f"worst must be >= 0, got {self.worst}")
+
+
+def frame_errors(T_est: np.ndarray, T_true: np.ndarray, frame: DeepFluoroProjection, specimen: DeepFluoroSpecimen,
+                 geometry) -> dict[str, float]:
+    """The errors of the ctxreg pose ``T_est`` ``(4, 4)`` against ``T_true`` on ``specimen``'s
+    landmarks (module docstring); ``geometry`` is the frame's full-resolution ctxreg geometry."""
+    names, X = specimen.landmark_array()
+    c = specimen.center_lps
+    err = pose_errors(T_est, T_true, X, c, geometry)
+    annotated = [n for n in names if n in frame.landmarks_px]
+    uv = frame.to_ctxreg_px(np.array([frame.landmarks_px[n] for n in annotated]).reshape(-1, 2))
+    on = frame.visible(uv)  # (the flip keeps the detector's extent)
+    Xa = np.array([specimen.landmarks_lps[n] for n in annotated]).reshape(-1, 3)[on]
+    if len(Xa):
+        est = project_points(projection_matrix(geometry, T_est, c), Xa)
+        rpe = np.linalg.norm(est - uv[on], axis=1)
+        rpe = rpe[np.isfinite(rpe)]
+        err["mrpe_mm"] = float(rpe.mean() * geometry.pixel_spacing_mm) if rpe.size else math.nan
+    else:
+        err["mrpe_mm"] = math.nan
+    return err
+
+
+def _starts(settings: DeepFluoroSettings, truths: np.ndarray) -> np.ndarray:
+    """``(N, 6)`` start parameters for the ``(N, 6)`` true parameters."""
+    if settings.start == "ap":
+        return np.zeros_like(truths)
+    if settings.start == "pose":
+        return np.tile(np.asarray(settings.init, np.float64), (len(truths), 1))
+    if settings.start == "truth":
+        return truths.copy()
+    rng = rng_for(settings.seed, KIND_EVALUATE_CASES)
+
+    def ball(radius):
+        v = rng.normal(size=(len(truths), 3))
+        v /= np.linalg.norm(v, axis=1, keepdims=True)
+        return v * rng.uniform(0, radius, size=(len(truths), 1))
+
+    return truths + np.concatenate([ball(settings.local_rot_deg / np.sqrt(3)), ball(settings.local_trans_mm)], axis=1)
+
+
+def _stats(values) -> dict[str, float]:
+    v = np.array([x for x in values if math.isfinite(x)], np.float64)
+    if not v.size:
+        return {"mean": math.nan, "median": math.nan, "min": math.nan, "max": math.nan}
+    return {"mean": float(v.mean()), "median": float(np.median(v)), "min": float(v.min()), "max": float(v.max())}
+
+
+def summarize(rows: list[dict]) -> dict:
+    """Per method, per specimen and ``"all"``: frames, each error's statistics (initial and final),
+    the shares of mTRE under :data:`SUCCESS_MM` (initial and final) and the seconds per frame."""
+    out: dict = {}
+    for method in dict.fromkeys(r["method"] for r in rows):
+        sel = [r for r in rows if r["method"] == method]
+        groups = {s: [r for r in sel if r["specimen"] == s] for s in dict.fromkeys(r["specimen"] for r in sel)}
+        groups["all"] = sel
+        out[method] = {}
+        for name, rs in groups.items():
+            g = {"frames": len(rs), "time_s": _stats(r["time_s"] for r in rs)}
+            for col in _ERRORS:
+                g[col] = _stats(r[col] for r in rs)
+                g[f"initial_{col}"] = _stats(r[f"initial_{col}"] for r in rs)
+            for mm in SUCCESS_MM:
+                g[f"under_{mm:g}mm"] = float(np.mean([r["mtre_mm"] < mm for r in rs]))
+                g[f"initial_under_{mm:g}mm"] = float(np.mean([r["initial_mtre_mm"] < mm for r in rs]))
+            out[method][name] = g
+    return out
+
+
+def format_table(summary: dict) -> str:
+    """The summary as a Markdown table: a row per method and specimen."""
+    lines = ["| method | specimen | frames | mTRE initial -> final, median (mm) | mean (mm) | < 10 mm initial -> final "
+             "| < 1 mm | mPD median (mm) | mRPE median (mm) | rotation median (deg) | s / frame |",
+             "|---|---|---|---|---|---|---|---|---|---|---|"]
+    for method, groups in summary.items():
+        for name, g in groups.items():
+            lines.append(
+                f"| {method} | {name} | {g['frames']} | {g['initial_mtre_mm']['median']:.1f} -> "
+                f"{g['mtre_mm']['median']:.2f} | {g['mtre_mm']['mean']:.2f} | {100 * g['initial_under_10mm']:.0f} % -> "
+                f"{100 * g['under_10mm']:.0f} % | {100 * g['under_1mm']:.0f} % | {g['mpd_mm']['median']:.2f} | "
+                f"{g['mrpe_mm']['median']:.2f} | {g['rot_err_deg']['median']:.2f} | {g['time_s']['median']:.1f} |")
+    return "\n".join(lines)
+
+
+def _overlay(path: Path, frame: DeepFluoroProjection, specimen: DeepFluoroSpecimen, T: np.ndarray, geometry,
+             side: int = 384) -> None:
+    """The frame (as a log image, at most ``side`` px) with the line DRR's edges at ``T`` in red."""
+    from sim.drr import DRRRenderer, RenderSettings
+
+    raw = frame.ctxreg_pixels().astype(np.float64)
+    log_image = -np.log(np.clip(raw, max(float(raw.max()) * 1e-6, 1e-12), None))
+    image, _, g = fit_to_size(log_image, None, geometry, min(side, max(geometry.height, geometry.width)))
+    drr = DRRRenderer(specimen.volume, RenderSettings(size=(g.height, g.width)), center_lps=specimen.center_lps,
+                      geometry=g).render(T)[0]
+    overlay_png(image, drr, path)
+
+
+def evaluate_deepfluoro(path, settings: DeepFluoroSettings, out, *, model=None,
+                        log: Callable[[str], None] = print) -> dict:
+    """Register the chosen frames of the DeepFluoro file ``path`` and write the scores into ``out``
+    (module docstring). ``model``: the contextual methods' network (a name, a checkpoint or a loaded
+    predictor; None: the shipped default). Returns ``{"rows", "summary", "table", "reprojection"}``."""
+    out = check_output_dir(out, DEEPFLUORO_FILES)
+    with DeepFluoroFile(path) as f:
+        chosen = [f.resolve(s) for s in settings.specimens] or list(f.specimens)
+        p = f.params
+        cx, cy = p.principal_point
+        if abs(cx - (p.cols - 1) / 2) > 0.5 or abs(cy - (p.rows - 1) / 2) > 0.5:
+            raise DeepFluoroError(f"{path}: the principal point ({cx:g}, {cy:g}) px is off the detector's centre "
+                                  f"({(p.cols - 1) / 2:g}, {(p.rows - 1) / 2:g}); ctxreg register takes the centre")
+        log(f"{path}: {len(f.specimens)} specimens ({', '.join(f.specimens)}); detector {p.rows} x {p.cols} px at "
+            f"{p.spacing_mm:g} mm, SDD {p.sdd_mm:.1f} mm")
+        # the file's own geometry, before any registration: landmarks reprojected with the truth
+        plan, reprojection = [], {}
+        for sid in chosen:
+            light = f.specimen(sid, ct=False)
+            names = light.projection_names[: settings.frames] if settings.frames else light.projection_names
+            checks = [light.projection(int(n), pixels=False).reprojection_px(light.landmarks_lps) for n in names]
+            counted = [c for c in checks if c["count"]]
+            reprojection[sid] = {
+                "frames": len(names), "landmarks": int(sum(c["count"] for c in checks)),
+                "stored_mean_px": float(np.mean([c["stored_mean_px"] for c in counted])) if counted else math.nan,
+                "stored_max_px": float(max(c["stored_max_px"] for c in counted)) if counted else math.nan,
+                "ctxreg_mean_px": float(np.mean([c["ctxreg_mean_px"] for c in counted])) if counted else math.nan}
+            r = reprojection[sid]
+            log(f"geometry check, specimen {sid}: 3-D landmarks projected with the file's intrinsics and ground-truth "
+                f"poses land {r['stored_mean_px']:.3f} px (max {r['stored_max_px']:.3f} px) from its 2-D landmarks "
+                f"({r['landmarks']} on {len(names)} frames); through ctxreg's pose and geometry "
+                f"{r['ctxreg_mean_px']:.3f} px")
+            plan.append((sid, [int(n) for n in names]))
+        predictor = load_predictor(model) if any(needs_model(m) for m in settings.methods) else None
+        rows, records = [], []
+        total = sum(len(idx) for _, idx in plan) * len(settings.methods)
+        bar = Progress(total, 0, f"deepfluoro {out.name}", "frames", rate_unit="frames/min", rate_scale=60.0)
+        for sid, indices in plan:
+            spec = f.specimen(sid, log=log)  # its CT, read once for its frames
+            truths = [params_from_pose(spec.projection(i, pixels=False).truth(spec.center_lps, sod_mm=settings.sod_mm)[0],
+                                       settings.sod_mm) for i in indices]
+            starts = _starts(settings, np.array(truths))
+            for i, start in zip(indices, starts):
+                fr = spec.projection(i)
+                T_true, geometry = fr.truth(spec.center_lps, sod_mm=settings.sod_mm)
+                T_start = pose_from_params(start, settings.sod_mm)
+                initial = frame_errors(T_start, T_true, fr, spec, geometry)
+                for method in settings.methods:
+                    t0 = time.perf_counter()
+                    reg = register_xray(spec.volume, fr.xray(sod_mm=settings.sod_mm), method=method,
+                                        model=predictor if needs_model(method) else None, init=start,
+                                        center=spec.center_lps, scene=settings.scene, size=settings.size,
+                                        intensity="linear", polarity="bone-dark")
+                    seconds = time.perf_counter() - t0
+                    err = frame_errors(reg.pose, T_true, fr, spec, geometry)
+                    row = {"specimen": spec.id, "frame": fr.index, "method": method, "start": settings.start,
+                           "rot_180_for_up": fr.rot_180_for_up, **err,
+                           **{f"initial_{k}": v for k, v in initial.items()},
+                           "time_s": seconds, "renders": reg.result.renders, "similarity": reg.similarity,
+                           "search": reg.search_status,
+                           **{f"true_{k}": float(v) for k, v in zip(("phi", "theta", "psi", "tx", "ty", "tz"),
+                                                                    params_from_pose(T_true, settings.sod_mm))},
+                           **{f"est_{k}": float(v) for k, v in reg.params.items()}}
+                    rows.append(row)
+                    records.append((row["mtre_mm"], spec.id, fr.index, reg.pose, method))
+                    log(f"{spec.id} frame {fr.index:03d} {method}: mTRE {initial['mtre_mm']:.1f} -> {err['mtre_mm']:.2f} "
+                        f"mm, rotation {err['rot_err_deg']:.2f} deg, mRPE {err['mrpe_mm']:.2f} mm, {seconds:.1f} s")
+                    bar.update(1)
+            del spec
+        worst = sorted(records, key=lambda r: -r[0] if math.isfinite(r[0]) else -math.inf)[: settings.worst]
+        if worst:
+            (out / "worst").mkdir(parents=True, exist_ok=True)
+        for sid in dict.fromkeys(w[1] for w in worst):
+            spec = f.specimen(sid)
+            for _, _, index, T, method in (w for w in worst if w[1] == sid):
+                fr = spec.projection(index)
+                T_true, geometry = fr.truth(spec.center_lps, sod_mm=settings.sod_mm)
+                stem = f"{sid}_{index:03d}_{method.replace('+', '-')}"
+                _overlay(out / "worst" / f"{stem}_estimate.png", fr, spec, T, geometry)
+                _overlay(out / "worst" / f"{stem}_truth.png", fr, spec, T_true, geometry)
+    summary = summarize(rows)
+    table = format_table(summary)
+    write_csv(out / "cases.csv", rows)
+    write_json(out / "summary.json", {"file": str(path), "settings": asdict(settings), "success_mm": list(SUCCESS_MM),
+                                      "reprojection_px": reprojection, "summary": summary})
+    with atomic_path(out / "table.md") as tmp:
+        tmp.write_text(table + "\n")
+    return {"rows": rows, "summary": summary, "table": table, "reprojection": reprojection}
