@@ -55,6 +55,9 @@ class EvaluateCommand:
     frames: int | None = field(default=None, metadata=opt(
         "--deepfluoro: at most N frames per specimen, the first ones (default: all)", group="input", metavar="N",
         bounds=Range(1)))
+    resume: bool = field(default=False, metadata=opt(
+        "--deepfluoro: continue an interrupted run from --out's progress.json (same file, options and model)",
+        group="input"))
     label_map: str | None = field(default=None, metadata=opt(
         "label map on the CT's grid: its centroid is the anatomy centre", group="input", metavar="PATH"))
     center: tuple[float, float, float] | None = field(default=None, metadata=opt(
@@ -121,7 +124,7 @@ def run_evaluate(cmd: EvaluateCommand) -> list[Path]:
         raise EvaluationError("--init gives the start of --start pose: give both or neither")
     if cmd.deepfluoro is not None:
         return _run_deepfluoro(cmd, methods)
-    refuse_unused(cmd, ("specimen", "frames"), applies=False, why="meaningful with --deepfluoro only")
+    refuse_unused(cmd, ("specimen", "frames", "resume"), applies=False, why="meaningful with --deepfluoro only")
     if cmd.ct is None:
         raise EvaluationError("--ct: required (the CT of the simulated cases), unless --deepfluoro FILE is given")
     refuse_unused_label_map(cmd)
@@ -176,7 +179,7 @@ def _run_deepfluoro(cmd: EvaluateCommand, methods: tuple[str, ...]) -> list[Path
                                   local_rot_deg=cmd.local_rot, local_trans_mm=cmd.local_trans, seed=cmd.seed,
                                   sod_mm=load_scene(cmd.scene).geometry.sod_mm, size=tuple(cmd.size), scene=cmd.scene)
     out = check_output_dir(cmd.out, DEEPFLUORO_FILES)
-    result = evaluate_deepfluoro(cmd.deepfluoro, settings, out, model=cmd.model,
+    result = evaluate_deepfluoro(cmd.deepfluoro, settings, out, model=cmd.model, resume=cmd.resume,
                                  log=lambda line: print(line, flush=True))
     print(result["table"])
     return [out / name for name in DEEPFLUORO_FILES]

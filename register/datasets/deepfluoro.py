@@ -213,7 +213,9 @@ class _Reader:
             raise DeepFluoroError(f"{self.name}: '{where}/pixels' has shape {pixels.shape}, expected {dims} axes")
         spacing = self.array(f"{where}/spacing", size=dims)
         origin = self.array(f"{where}/origin", size=dims)
-        direction = self.array(f"{where}/dir-mat", size=dims * dims).reshape(dims, dims)
+        # dir-mat: the identity in every image of the data set (the README); taken as such where absent
+        direction = (self.array(f"{where}/dir-mat", size=dims * dims).reshape(dims, dims)
+                     if "dir-mat" in self.keys(where) else np.eye(dims))
         if np.any(spacing <= 0):
             raise DeepFluoroError(f"{self.name}: '{where}/spacing' must be positive mm, got {spacing.tolist()}")
         err = float(np.abs(direction.T @ direction - np.eye(dims)).max())
@@ -364,15 +366,23 @@ class DeepFluoroProjection:
         except PoseConversionError as exc:
             raise DeepFluoroError(f"{self.source}: {exc}") from None
 
-    def xray(self, *, sod_mm: float | None = None) -> XRayImage:
+    def xray(self, *, sod_mm: float | None = None, border_px: int = 0) -> XRayImage:
         """The frame as an :class:`register.xray.io.XRayImage` in ctxreg's view: raw intensities
         (``attenuation_bright`` False), the detector's pitch and SDD from ``proj-params``, ``sod_mm``
-        (None: the scene's at registration)."""
-        return XRayImage(pixels=self.ctxreg_pixels(), attenuation_bright=False,
+        (None: the scene's at registration). ``border_px``: pixels cut from every side (the
+        collimator's border; the same on all sides, so the principal point stays the centre)."""
+        b = int(border_px)
+        if b < 0 or 2 * b > min(self.params.rows, self.params.cols) - 32:
+            raise DeepFluoroError(f"{self.source}: border_px {border_px} leaves less than 32 px of the "
+                                  f"{self.params.rows} x {self.params.cols} frame")
+        pixels = self.ctxreg_pixels()
+        if b:
+            pixels = np.ascontiguousarray(pixels[b:-b, b:-b])
+        return XRayImage(pixels=pixels, attenuation_bright=False,
                          pixel_spacing_mm=self.params.spacing_mm, sdd_mm=self.params.sdd_mm, sod_mm=sod_mm,
                          source=self.source,
                          meta={"format": "deepfluoro-hdf5", "specimen": self.specimen_id, "projection": self.index,
-                               "rot_180_for_up": self.rot_180_for_up,
+                               "rot_180_for_up": self.rot_180_for_up, "border_px": b,
                                "stored_to_ctxreg": "rows reversed" if self.rot_180_for_up else "columns reversed"})
 
     def reprojection_px(self, landmarks_lps: dict[str, np.ndarray]) -> dict[str, float | int]:
@@ -550,8 +560,10 @@ class DeepFluoroFile:
         r = self._r
         base = f"{sid}/projections/{name}"
         p = self.params
-        if pixels:
-            pixels, _ = r.image(f"{base}/image", dims=2)
+        if pixels:  # the detector's spacing is proj-params'; the group's own spacing / origin are not needed
+            pixels = r.array(f"{base}/image/pixels")
+            if pixels.ndim != 2:
+                raise DeepFluoroError(f"{r.name}: '{base}/image/pixels' has shape {pixels.shape}, expected 2 axes")
         else:
             shape = getattr(r.node(f"{base}/image/pixels"), "shape", None)
             pixels = np.zeros((0, 0), np.float32)
@@ -560,7 +572,8 @@ class DeepFluoroFile:
         if pixels.size and pixels.shape != (p.rows, p.cols):
             raise DeepFluoroError(f"{r.name}: '{base}/image/pixels' is {pixels.shape}, proj-params say "
                                   f"{(p.rows, p.cols)}")
-        flag = r.scalar(f"{base}/rot-180-for-up")
+        # rot-180-for-up: in every frame of the data set; a file without it has its frames upright
+        flag = r.scalar(f"{base}/rot-180-for-up") if "rot-180-for-up" in r.keys(base) else 0.0
         if flag not in (0.0, 1.0):
             raise DeepFluoroError(f"{r.name}: '{base}/rot-180-for-up' must be 0 or 1, got {flag:g}")
         pose = r.rigid(f"{base}/gt-poses/cam-to-pelvis-vol")

@@ -25,6 +25,7 @@ Outputs (``out``): ``cases.csv`` (a row per frame and method), ``summary.json``,
 
 from __future__ import annotations
 
+import json
 import math
 import time
 from dataclasses import asdict, dataclass
@@ -39,7 +40,8 @@ from register.engines.methods import METHOD_NAMES, load_predictor, needs_model
 from register.evaluation.errors import pose_errors
 from register.plots import overlay_png
 from register.xray.prepare import fit_to_size
-from sim.atomic import atomic_path, write_csv, write_json
+from register.xray.preprocess import DEFAULT_STEPS
+from sim.atomic import atomic_path, jsonable, write_csv, write_json
 from sim.outputs import check_output_dir
 from sim.geometry import params_from_pose, pose_from_params, project_points, projection_matrix
 from sim.progress import Progress
@@ -56,6 +58,8 @@ START_MODES = ("ap", "pose", "local", "truth")
 SUCCESS_MM = (10.0, 1.0)
 
 DEEPFLUORO_FILES = ("cases.csv", "summary.json", "table.md")
+#: The rows so far, written after every frame: what ``resume`` continues from.
+PROGRESS = "progress.json"
 
 _ERRORS = ("mtre_mm", "mpd_mm", "mrpe_mm", "rot_err_deg", "trans_err_mm")
 
@@ -74,6 +78,11 @@ class DeepFluoroSettings:
         size: the optimiser's image box ``(H, W)`` (``register_xray``'s ``size``).
         scene: the C-arm scene of the values the file does not give.
         worst: overlays of this many worst frames (by final mTRE).
+        border_px: the collimator's border cut from every side of a frame, in pixels of the
+            1536-px detector (DiffPose's 50; scaled to a file's own detector size).
+        detect_field: run ``register``'s field detection on the frame left after the border (off by
+            default: the real frames' field is the detector within that border, and the raw
+            frames' bright flat air beside the body can be taken for a painted outside).
     """
 
     specimens: tuple[str, ...] = ()
@@ -88,6 +97,8 @@ class DeepFluoroSettings:
     size: tuple[int, int] = (128, 128)
     scene: str = "cios_fusion"
     worst: int = 3
+    border_px: float = 50.0
+    detect_field: bool = False
 
     def __post_init__(self) -> None:
         if self.start not in START_MODES:
@@ -103,6 +114,8 @@ class DeepFluoroSettings:
             raise DeepFluoroError(f"methods: distinct names of {', '.join(METHOD_NAMES)}, got {list(self.methods)}")
         if not (math.isfinite(self.sod_mm) and self.sod_mm > 0):
             raise DeepFluoroError(f"sod_mm must be positive, got {self.sod_mm}")
+        if not (math.isfinite(self.border_px) and 0 <= self.border_px < 512):
+            raise DeepFluoroError(f"border_px must be in [0, 512) px of the 1536-px detector, got {self.border_px}")
         if self.worst < 0:
             raise DeepFluoroError(f"worst must be >= 0, got {self.worst}")
 
@@ -202,12 +215,43 @@ def _overlay(path: Path, frame: DeepFluoroProjection, specimen: DeepFluoroSpecim
     overlay_png(image, drr, path)
 
 
-def evaluate_deepfluoro(path, settings: DeepFluoroSettings, out, *, model=None,
+def _progress_record(path, settings: DeepFluoroSettings, model) -> dict:
+    """What a resumed run must share with the run it continues: the file, the settings, the model."""
+    p = Path(path)
+    return {"file": str(p.resolve()), "file_bytes": p.stat().st_size if p.exists() else None,
+            "settings": json.loads(json.dumps(asdict(settings))),
+            "model": None if model is None else (str(model) if not callable(model) else type(model).__name__)}
+
+
+def _resumed_rows(out: Path, record: dict) -> list[dict]:
+    """The rows of ``out/PROGRESS`` when its record matches ``record``; else :class:`DeepFluoroError`."""
+    f = out / PROGRESS
+    if not f.exists():
+        raise DeepFluoroError(f"--resume: {f} not found: nothing to resume (run without --resume)")
+    try:
+        saved = json.loads(f.read_text())
+        rows = saved["rows"]
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        raise DeepFluoroError(f"--resume: {f} cannot be read ({exc}); run without --resume to start again") from None
+    differ = [k for k in record if k != "settings" and saved.get(k) != record[k]]
+    differ += [f"settings.{k}" for k, v in record["settings"].items() if saved.get("settings", {}).get(k) != v]
+    if differ:
+        raise DeepFluoroError(f"--resume: {f} was written by another run (differs in {', '.join(differ)}); run "
+                              f"without --resume, or with the same file, options and model")
+    return rows
+
+
+def evaluate_deepfluoro(path, settings: DeepFluoroSettings, out, *, model=None, resume: bool = False,
                         log: Callable[[str], None] = print) -> dict:
     """Register the chosen frames of the DeepFluoro file ``path`` and write the scores into ``out``
     (module docstring). ``model``: the contextual methods' network (a name, a checkpoint or a loaded
-    predictor; None: the shipped default). Returns ``{"rows", "summary", "table", "reprojection"}``."""
-    out = check_output_dir(out, DEEPFLUORO_FILES)
+    predictor; None: the shipped default). After every frame the rows so far are kept in
+    ``out/progress.json``; ``resume=True`` continues a run from there (same file, settings and model).
+    Returns ``{"rows", "summary", "table", "reprojection"}``."""
+    out = check_output_dir(out, DEEPFLUORO_FILES + (PROGRESS,))
+    record = _progress_record(path, settings, model)
+    rows = _resumed_rows(out, record) if resume else []
+    done = {(r["specimen"], int(r["frame"]), r["method"]) for r in rows}
     with DeepFluoroFile(path) as f:
         chosen = [f.resolve(s) for s in settings.specimens] or list(f.specimens)
         p = f.params
@@ -215,8 +259,11 @@ def evaluate_deepfluoro(path, settings: DeepFluoroSettings, out, *, model=None,
         if abs(cx - (p.cols - 1) / 2) > 0.5 or abs(cy - (p.rows - 1) / 2) > 0.5:
             raise DeepFluoroError(f"{path}: the principal point ({cx:g}, {cy:g}) px is off the detector's centre "
                                   f"({(p.cols - 1) / 2:g}, {(p.rows - 1) / 2:g}); ctxreg register takes the centre")
+        border = int(round(settings.border_px * p.cols / 1536.0))
+        steps = [step for step in DEFAULT_STEPS if settings.detect_field or step != "field"]
         log(f"{path}: {len(f.specimens)} specimens ({', '.join(f.specimens)}); detector {p.rows} x {p.cols} px at "
-            f"{p.spacing_mm:g} mm, SDD {p.sdd_mm:.1f} mm")
+            f"{p.spacing_mm:g} mm, SDD {p.sdd_mm:.1f} mm; {border} px of collimator border cut from each side, field "
+            f"detection {'on' if settings.detect_field else 'off'}")
         # the file's own geometry, before any registration: landmarks reprojected with the truth
         plan, reprojection = [], {}
         for sid in chosen:
@@ -236,25 +283,33 @@ def evaluate_deepfluoro(path, settings: DeepFluoroSettings, out, *, model=None,
                 f"{r['ctxreg_mean_px']:.3f} px")
             plan.append((sid, [int(n) for n in names]))
         predictor = load_predictor(model) if any(needs_model(m) for m in settings.methods) else None
-        rows, records = [], []
+        records = [(r["mtre_mm"], r["specimen"], int(r["frame"]), np.array(r["pose"]), r["method"]) for r in rows]
         total = sum(len(idx) for _, idx in plan) * len(settings.methods)
-        bar = Progress(total, 0, f"deepfluoro {out.name}", "frames", rate_unit="frames/min", rate_scale=60.0)
+        if done:
+            log(f"resuming: {len(done)} of {total} registrations done ({out / PROGRESS})")
+        bar = Progress(total, len(done), f"deepfluoro {out.name}", "frames", rate_unit="frames/min", rate_scale=60.0)
         for sid, indices in plan:
+            if all((sid, i, m) in done for i in indices for m in settings.methods):
+                continue
             spec = f.specimen(sid, log=log)  # its CT, read once for its frames
             truths = [params_from_pose(spec.projection(i, pixels=False).truth(spec.center_lps, sod_mm=settings.sod_mm)[0],
                                        settings.sod_mm) for i in indices]
             starts = _starts(settings, np.array(truths))
             for i, start in zip(indices, starts):
+                if all((sid, i, m) in done for m in settings.methods):
+                    continue
                 fr = spec.projection(i)
                 T_true, geometry = fr.truth(spec.center_lps, sod_mm=settings.sod_mm)
                 T_start = pose_from_params(start, settings.sod_mm)
                 initial = frame_errors(T_start, T_true, fr, spec, geometry)
                 for method in settings.methods:
+                    if (sid, i, method) in done:
+                        continue
                     t0 = time.perf_counter()
-                    reg = register_xray(spec.volume, fr.xray(sod_mm=settings.sod_mm), method=method,
+                    reg = register_xray(spec.volume, fr.xray(sod_mm=settings.sod_mm, border_px=border), method=method,
                                         model=predictor if needs_model(method) else None, init=start,
                                         center=spec.center_lps, scene=settings.scene, size=settings.size,
-                                        intensity="linear", polarity="bone-dark")
+                                        intensity="linear", polarity="bone-dark", preprocess=steps)
                     seconds = time.perf_counter() - t0
                     err = frame_errors(reg.pose, T_true, fr, spec, geometry)
                     row = {"specimen": spec.id, "frame": fr.index, "method": method, "start": settings.start,
@@ -264,12 +319,14 @@ def evaluate_deepfluoro(path, settings: DeepFluoroSettings, out, *, model=None,
                            "search": reg.search_status,
                            **{f"true_{k}": float(v) for k, v in zip(("phi", "theta", "psi", "tx", "ty", "tz"),
                                                                     params_from_pose(T_true, settings.sod_mm))},
-                           **{f"est_{k}": float(v) for k, v in reg.params.items()}}
+                           **{f"est_{k}": float(v) for k, v in reg.params.items()},
+                           "pose": np.asarray(reg.pose).tolist()}
                     rows.append(row)
                     records.append((row["mtre_mm"], spec.id, fr.index, reg.pose, method))
                     log(f"{spec.id} frame {fr.index:03d} {method}: mTRE {initial['mtre_mm']:.1f} -> {err['mtre_mm']:.2f} "
                         f"mm, rotation {err['rot_err_deg']:.2f} deg, mRPE {err['mrpe_mm']:.2f} mm, {seconds:.1f} s")
                     bar.update(1)
+                write_json(out / PROGRESS, jsonable({**record, "rows": rows}))
             del spec
         worst = sorted(records, key=lambda r: -r[0] if math.isfinite(r[0]) else -math.inf)[: settings.worst]
         if worst:
@@ -284,9 +341,10 @@ def evaluate_deepfluoro(path, settings: DeepFluoroSettings, out, *, model=None,
                 _overlay(out / "worst" / f"{stem}_truth.png", fr, spec, T_true, geometry)
     summary = summarize(rows)
     table = format_table(summary)
-    write_csv(out / "cases.csv", rows)
-    write_json(out / "summary.json", {"file": str(path), "settings": asdict(settings), "success_mm": list(SUCCESS_MM),
-                                      "reprojection_px": reprojection, "summary": summary})
+    write_csv(out / "cases.csv", [{k: v for k, v in r.items() if k != "pose"} for r in rows])
+    write_json(out / "summary.json", jsonable({"file": str(path), "settings": asdict(settings),
+                                               "success_mm": list(SUCCESS_MM), "reprojection_px": reprojection,
+                                               "summary": summary}))
     with atomic_path(out / "table.md") as tmp:
         tmp.write_text(table + "\n")
     return {"rows": rows, "summary": summary, "table": table, "reprojection": reprojection}

@@ -258,3 +258,50 @@ def test_evaluate_refuses_the_simulated_protocols_options(small_file, tmp_path):
     assert r.returncode == 2 and "--specimen" in r.stderr and "--deepfluoro only" in r.stderr
     r = _evaluate("--cases", "3", "--out", tmp_path / "o")
     assert r.returncode == 2 and "--ct: required" in r.stderr
+
+
+def test_optional_datasets_and_the_border_cut(small_file, tmp_path):
+    """dir-mat (the identity throughout the data set) and rot-180-for-up may be absent; the border cut
+    is symmetric, so the principal point stays the centre."""
+    src, info = small_file
+
+    def edit(f):
+        del f["17-1882/vol/dir-mat"]
+        del f["17-1882/projections/000/rot-180-for-up"]
+        del f["17-1882/projections/000/image/dir-mat"]
+
+    bare = _copy(src, tmp_path / "bare.h5", edit)
+    with DeepFluoroFile(bare) as f:
+        spec = f.specimen(1)
+        assert np.allclose(spec.volume.affine, canonical_lps(_small_ct()).affine)
+        frame = spec.projection(0)
+        assert not frame.rot_180_for_up
+        T, _ = frame.truth(spec.center_lps, sod_mm=700.0)
+        assert np.allclose(T, info["poses"][0], atol=1e-9)
+        whole, cut = frame.xray().pixels, frame.xray(border_px=5).pixels
+        assert cut.shape == (whole.shape[0] - 10, whole.shape[1] - 10)
+        assert np.array_equal(cut, whole[5:-5, 5:-5])
+        with pytest.raises(DeepFluoroError, match="leaves less than 32 px"):
+            frame.xray(border_px=whole.shape[0] // 2)
+
+
+def test_an_interrupted_run_resumes_where_it_stopped(small_file, tmp_path):
+    path, _ = small_file
+    out = tmp_path / "run"
+    common = ["--deepfluoro", path, "--start", "truth", "--method", "cmaes", "--size", "64", "64", "--out", out]
+    r = _evaluate(*common)
+    assert r.returncode == 0, r.stderr
+    full = json.loads((out / "progress.json").read_text())
+    assert len(full["rows"]) == len(PARAMS)
+    # an interruption after the first frame: progress.json holds one row
+    (out / "progress.json").write_text(json.dumps({**full, "rows": full["rows"][:1]}))
+    r = _evaluate(*common, "--resume")
+    assert r.returncode == 0, r.stderr
+    assert f"resuming: 1 of {len(PARAMS)} registrations done" in r.stdout
+    assert " frame 000 " not in r.stdout and " frame 001 " in r.stdout
+    again = json.loads((out / "progress.json").read_text())["rows"]
+    assert again[0] == full["rows"][0] and len(again) == len(PARAMS)
+    assert len((out / "cases.csv").read_text().splitlines()) == 1 + len(PARAMS)
+    # another protocol cannot continue it
+    r = _evaluate(*common[:-2], "--start", "ap", "--out", out, "--resume")
+    assert r.returncode == 2 and "settings.start" in r.stderr, r.stderr
