@@ -52,6 +52,8 @@ def main(argv=None) -> int:
     ap.add_argument("--binning", type=int, default=4, help="detector binning (1536 / binning px)")
     ap.add_argument("--starts", nargs="+", default=["ap", "local"], choices=["ap", "local", "truth"])
     ap.add_argument("--conditions", nargs="+", default=None, help="a subset of the conditions")
+    ap.add_argument("--no-detect-field", dest="detect_field", action="store_false",
+                    help="the whole frame within the border as the field (default: register's field detection)")
     ap.add_argument("--out", default=str(REPO / "runs" / "bench_deepfluoro"))
     args = ap.parse_args(argv)
 
@@ -77,10 +79,11 @@ def main(argv=None) -> int:
                                                                                **cond))
             print(f"{name}: {args.frames} frames written in {time.perf_counter() - t0:.0f} s", flush=True)
         for start in args.starts:
-            res = evaluate_deepfluoro(path, DeepFluoroSettings(start=start, worst=2), out / f"{name}_{start}",
-                                      log=lambda line: None)
+            tag = f"{name}_{start}" + ("" if args.detect_field else "_nofield")
+            res = evaluate_deepfluoro(path, DeepFluoroSettings(start=start, worst=2, detect_field=args.detect_field),
+                                      out / tag, log=lambda line: None)
             g = res["summary"]["contextual+cmaes"]["all"]
-            rows.append((name, start, g))
+            rows.append((name + ("" if args.detect_field else " (no field detection)"), start, g))
             print(f"{name} from {start}: mTRE {g['initial_mtre_mm']['median']:.1f} -> {g['mtre_mm']['median']:.2f} mm, "
                   f"< 10 mm {100 * g['under_10mm']:.0f} %, < 1 mm {100 * g['under_1mm']:.0f} %", flush=True)
     print("\n| condition | start | frames | mTRE initial -> final, median (mm) | mean (mm) | < 10 mm initial -> final "

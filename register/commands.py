@@ -55,6 +55,10 @@ class EvaluateCommand:
     frames: int | None = field(default=None, metadata=opt(
         "--deepfluoro: at most N frames per specimen, the first ones (default: all)", group="input", metavar="N",
         bounds=Range(1)))
+    detect_field: bool = field(default=True, metadata=opt(
+        "--deepfluoro: find a collimated field in each frame after its 50 px border is cut (register's field "
+        "detection on raw frames: docs/xray_input.md); --no-detect-field takes the whole frame within the border",
+        group="input", negatable=True))
     resume: bool = field(default=False, metadata=opt(
         "--deepfluoro: continue an interrupted run from --out's progress.json (same file, options and model)",
         group="input"))
@@ -124,7 +128,8 @@ def run_evaluate(cmd: EvaluateCommand) -> list[Path]:
         raise EvaluationError("--init gives the start of --start pose: give both or neither")
     if cmd.deepfluoro is not None:
         return _run_deepfluoro(cmd, methods)
-    refuse_unused(cmd, ("specimen", "frames", "resume"), applies=False, why="meaningful with --deepfluoro only")
+    refuse_unused(cmd, ("specimen", "frames", "resume", "detect_field"), applies=False,
+                  why="meaningful with --deepfluoro only")
     if cmd.ct is None:
         raise EvaluationError("--ct: required (the CT of the simulated cases), unless --deepfluoro FILE is given")
     refuse_unused_label_map(cmd)
@@ -177,7 +182,8 @@ def _run_deepfluoro(cmd: EvaluateCommand, methods: tuple[str, ...]) -> list[Path
     settings = DeepFluoroSettings(specimens=tuple(cmd.specimen), frames=cmd.frames, methods=tuple(methods),
                                   start=cmd.start, init=None if cmd.init is None else tuple(cmd.init),
                                   local_rot_deg=cmd.local_rot, local_trans_mm=cmd.local_trans, seed=cmd.seed,
-                                  sod_mm=load_scene(cmd.scene).geometry.sod_mm, size=tuple(cmd.size), scene=cmd.scene)
+                                  sod_mm=load_scene(cmd.scene).geometry.sod_mm, size=tuple(cmd.size), scene=cmd.scene,
+                                  detect_field=cmd.detect_field)
     out = check_output_dir(cmd.out, DEEPFLUORO_FILES)
     result = evaluate_deepfluoro(cmd.deepfluoro, settings, out, model=cmd.model, resume=cmd.resume,
                                  log=lambda line: print(line, flush=True))

@@ -80,9 +80,9 @@ class DeepFluoroSettings:
         worst: overlays of this many worst frames (by final mTRE).
         border_px: the collimator's border cut from every side of a frame, in pixels of the
             1536-px detector (DiffPose's 50; scaled to a file's own detector size).
-        detect_field: run ``register``'s field detection on the frame left after the border (off by
-            default: the real frames' field is the detector within that border, and the raw
-            frames' bright flat air beside the body can be taken for a painted outside).
+        detect_field: run ``register``'s field detection on the frame left after the border (raw
+            frames: :func:`register.xray.field.detect_field` with ``raw=True``, by the collimator's
+            edge); False: the whole frame within the border is the field.
     """
 
     specimens: tuple[str, ...] = ()
@@ -98,7 +98,7 @@ class DeepFluoroSettings:
     scene: str = "cios_fusion"
     worst: int = 3
     border_px: float = 50.0
-    detect_field: bool = False
+    detect_field: bool = True
 
     def __post_init__(self) -> None:
         if self.start not in START_MODES:

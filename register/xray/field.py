@@ -1290,8 +1290,15 @@ def _exclusions(img: np.ndarray, within: np.ndarray, field: np.ndarray, lo: floa
 # --------------------------------------------------------------------------------------------
 
 
-def detect_field(image: np.ndarray, settings: FieldSettings | None = None) -> Field:
+def detect_field(image: np.ndarray, settings: FieldSettings | None = None, *, raw: bool = False) -> Field:
     """Find the collimated field and the valid pixels of an X-ray image (method: module docstring).
+
+    ``raw=True``: ``image`` is the detector's raw signal (proportional to the transmitted intensity:
+    DICOM "FOR PROCESSING", a data set's raw frames). There the collimator's shadow is not one flat
+    level: it is the signal behind it times the blades' transmission, so it keeps the anatomy's
+    texture, and air beside the body is a bright flat plateau that a painted outside would look like.
+    The field is then found by its edge instead (:func:`_detect_raw`): the one place where the
+    signal drops by :data:`RAW_EDGE_RATIO` or more within two pixels all along a closed shape.
 
     Where the image as stored leaves too little field (:class:`FieldError`, the field or the valid
     pixels under ``settings.min_fraction``), the detection runs again on its logarithmic views
@@ -1321,6 +1328,10 @@ def detect_field(image: np.ndarray, settings: FieldSettings | None = None) -> Fi
     lo, hi = float(img.min()), float(img.max())
     if hi == lo:
         raise FieldError(f"the image is constant (every pixel = {lo:g}): no anatomy to register")
+    if raw:
+        if lo < 0:
+            raise FieldError(f"raw=True: a raw detector signal is not negative, but the image reaches {lo:g}")
+        return dataclasses.replace(_detect_raw(img, s), view="raw")
     try:
         return _detect(img, s)
     except _TooLittleField as first:
@@ -1336,6 +1347,51 @@ def detect_field(image: np.ndarray, settings: FieldSettings | None = None) -> Fi
                                excluded={**ex, "saturated": ex.get("empty", 0), "empty": ex.get("saturated", 0)})
             return dataclasses.replace(found, **changes)
         raise FieldError(f"{first} (in the image and in its logarithmic views)") from None
+
+
+#: A collimator's edge in a raw image (:func:`_detect_raw`): the signal falls by at least this factor
+#: within two pixels (the 3 x 3 range of its logarithm). Blades pass a few per cent of the beam or
+#: less (a factor 20-50 and more); anatomy changes the signal within two pixels by less than a
+#: factor 5 away from metal (a skin edge seen at its tangent: 1.2-1.5 in the log at 0.8-1.6 mm pixels).
+RAW_EDGE_RATIO = 8.0
+#: Gaps in a collimator's edge of up to this radius (px) are closed before the field is flooded:
+#: where the skin meets the edge the two sides' signals can come close.
+_RAW_CLOSE_PX = 2
+
+
+def _detect_raw(img: np.ndarray, s: FieldSettings) -> Field:
+    """:func:`detect_field` for a raw (linear) image: the region inside the steep edges, fitted by
+    the shape models; no edge, or no model that fits it: kind ``"none"`` (the whole image, minus
+    empty or saturated plateaus)."""
+    lo, hi = float(img.min()), float(img.max())
+    q = _quant_step(img, lo, hi)
+    med = ndimage.median_filter(img, size=3, mode="nearest")
+    v = np.log(np.maximum(med, max(hi * 1e-9, q, 1e-30)))
+    steep = (ndimage.maximum_filter(v, 3, mode="nearest") - ndimage.minimum_filter(v, 3, mode="nearest")
+             > math.log(RAW_EDGE_RATIO))
+    reason = f"no edge where the raw signal drops by x{RAW_EDGE_RATIO:g} (no collimator)"
+    kind, model, params = "none", None, {}
+    if steep.any():
+        walls = _dilate(steep, _RAW_CLOSE_PX)
+        inside, _ = _largest_filled(~walls)
+        # back out to the edge's 50 % point: the band next to the flooded region, on its bright side
+        # (pixels of the band that see no edge within 2 px are inside)
+        band = _dilate(inside, _RAW_CLOSE_PX + 2) & ~inside
+        hi5, lo5 = ndimage.maximum_filter(v, 5, mode="nearest"), ndimage.minimum_filter(v, 5, mode="nearest")
+        bright = (v >= 0.5 * (hi5 + lo5)) | (hi5 - lo5 <= math.log(RAW_EDGE_RATIO))
+        cand, _ = _largest_filled(ndimage.binary_opening(inside | (band & bright), _disk(_OPEN_RADIUS)))
+        outside = 1.0 - float(cand.mean())
+        if cand.any() and outside >= max(s.min_outside_fraction, 0.001):
+            kind, model, params = _fit_model(cand, s, ~cand)
+            reason = params.pop("reason", "") if model is None else ""
+        elif cand.any():
+            reason = f"the steep edges enclose {100 * (1 - outside):.1f} % of the image: no collimator"
+    if model is not None:
+        try:
+            return _field_result(img, med, lo, hi, q, s, kind, model, params, "black")
+        except _TooLittleField:
+            reason = f"the {kind} inside the steep edges leaves too little of the image"
+    return _field_result(img, med, lo, hi, q, s, "none", None, {"reason": reason}, None)
 
 
 #: The logarithmic views :func:`detect_field` falls back on (:func:`log_view`): ``"log-dark"``

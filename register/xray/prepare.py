@@ -234,7 +234,9 @@ def prepare_xray(xray, *, volume=None, center_lps=None, init_params=None, scene:
                              "reference": reference}}
     found = None
     if steps and steps[0] == "field":  # detected once here: the network's mask keeps its plateaus
-        found = detect_field(xray.pixels, FieldSettings(margin_px=FieldStep().margin_px))
+        # a raw detector signal (FOR PROCESSING, or declared linear) is searched by its edges
+        raw = scale == "linear" or not xray.attenuation_bright
+        found = detect_field(xray.pixels, FieldSettings(margin_px=FieldStep().margin_px), raw=raw)
         options["field"] = {"found": found}
     image, mask, record = Pipeline.from_names(list(steps), options).apply(xray.pixels)
     H, W = xray.shape
