@@ -38,6 +38,7 @@ from register.api import register_xray
 from register.datasets.deepfluoro import DeepFluoroError, DeepFluoroFile, DeepFluoroProjection, DeepFluoroSpecimen
 from register.engines.methods import METHOD_NAMES, load_predictor, needs_model
 from register.evaluation.errors import pose_errors
+from register.evaluation.evaluate import START_MODES, start_params
 from register.plots import overlay_png
 from register.xray.prepare import fit_to_size
 from register.xray.preprocess import DEFAULT_STEPS
@@ -49,10 +50,6 @@ from sim.seeds import KIND_EVALUATE_CASES, rng_for
 
 __all__ = ["DeepFluoroSettings", "evaluate_deepfluoro", "frame_errors", "START_MODES", "DEEPFLUORO_FILES"]
 
-#: ``ap``: ctxreg's AP pose (zeros) at the scene's isocentre; ``pose``: the six numbers of ``init``;
-#: ``local``: the truth moved by a seeded random offset (at most ``local_rot_deg`` / ``local_trans_mm``);
-#: ``truth``: the ground-truth pose itself (a check of the file's reading: the error must stay near 0).
-START_MODES = ("ap", "pose", "local", "truth")
 
 #: The thresholds the shares are reported at (mm of mTRE).
 SUCCESS_MM = (10.0, 1.0)
@@ -142,21 +139,9 @@ def frame_errors(T_est: np.ndarray, T_true: np.ndarray, frame: DeepFluoroProject
 
 
 def _starts(settings: DeepFluoroSettings, truths: np.ndarray) -> np.ndarray:
-    """``(N, 6)`` start parameters for the ``(N, 6)`` true parameters."""
-    if settings.start == "ap":
-        return np.zeros_like(truths)
-    if settings.start == "pose":
-        return np.tile(np.asarray(settings.init, np.float64), (len(truths), 1))
-    if settings.start == "truth":
-        return truths.copy()
-    rng = rng_for(settings.seed, KIND_EVALUATE_CASES)
-
-    def ball(radius):
-        v = rng.normal(size=(len(truths), 3))
-        v /= np.linalg.norm(v, axis=1, keepdims=True)
-        return v * rng.uniform(0, radius, size=(len(truths), 1))
-
-    return truths + np.concatenate([ball(settings.local_rot_deg / np.sqrt(3)), ball(settings.local_trans_mm)], axis=1)
+    """``(N, 6)`` start parameters for the ``(N, 6)`` true parameters (:func:`register.evaluation.evaluate.start_params`)."""
+    return start_params(settings.start, truths, rng_for(settings.seed, KIND_EVALUATE_CASES), init=settings.init,
+                        local_rot_deg=settings.local_rot_deg, local_trans_mm=settings.local_trans_mm)
 
 
 def _stats(values) -> dict[str, float]:

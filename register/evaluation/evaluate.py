@@ -85,28 +85,37 @@ class EvaluationSettings:
             raise EvaluationError(f"seed must be >= 0, got {self.seed}")
 
 
+def start_params(start: str, targets: np.ndarray, rng: np.random.Generator, *, init=None, local_rot_deg: float = 5.0,
+                 local_trans_mm: float = 10.0) -> np.ndarray:
+    """``(N, 6)`` start parameters (deg, mm) for the ``(N, 6)`` true ``targets`` (:data:`START_MODES`):
+    ``ap`` zeros, ``pose`` ``init`` ``(6,)`` for every case, ``truth`` the targets, ``local`` the targets
+    moved by offsets drawn from ``rng``, rotation and translation apart, each in a uniform direction
+    with a uniform norm: at most ``local_rot_deg / sqrt(3)`` for the three angles (deg) and
+    ``local_trans_mm`` for the three translations (mm)."""
+    targets = np.asarray(targets, np.float64).reshape(-1, 6)
+    if start == "ap":
+        return np.zeros_like(targets)
+    if start == "pose":
+        return np.tile(np.asarray(init, np.float64), (len(targets), 1))
+    if start == "truth":
+        return targets.copy()
+
+    def ball(radius):
+        v = rng.normal(size=(len(targets), 3))
+        v /= np.linalg.norm(v, axis=1, keepdims=True)
+        return v * rng.uniform(0, radius, size=(len(targets), 1))
+
+    return targets + np.concatenate([ball(local_rot_deg / np.sqrt(3)), ball(local_trans_mm)], axis=1)
+
+
 def sample_cases(settings: EvaluationSettings, distribution=None) -> tuple[np.ndarray, np.ndarray]:
     """``(targets (N, 6), starts (N, 6))`` pose parameters (deg, mm), seeded."""
     dist = distribution or ORIGINAL_PROTOCOL
 
     rng = rng_for(settings.seed, KIND_EVALUATE_CASES)
     targets = dist.sample(rng, settings.cases)
-    if settings.start == "ap":
-        starts = np.zeros_like(targets)
-    elif settings.start == "pose":
-        starts = np.tile(np.asarray(settings.init, np.float64), (len(targets), 1))
-    elif settings.start == "truth":
-        starts = targets.copy()
-    else:
-        # uniform direction and uniform magnitude up to the limits, rotation and translation apart
-        def ball(n, radius):
-            v = rng.normal(size=(n, 3))
-            v /= np.linalg.norm(v, axis=1, keepdims=True)
-            return v * rng.uniform(0, radius, size=(n, 1))
-
-        starts = targets + np.concatenate([ball(settings.cases, settings.local_rot_deg / np.sqrt(3)),
-                                           ball(settings.cases, settings.local_trans_mm)], axis=1)
-    return targets, starts
+    return targets, start_params(settings.start, targets, rng, init=settings.init, local_rot_deg=settings.local_rot_deg,
+                                 local_trans_mm=settings.local_trans_mm)
 
 
 def summarize(rows: list[dict], settings: EvaluationSettings) -> dict:

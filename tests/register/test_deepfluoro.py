@@ -305,3 +305,19 @@ def test_an_interrupted_run_resumes_where_it_stopped(small_file, tmp_path):
     # another protocol cannot continue it
     r = _evaluate(*common[:-2], "--start", "ap", "--out", out, "--resume")
     assert r.returncode == 2 and "settings.start" in r.stderr, r.stderr
+
+
+def test_start_params_of_every_start_mode():
+    """The starts both protocols share (register.evaluation.evaluate.start_params)."""
+    from register.evaluation.evaluate import start_params
+
+    targets = np.random.default_rng(1).uniform(-30, 30, (200, 6))
+    rng = np.random.default_rng(0)
+    assert np.array_equal(start_params("ap", targets, rng), np.zeros_like(targets))
+    assert np.array_equal(start_params("truth", targets, rng), targets)
+    init = (180.0, 0, 0, 1, 2, 3)
+    assert np.array_equal(start_params("pose", targets, rng, init=init), np.tile(init, (200, 1)))
+    local = start_params("local", targets, rng, local_rot_deg=6.0, local_trans_mm=12.0) - targets
+    rot, trans = np.linalg.norm(local[:, :3], axis=1), np.linalg.norm(local[:, 3:], axis=1)
+    assert rot.max() <= 6.0 / np.sqrt(3) + 1e-12 and trans.max() <= 12.0 + 1e-12
+    assert rot.max() > 0.8 * 6.0 / np.sqrt(3) and trans.max() > 0.8 * 12.0  # the bounds are reached, not shrunk
