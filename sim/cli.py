@@ -7,6 +7,7 @@ geometry (see :func:`geometry_record`).
 
 from __future__ import annotations
 
+import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -242,15 +243,29 @@ class SimulateCommand:
     shard: str | None = field(default=None, metadata=opt(
         "run only part K of N of the work (for batch schedulers; with --resume when other parts share "
         "--out); merge with a later --resume", group="run", metavar="K/N"))
+    scheduler: str | None = field(default=None, metadata=opt(
+        "render the shards on a Dask cluster: local:N starts N worker processes here, ADDRESS (tcp://host:8786) "
+        "or a scheduler file (*.json) joins a running scheduler, e.g. dask-jobqueue's on SLURM/PBS; the workers "
+        "must see --out and the CTs (docs/scale.md)", group="run", metavar="local:N|ADDRESS"))
 
 
 def run_simulate(cmd: SimulateCommand) -> list[Path]:
     from sim.campaign.config import load_campaign
-    from sim.campaign.runner import parse_shard, run_campaign
+    from sim.campaign.runner import CampaignError, parse_shard, run_campaign
+    from sim.scale import dask_client, parse_scheduler
 
+    scheduler = parse_scheduler(cmd.scheduler) if cmd.scheduler is not None else None
+    if scheduler is not None and cmd.workers != 1:
+        raise CampaignError("--workers and --scheduler: choose one (the scheduler's workers render the shards)")
     cfg = load_campaign(cmd.campaign)
     out = Path(cmd.out) if cmd.out is not None else Path("out") / cfg.name
-    manifest = run_campaign(cfg, out, workers=cmd.workers, resume=cmd.resume, shard=parse_shard(cmd.shard))
+    shard = parse_shard(cmd.shard)
+    if scheduler is None:
+        manifest = run_campaign(cfg, out, workers=cmd.workers, resume=cmd.resume, shard=shard)
+    else:
+        with dask_client(scheduler) as client:
+            print(f"{cfg.name}: rendering on {scheduler.describe()}", file=sys.stderr, flush=True)
+            manifest = run_campaign(cfg, out, resume=cmd.resume, shard=shard, client=client)
     counts = manifest["counts"]
     state = "complete" if manifest["complete"] else "incomplete"
     print(f"{cfg.name}: {counts['images']}/{counts['expected']} images in {counts['shards']} shards, {state}")

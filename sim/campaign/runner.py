@@ -39,7 +39,7 @@ from pathlib import Path
 
 import numpy as np
 
-from sim.atomic import write_json
+from sim.atomic import remove_stale_temps, write_json
 from sim.campaign import dataset as ds
 from sim.errors import InputError
 from sim.seeds import KIND_NOISE, KIND_POSES, KIND_VIRTUAL_PATIENT, rng_for  # the random streams
@@ -481,8 +481,12 @@ def _base_manifest(cfg) -> dict:
 
 
 def run_campaign(cfg, out: str | os.PathLike, *, workers: int = 1, resume: bool = False,
-                 shard: tuple[int, int] | None = None, progress: bool = True) -> dict:
+                 shard: tuple[int, int] | None = None, progress: bool = True, client=None) -> dict:
     """Run (or resume) a campaign into ``out``; returns the manifest written.
+
+    ``client``: a :class:`distributed.Client` (:func:`sim.scale.dask_client`) whose workers render
+    the shards instead of ``workers`` local processes: the same units (:func:`render_unit`), seeds
+    and bytes; a unit lost with its worker is retried by Dask.
 
     Everything that can be checked is checked before anything is written: the output path,
     the folder's earlier runs (same campaign, ``resume``), a concurrent run (:data:`LOCK_FILE`)
@@ -497,6 +501,8 @@ def run_campaign(cfg, out: str | os.PathLike, *, workers: int = 1, resume: bool 
     out = Path(out)
     if isinstance(workers, bool) or not isinstance(workers, int) or not 1 <= workers <= MAX_WORKERS:
         raise CampaignError(f"--workers must be an integer in [1, {MAX_WORKERS}], got {workers}")
+    if client is not None and workers != 1:
+        raise CampaignError("--workers and --scheduler: choose one (the scheduler's workers render the shards)")
     check_out_path(out)
     manifest_path = out / ds.MANIFEST
     if out.exists() and any(out.iterdir()) and not resume:
@@ -515,11 +521,11 @@ def run_campaign(cfg, out: str | os.PathLike, *, workers: int = 1, resume: bool 
     check_view(cfg, {u.subject for u in units if u.name not in finished})
     out.mkdir(parents=True, exist_ok=True)
     with _RunLock(out, shared=shard is not None), _stop_on_sigterm(out):
-        return _run_locked(cfg, out, manifest_path, all_units, units, workers, shard, progress)
+        return _run_locked(cfg, out, manifest_path, all_units, units, workers, shard, progress, client)
 
 
 def _run_locked(cfg, out: Path, manifest_path: Path, all_units: list[Unit], units: list[Unit], workers: int,
-                shard: tuple[int, int] | None, progress: bool) -> dict:
+                shard: tuple[int, int] | None, progress: bool, client=None) -> dict:
     manifest = _base_manifest(cfg)
     if manifest_path.is_file():  # keep what earlier runs learnt about subjects
         old_subjects = {s["index"]: s for s in ds.read_manifest(out)["subjects"]}
@@ -555,7 +561,10 @@ def _run_locked(cfg, out: Path, manifest_path: Path, all_units: list[Unit], unit
 
     write_manifest()
     try:
-        _render_all(cfg, out, todo, units, workers, record, progress)
+        if client is not None:
+            _render_on_dask(cfg, out, todo, units, client, record, progress)
+        else:
+            _render_all(cfg, out, todo, units, workers, record, progress)
     finally:
         if pending:
             write_manifest()
@@ -593,6 +602,44 @@ def _render_all(cfg, out: Path, todo: list[Unit], units: list[Unit], workers: in
             _stop_pool(pool)
             raise
         pool.shutdown(wait=True)
+
+
+_DASK_UNIT_LOCK = threading.Lock()
+
+
+def _dask_unit(cfg, unit: Unit, out: str) -> dict:
+    """:func:`render_unit` on a Dask worker: one unit at a time per process (its subject context is
+    the process's), whatever the worker's thread count."""
+    with _DASK_UNIT_LOCK:
+        return render_unit(cfg, unit, Path(out))
+
+
+def _render_on_dask(cfg, out: Path, todo: list[Unit], units: list[Unit], client, record, progress: bool) -> None:
+    """:func:`_render_all` on a Dask cluster: every unit ``todo`` submitted as one task, results
+    recorded as they arrive. A task whose worker died is retried by the scheduler; one that kept
+    losing its worker (:class:`distributed.KilledWorker`) or raised stops the run, finished shards
+    kept for ``--resume``. Temporary files of workers that died are removed at the end."""
+    from distributed import as_completed as dask_completed
+    from distributed.scheduler import KilledWorker
+
+    total = sum(u.stop - u.start for u in units)
+    bar = Progress(total, total - sum(u.stop - u.start for u in todo), cfg.name, "images",
+                   rate_unit="img/s") if progress else None
+    futures = {client.submit(_dask_unit, cfg, u, str(out), pure=False): u for u in todo}
+    try:
+        for fut in dask_completed(list(futures)):
+            try:
+                result = fut.result()
+            except KilledWorker as exc:
+                raise CampaignError(f"shard {futures[fut].name}: its Dask worker died on every try ({exc}); "
+                                    f"finished shards are kept in {out}: rerun with --resume") from None
+            record(result)
+            if bar:
+                bar.update(futures[fut].stop - futures[fut].start)
+    except BaseException:  # an error, SIGTERM or Ctrl-C: no task may go on writing
+        client.cancel(list(futures))
+        raise
+    remove_stale_temps(out / ds.SHARD_DIR)
 
 
 def _stop_pool(pool: ProcessPoolExecutor, timeout_s: float = 5.0) -> None:

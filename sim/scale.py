@@ -1,0 +1,120 @@
+"""Work past one machine: a Dask cluster for the units of work ctxreg already has (campaign shards).
+
+``--scheduler local:N`` starts a :class:`distributed.LocalCluster` of ``N`` worker processes (one
+thread each) for the run; ``--scheduler ADDRESS`` (``tcp://host:8786``, or a scheduler file
+``*.json``) joins a running scheduler, e.g. one that dask-jobqueue started on a SLURM or PBS cluster
+(docs/scale.md). The workers must see the same paths (CTs, the output folder) as this process:
+a shared file system.
+
+The unit of work stays the one the local runner has (:func:`sim.campaign.runner.render_unit`: one
+shard, its seeds from the campaign and its index, written atomically with its checksum), so a run
+on Dask writes the same bytes as a local one. A worker lost mid-shard is retried by Dask on
+another worker (the scheduler's ``allowed-failures``, 3 by default): the retried shard overwrites
+nothing that was complete, its half-written temporary file is removed at the end of the run.
+
+Example::
+
+    from sim.scale import dask_client, parse_scheduler
+
+    with dask_client(parse_scheduler("local:2")) as client:
+        run_campaign(cfg, "out/run", client=client)
+"""
+
+from __future__ import annotations
+
+import contextlib
+import re
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Iterator
+
+from sim.errors import InputError
+
+__all__ = ["SchedulerError", "Scheduler", "parse_scheduler", "dask_client", "worker_count", "CONNECT_TIMEOUT_S",
+           "MAX_LOCAL_WORKERS"]
+
+#: Seconds to reach a scheduler before the run is refused (nothing is written before).
+CONNECT_TIMEOUT_S = 10.0
+#: The most worker processes ``local:N`` starts.
+MAX_LOCAL_WORKERS = 256
+
+
+class SchedulerError(InputError):
+    """``--scheduler`` cannot be used: a malformed value, an unreachable scheduler, Dask missing."""
+
+
+@dataclass(frozen=True)
+class Scheduler:
+    """A parsed ``--scheduler``: ``local`` workers to start, or the ``address`` (or scheduler file) to join."""
+
+    text: str
+    local: int | None = None
+    address: str | None = None
+    scheduler_file: str | None = None
+
+    def describe(self) -> str:
+        if self.local is not None:
+            return f"a local Dask cluster of {self.local} worker process{'es' if self.local > 1 else ''}"
+        return f"the Dask scheduler {self.address or self.scheduler_file}"
+
+
+_ADDRESS = re.compile(r"^(tcp|tls|inproc|ucx|ws|wss)://\S+$|^[A-Za-z0-9_.\-]+:\d{1,5}$")
+
+
+def parse_scheduler(text: str) -> Scheduler:
+    """``local:N`` (1 <= N <= :data:`MAX_LOCAL_WORKERS`), a scheduler address (``tcp://host:port`` or
+    ``host:port``) or a scheduler file (``*.json``, as ``dask scheduler --scheduler-file`` writes it).
+    Raises :class:`SchedulerError` naming the value."""
+    t = str(text).strip()
+    if t.startswith("local:"):
+        n = t[len("local:"):]
+        if not n.isdigit() or not 1 <= int(n) <= MAX_LOCAL_WORKERS:
+            raise SchedulerError(f"--scheduler {text}: local:N needs N worker processes, 1 to {MAX_LOCAL_WORKERS}")
+        return Scheduler(t, local=int(n))
+    if t.endswith(".json"):
+        if not Path(t).is_file():
+            raise SchedulerError(f"--scheduler {text}: scheduler file not found")
+        return Scheduler(t, scheduler_file=t)
+    if _ADDRESS.match(t):
+        return Scheduler(t, address=t if "://" in t else f"tcp://{t}")
+    raise SchedulerError(f"--scheduler {text}: give local:N, a scheduler address (tcp://host:8786) or a "
+                         "scheduler file (*.json)")
+
+
+@contextlib.contextmanager
+def dask_client(scheduler: Scheduler, *, timeout_s: float = CONNECT_TIMEOUT_S) -> Iterator:
+    """A :class:`distributed.Client` of ``scheduler`` for the ``with`` block (a local cluster is
+    started for it and closed after). An address that does not answer within ``timeout_s`` raises
+    :class:`SchedulerError` before any work."""
+    try:
+        from distributed import Client, LocalCluster
+    except ImportError as exc:  # a broken install: the dependency is pinned in pyproject.toml
+        raise SchedulerError(f"--scheduler needs dask[distributed] ({exc}); run scripts/setup.sh") from None
+    if scheduler.local is not None:
+        # one thread per worker: a worker renders one shard at a time, as a local worker process does
+        cluster = LocalCluster(n_workers=scheduler.local, threads_per_worker=1, processes=True,
+                               dashboard_address=None, silence_logs=40)
+        try:
+            with Client(cluster) as client:
+                yield client
+        finally:
+            cluster.close()
+        return
+    try:
+        if scheduler.scheduler_file is not None:
+            client = Client(scheduler_file=scheduler.scheduler_file, timeout=timeout_s)
+        else:
+            client = Client(scheduler.address, timeout=timeout_s)
+    except (OSError, TimeoutError, ValueError) as exc:
+        first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        raise SchedulerError(f"--scheduler {scheduler.text}: no Dask scheduler answered within {timeout_s:g} s "
+                             f"({first})") from None
+    try:
+        yield client
+    finally:
+        client.close()
+
+
+def worker_count(client) -> int:
+    """The workers the scheduler has now (at least 1, for a progress line's sake)."""
+    return max(1, len(client.scheduler_info().get("workers", {})))
