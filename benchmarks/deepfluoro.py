@@ -54,6 +54,8 @@ def main(argv=None) -> int:
     ap.add_argument("--conditions", nargs="+", default=None, help="a subset of the conditions")
     ap.add_argument("--no-detect-field", dest="detect_field", action="store_false",
                     help="the whole frame within the border as the field (default: register's field detection)")
+    ap.add_argument("--methods", nargs="+", default=["contextual+cmaes"],
+                    choices=["contextual+cmaes", "contextual", "cmaes"], help="the methods (contextual: the network alone)")
     ap.add_argument("--out", default=str(REPO / "runs" / "bench_deepfluoro"))
     args = ap.parse_args(argv)
 
@@ -79,13 +81,17 @@ def main(argv=None) -> int:
                                                                                **cond))
             print(f"{name}: {args.frames} frames written in {time.perf_counter() - t0:.0f} s", flush=True)
         for start in args.starts:
-            tag = f"{name}_{start}" + ("" if args.detect_field else "_nofield")
-            res = evaluate_deepfluoro(path, DeepFluoroSettings(start=start, worst=2, detect_field=args.detect_field),
+            tag = f"{name}_{start}" + ("" if args.detect_field else "_nofield") + (
+                "" if args.methods == ["contextual+cmaes"] else "_" + "_".join(m.replace("+", "-") for m in args.methods))
+            res = evaluate_deepfluoro(path, DeepFluoroSettings(start=start, worst=2, detect_field=args.detect_field,
+                                                               methods=tuple(args.methods)),
                                       out / tag, log=lambda line: None)
-            g = res["summary"]["contextual+cmaes"]["all"]
-            rows.append((name + ("" if args.detect_field else " (no field detection)"), start, g))
-            print(f"{name} from {start}: mTRE {g['initial_mtre_mm']['median']:.1f} -> {g['mtre_mm']['median']:.2f} mm, "
-                  f"< 10 mm {100 * g['under_10mm']:.0f} %, < 1 mm {100 * g['under_1mm']:.0f} %", flush=True)
+            for method in args.methods:
+                g = res["summary"][method]["all"]
+                label = f"{name} {method}" + ("" if args.detect_field else " (no field detection)")
+                rows.append((label, start, g))
+                print(f"{label} from {start}: mTRE {g['initial_mtre_mm']['median']:.1f} -> {g['mtre_mm']['median']:.2f} "
+                      f"mm, < 10 mm {100 * g['under_10mm']:.0f} %, < 1 mm {100 * g['under_1mm']:.0f} %", flush=True)
     print("\n| condition | start | frames | mTRE initial -> final, median (mm) | mean (mm) | < 10 mm initial -> final "
           "| < 1 mm | rotation median (deg) | s / frame, median |")
     print("|---|---|---|---|---|---|---|---|---|")
