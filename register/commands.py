@@ -9,6 +9,7 @@ runs :func:`register.evaluation.study.run_domain_study`. (``ctxreg demo``'s are
 
 from __future__ import annotations
 
+import contextlib
 import sys
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -23,13 +24,14 @@ from register.engines.methods import METHOD_NAMES, build_method, load_predictor,
 from register.engines.pipeline import NETWORK_DEPTH_RANGE_MM
 from register.engines.search import GlobalSearchSettings
 from register.evaluation.evaluate import (LOCAL_ROT_DEG, LOCAL_TRANS_MM, START_MODES, EvaluationError,
-                                          EvaluationSettings, evaluate)
+                                          EvaluationSettings, MethodSpec, evaluate)
 from register.xray.intensity import POLARITIES, SCALES, TONES
 from register.xray.io import ORIENTATIONS
 from sim.cli import CT_HELP
 from sim.cliargs import IMAGE_SIDE_PX, Range, opt, refuse_unused, refuse_unused_label_map
 from sim.outputs import check_output_dir
 from sim.progress import process_seconds
+from sim.scale import dask_client, parse_scheduler
 from sim.physics.options import (check_level_options, label_materials, level_field, physics_option,
                                  physics_settings)
 
@@ -105,17 +107,16 @@ class EvaluateCommand:
     physics: str = level_field(group="protocol", help=(
         "physics of the methods' moving images: line (line-integral DRRs) or poly / full "
         "(noise-free -log(I/I0) at 120 kVp, full with 10^5 scatter histories per image)"))
+    scheduler: str | None = field(default=None, metadata=opt(
+        "register the cases on a Dask cluster: local:N (N worker processes here) or ADDRESS (tcp://host:8786, a "
+        "scheduler file *.json); the same rows in the same order as a run here (docs/scale.md)", group="protocol",
+        metavar="local:N|ADDRESS"))
     out: str = field(default="out/evaluate", metadata=opt(
         "folder for cases.csv, summary.json, table.md, violins.png", group="output", metavar="DIR"))
 
 
 def run_evaluate(cmd: EvaluateCommand) -> list[Path]:
     """Check the options and the output folder, then run the protocol (:func:`register.evaluation.evaluate.evaluate`)."""
-    from sim.anatomy import anatomy_center
-    from sim.ct_io import load_ct_spec
-    from sim.physics.imaging import LogImageRenderer, PhysicsSettings
-    from sim.drr import DRRRenderer, RenderSettings
-
     methods = cmd.method or (("contextual+cmaes",) if cmd.deepfluoro else ("cmaes",))
     contextual = [m for m in methods if needs_model(m)]
     if len(set(methods)) < len(methods):
@@ -127,7 +128,9 @@ def run_evaluate(cmd: EvaluateCommand) -> list[Path]:
     if (cmd.init is not None) != (cmd.start == "pose"):
         raise EvaluationError("--init gives the start of --start pose: give both or neither")
     if cmd.deepfluoro is not None:
+        refuse_unused(cmd, ("scheduler",), applies=False, why="not yet with --deepfluoro (its frames run here)")
         return _run_deepfluoro(cmd, methods)
+    scheduler = parse_scheduler(cmd.scheduler) if cmd.scheduler is not None else None
     refuse_unused(cmd, ("specimen", "frames", "resume", "detect_field"), applies=False,
                   why="meaningful with --deepfluoro only")
     if cmd.ct is None:
@@ -140,6 +143,19 @@ def run_evaluate(cmd: EvaluateCommand) -> list[Path]:
                                   init=None if cmd.init is None else tuple(cmd.init))
     out = check_output_dir(cmd.out, EVALUATE_FILES)
     predictor = load_predictor(cmd.model) if contextual else None
+    with contextlib.ExitStack() as stack:  # a scheduler is reached (or refused) before any work
+        client = None if scheduler is None else stack.enter_context(dask_client(scheduler))
+        return _run_simulated(cmd, methods, settings, out, predictor, scheduler, client)
+
+
+def _run_simulated(cmd: EvaluateCommand, methods: tuple[str, ...], settings: EvaluationSettings, out: Path, predictor,
+                   scheduler, client) -> list[Path]:
+    """The simulated protocol's run, here or on ``client``'s Dask workers."""
+    from sim.anatomy import anatomy_center
+    from sim.ct_io import load_ct_spec
+    from sim.physics.imaging import LogImageRenderer, PhysicsSettings
+    from sim.drr import DRRRenderer, RenderSettings
+
     volume = load_ct_spec(cmd.ct, label_map=cmd.label_map)
     center = np.asarray(cmd.center, float) if cmd.center is not None else anatomy_center(volume)
     if cmd.target_physics in ("poly", "full"):
@@ -156,13 +172,21 @@ def run_evaluate(cmd: EvaluateCommand) -> list[Path]:
     def note(text: str) -> None:
         print(f"ctxreg evaluate: note: {text}", file=sys.stderr)
 
-    built = {name: build_method(name, volume, center_lps=center, size=tuple(cmd.size), scene=cmd.scene,
-                                model=predictor if needs_model(name) else None, physics=moving, note=note)
-             for name in methods}
     physics_record = {"target_physics": cmd.target_physics if cmd.target_physics == "line" else asdict(physics),
                       "moving_physics": "line" if moving is None else asdict(moving)}
-    result = evaluate(volume, built, settings, out, center_lps=center,
-                      geometry=target_renderer.geometry, target_renderer=target_renderer, record=physics_record)
+    common = dict(center_lps=center, geometry=target_renderer.geometry, target_renderer=target_renderer,
+                  record=physics_record)
+    if client is None:
+        built = {name: build_method(name, volume, center_lps=center, size=tuple(cmd.size), scene=cmd.scene,
+                                    model=predictor if needs_model(name) else None, physics=moving, note=note)
+                 for name in methods}
+        result = evaluate(volume, built, settings, out, **common)
+    else:
+        spec = MethodSpec(ct=str(cmd.ct), label_map=cmd.label_map, center_lps=tuple(float(v) for v in center),
+                          size=tuple(cmd.size), scene=cmd.scene, methods=tuple(methods), model=cmd.model,
+                          physics=moving)
+        print(f"ctxreg evaluate: registering on {scheduler.describe()}", file=sys.stderr, flush=True)
+        result = evaluate(volume, {}, settings, out, client=client, spec=spec, **common)
     print(result["table"])
     return [out / name for name in ("cases.csv", "summary.json", "table.md", "violins.png")]
 

@@ -87,13 +87,19 @@ def dask_client(scheduler: Scheduler, *, timeout_s: float = CONNECT_TIMEOUT_S) -
     started for it and closed after). An address that does not answer within ``timeout_s`` raises
     :class:`SchedulerError` before any work."""
     try:
+        import dask
         from distributed import Client, LocalCluster
     except ImportError as exc:  # a broken install: the dependency is pinned in pyproject.toml
         raise SchedulerError(f"--scheduler needs dask[distributed] ({exc}); run scripts/setup.sh") from None
     if scheduler.local is not None:
-        # one thread per worker: a worker renders one shard at a time, as a local worker process does
-        cluster = LocalCluster(n_workers=scheduler.local, threads_per_worker=1, processes=True,
-                               dashboard_address=None, silence_logs=40)
+        # One task at a time per worker process, as a local worker process renders one shard. The
+        # workers keep this process's environment: Dask's nanny would set OMP / MKL / OpenBLAS to one
+        # thread, and the thread count changes the order of floating-point sums (and so a result's
+        # last digits, which an optimiser then follows elsewhere): a case registered on a worker must
+        # give the row it gives here.
+        with dask.config.set({"distributed.nanny.pre-spawn-environ": {"MALLOC_TRIM_THRESHOLD_": 65536}}):
+            cluster = LocalCluster(n_workers=scheduler.local, threads_per_worker=1, processes=True,
+                                   dashboard_address=None, silence_logs=40)
         try:
             with Client(cluster) as client:
                 yield client

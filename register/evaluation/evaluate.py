@@ -26,11 +26,12 @@ from pathlib import Path
 
 import numpy as np
 
-from register.engines.methods import RegistrationMethod
+from register.engines.methods import RegistrationMethod, build_method, load_predictor, needs_model
 from register.evaluation.errors import bone_points, pose_errors
 from sim.atomic import atomic_path, save_figure, write_csv, write_json
 from sim.campaign.poses import ORIGINAL_PROTOCOL
 from sim.cliargs import Range
+from sim.ct_io import load_ct_spec
 from sim.errors import InputError
 from sim.geometry import pose_from_params
 from sim.progress import Progress
@@ -172,39 +173,114 @@ def violin_plot(rows: list[dict], path: Path) -> None:
     save_figure(fig, path)
 
 
+@dataclass(frozen=True)
+class MethodSpec:
+    """What a Dask worker needs to build an evaluation's methods itself (built methods hold Dr.Jit
+    scenes, which do not pickle): the CT (:func:`sim.ct_io.load_ct_spec`'s spec and label map), its
+    anatomy centre ``(3,)`` LPS mm, the image size ``(H, W)`` px, the scene, the method names, the
+    network (a checkpoint path or shipped model name; None: the default) and the moving images'
+    physics (None: line DRRs)."""
+
+    ct: str
+    label_map: str | None
+    center_lps: tuple[float, float, float]
+    size: tuple[int, int]
+    scene: str
+    methods: tuple[str, ...]
+    model: str | None = None
+    physics: object = None
+
+
+_WORKER_BUILT: dict = {}  # MethodSpec -> (volume, methods, bone points): one per worker process
+
+
+def _worker_methods(spec: MethodSpec, settings: EvaluationSettings):
+    """The volume, built methods and bone points of ``spec`` in this process (built once)."""
+    key = (spec, settings.max_points, settings.seed)
+    if key not in _WORKER_BUILT:
+        _WORKER_BUILT.clear()
+        volume = load_ct_spec(spec.ct, label_map=spec.label_map)
+        predictor = load_predictor(spec.model) if any(needs_model(m) for m in spec.methods) else None
+        methods = {name: build_method(name, volume, center_lps=np.asarray(spec.center_lps), size=spec.size,
+                                      scene=spec.scene, model=predictor if needs_model(name) else None,
+                                      physics=spec.physics) for name in spec.methods}
+        _WORKER_BUILT[key] = (volume, methods, bone_points(volume, settings.max_points, settings.seed))
+    return _WORKER_BUILT[key]
+
+
+def _case_rows(i: int, target, start, image, methods: dict, settings: EvaluationSettings, points, center_lps,
+               geometry) -> tuple[list[dict], list[dict]]:
+    """One case registered by every method: its rows and the contextual methods' trajectories."""
+    rows, trajectories = [], []
+    T_true = pose_from_params(target, geometry.sod_mm)
+    for name, method in methods.items():
+        t0 = time.perf_counter()
+        result = method.register(image, start)
+        elapsed = time.perf_counter() - t0
+        err = pose_errors(result.pose, T_true, points, center_lps, geometry)
+        rows.append({"case": i, "method": name, "start": settings.start, **err,
+                     "success": err["mtre_mm"] < settings.success_mtre_mm and err["rot_err_deg"] < settings.success_rot_deg,
+                     "time_s": elapsed, "renders": result.renders, "similarity": result.similarity,
+                     **{f"true_{k}": float(v) for k, v in zip("phi theta psi tx ty tz".split(), target)},
+                     **{f"est_{k}": float(v) for k, v in zip("phi theta psi tx ty tz".split(), result.params)}})
+        if result.trajectory is not None:
+            trajectories.append({"case": i, "method": name, "true_params": np.asarray(target).tolist(),
+                                 "params_deg_mm": np.asarray(result.trajectory["params"]).tolist(),
+                                 "g_rad_mm": np.asarray(result.trajectory["g"]).tolist()})
+    return rows, trajectories
+
+
+def _dask_case(spec: MethodSpec, i: int, target, start, image, settings: EvaluationSettings, geometry):
+    """:func:`_case_rows` on a Dask worker, its methods built there (:func:`_worker_methods`)."""
+    _, methods, points = _worker_methods(spec, settings)
+    return _case_rows(i, target, start, image, methods, settings, points, np.asarray(spec.center_lps), geometry)
+
+
 def evaluate(volume, methods: dict[str, RegistrationMethod], settings: EvaluationSettings, out: Path,
-             *, center_lps, geometry, target_renderer, log=print, record: dict | None = None) -> dict:
+             *, center_lps, geometry, target_renderer, log=print, record: dict | None = None, client=None,
+             spec: MethodSpec | None = None) -> dict:
     """Run the protocol; writes ``cases.csv``, ``summary.json``, ``table.md``, ``violins.png`` and,
     for the contextual methods, ``trajectories.json`` (every case's poses per iteration), all
     after the last case (a run that fails leaves nothing). ``record`` (e.g. the targets' and the
-    methods' physics) is stored in ``summary.json``."""
+    methods' physics) is stored in ``summary.json``.
+
+    ``client``: a :class:`distributed.Client` (:func:`sim.scale.dask_client`): the cases are
+    registered on its workers, each building the methods of ``spec`` once (``methods`` may then be
+    empty); the targets are rendered here, so the images (and their noise) are the sequential run's,
+    and the rows come back in the sequential order (only ``time_s`` differs)."""
     out = Path(out)
     targets, starts = sample_cases(settings)
-    points = bone_points(volume, settings.max_points, settings.seed)
     target_images = target_renderer.render(pose_from_params(targets, geometry.sod_mm))
-    rows, trajectories = [], []
+    names = list(spec.methods) if client is not None else list(methods)
+    per_case: dict[int, tuple[list[dict], list[dict]]] = {}
+    bar = Progress(settings.cases * len(names), 0, f"evaluate {out.name}", "registrations", rate_unit="reg/s")
 
-    bar = Progress(settings.cases * len(methods), 0, f"evaluate {out.name}", "registrations", rate_unit="reg/s")
-    for i, (target, start, image) in enumerate(zip(targets, starts, target_images)):
-        T_true = pose_from_params(target, geometry.sod_mm)
-        for name, method in methods.items():
-            t0 = time.perf_counter()
-            result = method.register(image, start)
-            elapsed = time.perf_counter() - t0
-            err = pose_errors(result.pose, T_true, points, center_lps, geometry)
-            row = {"case": i, "method": name, "start": settings.start, **err,
-                   "success": err["mtre_mm"] < settings.success_mtre_mm and err["rot_err_deg"] < settings.success_rot_deg,
-                   "time_s": elapsed, "renders": result.renders, "similarity": result.similarity,
-                   **{f"true_{k}": float(v) for k, v in zip("phi theta psi tx ty tz".split(), target)},
-                   **{f"est_{k}": float(v) for k, v in zip("phi theta psi tx ty tz".split(), result.params)}}
-            rows.append(row)
-            if result.trajectory is not None:
-                trajectories.append({"case": i, "method": name, "true_params": target.tolist(),
-                                     "params_deg_mm": np.asarray(result.trajectory["params"]).tolist(),
-                                     "g_rad_mm": np.asarray(result.trajectory["g"]).tolist()})
-            log(f"case {i + 1}/{settings.cases} {name}: rotation {err['rot_err_deg']:.2f} deg, "
-                f"translation {err['trans_err_mm']:.1f} mm, mTRE {err['mtre_mm']:.1f} mm, {elapsed:.1f} s")
-            bar.update(1)
+    def done(i: int, result) -> None:
+        per_case[i] = result
+        for row in result[0]:
+            log(f"case {i + 1}/{settings.cases} {row['method']}: rotation {row['rot_err_deg']:.2f} deg, "
+                f"translation {row['trans_err_mm']:.1f} mm, mTRE {row['mtre_mm']:.1f} mm, {row['time_s']:.1f} s")
+        bar.update(len(result[0]))
+
+    if client is None:
+        points = bone_points(volume, settings.max_points, settings.seed)
+        for i, (target, start, image) in enumerate(zip(targets, starts, target_images)):
+            done(i, _case_rows(i, target, start, image, methods, settings, points, center_lps, geometry))
+    else:
+        from distributed import as_completed as dask_completed
+
+        if spec is None:
+            raise EvaluationError("evaluate on a Dask client needs the methods' spec (MethodSpec)")
+        futures = {client.submit(_dask_case, spec, i, targets[i], starts[i], target_images[i], settings, geometry,
+                                 pure=False): i for i in range(len(targets))}
+        try:
+            for fut in dask_completed(list(futures)):
+                done(futures[fut], fut.result())
+        except BaseException:
+            client.cancel(list(futures))
+            raise
+    rows = [r for i in sorted(per_case) for r in per_case[i][0]]
+    trajectories = [t for i in sorted(per_case) for t in per_case[i][1]]
     summary = summarize(rows, settings)
     write_csv(out / "cases.csv", rows)
     write_json(out / "summary.json", {"settings": asdict(settings), **(record or {}), "summary": summary})

@@ -108,3 +108,30 @@ def test_bad_schedulers_are_one_line_before_any_work(small_cts, tmp_path, args, 
     lines = r.stderr.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith("ctxreg simulate: error:") and expect in lines[0], r.stderr
     assert not out.exists()
+
+
+def test_evaluate_on_a_local_cluster_returns_the_sequential_rows(tmp_path):
+    """``ctxreg evaluate --scheduler local:2``: the same cases.csv as the run here, row for row, in the
+    same order (only the seconds differ)."""
+    import csv
+
+    common = ["evaluate", "--ct", "phantom", "--cases", "3", "--size", "32", "32", "--method", "cmaes"]
+    here = run_cli(*common, "--out", tmp_path / "here", timeout=900)
+    assert here.returncode == 0, here.stderr
+    dask = run_cli(*common, "--scheduler", "local:2", "--out", tmp_path / "dask", timeout=900)
+    assert dask.returncode == 0, dask.stderr
+    assert "a local Dask cluster of 2 worker processes" in dask.stderr
+
+    def rows(folder):
+        with open(folder / "cases.csv") as f:
+            return [{k: v for k, v in r.items() if k != "time_s"} for r in csv.DictReader(f)]
+
+    a, b = rows(tmp_path / "here"), rows(tmp_path / "dask")
+    assert len(a) == 3 and a == b
+
+
+def test_evaluate_refuses_an_unreachable_scheduler_before_any_work(tmp_path):
+    r = run_cli("evaluate", "--ct", "phantom", "--cases", "2", "--scheduler", "tcp://127.0.0.1:9", "--out",
+                tmp_path / "o", timeout=120)
+    assert r.returncode == 2 and "no Dask scheduler answered" in r.stderr, r.stderr
+    assert len(r.stderr.strip().splitlines()) == 1
