@@ -37,6 +37,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from learn.distributed import DistributedRun, unwrap
 from sim.errors import InputError
 
 
@@ -566,7 +567,14 @@ def train(cfg: TrainConfig, *, resume: bool = False, log=print, device: str = "a
     if stop_after_s is not None and not (isinstance(stop_after_s, (int, float)) and stop_after_s > 0
                                          and math.isfinite(stop_after_s)):
         raise TrainConfigError(f"stop_after_s must be a positive number of seconds, got {stop_after_s!r}")
-    device = resolve_device(device)
+    run = DistributedRun.from_env()  # torchrun's processes (learn/distributed.py); one process: world 1
+    run.check_batch(cfg.batch_size)
+    if run.active and cfg.cache_features:
+        raise TrainConfigError("train.cache_features: not with torchrun (the cached heads' forward would bypass DDP's "
+                               "gradient averaging); train in one process or without the cache")
+    device = run.start(resolve_device(device))
+    if not run.main:
+        log = _silent
     from learn.checkpoint import CheckpointError, load_weights, remove_stale_temps, restore_rng
     from learn.model import Weights, pose_update_net
 
@@ -575,7 +583,7 @@ def train(cfg: TrainConfig, *, resume: bool = False, log=print, device: str = "a
     if ckpt_path.exists() and not resume:
         raise TrainConfigError(f"{out} already holds a checkpoint: use --resume, or another train.out")
     out.mkdir(parents=True, exist_ok=True)
-    for path in (ckpt_path, out / "log.csv", out / "loss.png"):  # temporary files of a killed write
+    for path in (ckpt_path, out / "log.csv", out / "loss.png") if run.main else ():  # a killed write's temporaries
         remove_stale_temps(path)
     # the checkpoints are read first: a bad one is refused before any rendering or caching
     resumed = _resume_checkpoint(ckpt_path, cfg) if resume and ckpt_path.exists() else None
@@ -629,21 +637,28 @@ def train(cfg: TrainConfig, *, resume: bool = False, log=print, device: str = "a
     if resume and log_path.exists():
         with open(log_path) as f:
             rows = [r for r in csv.DictReader(f) if int(r["iteration"]) <= iteration]
+    model = run.wrap(model, device)  # DDP under torchrun (after the weights are in place)
     model.train()
     started = time.perf_counter()
     from sim.progress import Progress
 
     bar = Progress(cfg.iterations, iteration, f"train {out.name}", "iterations", rate_unit="pairs/s",
-                   rate_scale=cfg.batch_size)
+                   rate_scale=cfg.batch_size) if run.main else None
     with _StopOnSignal() as signalled:
         last = _loop(cfg, source, model, optimizer, scheduler, device, iteration, rows, log_path, ckpt_path, bar,
-                     started, stop_after_s, signalled, log, precision)
-    try:
-        _plot(rows, out / "loss.png")
-    except ImportError as e:  # a bare GPU machine: the log.csv holds the curve
-        log(f"loss.png not written: {e}")
+                     started, stop_after_s, signalled, log, precision, run)
+    if run.main:
+        try:
+            _plot(rows, out / "loss.png")
+        except ImportError as e:  # a bare GPU machine: the log.csv holds the curve
+            log(f"loss.png not written: {e}")
     source.close()
+    run.finish()
     return last
+
+
+def _silent(*_args, **_kwargs) -> None:
+    """The log of a rank other than 0 under torchrun."""
 
 
 def _follow_schedule(optimizer, scheduler, cfg: TrainConfig, iteration: int) -> None:
@@ -659,9 +674,11 @@ def _follow_schedule(optimizer, scheduler, cfg: TrainConfig, iteration: int) -> 
 
 
 def _loop(cfg, source, model, optimizer, scheduler, device, iteration, rows, log_path, ckpt_path, bar, started,
-          stop_after_s, signalled, log, precision: str) -> dict:
+          stop_after_s, signalled, log, precision: str, run: DistributedRun = DistributedRun()) -> dict:
     """The training iterations from ``iteration`` to the end, a time limit or a signal, in
-    ``precision`` (``fp32`` or ``bf16``, :func:`step_precision`); returns the last log row."""
+    ``precision`` (``fp32`` or ``bf16``, :func:`step_precision`); returns the last log row. Under
+    torchrun (``run``) each rank trains on its share of the batch; rank 0 validates, logs and
+    writes the checkpoints."""
     from learn.checkpoint import Checkpoint, capture_rng
 
     last = {}
@@ -670,7 +687,7 @@ def _loop(cfg, source, model, optimizer, scheduler, device, iteration, rows, log
     params = [p for group in optimizer.param_groups for p in group["params"]]
     while iteration < cfg.iterations:
         # batches are a function of (seed, iteration) alone, so a resumed run takes the same steps
-        *inputs, label = _on(device, source.train_batch(iteration))
+        *inputs, label = _on(device, run.share(source.train_batch(iteration)))
         with torch.autocast(device.type, dtype=torch.bfloat16, enabled=bf16):
             output = source.forward(model, inputs)
         loss = _loss(type(output)(*(t.float() for t in output)), label, cfg)  # the loss in float32
@@ -686,12 +703,17 @@ def _loop(cfg, source, model, optimizer, scheduler, device, iteration, rows, log
             optimizer.step()
         scheduler.step()
         iteration += 1
-        bar.update(1)
+        if bar is not None:
+            bar.update(1)
         last = {"iteration": iteration, "train_loss": float(loss.item()), "lr": scheduler.get_last_lr()[0]}
-        interrupted = signalled.is_set()
-        stopping = interrupted or (stop_after_s is not None and time.perf_counter() - started >= stop_after_s)
+        interrupted = run.any(signalled.is_set())  # every rank stops at the same iteration
+        stopping = interrupted or run.any(stop_after_s is not None and time.perf_counter() - started >= stop_after_s)
+        if not run.main:
+            if stopping:
+                break
+            continue
         if (iteration % cfg.val_every == 0 or iteration == cfg.iterations or stopping) and not interrupted:
-            last.update(_validate(model, source, cfg, device))
+            last.update(_validate(unwrap(model), source, cfg, device))
             model.train()
             rate = (iteration - start_iteration) * cfg.batch_size / (time.perf_counter() - started)
             rows.append({k: last.get(k, "") for k in ("iteration", "train_loss", "val_loss", "val_rot_err_deg",
@@ -707,7 +729,7 @@ def _loop(cfg, source, model, optimizer, scheduler, device, iteration, rows, log
                 + (f"; {skipped} bf16 steps skipped for a non-finite gradient" if skipped else "") + ")")
         if iteration % cfg.checkpoint_every == 0 or iteration == cfg.iterations or stopping:
             _save_checkpoint(ckpt_path, Checkpoint(
-                model_state=model.state_dict(), backbone=cfg.backbone, head_channels=cfg.head_channels,
+                model_state=unwrap(model).state_dict(), backbone=cfg.backbone, head_channels=cfg.head_channels,
                 preprocess=tuple(cfg.preprocess), config=asdict(cfg), image_size=tuple(source.size),
                 physics=source.physics, current_physics=getattr(source, "current_physics", source.physics),
                 iteration=iteration, optimizer=optimizer.state_dict(), scheduler=scheduler.state_dict(),
