@@ -127,10 +127,9 @@ def run_evaluate(cmd: EvaluateCommand) -> list[Path]:
                   why=f"meaningful with --start local only; this run is --start {cmd.start}")
     if (cmd.init is not None) != (cmd.start == "pose"):
         raise EvaluationError("--init gives the start of --start pose: give both or neither")
-    if cmd.deepfluoro is not None:
-        refuse_unused(cmd, ("scheduler",), applies=False, why="not yet with --deepfluoro (its frames run here)")
-        return _run_deepfluoro(cmd, methods)
     scheduler = parse_scheduler(cmd.scheduler) if cmd.scheduler is not None else None
+    if cmd.deepfluoro is not None:
+        return _run_deepfluoro(cmd, methods, scheduler)
     refuse_unused(cmd, ("specimen", "frames", "resume", "detect_field"), applies=False,
                   why="meaningful with --deepfluoro only")
     if cmd.ct is None:
@@ -196,7 +195,7 @@ def _run_simulated(cmd: EvaluateCommand, methods: tuple[str, ...], settings: Eva
 _SIMULATED_ONLY = ("ct", "label_map", "center", "cases", "target_ray_model", "target_physics", "target_mas", "physics")
 
 
-def _run_deepfluoro(cmd: EvaluateCommand, methods: tuple[str, ...]) -> list[Path]:
+def _run_deepfluoro(cmd: EvaluateCommand, methods: tuple[str, ...], scheduler=None) -> list[Path]:
     """``ctxreg evaluate --deepfluoro FILE``: :func:`register.evaluation.deepfluoro.evaluate_deepfluoro`."""
     from register.evaluation.deepfluoro import DEEPFLUORO_FILES, DeepFluoroSettings, evaluate_deepfluoro
     from sim.scene import load_scene
@@ -209,8 +208,12 @@ def _run_deepfluoro(cmd: EvaluateCommand, methods: tuple[str, ...]) -> list[Path
                                   sod_mm=load_scene(cmd.scene).geometry.sod_mm, size=tuple(cmd.size), scene=cmd.scene,
                                   detect_field=cmd.detect_field)
     out = check_output_dir(cmd.out, DEEPFLUORO_FILES)
-    result = evaluate_deepfluoro(cmd.deepfluoro, settings, out, model=cmd.model, resume=cmd.resume,
-                                 log=lambda line: print(line, flush=True))
+    with contextlib.ExitStack() as stack:  # a scheduler is reached (or refused) before any work
+        client = None if scheduler is None else stack.enter_context(dask_client(scheduler))
+        if client is not None:
+            print(f"ctxreg evaluate: registering the frames on {scheduler.describe()}", file=sys.stderr, flush=True)
+        result = evaluate_deepfluoro(cmd.deepfluoro, settings, out, model=cmd.model, resume=cmd.resume,
+                                     log=lambda line: print(line, flush=True), client=client)
     print(result["table"])
     return [out / name for name in DEEPFLUORO_FILES]
 

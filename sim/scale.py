@@ -97,14 +97,15 @@ def dask_client(scheduler: Scheduler, *, timeout_s: float = CONNECT_TIMEOUT_S) -
         # thread, and the thread count changes the order of floating-point sums (and so a result's
         # last digits, which an optimiser then follows elsewhere): a case registered on a worker must
         # give the row it gives here.
+        # (For the cluster's whole life: a worker the nanny restarts is spawned with it too.)
         with dask.config.set({"distributed.nanny.pre-spawn-environ": {"MALLOC_TRIM_THRESHOLD_": 65536}}):
             cluster = LocalCluster(n_workers=scheduler.local, threads_per_worker=1, processes=True,
                                    dashboard_address=None, silence_logs=40)
-        try:
-            with Client(cluster) as client:
-                yield client
-        finally:
-            cluster.close()
+            try:
+                with Client(cluster) as client:
+                    yield client
+            finally:
+                cluster.close()
         return
     try:
         if scheduler.scheduler_file is not None:

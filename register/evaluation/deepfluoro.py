@@ -226,13 +226,68 @@ def _resumed_rows(out: Path, record: dict) -> list[dict]:
     return rows
 
 
+_SPECIMENS: dict = {}  # (file, specimen) -> DeepFluoroSpecimen with its CT: one per process
+
+
+def _register_frame(f: DeepFluoroFile, sid: str, index: int, start, methods: tuple[str, ...],
+                    settings: DeepFluoroSettings, predictor, border: int, steps: list[str]) -> list[dict]:
+    """Frame ``index`` of specimen ``sid`` registered from ``start`` ``(6,)`` by each of ``methods``:
+    its rows (errors at the start and the end, seconds, the pose)."""
+    key = (str(f.path.resolve()), sid)
+    if key not in _SPECIMENS:
+        _SPECIMENS.clear()  # one specimen's CT at a time
+        _SPECIMENS[key] = f.specimen(sid)
+    spec = _SPECIMENS[key]
+    fr = spec.projection(index)
+    T_true, geometry = fr.truth(spec.center_lps, sod_mm=settings.sod_mm)
+    initial = frame_errors(pose_from_params(start, settings.sod_mm), T_true, fr, spec, geometry)
+    out = []
+    for method in methods:
+        t0 = time.perf_counter()
+        reg = register_xray(spec.volume, fr.xray(sod_mm=settings.sod_mm, border_px=border), method=method,
+                            model=predictor if needs_model(method) else None, init=start, center=spec.center_lps,
+                            scene=settings.scene, size=settings.size, intensity="linear", polarity="bone-dark",
+                            preprocess=steps)
+        seconds = time.perf_counter() - t0
+        err = frame_errors(reg.pose, T_true, fr, spec, geometry)
+        out.append({"specimen": spec.id, "frame": fr.index, "method": method, "start": settings.start,
+                    "rot_180_for_up": fr.rot_180_for_up, **err, **{f"initial_{k}": v for k, v in initial.items()},
+                    "time_s": seconds, "renders": reg.result.renders, "similarity": reg.similarity,
+                    "search": reg.search_status,
+                    **{f"true_{k}": float(v) for k, v in zip(("phi", "theta", "psi", "tx", "ty", "tz"),
+                                                             params_from_pose(T_true, settings.sod_mm))},
+                    **{f"est_{k}": float(v) for k, v in reg.params.items()}, "pose": np.asarray(reg.pose).tolist()})
+    return out
+
+
+_WORKER_STATE: dict = {}  # the open file and the network of a Dask worker
+
+
+def _dask_frame(path: str, sid: str, index: int, start, methods, settings: DeepFluoroSettings, model, border: int,
+                steps: list[str]) -> list[dict]:
+    """:func:`_register_frame` on a Dask worker: the file opened and the network loaded once per process."""
+    if _WORKER_STATE.get("path") != path:
+        if "file" in _WORKER_STATE:
+            _WORKER_STATE["file"].close()
+        _WORKER_STATE.update(path=path, file=DeepFluoroFile(path))
+    if "predictor" not in _WORKER_STATE or not (_WORKER_STATE["model"] is model or _WORKER_STATE["model"] == model):
+        _WORKER_STATE.update(model=model, predictor=None)
+    if _WORKER_STATE["predictor"] is None and any(needs_model(m) for m in methods):
+        _WORKER_STATE["predictor"] = load_predictor(model)
+    return _register_frame(_WORKER_STATE["file"], sid, index, start, methods, settings, _WORKER_STATE["predictor"],
+                           border, steps)
+
+
 def evaluate_deepfluoro(path, settings: DeepFluoroSettings, out, *, model=None, resume: bool = False,
-                        log: Callable[[str], None] = print) -> dict:
+                        log: Callable[[str], None] = print, client=None) -> dict:
     """Register the chosen frames of the DeepFluoro file ``path`` and write the scores into ``out``
     (module docstring). ``model``: the contextual methods' network (a name, a checkpoint or a loaded
     predictor; None: the shipped default). After every frame the rows so far are kept in
     ``out/progress.json``; ``resume=True`` continues a run from there (same file, settings and model).
-    Returns ``{"rows", "summary", "table", "reprojection"}``."""
+    ``client``: a :class:`distributed.Client` (:func:`sim.scale.dask_client`) whose workers register
+    the frames (each opens the file, which they must see, and loads the network once; ``model`` then a
+    name or a path); the rows are kept in the plan's order. Returns ``{"rows", "summary", "table",
+    "reprojection"}``."""
     out = check_output_dir(out, DEEPFLUORO_FILES + (PROGRESS,))
     record = _progress_record(path, settings, model)
     rows = _resumed_rows(out, record) if resume else []
@@ -268,51 +323,51 @@ def evaluate_deepfluoro(path, settings: DeepFluoroSettings, out, *, model=None, 
                 f"{r['ctxreg_mean_px']:.3f} px")
             plan.append((sid, [int(n) for n in names]))
         predictor = load_predictor(model) if any(needs_model(m) for m in settings.methods) else None
-        records = [(r["mtre_mm"], r["specimen"], int(r["frame"]), np.array(r["pose"]), r["method"]) for r in rows]
         total = sum(len(idx) for _, idx in plan) * len(settings.methods)
         if done:
             log(f"resuming: {len(done)} of {total} registrations done ({out / PROGRESS})")
         bar = Progress(total, len(done), f"deepfluoro {out.name}", "frames", rate_unit="frames/min", rate_scale=60.0)
+        jobs = []  # (specimen, frame, start, methods left), in the plan's order
         for sid, indices in plan:
             if all((sid, i, m) in done for i in indices for m in settings.methods):
                 continue
-            spec = f.specimen(sid, log=log)  # its CT, read once for its frames
-            truths = [params_from_pose(spec.projection(i, pixels=False).truth(spec.center_lps, sod_mm=settings.sod_mm)[0],
-                                       settings.sod_mm) for i in indices]
-            starts = _starts(settings, np.array(truths))
-            for i, start in zip(indices, starts):
-                if all((sid, i, m) in done for m in settings.methods):
-                    continue
-                fr = spec.projection(i)
-                T_true, geometry = fr.truth(spec.center_lps, sod_mm=settings.sod_mm)
-                T_start = pose_from_params(start, settings.sod_mm)
-                initial = frame_errors(T_start, T_true, fr, spec, geometry)
-                for method in settings.methods:
-                    if (sid, i, method) in done:
-                        continue
-                    t0 = time.perf_counter()
-                    reg = register_xray(spec.volume, fr.xray(sod_mm=settings.sod_mm, border_px=border), method=method,
-                                        model=predictor if needs_model(method) else None, init=start,
-                                        center=spec.center_lps, scene=settings.scene, size=settings.size,
-                                        intensity="linear", polarity="bone-dark", preprocess=steps)
-                    seconds = time.perf_counter() - t0
-                    err = frame_errors(reg.pose, T_true, fr, spec, geometry)
-                    row = {"specimen": spec.id, "frame": fr.index, "method": method, "start": settings.start,
-                           "rot_180_for_up": fr.rot_180_for_up, **err,
-                           **{f"initial_{k}": v for k, v in initial.items()},
-                           "time_s": seconds, "renders": reg.result.renders, "similarity": reg.similarity,
-                           "search": reg.search_status,
-                           **{f"true_{k}": float(v) for k, v in zip(("phi", "theta", "psi", "tx", "ty", "tz"),
-                                                                    params_from_pose(T_true, settings.sod_mm))},
-                           **{f"est_{k}": float(v) for k, v in reg.params.items()},
-                           "pose": np.asarray(reg.pose).tolist()}
-                    rows.append(row)
-                    records.append((row["mtre_mm"], spec.id, fr.index, reg.pose, method))
-                    log(f"{spec.id} frame {fr.index:03d} {method}: mTRE {initial['mtre_mm']:.1f} -> {err['mtre_mm']:.2f} "
-                        f"mm, rotation {err['rot_err_deg']:.2f} deg, mRPE {err['mrpe_mm']:.2f} mm, {seconds:.1f} s")
-                    bar.update(1)
-                write_json(out / PROGRESS, jsonable({**record, "rows": rows}))
-            del spec
+            light = f.specimen(sid, ct=False)
+            centre = f.specimen(sid).center_lps if settings.start in ("local", "truth") else None
+            truths = np.array([params_from_pose(light.projection(i, pixels=False).truth(centre, sod_mm=settings.sod_mm)[0],
+                                                settings.sod_mm) for i in indices]) if centre is not None \
+                else np.zeros((len(indices), 6))
+            for i, start in zip(indices, _starts(settings, truths)):
+                left = tuple(m for m in settings.methods if (sid, i, m) not in done)
+                if left:
+                    jobs.append((sid, i, start, left))
+
+        def finished(new_rows: list[dict]) -> None:
+            rows.extend(new_rows)
+            for row in new_rows:
+                log(f"{row['specimen']} frame {row['frame']:03d} {row['method']}: mTRE {row['initial_mtre_mm']:.1f} -> "
+                    f"{row['mtre_mm']:.2f} mm, rotation {row['rot_err_deg']:.2f} deg, mRPE {row['mrpe_mm']:.2f} mm, "
+                    f"{row['time_s']:.1f} s")
+            bar.update(len(new_rows))
+            write_json(out / PROGRESS, jsonable({**record, "rows": rows}))
+
+        if client is None:
+            for sid, i, start, left in jobs:
+                finished(_register_frame(f, sid, i, start, left, settings, predictor, border, steps))
+        else:
+            from distributed import as_completed as dask_completed
+
+            futures = [client.submit(_dask_frame, str(Path(path).resolve()), sid, i, start, left, settings, model,
+                                     border, steps, pure=False) for sid, i, start, left in jobs]
+            try:
+                for fut in dask_completed(futures):
+                    finished(fut.result())
+            except BaseException:
+                client.cancel(futures)
+                raise
+        order = {key: n for n, key in enumerate((sid, i) for sid, indices in plan for i in indices)}
+        methods = {m: k for k, m in enumerate(settings.methods)}
+        rows.sort(key=lambda r: (order[(r["specimen"], int(r["frame"]))], methods[r["method"]]))
+        records = [(r["mtre_mm"], r["specimen"], int(r["frame"]), np.array(r["pose"]), r["method"]) for r in rows]
         worst = sorted(records, key=lambda r: -r[0] if math.isfinite(r[0]) else -math.inf)[: settings.worst]
         if worst:
             (out / "worst").mkdir(parents=True, exist_ok=True)

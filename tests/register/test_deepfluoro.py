@@ -321,3 +321,23 @@ def test_start_params_of_every_start_mode():
     rot, trans = np.linalg.norm(local[:, :3], axis=1), np.linalg.norm(local[:, 3:], axis=1)
     assert rot.max() <= 6.0 / np.sqrt(3) + 1e-12 and trans.max() <= 12.0 + 1e-12
     assert rot.max() > 0.8 * 6.0 / np.sqrt(3) and trans.max() > 0.8 * 12.0  # the bounds are reached, not shrunk
+
+
+def test_frames_on_a_local_dask_cluster_give_the_sequential_rows(small_file, tmp_path):
+    """``--scheduler local:2``: every frame registered on a worker (the file opened there), the rows in
+    the sequential run's order and equal to them but for the seconds."""
+    import csv
+
+    path, _ = small_file
+    common = ["--deepfluoro", path, "--start", "truth", "--method", "cmaes", "--size", "64", "64"]
+    here = _evaluate(*common, "--out", tmp_path / "here")
+    assert here.returncode == 0, here.stderr
+    dask = _evaluate(*common, "--scheduler", "local:2", "--out", tmp_path / "dask")
+    assert dask.returncode == 0, dask.stderr
+    assert "on a local Dask cluster of 2 worker processes" in dask.stderr
+
+    def rows(folder):
+        with open(folder / "cases.csv") as f:
+            return [{k: v for k, v in r.items() if k != "time_s"} for r in csv.DictReader(f)]
+
+    assert len(rows(tmp_path / "here")) == len(PARAMS) and rows(tmp_path / "here") == rows(tmp_path / "dask")
