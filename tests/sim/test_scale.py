@@ -14,30 +14,8 @@ import pytest
 
 from sim.campaign import dataset as ds
 from sim.scale import SchedulerError, parse_scheduler
-from tests.sim.test_campaign_run import checksums, load, run_cli, write_campaign
-
-
-@pytest.fixture(scope="module")
-def small_cts(tmp_path_factory):
-    from sim.phantom import write_phantom_nifti
-
-    d = tmp_path_factory.mktemp("cts")
-    paths = []
-    for seed in (1, 2):
-        p = d / f"phantom{seed}.nii.gz"
-        write_phantom_nifti(p, seed, spacing_mm=4.0)
-        paths.append(p)
-    return paths
-
-
-@pytest.fixture(scope="module")
-def reference(small_cts, tmp_path_factory):
-    from sim.campaign.runner import run_campaign
-
-    base = tmp_path_factory.mktemp("ref")
-    cfg = load(write_campaign(base, small_cts))
-    run_campaign(cfg, base / "out", progress=False)
-    return cfg, base / "out"
+# the campaign tests' phantoms and their single-process run: the truth here too
+from tests.sim.test_campaign_run import checksums, reference, run_cli, small_cts, write_campaign  # noqa: F401
 
 
 def test_parse_scheduler():
@@ -57,7 +35,7 @@ def test_a_local_cluster_writes_the_same_bytes_and_survives_a_killed_worker(refe
 
     from sim.campaign.runner import run_campaign
 
-    cfg, ref = reference
+    cfg, ref, _ = reference
     out = tmp_path / "out"
     killed: list[int] = []
     with LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None,
@@ -87,7 +65,7 @@ def test_a_local_cluster_writes_the_same_bytes_and_survives_a_killed_worker(refe
 
 
 def test_cli_on_a_local_cluster(reference, small_cts, tmp_path):
-    _, ref = reference
+    _, ref, _ = reference
     camp = write_campaign(tmp_path, small_cts)
     r = run_cli("simulate", camp, "--out", tmp_path / "out", "--scheduler", "local:2", timeout=600)
     assert r.returncode == 0, r.stderr
