@@ -489,13 +489,21 @@ class StudyCommand:
     targets: tuple[str, ...] | None = field(default=None, metadata=opt(
         "evaluate only these target domains (by name), e.g. one per process in parallel; the table keeps the "
         "others' finished results", group="protocol", nargs="+", metavar="TARGET"))
+    scheduler: str | None = field(default=None, metadata=opt(
+        "register each evaluation's cases on a Dask cluster: local:N or ADDRESS (tcp://host:8786, a scheduler "
+        "file *.json); the variants still train here (docs/scale.md)", group="protocol", metavar="local:N|ADDRESS"))
 
 
 def run_study(cmd: StudyCommand) -> list[Path]:
     """Train every variant and evaluate it on every target domain (resumable: register/evaluation/study.py)."""
     from register.evaluation.study import STUDY_FILES, load_study, run_domain_study  # on use: its CT readers
 
+    scheduler = parse_scheduler(cmd.scheduler) if cmd.scheduler is not None else None
     study = load_study(cmd.study)
-    run_domain_study(study, cmd.out, only=cmd.only, targets=cmd.targets)
+    with contextlib.ExitStack() as stack:  # a scheduler is reached (or refused) before any work
+        client = None if scheduler is None else stack.enter_context(dask_client(scheduler))
+        if client is not None:
+            print(f"ctxreg study: evaluating on {scheduler.describe()}", file=sys.stderr, flush=True)
+        run_domain_study(study, cmd.out, only=cmd.only, targets=cmd.targets, client=client)
     return [Path(cmd.out) / name for name in STUDY_FILES]
 

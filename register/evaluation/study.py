@@ -75,7 +75,8 @@ import numpy as np
 import register.api as api
 from register.engines.methods import METHOD_NAMES, build_method, needs_model
 from register.evaluation.errors import bone_points, pose_errors
-from register.evaluation.evaluate import START_MODES, EvaluationSettings, evaluate, sample_cases, summarize
+from register.evaluation.evaluate import (START_MODES, EvaluationSettings, MethodSpec, evaluate, sample_cases,
+                                          summarize)
 from register.evaluation.frames import FrameSimulator
 from register.xray.preprocess import PreprocessError
 from register.xray.field import FieldError
@@ -549,7 +550,10 @@ def _finished_evaluation(path: Path, study: Study, settings: dict) -> tuple[dict
 
 
 def _evaluate_drr(study: Study, target: Target, volume, center, predictor, folder: Path, log,
-                  stamp: dict | None = None) -> dict:
+                  stamp: dict | None = None, *, client=None, model: str | None = None) -> dict:
+    """A ``drr`` target's evaluation (:func:`register.evaluation.evaluate.evaluate`); with a Dask
+    ``client`` its cases are registered on the workers, which build the methods with the checkpoint
+    ``model``."""
     settings = EvaluationSettings(cases=study.cases_of(target), seed=study.seed, size=study.size, start=study.start)
     physics = PhysicsSettings(**{**target.physics, "seed": study.seed})
     if physics.level == "line":
@@ -557,11 +561,16 @@ def _evaluate_drr(study: Study, target: Target, volume, center, predictor, folde
     else:
         renderer = LogImageRenderer(volume, physics, size=study.size, center_lps=center)
     moving = _moving(study)
-    methods = {m: build_method(m, volume, center_lps=center, size=study.size, model=predictor, physics=moving)
-               for m in study.methods}
-    result = evaluate(volume, methods, settings, folder, center_lps=center, geometry=renderer.geometry,
-                      target_renderer=renderer, log=lambda s: log(f"  {s}"),
-                      record={"target_physics": asdict(physics), **(stamp or {})})
+    common = dict(center_lps=center, geometry=renderer.geometry, target_renderer=renderer, log=lambda s: log(f"  {s}"),
+                  record={"target_physics": asdict(physics), **(stamp or {})})
+    if client is None:
+        methods = {m: build_method(m, volume, center_lps=center, size=study.size, model=predictor, physics=moving)
+                   for m in study.methods}
+        result = evaluate(volume, methods, settings, folder, **common)
+    else:
+        spec = MethodSpec(ct=study.ct, label_map=None, center_lps=tuple(float(v) for v in center), size=study.size,
+                          scene="cios_fusion", methods=tuple(study.methods), model=model, physics=moving)
+        result = evaluate(volume, {}, settings, folder, client=client, spec=spec, **common)
     return result["summary"]
 
 
@@ -595,41 +604,92 @@ def frame_seed(study: Study, case: int) -> int:
     return study.seed * 100003 + case
 
 
-def _evaluate_xray(study: Study, target: Target, volume, center, predictor, folder: Path, log,
-                   stamp: dict | None = None) -> dict:
-    """Realistic frames through :func:`register.api.register_xray`, scored like the evaluation."""
-    FRAME_REFUSALS = frame_refusals()
-
-    settings = EvaluationSettings(cases=study.cases_of(target), seed=study.seed, size=study.size, start=study.start)
-    frame = study_frames(study, target, volume, center)
+def _xray_case(study: Study, method_model, volume, center, frame: FrameSimulator, settings: EvaluationSettings,
+               points, i: int, target_params, start, frames: Path) -> list[dict]:
+    """Case ``i`` of an ``xray`` target: its frame simulated (seeded by :func:`frame_seed`) and
+    registered by each of the study's methods, as rows (a frame refused by its content: a failed case)."""
     g = frame.imager.geometry
-    targets, starts = sample_cases(settings)
-    points = bone_points(volume, settings.max_points, settings.seed)
+    T_true = pose_from_params(target_params, g.sod_mm)
+    path = frame.simulate(frames / f"case_{i:03d}.dcm", T_true, frame_seed(study, i))
     rows = []
-    frames = folder / "frames"
-
-    bar = Progress(settings.cases * len(study.methods), 0, f"{target.name}", "registrations", rate_unit="reg/s")
-    for i, (target_params, start) in enumerate(zip(targets, starts)):
-        T_true = pose_from_params(target_params, g.sod_mm)
-        path = frame.simulate(frames / f"case_{i:03d}.dcm", T_true, frame_seed(study, i))
-        for method in study.methods:
-            t0 = time.perf_counter()
-            try:
-                res = api.register_xray(volume, path, method=method, model=predictor, init=start, center=center,
+    for method in study.methods:
+        t0 = time.perf_counter()
+        try:
+            res = api.register_xray(volume, path, method=method, model=method_model, init=start, center=center,
                                     size=study.size, physics=_moving(study) or "line")
-                pose, similarity, refused = res.pose, res.similarity, ""
-            except FRAME_REFUSALS as e:  # the frame's content refused (e.g. no valid pixel left): a failed case
-                pose = pose_from_params(np.asarray(start, float), g.sod_mm)  # the user keeps the start pose
-                similarity, refused = float("nan"), str(e)
-            elapsed = time.perf_counter() - t0
-            err = pose_errors(pose, T_true, points, center, g)  # the frame's geometry: both poses projected
-            rows.append({"case": i, "method": method, "start": study.start, **err,
-                         "success": not refused and err["mtre_mm"] < settings.success_mtre_mm
-                         and err["rot_err_deg"] < settings.success_rot_deg,
-                         "time_s": elapsed, "similarity": similarity, "refused": refused})
-            log(f"  case {i + 1}/{settings.cases} {method}: " + (f"refused ({refused})" if refused else
-                f"rotation {err['rot_err_deg']:.2f} deg, mTRE {err['mtre_mm']:.1f} mm") + f", {elapsed:.1f} s")
-            bar.update(1)
+            pose, similarity, refused = res.pose, res.similarity, ""
+        except frame_refusals() as e:  # the frame's content refused (e.g. no valid pixel left): a failed case
+            pose = pose_from_params(np.asarray(start, float), g.sod_mm)  # the user keeps the start pose
+            similarity, refused = float("nan"), str(e)
+        elapsed = time.perf_counter() - t0
+        err = pose_errors(pose, T_true, points, center, g)  # the frame's geometry: both poses projected
+        rows.append({"case": i, "method": method, "start": study.start, **err,
+                     "success": not refused and err["mtre_mm"] < settings.success_mtre_mm
+                     and err["rot_err_deg"] < settings.success_rot_deg,
+                     "time_s": elapsed, "similarity": similarity, "refused": refused})
+    return rows
+
+
+_WORKER_STUDY: dict = {}  # a Dask worker's CT, frame simulator and network of the study it serves
+
+
+def _dask_xray_case(study: Study, target: Target, model: str, settings: EvaluationSettings, i: int, target_params,
+                    start, frames: str) -> list[dict]:
+    """:func:`_xray_case` on a Dask worker: the CT, its centre and bone points, the target's frame
+    simulator and the network built once per process."""
+    from learn.predict import NetworkPredictor
+
+    key = (study.ct, target.name, repr(target), settings.max_points, settings.seed)
+    if _WORKER_STUDY.get("key") != key:
+        volume = load_ct_spec(study.ct)
+        center = anatomy_center(volume)
+        _WORKER_STUDY.clear()
+        _WORKER_STUDY.update(key=key, volume=volume, center=center, frame=study_frames(study, target, volume, center),
+                             points=bone_points(volume, settings.max_points, settings.seed))
+    if _WORKER_STUDY.get("model") != model:
+        _WORKER_STUDY.update(model=model, predictor=NetworkPredictor(model))
+    w = _WORKER_STUDY
+    return _xray_case(study, w["predictor"], w["volume"], w["center"], w["frame"], settings, w["points"], i,
+                      target_params, start, Path(frames))
+
+
+def _evaluate_xray(study: Study, target: Target, volume, center, predictor, folder: Path, log,
+                   stamp: dict | None = None, *, client=None, model: str | None = None) -> dict:
+    """Realistic frames through :func:`register.api.register_xray`, scored like the evaluation; with a
+    Dask ``client`` each case (its frame and its registrations) is a task, the network the checkpoint
+    ``model``."""
+    settings = EvaluationSettings(cases=study.cases_of(target), seed=study.seed, size=study.size, start=study.start)
+    targets, starts = sample_cases(settings)
+    frames = folder / "frames"
+    per_case: dict[int, list[dict]] = {}
+    bar = Progress(settings.cases * len(study.methods), 0, f"{target.name}", "registrations", rate_unit="reg/s")
+
+    def done(i: int, rows: list[dict]) -> None:
+        per_case[i] = rows
+        for row in rows:
+            log(f"  case {i + 1}/{settings.cases} {row['method']}: " + (
+                f"refused ({row['refused']})" if row["refused"] else
+                f"rotation {row['rot_err_deg']:.2f} deg, mTRE {row['mtre_mm']:.1f} mm") + f", {row['time_s']:.1f} s")
+        bar.update(len(rows))
+
+    if client is None:
+        frame = study_frames(study, target, volume, center)
+        points = bone_points(volume, settings.max_points, settings.seed)
+        for i, (target_params, start) in enumerate(zip(targets, starts)):
+            done(i, _xray_case(study, predictor, volume, center, frame, settings, points, i, target_params, start,
+                               frames))
+    else:
+        from distributed import as_completed as dask_completed
+
+        futures = {client.submit(_dask_xray_case, study, target, model, settings, i, targets[i], starts[i],
+                                 str(frames), pure=False): i for i in range(len(targets))}
+        try:
+            for fut in dask_completed(list(futures)):
+                done(futures[fut], fut.result())
+        except BaseException:
+            client.cancel(list(futures))
+            raise
+    rows = [r for i in sorted(per_case) for r in per_case[i]]
     summary = summarize(rows, settings)
     write_csv(folder / "cases.csv", rows)
     write_json(folder / "summary.json", {"summary": summary, "target": target.name, **(stamp or {})})
@@ -637,13 +697,15 @@ def _evaluate_xray(study: Study, target: Target, volume, center, predictor, fold
 
 
 def run_domain_study(study: Study, out: str | Path, *, log: Callable[[str], None] = print,
-              only: tuple[str, ...] | None = None, targets: tuple[str, ...] | None = None) -> dict:
+              only: tuple[str, ...] | None = None, targets: tuple[str, ...] | None = None, client=None) -> dict:
     """Run (or continue) ``study`` into ``out``; returns ``{variant: {target: summary}}``.
 
     ``only``: variant names to train and evaluate (default all); the others contribute the
     evaluations they have finished (a summary on disk) and are not trained or evaluated, so
     processes with disjoint ``only`` can share one output folder. ``targets``: the same for target
-    domains (the others' finished evaluations are kept, unfinished ones skipped)."""
+    domains (the others' finished evaluations are kept, unfinished ones skipped). ``client``: a
+    :class:`distributed.Client` (:func:`sim.scale.dask_client`): each evaluation's cases run on its
+    workers (the variants still train here, one after another)."""
     from learn.predict import NetworkPredictor
 
     names = [v.name for v in study.variants]
@@ -702,7 +764,7 @@ def run_domain_study(study: Study, out: str | Path, *, log: Callable[[str], None
                 evaluate = _evaluate_drr if target.kind == "drr" else _evaluate_xray
                 stamp = {"study_settings": settings, "study_settings_sha256": _digest(settings)}
                 results[variant.name][target.name] = evaluate(study, target, volume, center, predictor, folder, log,
-                                                              stamp=stamp)
+                                                              stamp=stamp, client=client, model=str(ckpt))
             done += 1
             rate = done / max(time.perf_counter() - t_start, 1e-9)
             log(f"study: {done}/{parts} parts, ETA {(parts - done) / rate:.0f} s")

@@ -113,3 +113,28 @@ def test_evaluate_refuses_an_unreachable_scheduler_before_any_work(tmp_path):
                 tmp_path / "o", timeout=120)
     assert r.returncode == 2 and "no Dask scheduler answered" in r.stderr, r.stderr
     assert len(r.stderr.strip().splitlines()) == 1
+
+
+@pytest.mark.slow
+def test_a_study_on_a_local_cluster_gives_the_sequential_results(tmp_path):
+    """``ctxreg study --scheduler local:2`` on the tiny study's first variant (a DRR and a realistic-frame
+    target, the contextual method): every evaluation's cases.csv equals the run here but for the seconds."""
+    import csv
+
+    from tests.register.test_study import TINY
+
+    study = tmp_path / "s.toml"
+    study.write_text(TINY)
+    here = run_cli("study", study, "--only", "tiny", "--out", tmp_path / "here", timeout=1200)
+    assert here.returncode == 0, here.stderr[-3000:]
+    dask = run_cli("study", study, "--only", "tiny", "--scheduler", "local:2", "--out", tmp_path / "dask", timeout=1200)
+    assert dask.returncode == 0, dask.stderr[-3000:]
+
+    def rows(path):
+        with open(path) as f:
+            return [{k: v for k, v in r.items() if k != "time_s"} for r in csv.DictReader(f)]
+
+    for target in ("line", "fluoro"):
+        a = rows(tmp_path / "here" / "results" / "tiny" / target / "cases.csv")
+        b = rows(tmp_path / "dask" / "results" / "tiny" / target / "cases.csv")
+        assert len(a) == 2 and a == b, target
