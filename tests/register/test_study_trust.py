@@ -70,7 +70,7 @@ class Fakes:
             return SimpleNamespace(iteration=data["iteration"], config=data["config"])
 
         def evaluate(kind):
-            def run(study, target, volume, center, predictor, folder, log, stamp=None):
+            def run(study, target, volume, center, predictor, folder, log, stamp=None, client=None, model=None):
                 from register.evaluation.evaluate import EvaluationSettings, summarize
 
                 self.calls.append(("evaluate", folder.parent.name, target.name))
