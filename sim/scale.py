@@ -107,6 +107,8 @@ def dask_client(scheduler: Scheduler, *, timeout_s: float = CONNECT_TIMEOUT_S) -
             finally:
                 cluster.close()
         return
+    if scheduler.address is not None and scheduler.address.startswith("tcp://"):
+        _check_reachable(scheduler, timeout_s)
     try:
         if scheduler.scheduler_file is not None:
             client = Client(scheduler_file=scheduler.scheduler_file, timeout=timeout_s)
@@ -125,3 +127,16 @@ def dask_client(scheduler: Scheduler, *, timeout_s: float = CONNECT_TIMEOUT_S) -
 def worker_count(client) -> int:
     """The workers the scheduler has now (at least 1, for a progress line's sake)."""
     return max(1, len(client.scheduler_info().get("workers", {})))
+
+
+def _check_reachable(scheduler: Scheduler, timeout_s: float) -> None:
+    """A TCP scheduler that refuses the connection is refused at once (Dask's client would retry for
+    ``timeout_s``); one that answers is left to the client."""
+    import socket
+
+    host, _, port = scheduler.address[len("tcp://"):].rpartition(":")
+    try:
+        with socket.create_connection((host.strip("[]"), int(port)), timeout=timeout_s):
+            pass
+    except (OSError, ValueError) as exc:
+        raise SchedulerError(f"--scheduler {scheduler.text}: no Dask scheduler answered ({exc})") from None

@@ -149,6 +149,16 @@ def test_frames_reach_registration_in_the_cts_view(pelvis_file):
             assert ncc(stored[inner], drr[inner]) < 0.8
 
 
+def _evaluate_here(capsys, *args) -> tuple[int, str]:
+    """``ctxreg evaluate ARGS`` in this process (no interpreter start: the refusals come before any work):
+    ``(exit status, stderr)``."""
+    from register.cli import main
+
+    capsys.readouterr()
+    rc = main(["evaluate", *map(str, args)])
+    return rc, capsys.readouterr().err
+
+
 def _evaluate(*args, cwd=None):
     return subprocess.run([sys.executable, "-m", "register.cli", "evaluate", *map(str, args)], capture_output=True,
                           text=True, cwd=cwd, timeout=900)
@@ -205,7 +215,7 @@ def _copy(src: Path, dst: Path, edit) -> Path:
     ("positive_focal", "with f > 0"),
     ("missing_pose", "no '17-1882/projections/000/gt-poses/cam-to-pelvis-vol'"),
 ])
-def test_bad_files_are_one_line(small_file, tmp_path, case, expect):
+def test_bad_files_are_one_line(small_file, tmp_path, capsys, case, expect):
     src, _ = small_file
     bad = tmp_path / f"{case}.h5"
     args = []
@@ -236,10 +246,10 @@ def test_bad_files_are_one_line(small_file, tmp_path, case, expect):
         def edit(f):
             del f["17-1882/projections/000/gt-poses/cam-to-pelvis-vol"]
         _copy(src, bad, edit)
-    r = _evaluate("--deepfluoro", bad, *args, "--method", "cmaes", "--out", tmp_path / "out")
-    assert r.returncode == 2, r.stderr
-    err = r.stderr.strip().splitlines()
-    assert len(err) == 1 and err[0].startswith("ctxreg evaluate: error:"), r.stderr
+    rc, stderr = _evaluate_here(capsys, "--deepfluoro", bad, *args, "--method", "cmaes", "--out", tmp_path / "out")
+    assert rc == 2, stderr
+    err = stderr.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("ctxreg evaluate: error:"), stderr
     assert expect in err[0], err[0]
 
 
@@ -250,14 +260,14 @@ def test_reader_errors_are_input_errors(tmp_path):
     assert p.sdd_mm == -1.0  # a positive focal length reads as a negative SDD: the file check refuses it
 
 
-def test_evaluate_refuses_the_simulated_protocols_options(small_file, tmp_path):
+def test_evaluate_refuses_the_simulated_protocols_options(small_file, tmp_path, capsys):
     path, _ = small_file
-    r = _evaluate("--deepfluoro", path, "--cases", "3", "--out", tmp_path / "o")
-    assert r.returncode == 2 and "--cases" in r.stderr and "--deepfluoro" in r.stderr
-    r = _evaluate("--cases", "3", "--specimen", "1", "--out", tmp_path / "o")
-    assert r.returncode == 2 and "--specimen" in r.stderr and "--deepfluoro only" in r.stderr
-    r = _evaluate("--cases", "3", "--out", tmp_path / "o")
-    assert r.returncode == 2 and "--ct: required" in r.stderr
+    rc, err = _evaluate_here(capsys, "--deepfluoro", path, "--cases", "3", "--out", tmp_path / "o")
+    assert rc == 2 and "--cases" in err and "--deepfluoro" in err
+    rc, err = _evaluate_here(capsys, "--cases", "3", "--specimen", "1", "--out", tmp_path / "o")
+    assert rc == 2 and "--specimen" in err and "--deepfluoro only" in err
+    rc, err = _evaluate_here(capsys, "--cases", "3", "--out", tmp_path / "o")
+    assert rc == 2 and "--ct: required" in err
 
 
 def test_optional_datasets_and_the_border_cut(small_file, tmp_path):
