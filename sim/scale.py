@@ -24,14 +24,15 @@ from __future__ import annotations
 
 import contextlib
 import re
+from typing import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Iterator
 
 from sim.errors import InputError
 
-__all__ = ["SchedulerError", "Scheduler", "parse_scheduler", "dask_client", "worker_count", "CONNECT_TIMEOUT_S",
-           "MAX_LOCAL_WORKERS"]
+__all__ = ["SchedulerError", "WorkerLost", "Scheduler", "parse_scheduler", "dask_client", "worker_count", "each_result",
+           "CONNECT_TIMEOUT_S", "MAX_LOCAL_WORKERS"]
 
 #: Seconds to reach a scheduler before the run is refused (nothing is written before).
 CONNECT_TIMEOUT_S = 10.0
@@ -41,6 +42,15 @@ MAX_LOCAL_WORKERS = 256
 
 class SchedulerError(InputError):
     """``--scheduler`` cannot be used: a malformed value, an unreachable scheduler, Dask missing."""
+
+
+class WorkerLost(RuntimeError):
+    """A task's worker died on every try the scheduler allowed (:class:`distributed.KilledWorker`);
+    ``key`` names the task as :func:`each_result` was given it."""
+
+    def __init__(self, key, message: str):
+        super().__init__(message)
+        self.key = key
 
 
 @dataclass(frozen=True)
@@ -140,3 +150,24 @@ def _check_reachable(scheduler: Scheduler, timeout_s: float) -> None:
             pass
     except (OSError, ValueError) as exc:
         raise SchedulerError(f"--scheduler {scheduler.text}: no Dask scheduler answered ({exc})") from None
+
+
+def each_result(client, tasks: dict, on_result: Callable[[object, object], None]) -> None:
+    """Submit ``tasks`` (``{key: (function, *args)}``, each a top-level function and picklable
+    arguments) to ``client`` and call ``on_result(key, result)`` as each finishes, in the order they
+    finish. A task that raised re-raises here; one whose workers kept dying raises :class:`WorkerLost`.
+    On any error (or Ctrl-C) the tasks not yet done are cancelled, so no worker goes on writing."""
+    from distributed import as_completed
+    from distributed.scheduler import KilledWorker
+
+    futures = {client.submit(fn, *args, pure=False): key for key, (fn, *args) in tasks.items()}
+    try:
+        for fut in as_completed(list(futures)):
+            try:
+                result = fut.result()
+            except KilledWorker as exc:
+                raise WorkerLost(futures[fut], f"its Dask worker died on every try ({exc})") from None
+            on_result(futures[fut], result)
+    except BaseException:
+        client.cancel(list(futures))
+        raise

@@ -46,6 +46,7 @@ from sim.atomic import atomic_path, jsonable, write_csv, write_json
 from sim.outputs import check_output_dir
 from sim.geometry import params_from_pose, pose_from_params, project_points, projection_matrix
 from sim.progress import Progress
+from sim.scale import each_result
 from sim.seeds import KIND_EVALUATE_CASES, rng_for
 
 __all__ = ["DeepFluoroSettings", "evaluate_deepfluoro", "frame_errors", "START_MODES", "DEEPFLUORO_FILES"]
@@ -354,16 +355,9 @@ def evaluate_deepfluoro(path, settings: DeepFluoroSettings, out, *, model=None, 
             for sid, i, start, left in jobs:
                 finished(_register_frame(f, sid, i, start, left, settings, predictor, border, steps))
         else:
-            from distributed import as_completed as dask_completed
-
-            futures = [client.submit(_dask_frame, str(Path(path).resolve()), sid, i, start, left, settings, model,
-                                     border, steps, pure=False) for sid, i, start, left in jobs]
-            try:
-                for fut in dask_completed(futures):
-                    finished(fut.result())
-            except BaseException:
-                client.cancel(futures)
-                raise
+            each_result(client, {n: (_dask_frame, str(Path(path).resolve()), sid, i, start, left, settings, model,
+                                     border, steps) for n, (sid, i, start, left) in enumerate(jobs)},
+                        lambda _n, new_rows: finished(new_rows))
         order = {key: n for n, key in enumerate((sid, i) for sid, indices in plan for i in indices)}
         methods = {m: k for k, m in enumerate(settings.methods)}
         rows.sort(key=lambda r: (order[(r["specimen"], int(r["frame"]))], methods[r["method"]]))

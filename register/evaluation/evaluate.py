@@ -35,6 +35,7 @@ from sim.ct_io import load_ct_spec
 from sim.errors import InputError
 from sim.geometry import pose_from_params
 from sim.progress import Progress
+from sim.scale import each_result
 from sim.seeds import KIND_EVALUATE_CASES, rng_for
 
 #: ``ap``: ctxreg's AP pose; ``pose``: ``init``; ``local``: the truth moved by a seeded random offset;
@@ -267,18 +268,10 @@ def evaluate(volume, methods: dict[str, RegistrationMethod], settings: Evaluatio
         for i, (target, start, image) in enumerate(zip(targets, starts, target_images)):
             done(i, _case_rows(i, target, start, image, methods, settings, points, center_lps, geometry))
     else:
-        from distributed import as_completed as dask_completed
-
         if spec is None:
             raise EvaluationError("evaluate on a Dask client needs the methods' spec (MethodSpec)")
-        futures = {client.submit(_dask_case, spec, i, targets[i], starts[i], target_images[i], settings, geometry,
-                                 pure=False): i for i in range(len(targets))}
-        try:
-            for fut in dask_completed(list(futures)):
-                done(futures[fut], fut.result())
-        except BaseException:
-            client.cancel(list(futures))
-            raise
+        each_result(client, {i: (_dask_case, spec, i, targets[i], starts[i], target_images[i], settings, geometry)
+                             for i in range(len(targets))}, done)
     rows = [r for i in sorted(per_case) for r in per_case[i][0]]
     trajectories = [t for i in sorted(per_case) for t in per_case[i][1]]
     summary = summarize(rows, settings)

@@ -92,6 +92,7 @@ from sim.outputs import check_output_dir
 from sim.physics.display import Collimator, DisplayChain
 from sim.physics.imaging import LogImageRenderer, PhysicsSettings, XRayImager
 from sim.progress import Progress
+from sim.scale import each_result
 from sim.drr import DRRRenderer, RenderSettings
 from sim.scene import SceneError, load_scene
 
@@ -679,16 +680,8 @@ def _evaluate_xray(study: Study, target: Target, volume, center, predictor, fold
             done(i, _xray_case(study, predictor, volume, center, frame, settings, points, i, target_params, start,
                                frames))
     else:
-        from distributed import as_completed as dask_completed
-
-        futures = {client.submit(_dask_xray_case, study, target, model, settings, i, targets[i], starts[i],
-                                 str(frames), pure=False): i for i in range(len(targets))}
-        try:
-            for fut in dask_completed(list(futures)):
-                done(futures[fut], fut.result())
-        except BaseException:
-            client.cancel(list(futures))
-            raise
+        each_result(client, {i: (_dask_xray_case, study, target, model, settings, i, targets[i], starts[i], str(frames))
+                             for i in range(len(targets))}, done)
     rows = [r for i in sorted(per_case) for r in per_case[i]]
     summary = summarize(rows, settings)
     write_csv(folder / "cases.csv", rows)

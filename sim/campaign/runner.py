@@ -42,6 +42,7 @@ import numpy as np
 from sim.atomic import remove_stale_temps, write_json
 from sim.campaign import dataset as ds
 from sim.errors import InputError
+from sim.scale import WorkerLost, each_result
 from sim.seeds import KIND_NOISE, KIND_POSES, KIND_VIRTUAL_PATIENT, rng_for  # the random streams
 
 #: A pixel is bone in ``bone_mask`` where the ray crosses at least this much bone (mm).
@@ -619,26 +620,20 @@ def _render_on_dask(cfg, out: Path, todo: list[Unit], units: list[Unit], client,
     recorded as they arrive. A task whose worker died is retried by the scheduler; one that kept
     losing its worker (:class:`distributed.KilledWorker`) or raised stops the run, finished shards
     kept for ``--resume``. Temporary files of workers that died are removed at the end."""
-    from distributed import as_completed as dask_completed
-    from distributed.scheduler import KilledWorker
-
     total = sum(u.stop - u.start for u in units)
     bar = Progress(total, total - sum(u.stop - u.start for u in todo), cfg.name, "images",
                    rate_unit="img/s") if progress else None
-    futures = {client.submit(_dask_unit, cfg, u, str(out), pure=False): u for u in todo}
+
+    def finished(unit: Unit, result: dict) -> None:
+        record(result)
+        if bar:
+            bar.update(unit.stop - unit.start)
+
     try:
-        for fut in dask_completed(list(futures)):
-            try:
-                result = fut.result()
-            except KilledWorker as exc:
-                raise CampaignError(f"shard {futures[fut].name}: its Dask worker died on every try ({exc}); "
-                                    f"finished shards are kept in {out}: rerun with --resume") from None
-            record(result)
-            if bar:
-                bar.update(futures[fut].stop - futures[fut].start)
-    except BaseException:  # an error, SIGTERM or Ctrl-C: no task may go on writing
-        client.cancel(list(futures))
-        raise
+        each_result(client, {u: (_dask_unit, cfg, u, str(out)) for u in todo}, finished)
+    except WorkerLost as exc:
+        raise CampaignError(f"shard {exc.key.name}: {exc}; finished shards are kept in {out}: rerun with "
+                            "--resume") from None
     remove_stale_temps(out / ds.SHARD_DIR)
 
 
