@@ -230,15 +230,20 @@ def _resumed_rows(out: Path, record: dict) -> list[dict]:
 _SPECIMENS: dict = {}  # (file, specimen) -> DeepFluoroSpecimen with its CT: one per process
 
 
+def _specimen(f: DeepFluoroFile, sid: str) -> DeepFluoroSpecimen:
+    """Specimen ``sid`` of ``f`` with its CT, read once per process (one specimen's CT kept at a time)."""
+    key = (str(f.path.resolve()), sid)
+    if key not in _SPECIMENS:
+        _SPECIMENS.clear()
+        _SPECIMENS[key] = f.specimen(sid)
+    return _SPECIMENS[key]
+
+
 def _register_frame(f: DeepFluoroFile, sid: str, index: int, start, methods: tuple[str, ...],
                     settings: DeepFluoroSettings, predictor, border: int, steps: list[str]) -> list[dict]:
     """Frame ``index`` of specimen ``sid`` registered from ``start`` ``(6,)`` by each of ``methods``:
     its rows (errors at the start and the end, seconds, the pose)."""
-    key = (str(f.path.resolve()), sid)
-    if key not in _SPECIMENS:
-        _SPECIMENS.clear()  # one specimen's CT at a time
-        _SPECIMENS[key] = f.specimen(sid)
-    spec = _SPECIMENS[key]
+    spec = _specimen(f, sid)
     fr = spec.projection(index)
     T_true, geometry = fr.truth(spec.center_lps, sod_mm=settings.sod_mm)
     initial = frame_errors(pose_from_params(start, settings.sod_mm), T_true, fr, spec, geometry)
@@ -333,7 +338,7 @@ def evaluate_deepfluoro(path, settings: DeepFluoroSettings, out, *, model=None, 
             if all((sid, i, m) in done for i in indices for m in settings.methods):
                 continue
             light = f.specimen(sid, ct=False)
-            centre = f.specimen(sid).center_lps if settings.start in ("local", "truth") else None
+            centre = _specimen(f, sid).center_lps if settings.start in ("local", "truth") else None
             truths = np.array([params_from_pose(light.projection(i, pixels=False).truth(centre, sod_mm=settings.sod_mm)[0],
                                                 settings.sod_mm) for i in indices]) if centre is not None \
                 else np.zeros((len(indices), 6))

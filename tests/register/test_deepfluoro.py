@@ -28,7 +28,7 @@ import numpy as np
 import pytest
 
 from register.convert import to_deepfluoro
-from register.datasets.deepfluoro import DeepFluoroError, DeepFluoroFile, ProjectionParams
+from register.datasets.deepfluoro import DeepFluoroError, DeepFluoroFile
 from register.datasets.deepfluoro_synthetic import (DEEPFLUORO_WORLD_FROM_CAMERA, SyntheticSettings, canonical_lps,
                                                     synthesize_deepfluoro)
 from register.engines.metrics import ncc
@@ -254,10 +254,14 @@ def test_bad_files_are_one_line(small_file, tmp_path, capsys, case, expect):
 
 
 def test_reader_errors_are_input_errors(tmp_path):
+    """The reader's refusals are user errors (one line on the command line), not tracebacks."""
+    from sim.errors import InputError
+
+    assert issubclass(DeepFluoroError, InputError)
     with pytest.raises(DeepFluoroError, match="file not found"):
         DeepFluoroFile(tmp_path / "none.h5")
-    p = ProjectionParams(intrinsic=np.eye(3), extrinsic=np.eye(4), rows=4, cols=4, spacing_mm=1.0)
-    assert p.sdd_mm == -1.0  # a positive focal length reads as a negative SDD: the file check refuses it
+    with pytest.raises(DeepFluoroError, match="a folder"):
+        DeepFluoroFile(tmp_path)
 
 
 def test_evaluate_refuses_the_simulated_protocols_options(small_file, tmp_path, capsys):
