@@ -151,6 +151,7 @@ class XRayRegistration:
     search_mode: str | None = None
     search_ran: bool = False
     timings: dict[str, float] = field(default_factory=dict)
+    center_how: str = ""
 
     @property
     def search_status(self) -> str:
@@ -213,7 +214,8 @@ class XRayRegistration:
             "search_ran": bool(self.search_ran), "search_status": self.search_status,
             "timings_s": {k: round(v, 4) for k, v in self.timings.items()}, "ct": self.volume.source,
             "xray": self.prepared.xray.source, "init_params": self.init_params.tolist(),
-            "anatomy_center_lps_mm": self.center_lps.tolist(), "xray_input": self.xray_input,
+            "anatomy_center_lps_mm": self.center_lps.tolist(), "anatomy_center_how": self.center_how,
+            "xray_input": self.xray_input,
             "preprocessing": self.prepared.record,
             "moving_physics": {**asdict(self.physics),
                                "label_materials": {str(k): v for k, v in (self.label_materials or {}).items()}},
@@ -303,7 +305,9 @@ def register_xray(ct, xray, *, method: str = "contextual+cmaes", model=None, ini
         method: ``"cmaes"``, ``"contextual"`` or ``"contextual+cmaes"`` (:mod:`register.engines.methods`).
         model: the ``ctxreg train`` checkpoint (path or loaded predictor) of the contextual methods.
         init: the start pose: ``"ap"`` or six numbers (phi theta psi deg, tx ty tz mm).
-        center: ``(3,)`` anatomy centre c in LPS mm; None = the label map's or the bone centroid.
+        center: ``(3,)`` anatomy centre c in LPS mm; None = :func:`sim.anatomy.find_center`'s (the
+            label map's centroid, else that of the pelvis's bone pieces); result.json says which
+            (``anatomy_center_how``).
         label_map: a label map for ``ct`` given as a path (with ``label_materials``: implants).
         scene: the C-arm for the geometry values the image does not give.
         sdd_mm, sod_mm, pixel_spacing_mm: explicit geometry (override the DICOM tags and the scene).
@@ -342,7 +346,7 @@ def register_xray(ct, xray, *, method: str = "contextual+cmaes", model=None, ini
     the work where the input allows it (everything but the image's contents).
     """
     from sim import load_ct
-    from sim.anatomy import anatomy_center
+    from sim.anatomy import find_center
     from sim.geometry import pose_from_params
     from sim.drr import check_in_view
 
@@ -391,7 +395,9 @@ def register_xray(ct, xray, *, method: str = "contextual+cmaes", model=None, ini
     check_registration_memory(box, (xr.pixels.shape[0], xr.pixels.shape[1]), full_geometry)
     with clock("ct"):
         volume = load_ct(ct, label_map=label_map, cache=ct_cache, log=log)
-        c = np.asarray(center, float) if center is not None else anatomy_center(volume)
+        found = find_center(volume, center=center)
+        c = found.lps_mm
+    log(f"anatomy centre {found.describe()}")
     check_in_view(volume, full_geometry, pose_from_params(x0, full_geometry.sod_mm), c,
                   what="the start pose (--init, with the anatomy centre --center)")
     # -- the work
@@ -455,7 +461,7 @@ def register_xray(ct, xray, *, method: str = "contextual+cmaes", model=None, ini
     return XRayRegistration(method=method, result=result, prepared=prepared, volume=volume, center_lps=c,
                             init_params=x0, physics=moving, label_materials=label_materials, notes=notes,
                             search_mode=search if method in SEARCH_METHODS else None, search_ran=ran,
-                            timings=clock.seconds)
+                            timings=clock.seconds, center_how=found.to_dict()["anatomy_center_how"])
 
 
 def grid_bytes(box, shape, geometry) -> float:

@@ -16,6 +16,7 @@ import numpy as np
 from sim.cliargs import IMAGE_SIDE_PX, Range, opt
 from sim.errors import InputError
 from sim.physics.options import level_field, physics_option
+from sim.anatomy import find_center
 from sim.drr import QUANTITIES, RAY_MODELS, STEP_FRACTION, RenderSettings
 
 _DEFAULTS = RenderSettings()  # the renderer's defaults are the command line's
@@ -110,8 +111,9 @@ def load_pose_matrix(path: str) -> np.ndarray:
     return m
 
 
-def geometry_record(renderer, pose: np.ndarray, quantity: str) -> dict:
-    """The JSON sidecar: everything needed to reproduce or project into the image."""
+def geometry_record(renderer, pose: np.ndarray, quantity: str, *, center_how: str = "given") -> dict:
+    """The JSON sidecar: everything needed to reproduce or project into the image; ``center_how``:
+    how the anatomy centre was found (:meth:`sim.anatomy.Center.to_dict`)."""
     g = renderer.geometry
     return {
         "ct": renderer.volume.source,
@@ -128,6 +130,7 @@ def geometry_record(renderer, pose: np.ndarray, quantity: str) -> dict:
         "principal_point_uv": list(g.principal_point),
         "K": g.intrinsics().tolist(),
         "anatomy_center_lps_mm": renderer.center_lps.tolist(),
+        "anatomy_center_how": center_how,
         "pose_4x4": np.asarray(pose).tolist(),
         "projection_3x4_lps_to_pixels": renderer.projection_matrix(pose).tolist(),
         "conventions": "docs/conventions.md: X_cam = R (X_lps - c) + t; pixel (u=column, v=row)",
@@ -183,13 +186,16 @@ def run_render(cmd: RenderCommand) -> Path | list[Path]:
     settings = RenderSettings(scene=cmd.scene, size=tuple(cmd.size), ray_model=cmd.ray_model,
                               **(dict(step_fraction=cmd.step_fraction, quantity=cmd.quantity,
                                       mu_water_per_mm=cmd.mu_water) if line else {}))
+    found = find_center(volume, center=cmd.center)
     view = render_view(volume, pose, settings=settings, physics=None if line else physics_settings(cmd),
-                       center_lps=cmd.center, label_materials=None if line else label_materials(cmd),
+                       center_lps=found.lps_mm, label_materials=None if line else label_materials(cmd),
                        what="--pose / --pose-matrix with this --center")
+    how = found.to_dict()["anatomy_center_how"]
     if line:
-        write_image(out, view.image, geometry_record(view.renderer, view.pose, cmd.quantity), cmd.quantity)
+        write_image(out, view.image, geometry_record(view.renderer, view.pose, cmd.quantity, center_how=how),
+                    cmd.quantity)
         return out
-    return _write_physics(cmd, view, out)
+    return _write_physics(cmd, view, out, how)
 
 
 #: Options of ``render`` itself that only mean something at some physics levels (the shared
@@ -210,10 +216,11 @@ def _check_physics_options(cmd: RenderCommand) -> None:
                   why=f"meaningful with --ray-model trilinear only; this run is --ray-model {cmd.ray_model}")
 
 
-def _write_physics(cmd: RenderCommand, view, out: Path) -> list[Path]:
+def _write_physics(cmd: RenderCommand, view, out: Path, center_how: str) -> list[Path]:
     from sim.atomic import atomic_path
 
-    record = {**geometry_record(view.renderer, view.pose, "line-integral"), "quantity": "-log(I/I0)",
+    record = {**geometry_record(view.renderer, view.pose, "line-integral", center_how=center_how),
+              "quantity": "-log(I/I0)",
               "units": "-log(I / I0), dimensionless", "physics": view.physics}
     write_image(out, view.image, record, "line-integral")
     written = [out]

@@ -12,7 +12,7 @@ what :func:`sim.ct_io.load_ct` returns, with the anatomy centre, in one ``.npz``
 * **Entry**: ``<key>.npz`` (uncompressed; no pickled objects): ``hu`` (int16 where every value
   is a whole number in int16's range, else float32), ``affine`` ``(4, 4)`` LPS mm, ``center``
   ``(3,)`` LPS mm (NaN where the CT has no bone to centre on) and ``meta`` (JSON text: format,
-  key, source path, shape). Written atomically (:func:`sim.atomic.atomic_path`); an entry that
+  key, source path, shape, how the centre was found). Written atomically (:func:`sim.atomic.atomic_path`); an entry that
   cannot be read or does not match its key is removed and rebuilt, with a line to ``log``. A
   folder that cannot be written (a full disk, a read-only home) costs the cache, not the CT: a
   line to ``log``, and the CT as read from its file.
@@ -39,14 +39,14 @@ from typing import Callable
 
 import numpy as np
 
-from sim.anatomy import AnatomyError, anatomy_center, remember_center
+from sim.anatomy import AnatomyError, find_center, remember_center
 from sim.atomic import atomic_path
 from sim.ct_io import load_ct
 from sim.errors import InputError
 from sim.volume import CTVolume
 
 #: Bump when an entry's contents or meaning change: old entries then miss.
-CACHE_FORMAT = 1
+CACHE_FORMAT = 2  # 2: the centre of the pelvis's bone pieces and how it was found (meta 'center_how')
 #: Default size limit of the cache folder, in MB (``$CTXREG_CT_CACHE_MB`` overrides it).
 MAX_CACHE_MB = 4096
 #: Bytes read at a time while hashing.
@@ -128,11 +128,12 @@ def load_ct_cached(path: str | os.PathLike, *, cache_dir: str | os.PathLike | No
             return volume
     volume = load_ct(path)
     try:
-        center = anatomy_center(volume)
+        found = find_center(volume)
+        center, how = found.lps_mm, found.to_dict()["anatomy_center_how"]
     except AnatomyError:
-        center = np.full(3, np.nan)
+        center, how = np.full(3, np.nan), ""
     try:
-        _write_entry(entry, key, path, volume, center)
+        _write_entry(entry, key, path, volume, center, how)
     except OSError as e:  # a full disk or a read-only home must not stop the work the CT is for
         log(f"CT cache: cannot write {entry} ({e.strerror or e}); the CT was read from {path} and is not cached "
             f"(set CTXREG_CT_CACHE to a writable folder, or turn the cache off)")
@@ -166,12 +167,12 @@ def evict(folder: str | os.PathLike, *, keep: Path | None = None, limit_bytes: i
     return removed
 
 
-def _write_entry(entry: Path, key: str, path: Path, volume: CTVolume, center: np.ndarray) -> None:
+def _write_entry(entry: Path, key: str, path: Path, volume: CTVolume, center: np.ndarray, how: str = "") -> None:
     hu = volume.hu
     as_int = np.rint(hu)
     if np.array_equal(as_int, hu) and as_int.min() >= np.iinfo(np.int16).min and as_int.max() <= np.iinfo(np.int16).max:
         hu = as_int.astype(np.int16)
-    meta = {"format": CACHE_FORMAT, "key": key, "source": str(path), "shape": list(volume.shape)}
+    meta = {"format": CACHE_FORMAT, "key": key, "source": str(path), "shape": list(volume.shape), "center_how": how}
     entry.parent.mkdir(parents=True, exist_ok=True)
     with atomic_path(entry) as tmp:
         with open(tmp, "wb") as fh:
@@ -199,5 +200,5 @@ def _read_entry(entry: Path, key: str, path: Path, log) -> CTVolume | None:
         return None
     volume = CTVolume(hu=hu.astype(np.float32, copy=False), affine=affine, source=str(path))
     if np.all(np.isfinite(center)):
-        remember_center(volume, center)
+        remember_center(volume, center, str(meta.get("center_how") or "bone: stored with the CT"))
     return volume
