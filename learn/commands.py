@@ -52,6 +52,37 @@ def run_train(cmd: TrainCommand) -> list[Path]:
 
 
 @dataclass(frozen=True)
+class AdaptCommand:
+    """Defaults of ``ctxreg adapt`` (:mod:`learn.adapt`)."""
+
+    ct: str = field(metadata=opt("the CT to adapt the network to (NIfTI file or DICOM series folder)", group="input",
+                                 metavar="CT"))
+    out: str = field(metadata=opt("the output folder: the adapted model (model.pt, model.toml, for register --model "
+                                  "DIR), the training run (run/) and adapt.json", group="output", metavar="DIR"))
+    minutes: float = field(default=10.0, metadata=opt(
+        "training time; with --resume, minutes more", group="run", unit="min", metavar="M",
+        bounds=Range(0.0, 24 * 60.0, lo_open=True)))
+    from_model: str | None = field(default=None, metadata=opt(
+        "the base network: a shipped model's name (ctxreg models), a model folder or a checkpoint (default: the "
+        "default model)", group="input", flag="--from", metavar="MODEL"))
+    device: str = field(default="auto", metadata=opt(
+        "where the network trains and its pairs are made: auto (a CUDA GPU when torch sees one), cpu or cuda",
+        group="run", choices=("auto", "cpu", "cuda")))
+    resume: bool = field(default=False, metadata=opt(
+        "continue the adaptation in --out (its checkpoint, optimiser and random state) for --minutes more",
+        group="run"))
+
+
+def run_adapt(cmd: AdaptCommand) -> list[Path]:
+    from learn.adapt import ADAPT_FILES, adapt
+    from sim.outputs import check_output_dir
+
+    out = check_output_dir(cmd.out, ADAPT_FILES)
+    adapt(cmd.ct, out, minutes=cmd.minutes, base=cmd.from_model, device=cmd.device, resume=cmd.resume)
+    return [out / name for name in ADAPT_FILES]
+
+
+@dataclass(frozen=True)
 class AccuracyCommand:
     """Defaults of ``ctxreg accuracy``."""
 

@@ -62,7 +62,12 @@ CARD_SCHEMA: dict[str, tuple[dict[str, Any], dict[str, Any]]] = {
                   "pairs_seen": _INT, "seed": _INT, "duration_s": _NUM, "machine": _STR},
                  {"lr": _STR, "note": _STR, "resume_state": _STR}),
     "accuracy": ({"protocol": _STR, "headline": _LIST}, {}),
+    # a model adapted to one CT (``ctxreg adapt``, :mod:`learn.adapt`); other models have none
+    "adaptation": ({"base": _STR, "ct": _STR, "ct_hash": _STR, "pairs_seen": _INT, "minutes": _NUM,
+                    "device": _STR, "curve": _LIST, "curve_columns": _LIST}, {"note": _STR}),
 }
+#: Sections a card may leave out.
+OPTIONAL_SECTIONS = ("adaptation",)
 #: Keys of a measurement table ``[accuracy.<name>]``: required text, and text it may hold.
 _MEASUREMENT_TEXT = ("what", "command", "measured")
 _MEASUREMENT_NOTES = ("success_definition", "compared_with", "note", "groups_unit")
@@ -121,6 +126,8 @@ def check_card(card: Any, where: str = "model card") -> None:
         raise ModelCardError(f"{where}: unknown section(s) {sorted(extra)} (a card has {list(CARD_SCHEMA)})")
     for section, (required, optional) in CARD_SCHEMA.items():
         table = card.get(section)
+        if table is None and section in OPTIONAL_SECTIONS:
+            continue
         if not isinstance(table, dict):
             raise ModelCardError(f"{where}: needs a [{section}] table")
         for key, kind in required.items():
@@ -144,11 +151,11 @@ def check_card(card: Any, where: str = "model card") -> None:
 
 
 def export_model(checkpoint: str | Path, folder: str | Path, *, name: str, summary: str,
-                 training: dict[str, Any], accuracy: dict[str, Any]) -> Path:
+                 training: dict[str, Any], accuracy: dict[str, Any], adaptation: dict[str, Any] | None = None) -> Path:
     """Write ``folder/model.pt`` (the checkpoint's weights and what they need: architecture,
     image size, preprocessing, physics, config) and ``folder/model.toml`` (the card); returns the
-    card's path. ``training`` and ``accuracy`` are the card's tables in :data:`CARD_SCHEMA`
-    (checked before anything is written)."""
+    card's path. ``training``, ``accuracy`` and (a model adapted to one CT) ``adaptation`` are
+    the card's tables in :data:`CARD_SCHEMA` (checked before anything is written)."""
     from sim.atomic import write_toml
 
     ckpt = load_checkpoint(checkpoint)
@@ -158,6 +165,8 @@ def export_model(checkpoint: str | Path, folder: str | Path, *, name: str, summa
              "current_physics": ckpt.current_physics or {},
              "current_field": (ckpt.config or {}).get("current_field", "masked"), "iterations": ckpt.iteration}
     card = {"model": model, "training": training, "accuracy": accuracy}
+    if adaptation is not None:
+        card["adaptation"] = adaptation
     check_card(card, f"the card of {name}")
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)

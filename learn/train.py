@@ -11,7 +11,8 @@ and only the heads run per step, on the same pairs in the same order. The output
 ``checkpoint.pt`` (:mod:`learn.checkpoint`: model, architecture, image size (H, W) in pixels,
 preprocessing, physics, config, optimiser, scheduler, iteration, random states; written atomically
 every ``checkpoint_every`` iterations and at the end), ``log.csv`` (iteration, training loss,
-validation loss, rotation and translation error of the predicted gradient) and ``loss.png``.
+validation loss, rotation and translation error of the predicted gradient, learning rate, training
+seconds so far) and ``loss.png``.
 A run killed at any point and restarted with ``--resume`` continues from its last checkpoint
 and takes exactly the steps an uninterrupted run would have taken (tested); a resume with another
 config is refused, naming the keys that changed. The first Ctrl-C (SIGINT) or SIGTERM (a cluster
@@ -643,10 +644,10 @@ def train(cfg: TrainConfig, *, resume: bool = False, log=print, device: str = "a
     from sim.progress import Progress
 
     bar = Progress(cfg.iterations, iteration, f"train {out.name}", "iterations", rate_unit="pairs/s",
-                   rate_scale=cfg.batch_size) if run.main else None
+                   rate_scale=cfg.batch_size, time_limit_s=stop_after_s) if run.main else None
     with _StopOnSignal() as signalled:
         last = _loop(cfg, source, model, optimizer, scheduler, device, iteration, rows, log_path, ckpt_path, bar,
-                     started, stop_after_s, signalled, log, precision, run)
+                     started, stop_after_s, signalled, log, precision, run, _elapsed_before(rows))
     if run.main:
         try:
             _plot(rows, out / "loss.png")
@@ -673,12 +674,23 @@ def _follow_schedule(optimizer, scheduler, cfg: TrainConfig, iteration: int) -> 
     scheduler._last_lr = [rate] * len(optimizer.param_groups)
 
 
+def _elapsed_before(rows: list[dict]) -> float:
+    """Training seconds of the log's rows before a resume (its last ``elapsed_s``; 0 for logs
+    written before the column)."""
+    try:
+        return float(rows[-1].get("elapsed_s") or 0.0) if rows else 0.0
+    except ValueError:
+        return 0.0
+
+
 def _loop(cfg, source, model, optimizer, scheduler, device, iteration, rows, log_path, ckpt_path, bar, started,
-          stop_after_s, signalled, log, precision: str, run: DistributedRun = DistributedRun()) -> dict:
+          stop_after_s, signalled, log, precision: str, run: DistributedRun = DistributedRun(),
+          elapsed_before: float = 0.0) -> dict:
     """The training iterations from ``iteration`` to the end, a time limit or a signal, in
     ``precision`` (``fp32`` or ``bf16``, :func:`step_precision`); returns the last log row. Under
     torchrun (``run``) each rank trains on its share of the batch; rank 0 validates, logs and
-    writes the checkpoints."""
+    writes the checkpoints. The log's ``elapsed_s`` is the run's training seconds (validations
+    included, from ``elapsed_before`` on a resume)."""
     from learn.checkpoint import Checkpoint, capture_rng
 
     last = {}
@@ -716,8 +728,9 @@ def _loop(cfg, source, model, optimizer, scheduler, device, iteration, rows, log
             last.update(_validate(unwrap(model), source, cfg, device))
             model.train()
             rate = (iteration - start_iteration) * cfg.batch_size / (time.perf_counter() - started)
+            last["elapsed_s"] = round(elapsed_before + time.perf_counter() - started, 2)
             rows.append({k: last.get(k, "") for k in ("iteration", "train_loss", "val_loss", "val_rot_err_deg",
-                                                    "val_trans_err_mm", "lr")}
+                                                    "val_trans_err_mm", "lr", "elapsed_s")}
                         | {k: v for k, v in last.items() if k.startswith(("val_rot_", "val_trans_"))
                            and k not in ("val_rot_err_deg", "val_trans_err_mm")})
             _write_log(log_path, rows)

@@ -22,6 +22,7 @@ method (:func:`register.engines.methods.build_method`) and registers. ``ctxreg r
 
 from __future__ import annotations
 
+import os
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -30,6 +31,7 @@ from typing import Any, Callable
 import numpy as np
 from scipy import ndimage
 
+from learn.adapt import adapted_ct_warning
 from register.engines.methods import build_method, check_method, load_predictor, needs_model
 from register.engines.metrics import downsample, gradient_ncc
 from register.engines.result import RegistrationError
@@ -385,6 +387,10 @@ def register_xray(ct, xray, *, method: str = "contextual+cmaes", model=None, ini
     clock = StageClock()
     with clock("model"):
         predictor = load_predictor(model) if needs_model(method) else None
+    if predictor is not None and isinstance(model, (str, os.PathLike)) and isinstance(ct, (str, os.PathLike)):
+        warning = adapted_ct_warning(model, ct)  # a model adapted to another patient's CT
+        if warning is not None:
+            log(warning)
     # -- the X-ray and its geometry (a quick read: its refusals come first), the memory the size
     # asks for, the CT, the view at the start
     with clock("xray"):

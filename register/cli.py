@@ -14,7 +14,7 @@ import os
 import sys
 
 from sim.cliargs import HelpFormatter, add_options, from_namespace
-from learn.commands import AccuracyCommand, ModelsCommand, TrainCommand
+from learn.commands import AccuracyCommand, AdaptCommand, ModelsCommand, TrainCommand
 from register.commands import EvaluateCommand, RegisterCommand, ServeCommand, StudyCommand
 from register.evaluation.demo import DemoCommand
 from sim.cli import RenderCommand, SimulateCommand
@@ -30,6 +30,8 @@ COMMANDS = {
                  "register.commands:run_evaluate"),
     "train": (TrainCommand, "train the contextual pose-update network on a campaign",
               "learn.commands:run_train"),
+    "adapt": (AdaptCommand, "fine-tune the network to one CT in minutes (a patient it has never seen)",
+              "learn.commands:run_adapt"),
     "accuracy": (AccuracyCommand, "single-prediction accuracy of a trained network (per depth, vs zero)",
                  "learn.commands:run_accuracy"),
     "models": (ModelsCommand, "list the shipped models (models/<name>: card, preprocessing, accuracy)",

@@ -93,11 +93,14 @@ class Progress:
         total: items in all; done: items already done (a resumed run), not counted in the rate.
         label: what is running (the line's start); unit: the items' name ("images", "iterations").
         rate_unit: the rate's unit (default ``"<unit>/s"``); rate_scale: rate units per item.
+        time_limit_s: the work stops after this many seconds (s) if it has not ended before:
+            the ETA and the percentage then count the time (a training with ``--stop-after``).
     """
 
     def __init__(self, total: int, done: int, label: str, unit: str = "images", *, rate_unit: str | None = None,
-                 rate_scale: float = 1.0):
+                 rate_scale: float = 1.0, time_limit_s: float | None = None):
         self.total, self.done, self.label, self.unit = int(total), int(done), label, unit
+        self.time_limit_s = time_limit_s
         self.rate_unit = rate_unit or f"{unit[:3]}/s"
         self.rate_scale = float(rate_scale)
         self.start_done, self.t0, self.last = self.done, time.monotonic(), 0.0
@@ -114,8 +117,15 @@ class Progress:
         rate = (self.done - self.start_done) / max(now - self.t0, 1e-9)
         eta = (self.total - self.done) / rate if rate > 0 else float("nan")
         pct = 100.0 * self.done / max(self.total, 1)
+        done = f"{self.done}/{self.total}"
+        if self.time_limit_s is not None:  # the work ends at a time limit first: ETA and share by time
+            elapsed = now - self.t0
+            left = max(self.time_limit_s - elapsed, 0.0)
+            if not math.isfinite(eta) or left < eta:
+                eta, pct = left, 100.0 * min(elapsed / self.time_limit_s, 1.0)
+                done = f"{self.done} (of {self.time_limit_s / 60:.1f} min)"
         eta_text = "--" if not math.isfinite(eta) else time.strftime("%H:%M:%S", time.gmtime(eta))
-        return (f"{self.label}: {self.done}/{self.total} {self.unit} ({pct:5.1f} %), "
+        return (f"{self.label}: {done} {self.unit} ({pct:5.1f} %), "
                 f"{rate * self.rate_scale:6.1f} {self.rate_unit}, ETA {eta_text}")
 
     def show(self, force: bool = False) -> None:

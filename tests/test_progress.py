@@ -82,3 +82,19 @@ def test_the_stage_clocks_example_runs():
     import sim.progress
 
     assert doctest.testmod(sim.progress).failed == 0
+
+
+def test_a_time_limit_that_comes_first_gives_the_eta_and_share(capsys, monkeypatch):
+    import sim.progress as progress
+
+    clock = [100.0]
+    monkeypatch.setattr(progress.time, "monotonic", lambda: clock[0])
+    bar = Progress(10_000_000, 0, "train x", "iterations", rate_unit="pairs/s", rate_scale=32, time_limit_s=600.0)
+    clock[0] += 150.0
+    bar.done = 300  # 2 iterations/s: 10 M iterations would take weeks; the limit ends it in 450 s
+    line = bar.line()
+    assert "300 (of 10.0 min) iterations ( 25.0 %)" in line and "ETA 00:07:30" in line and "64.0 pairs/s" in line
+    short = Progress(400, 0, "train y", "iterations", time_limit_s=600.0)  # the iterations end first
+    clock[0] += 100.0
+    short.done = 200
+    assert "200/400 iterations" in short.line() and "ETA 00:01:40" in short.line()

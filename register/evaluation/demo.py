@@ -10,7 +10,10 @@ The main job of the README, for a newcomer to watch within minutes of installing
    geometry tags: a frame as a C-arm delivers it;
 3. **registration** from AP with ``contextual+cmaes`` and the shipped default model (or
    ``--model``), through :func:`register.api.register_xray`, exactly as ``ctxreg register
-   --xray xray.dcm`` does;
+   --xray xray.dcm`` does; with ``--adapt M`` the clinical flow on a patient the network never
+   saw (the validation pelvis by default): the network adapted to the CT for M minutes
+   (:func:`learn.adapt.adapt`, ``ctxreg adapt``) and the frame registered again with it, both
+   networks' errors shown;
 4. **outputs** in ``--out``: ``overlay.png`` and ``checkerboard.png`` at the X-ray's full
    resolution, ``trajectory.gif`` (each iteration's DRR beside the X-ray, captioned with its error
    against the truth), ``trajectory.png``, ``convergence.png``, ``result.json`` (the
@@ -56,6 +59,28 @@ def default_ct() -> str:
     return str(path) if path.is_file() else "phantom"
 
 
+#: ``demo --adapt``'s CT without ``--ct``: another person's pelvis, never in a shipped model's training.
+VALIDATION_CT = REPO.parent / "shared" / "data" / "ct" / "pelvis_chiconasa_2mm.nii.gz"
+#: ... and without ``../shared/data``: a phantom pelvis of a seed no shipped model trained on.
+UNSEEN_PHANTOM_SEED = 5
+
+
+def _adapt_ct(cmd: "DemoCommand", out: Path) -> str:
+    """The CT file that ``--adapt`` adapts to: ``--ct`` (a phantom spec written to ``out`` as NIfTI),
+    else :data:`VALIDATION_CT`, else the phantom of :data:`UNSEEN_PHANTOM_SEED`."""
+    spec = cmd.ct or (str(VALIDATION_CT) if VALIDATION_CT.is_file() else f"phantom:{UNSEEN_PHANTOM_SEED}")
+    if not spec.startswith("phantom"):
+        return spec
+    from sim.phantom import write_phantom_nifti
+
+    seed = int(spec.split(":", 1)[1]) if ":" in spec else 0
+    path = out / f"phantom{seed}.nii.gz"
+    if not path.is_file():
+        out.mkdir(parents=True, exist_ok=True)
+        write_phantom_nifti(path, seed)
+    return str(path)
+
+
 @dataclass(frozen=True)
 class DemoCommand:
     """Defaults of ``ctxreg demo``."""
@@ -76,6 +101,11 @@ class DemoCommand:
         metavar="P"))
     seed: int = field(default=0, metadata=opt("noise and Monte Carlo seed of the X-ray", group="protocol",
                                               bounds=Range(0)))
+    adapt: float | None = field(default=None, metadata=opt(
+        "the clinical flow on a patient the network never saw: adapt the network to the CT for M minutes (ctxreg "
+        "adapt, into OUT/adapted; a second run continues it) and register with the base and the adapted network; "
+        "without --ct the CT is ../shared/data's validation pelvis (another person's), else a phantom pelvis",
+        group="protocol", unit="min", metavar="M", bounds=Range(0.0, 120.0, lo_open=True)))
     size: tuple[int, int] = field(default=(256, 256), metadata=opt(
         "X-ray rows and columns, at least 32 and square like the detector (the registration works at 128 px on "
         "the longer side)", group="protocol",
@@ -103,12 +133,15 @@ def _network_line(rows: dict, search_status: str) -> str:
     what the global search then did (``rows``: the error table's rows by pose; ``search_status``:
     :attr:`register.api.XRayRegistration.search_status`)."""
     start = rows["start (AP)"]["mtre_mm"]
-    if "after the network" not in rows:
+    key = "after the network" if "after the network" in rows else "after the adapted network"
+    if key not in rows:
         return f"the network: no trajectory recorded (start mTRE {start:.1f} mm); global search {search_status}"
-    after = rows["after the network"]["mtre_mm"]
+    after = rows[key]["mtre_mm"]
     moved = "closer to" if after < start else "away from"
-    return (f"the network: mTRE {start:.1f} mm (AP) -> {after:.1f} mm, {moved} the truth; "
-            f"global search {search_status}")
+    base = (f" (the base network before adaptation: {rows['after the base network']['mtre_mm']:.1f} mm)"
+            if "after the base network" in rows else "")
+    return (f"the {'adapted ' if key != 'after the network' else ''}network: mTRE {start:.1f} mm (AP) -> {after:.1f} mm, "
+            f"{moved} the truth{base}; global search {search_status}")
 
 
 def check_demo_options(cmd: DemoCommand) -> None:
@@ -166,8 +199,8 @@ def run_demo(cmd: DemoCommand) -> list[Path]:
     out = check_output_dir(cmd.out, OUTPUT_FILES + DEMO_FILES)
     check_demo_options(cmd)  # --size and --pose, before the CT is loaded or anything simulated
     model = resolve_model(cmd.model)  # a bad --model is refused before any work
-    stages = _Stages(4)
-    ct = cmd.ct or default_ct()
+    stages = _Stages(4 if cmd.adapt is None else 6)
+    ct = _adapt_ct(cmd, out) if cmd.adapt is not None else cmd.ct or default_ct()
     stages.start("load CT", f"loading the CT {ct}")
     volume = load_ct_spec(ct)
     center = anatomy_center(volume)
@@ -192,6 +225,23 @@ def run_demo(cmd: DemoCommand) -> list[Path]:
     outcome = register_xray(volume, dcm, method="contextual+cmaes", model=str(model), init="ap", center=center,
                             log=lambda line: print(f"    {line}", file=sys.stderr))
     stages.done(f"similarity {outcome.similarity:.3f}")
+    base_outcome = None
+    if cmd.adapt is not None:  # the clinical flow: adapt the network to this CT, then register again
+        from learn.adapt import adapt
+
+        folder = out / "adapted"
+        again = (folder / "adapt.json").is_file()
+        stages.start("adapt", f"adapting the network to {Path(ct).name} for {cmd.adapt:g} min (ctxreg adapt --ct {ct} "
+                              f"--out {folder}{' --resume' if again else ''})")
+        adapt(ct, folder, minutes=cmd.adapt, base=cmd.model, resume=again,
+              log=lambda line: print(f"    {line}", file=sys.stderr))
+        stages.done(f"{folder}")
+        stages.start("register adapted", "registering it again from AP with the adapted network (--model "
+                                         f"{folder})")
+        base_outcome, model = outcome, folder
+        outcome = register_xray(volume, dcm, method="contextual+cmaes", model=str(folder), init="ap", center=center,
+                                log=lambda line: print(f"    {line}", file=sys.stderr))
+        stages.done(f"similarity {outcome.similarity:.3f}")
 
     stages.start("figures", "writing the overlay, checkerboard, trajectory GIF and convergence plot")
     points = bone_points(volume, 2000, 0)
@@ -206,8 +256,13 @@ def run_demo(cmd: DemoCommand) -> list[Path]:
                 for e in map(err, frames)]
     outcome.write(out, trajectory_errors=captions)
     rows = {"start (AP)": err(pose_from_params(np.zeros(6), g.sod_mm))}
+    if base_outcome is not None:
+        base_traj = base_outcome.result.trajectory
+        if base_traj is not None and len(base_traj["params"]):
+            rows["after the base network"] = err(pose_from_params(base_traj["params"][-1], g.sod_mm))
+        rows["final with the base network"] = err(base_outcome.pose)
     if visited:
-        rows["after the network"] = err(visited[-1])
+        rows["after the network" if base_outcome is None else "after the adapted network"] = err(visited[-1])
     rows["final (contextual+CMA-ES)"] = err(outcome.pose)
     stages.done()
 

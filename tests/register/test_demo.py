@@ -28,6 +28,11 @@ def test_the_demo_line_says_whether_the_network_moved_toward_the_truth():
     assert "-> 135.0 mm, away from the truth" in _network_line(rows, "ran")
     del rows["after the network"]
     assert _network_line(rows, "off").startswith("the network: no trajectory recorded (start mTRE 38.5 mm)")
+    # demo --adapt: the adapted network's line names the base network's mTRE beside it
+    rows.update({"after the base network": {"mtre_mm": 60.0}, "after the adapted network": {"mtre_mm": 4.0}})
+    assert _network_line(rows, "skipped") == (
+        "the adapted network: mTRE 38.5 mm (AP) -> 4.0 mm, closer to the truth (the base network before adaptation: "
+        "60.0 mm); global search skipped")
 
 
 def test_the_trajectory_gif_has_a_frame_per_iteration(tmp_path):
