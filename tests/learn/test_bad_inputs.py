@@ -327,3 +327,35 @@ def test_train_run_options_are_refused_in_one_line_before_any_work(tmp_path, cap
     err = capsys.readouterr().err.strip().splitlines()[-1]
     assert err.startswith("ctxreg train: error:") and words in err, err
     assert not (tmp_path / "out").exists()
+
+
+@pytest.mark.parametrize("args, words", [
+    (["--ct", "{tmp}/missing.nii.gz"], "missing.nii.gz"),
+    (["--ct", "{tmp}/not_a_ct.nii.gz"], "not_a_ct.nii.gz"),
+    (["--minutes", "0"], "--minutes 0: must be in (0, 1440] min"),
+    (["--minutes", "nan"], "--minutes"),
+    (["--from", "{tmp}/missing.pt"], "missing.pt"),
+    (["--from", "no_such_model"], "neither a checkpoint file nor a shipped model"),
+    (["--from", "pelvis_line"], "not trained on randomized realistic pairs"),
+    (["--resume"], "holds no adaptation to continue"),
+    (["--device", "tpu"], "invalid choice: 'tpu'"),
+] + ([] if torch.cuda.is_available() else [(["--device", "cuda"], "torch sees no CUDA GPU")]))
+def test_adapt_refuses_in_one_line_before_any_training(tmp_path, capsys, args, words):
+    """``ctxreg adapt``: a missing or damaged CT, a bad time, base model, device or a resume of
+    nothing: one line naming it, exit 2, nothing trained (no run folder)."""
+    from register.cli import main
+    from sim.phantom import write_phantom_nifti
+
+    ct = tmp_path / "ct.nii.gz"
+    write_phantom_nifti(ct, 0, spacing_mm=6.0)
+    (tmp_path / "not_a_ct.nii.gz").write_bytes(b"not a NIfTI")
+    args = [a.replace("{tmp}", str(tmp_path)) for a in args]
+    argv = ["adapt", *(["--ct", str(ct)] if "--ct" not in args else []), "--out", str(tmp_path / "out"), *args]
+    try:
+        code = main(argv)
+    except SystemExit as e:  # argparse's own refusal (a choice, a bound)
+        code = e.code
+    assert code == 2
+    err = capsys.readouterr().err.strip().splitlines()[-1]
+    assert err.startswith("ctxreg adapt: error:") and words in err, err
+    assert not (tmp_path / "out" / "run").exists()

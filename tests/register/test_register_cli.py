@@ -64,6 +64,10 @@ def test_register_recovers_the_pose_of_a_synthetic_dicom(synthetic_case, tmp_pat
     # to the 16-bit storage and the resampling, so the pose comes back within a degree / few mm
     result = _assert_recovered(out, truth)
     assert result["geometry"]["sdd_mm"] == pytest.approx(1020.0)
+    # the centre used and how it was found: the one given
+    assert result["anatomy_center_lps_mm"] == pytest.approx(list(center))
+    assert result["anatomy_center_how"] == "given: stated by the user (LPS mm)"
+    assert "anatomy centre LPS" in r.stdout + r.stderr and "given: stated by the user" in r.stdout + r.stderr
     assert [s["step"] for s in result["preprocessing"]] == ["field", "median", "intensity", "normalize", "crop",
                                                            "polarity_check"]
     assert result["xray_input"]["polarity_check"]["inverted"] is False  # a bone-bright DRR stays so

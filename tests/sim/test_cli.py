@@ -49,6 +49,7 @@ def test_render_writes_npy_and_sidecar_whose_projection_finds_the_bead(bead_nift
                 "image_size_hw", "anatomy_center_lps_mm", "quantity", "mu_water_per_mm"):
         assert key in meta
     assert meta["anatomy_center_lps_mm"] == [30.0, 40.0, 40.0]
+    assert meta["anatomy_center_how"] == "given: stated by the user (LPS mm)"
     P = np.array(meta["projection_3x4_lps_to_pixels"])
     uvw = P @ np.append(bead_lps, 1.0)
     u, v = uvw[:2] / uvw[2]
