@@ -18,7 +18,8 @@ The output folder holds
 * ``model.pt`` and ``model.toml``: the adapted model, a model folder like the shipped ones
   (``ctxreg register --model DIR``), its card recording the base model, the CT's content hash,
   the pairs seen, the minutes and device, and the validation curve (``[adaptation]``);
-* ``adapt.json``: the same record as JSON.
+* ``adapt.json``: the same record as JSON, and ``curve.png``: the validation curve (rotation
+  and translation error of single predictions against minutes).
 
 ``ctxreg register --model DIR`` with a CT other than the one adapted to prints a one-line
 warning naming both (:func:`adapted_ct_warning`).
@@ -38,6 +39,8 @@ import os
 import time
 from dataclasses import dataclass
 from pathlib import Path
+
+import numpy as np
 
 from sim.errors import InputError
 
@@ -76,7 +79,7 @@ class AdaptSettings:
 ADAPT = AdaptSettings()
 
 #: What ``ctxreg adapt`` writes into ``--out`` (besides ``run/``).
-ADAPT_FILES = ("campaign.toml", "model.pt", "model.toml", "adapt.json")
+ADAPT_FILES = ("campaign.toml", "model.pt", "model.toml", "adapt.json", "curve.png")
 #: Iterations a run is declared for: a time budget ends it first.
 _OPEN_ENDED = 10_000_000
 
@@ -294,6 +297,10 @@ def _export(out: Path, record: dict, cfg, settings: AdaptSettings, log) -> Path:
     adaptation = {"base": record["base"], "ct": record["ct"], "ct_hash": record["ct_hash"], "pairs_seen": pairs,
                   "minutes": round(minutes, 2), "device": ", ".join(devices), "curve": curve,
                   "curve_columns": CURVE_COLUMNS}
+    try:
+        _plot_curve(curve, out / "curve.png", ct_name, record["base"])
+    except ImportError as e:  # a bare GPU machine: the card and adapt.json hold the curve
+        log(f"adapt: curve.png not written ({e})")
     card = export_model(ckpt_path, out, name=name,
                         summary=f"The base network {record['base']} adapted to the CT {ct_name}",
                         training=training, accuracy=accuracy, adaptation=adaptation)
@@ -301,6 +308,30 @@ def _export(out: Path, record: dict, cfg, settings: AdaptSettings, log) -> Path:
         + (f"{curve[0][2]:.2f} deg / {curve[0][3]:.1f} mm -> {last[2]:.2f} deg / {last[3]:.1f} mm" if last else "n/a")
         + "); use it with ctxreg register --model " + str(card.parent))
     return out
+
+
+def _plot_curve(curve: list[list[float]], path: Path, ct_name: str, base: str) -> None:
+    """The validation curve: rotation (deg) and translation (mm) error against minutes."""
+    if not curve:
+        return
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from sim.atomic import save_figure
+
+    c = np.asarray(curve, float)
+    fig, ax = plt.subplots(1, 2, figsize=(9, 3.4))
+    for a, col, unit in ((ax[0], 2, "rotation error (deg)"), (ax[1], 3, "translation error (mm)")):
+        a.plot(c[:, 0], c[:, col], "o-", ms=2)
+        a.set_xlabel("minutes of adaptation")
+        a.set_ylabel(unit)
+        a.set_ylim(bottom=0)
+        a.grid(alpha=0.3)
+    fig.suptitle(f"{base} adapted to {ct_name}: single predictions on held-out poses", fontsize=10)
+    fig.tight_layout()
+    save_figure(fig, path)
 
 
 def adapted_ct_warning(model: str | os.PathLike | None, ct: str | os.PathLike) -> str | None:

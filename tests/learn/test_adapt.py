@@ -55,6 +55,7 @@ def test_the_model_folder_and_its_card(adapted, cts):
     assert record["before"]["rotation_deg"] == pytest.approx(curve[0][2], abs=1e-3)
     assert any("before adaptation" in line for line in lines)
     assert any(line.startswith("adapt: wrote") for line in lines)
+    assert (out / "curve.png").read_bytes()[:4] == b"\x89PNG"
 
 
 def test_resume_continues_the_run(adapted, cts):

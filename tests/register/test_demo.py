@@ -91,3 +91,33 @@ def test_the_trajectory_figure_shows_evenly_spaced_iterations_with_the_drrs_edge
     assert 0.07 < red.sum() / (6 * 20 * 24 * 2 * 2) < 0.09  # 8 % of each panel: edges above the 92nd percentile
     with pytest.raises(ValueError, match="no DRRs"):
         trajectory_figure(xray, drrs[:0], np.zeros((0, 6)), tmp_path / "u.png")
+
+
+@pytest.mark.slow
+def test_the_demo_shows_the_clinical_flow_with_adapt(tmp_path, capsys):
+    """``demo --adapt``: the frame registered with the base network, the network adapted to the CT
+    (a model folder with its card), the frame registered again with it, both networks' errors in
+    the table; a second run continues the adaptation. At a tiny size: a phantom pelvis no shipped
+    model saw, 64 px, seconds of adaptation."""
+    from learn.shipped import load_card
+    from register.cli import main
+
+    from sim.phantom import write_phantom_nifti
+
+    ct = tmp_path / "phantom5.nii.gz"
+    write_phantom_nifti(ct, 5, spacing_mm=4.0)  # a coarse CT: its virtual patients build in a second
+    out = tmp_path / "demo"
+    argv = ["demo", "--ct", str(ct), "--size", "64", "64", "--adapt", "0.05", "--out", str(out)]
+    assert main(argv) == 0
+    text = capsys.readouterr().out
+    for row in ("| after the base network |", "| final with the base network |", "| after the adapted network |",
+                "| final (contextual+CMA-ES) |"):
+        assert row in text, text
+    assert "the adapted network: mTRE" in text and "(the base network before adaptation:" in text
+    card = load_card(out / "adapted")
+    assert card["adaptation"]["base"] == "pelvis_xray" and card["adaptation"]["pairs_seen"] > 0
+    demo = json.loads((out / "demo.json").read_text())
+    assert demo["model"] == str(out / "adapted")
+    first = card["adaptation"]["pairs_seen"]
+    assert main(argv) == 0  # again: the adaptation goes on from where it stopped
+    assert load_card(out / "adapted")["adaptation"]["pairs_seen"] > first
