@@ -57,3 +57,16 @@ def train_killed_after_first_checkpoint(cfg, monkeypatch) -> None:
     with pytest.raises(KeyboardInterrupt):
         tr.train(cfg, log=lambda *_: None)
     monkeypatch.setattr(tr, "_save_checkpoint", real_save)
+
+
+def log_rows(path, *, times: bool = False) -> list[dict]:
+    """The rows of a training's ``log.csv`` (``path``: the file or its run folder), without the
+    ``elapsed_s`` column (wall seconds differ between runs that take the same steps) unless
+    ``times``."""
+    import csv
+    from pathlib import Path
+
+    path = Path(path)
+    with open(path / "log.csv" if path.is_dir() else path) as f:
+        rows = list(csv.DictReader(f))
+    return rows if times else [{k: v for k, v in r.items() if k != "elapsed_s"} for r in rows]

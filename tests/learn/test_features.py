@@ -3,13 +3,12 @@ and heads trained on them take exactly the steps of the uncached frozen-backbone
 
 from __future__ import annotations
 
-import csv
 import os
 from dataclasses import asdict
 
 import pytest
 import torch
-from tests.learn.conftest import train_killed_after_first_checkpoint
+from tests.learn.conftest import log_rows, train_killed_after_first_checkpoint
 
 
 def config(campaign, out, **kw):
@@ -114,8 +113,7 @@ def _weights(path):
 
 
 def _rows(path):
-    with open(path / "log.csv") as f:
-        return list(csv.DictReader(f))
+    return log_rows(path)
 
 
 def test_cached_training_takes_the_uncached_steps_and_resumes_exactly(campaign, tmp_path, monkeypatch):

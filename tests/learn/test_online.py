@@ -2,14 +2,13 @@
 
 from __future__ import annotations
 
-import csv
 import json
 import math
 
 import numpy as np
 import pytest
 import torch
-from tests.learn.conftest import train_killed_after_first_checkpoint
+from tests.learn.conftest import log_rows, train_killed_after_first_checkpoint
 
 
 @pytest.fixture(scope="module")
@@ -106,8 +105,7 @@ def test_online_training_resumes_exactly_and_records_the_image_size_and_physics(
     got = load_checkpoint(tmp_path / "b" / "checkpoint.pt")
     for key, value in ref.model_state.items():
         torch.testing.assert_close(got.model_state[key], value, rtol=0, atol=0, msg=key)
-    assert list(csv.DictReader(open(tmp_path / "b" / "log.csv"))) == \
-        list(csv.DictReader(open(tmp_path / "a" / "log.csv")))
+    assert log_rows(tmp_path / "b") == log_rows(tmp_path / "a")
 
 
 def test_online_settings_are_checked(campaign, campaign_file, tmp_path):

@@ -7,7 +7,7 @@ from dataclasses import replace
 
 import pytest
 import torch
-from tests.learn.conftest import train_killed_after_first_checkpoint
+from tests.learn.conftest import log_rows, train_killed_after_first_checkpoint
 
 
 def config(campaign, out, **kw):
@@ -35,9 +35,10 @@ def test_resume_after_an_interruption_gives_the_same_model(campaign, tmp_path, m
     assert got.iteration == 12
     for key, value in ref.model_state.items():
         torch.testing.assert_close(got.model_state[key], value, rtol=0, atol=0, msg=key)
-    rows = list(csv.DictReader(open(tmp_path / "b" / "log.csv")))
-    ref_rows = list(csv.DictReader(open(tmp_path / "a" / "log.csv")))
-    assert rows == ref_rows
+    assert log_rows(tmp_path / "b") == log_rows(tmp_path / "a")
+    # the training seconds go on from the interrupted run's instead of starting again
+    elapsed = [float(r["elapsed_s"]) for r in log_rows(tmp_path / "b", times=True)]
+    assert elapsed == sorted(elapsed) and elapsed[0] > 0
 
 
 def test_refusals_name_the_key(campaign, tmp_path):

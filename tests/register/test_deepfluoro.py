@@ -138,7 +138,8 @@ def test_frames_reach_registration_in_the_cts_view(pelvis_file):
     path, _ = pelvis_file
     with DeepFluoroFile(path) as f:
         spec = f.specimen(1)
-        for frame in spec:
+        assert len(spec) == len(PARAMS)  # the frames in the order written
+        for k, frame in enumerate(spec):
             T, g = frame.truth(spec.center_lps, sod_mm=700.0)
             drr = DRRRenderer(spec.volume, RenderSettings(size=(g.height, g.width)), center_lps=spec.center_lps,
                               geometry=g).render(T)[0]
@@ -146,7 +147,13 @@ def test_frames_reach_registration_in_the_cts_view(pelvis_file):
             ours = -np.log(frame.xray().pixels.astype(np.float64))
             stored = -np.log(frame.pixels.astype(np.float64))
             assert ncc(ours[inner], drr[inner]) > 0.9
-            assert ncc(stored[inner], drr[inner]) < 0.8
+            # the stored frame is mirrored (or turned): it must match worse. At AP the pelvis is
+            # centred and nearly mirror-symmetric, so its mirror image still matches well (0.94
+            # against 0.99); the oblique frames tell the two apart clearly
+            if not any(PARAMS[k]):  # the AP frame
+                assert ncc(stored[inner], drr[inner]) < ncc(ours[inner], drr[inner]) - 0.02
+            else:
+                assert ncc(stored[inner], drr[inner]) < 0.8
 
 
 def _evaluate_here(capsys, *args) -> tuple[int, str]:
