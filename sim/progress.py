@@ -117,15 +117,15 @@ class Progress:
         rate = (self.done - self.start_done) / max(now - self.t0, 1e-9)
         eta = (self.total - self.done) / rate if rate > 0 else float("nan")
         pct = 100.0 * self.done / max(self.total, 1)
-        done = f"{self.done}/{self.total}"
+        done, share = f"{self.done}/{self.total}", ""
         if self.time_limit_s is not None:  # the work ends at a time limit first: ETA and share by time
             elapsed = now - self.t0
             left = max(self.time_limit_s - elapsed, 0.0)
             if not math.isfinite(eta) or left < eta:
                 eta, pct = left, 100.0 * min(elapsed / self.time_limit_s, 1.0)
-                done = f"{self.done} (of {self.time_limit_s / 60:.1f} min)"
+                done, share = f"{self.done}", f" of {self.time_limit_s / 60:.1f} min"
         eta_text = "--" if not math.isfinite(eta) else time.strftime("%H:%M:%S", time.gmtime(eta))
-        return (f"{self.label}: {done} {self.unit} ({pct:5.1f} %), "
+        return (f"{self.label}: {done} {self.unit} ({pct:5.1f} %{share}), "
                 f"{rate * self.rate_scale:6.1f} {self.rate_unit}, ETA {eta_text}")
 
     def show(self, force: bool = False) -> None:

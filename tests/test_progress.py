@@ -93,7 +93,7 @@ def test_a_time_limit_that_comes_first_gives_the_eta_and_share(capsys, monkeypat
     clock[0] += 150.0
     bar.done = 300  # 2 iterations/s: 10 M iterations would take weeks; the limit ends it in 450 s
     line = bar.line()
-    assert "300 (of 10.0 min) iterations ( 25.0 %)" in line and "ETA 00:07:30" in line and "64.0 pairs/s" in line
+    assert "train x: 300 iterations ( 25.0 % of 10.0 min)" in line and "ETA 00:07:30" in line and "64.0 pairs/s" in line
     short = Progress(400, 0, "train y", "iterations", time_limit_s=600.0)  # the iterations end first
     clock[0] += 100.0
     short.done = 200
