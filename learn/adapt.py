@@ -172,7 +172,7 @@ def adapt(ct: str | os.PathLike, out: str | os.PathLike, *, minutes: float = 10.
     from learn.checkpoint import load_checkpoint
     from learn.shipped import DEFAULT_MODEL, resolve_model
     from learn.train import resolve_device, train
-    from sim.atomic import atomic_path
+    from sim.atomic import atomic_path, write_json
     from sim.ct_cache import ct_hash
     from sim.ct_io import load_ct
 
@@ -182,7 +182,7 @@ def adapt(ct: str | os.PathLike, out: str | os.PathLike, *, minutes: float = 10.
     ct = Path(ct).expanduser().resolve()
     out = Path(out).expanduser().resolve()
     run = out / "run"
-    volume = load_ct(ct)  # a missing or damaged CT is refused here, before any work
+    load_ct(ct)  # a missing or damaged CT is refused here, before any work
     dev = resolve_device(device)
     record_path = out / "adapt.json"
     if resume:
@@ -228,7 +228,7 @@ def adapt(ct: str | os.PathLike, out: str | os.PathLike, *, minutes: float = 10.
         record["before"] = {"rotation_deg": float(row["val_rot_err_deg"]), "translation_mm": float(row["val_trans_err_mm"])}
         log(f"adapt: before adaptation: rotation {row['val_rot_err_deg']:.2f} deg, translation "
             f"{row['val_trans_err_mm']:.1f} mm (single predictions)")
-        _write_json(record_path, record)
+        write_json(record_path, record)
     started = time.perf_counter()
     when = time.strftime("%Y-%m-%d %H:%M", time.localtime())
     log(f"adapt: {ct.name} from {record['base']} for {minutes:g} min on {dev} (Ctrl-C or SIGTERM stops with a "
@@ -237,8 +237,8 @@ def adapt(ct: str | os.PathLike, out: str | os.PathLike, *, minutes: float = 10.
     spent = (time.perf_counter() - started) / 60.0
     record["sessions"].append({"started": when, "minutes": round(spent, 2), "device": _device_name(dev),
                                "iteration": int(last.get("iteration", 0))})
-    _write_json(record_path, record)
-    return _export(out, record, cfg, settings, log)
+    write_json(record_path, record)
+    return _export(out, record, settings, log)
 
 
 def _device_name(dev) -> str:
@@ -249,14 +249,7 @@ def _device_name(dev) -> str:
     return f"cpu ({os.cpu_count()} cores)"
 
 
-def _write_json(path: Path, data: dict) -> None:
-    from sim.atomic import atomic_path
-
-    with atomic_path(path) as tmp:
-        tmp.write_text(json.dumps(data, indent=1) + "\n")
-
-
-def _export(out: Path, record: dict, cfg, settings: AdaptSettings, log) -> Path:
+def _export(out: Path, record: dict, settings: AdaptSettings, log) -> Path:
     """The adapted model folder: ``model.pt`` and its card, from the run's checkpoint."""
     from learn.checkpoint import load_checkpoint
     from learn.shipped import export_model
