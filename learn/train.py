@@ -60,7 +60,10 @@ MAX_SKIPPED_FRACTION = 0.01
 #: Config keys a resumed run may change, each change logged: how the steps are computed
 #: (``precision``; the device may change too), the rate schedule from the resumed step on, and
 #: the run's length. The rest would make the checkpoint another run's.
-RESUME_MAY_CHANGE = ("precision", "lr", "lr_step", "lr_decay", "iterations")
+#: The learning-rate schedules of ``train.lr_schedule``.
+LR_SCHEDULES = ("step", "cosine")
+
+RESUME_MAY_CHANGE = ("precision", "lr", "lr_step", "lr_decay", "lr_schedule", "lr_warmup", "iterations")
 
 
 @dataclass(frozen=True)
@@ -92,6 +95,14 @@ class TrainConfig:
             schedule (and another ``iterations``, :data:`RESUME_MAY_CHANGE`): from the resumed
             step on, the rate is the new schedule's at that step, ``lr * lr_decay^(k // lr_step)``
             (a plateau's rate drop without losing the optimiser's moments).
+        lr_schedule: ``"step"`` (default: the step decay above) or ``"cosine"``: a linear warm-up
+            from 0 over the first ``lr_warmup`` of the run, then a half cosine from ``lr`` to 0 at
+            its end (xvr's schedule). The run's progress is ``iteration / iterations``; under a
+            time limit (:func:`train`'s ``stop_after_s``) it is the training seconds against the
+            limit (counted across resumes: a resume given more seconds stretches the cosine to the
+            new end, a warm restart at the rate of that point), so that the rate reaches 0 when the
+            time is up however fast the machine is. ``lr_step`` / ``lr_decay`` are then unused.
+        lr_warmup: the warm-up's share of the run, in [0, 0.5] (default 0; cosine only).
         pairs_per_epoch: pairs drawn per epoch (re-drawn each epoch from the seed).
         val_pairs: validation pairs (fixed); val_every / checkpoint_every: in iterations.
         near_fraction: share of near pairs (online only; default 0.5 there).
@@ -164,6 +175,8 @@ class TrainConfig:
     lr: float = 1e-4
     lr_decay: float = 0.3
     lr_step: int = 30000
+    lr_schedule: str = "step"
+    lr_warmup: float = 0.0
     pairs_per_epoch: int = 1024
     val_pairs: int = 128
     val_every: int = 100
@@ -230,6 +243,11 @@ class TrainConfig:
             raise TrainConfigError(f"train.lr must be positive, got {self.lr}")
         if not 0 < self.lr_decay <= 1:
             raise TrainConfigError(f"train.lr_decay must be in (0, 1], got {self.lr_decay}")
+        if self.lr_schedule not in LR_SCHEDULES:
+            raise TrainConfigError(f"train.lr_schedule must be one of {', '.join(map(repr, LR_SCHEDULES))}, "
+                                   f"got {self.lr_schedule!r}")
+        if not 0 <= self.lr_warmup <= 0.5:
+            raise TrainConfigError(f"train.lr_warmup must be in [0, 0.5] (a share of the run), got {self.lr_warmup}")
         if self.weights not in ("none", "imagenet_local"):
             raise TrainConfigError(f"train.weights must be 'none' or 'imagenet_local', got {self.weights!r}")
         if self.weights == "imagenet_local" and not self.weights_path:
@@ -624,7 +642,7 @@ def train(cfg: TrainConfig, *, resume: bool = False, log=print, device: str = "a
             if _plain(was) != _plain(getattr(cfg, key)):
                 changed.add(key)
                 log(f"train.{key} {was!r} -> {getattr(cfg, key)!r} from here on")
-        if changed & {"lr", "lr_step", "lr_decay"}:
+        if changed & {"lr", "lr_step", "lr_decay", "lr_schedule"} and cfg.lr_schedule == "step":
             _follow_schedule(optimizer, scheduler, cfg, iteration)
             log(f"learning rate {optimizer.param_groups[0]['lr']:.3g} at iteration {iteration}")
     precision = step_precision(cfg.precision, device)
@@ -674,6 +692,22 @@ def _follow_schedule(optimizer, scheduler, cfg: TrainConfig, iteration: int) -> 
     scheduler._last_lr = [rate] * len(optimizer.param_groups)
 
 
+def scheduled_rate(cfg: TrainConfig, progress: float) -> float:
+    """The rate of ``train.lr_schedule = "cosine"`` at ``progress`` (the run's share done, clipped
+    to [0, 1]): linear from 0 over the first ``lr_warmup``, then ``lr * (1 + cos(pi * s)) / 2``
+    with ``s`` the share of the rest done.
+
+    >>> cfg = TrainConfig(dataset="c.toml", lr=1e-3, lr_schedule="cosine", lr_warmup=0.1)
+    >>> [round(scheduled_rate(cfg, p), 6) for p in (0.05, 0.1, 0.55, 1.0)]
+    [0.0005, 0.001, 0.0005, 0.0]
+    """
+    progress = min(max(float(progress), 0.0), 1.0)
+    if cfg.lr_warmup > 0 and progress < cfg.lr_warmup:
+        return cfg.lr * progress / cfg.lr_warmup
+    rest = (progress - cfg.lr_warmup) / (1.0 - cfg.lr_warmup)
+    return cfg.lr * 0.5 * (1.0 + math.cos(math.pi * rest))
+
+
 def _elapsed_before(rows: list[dict]) -> float:
     """Training seconds of the log's rows before a resume (its last ``elapsed_s``; 0 for logs
     written before the column)."""
@@ -705,6 +739,12 @@ def _loop(cfg, source, model, optimizer, scheduler, device, iteration, rows, log
         loss = _loss(type(output)(*(t.float() for t in output)), label, cfg)  # the loss in float32
         optimizer.zero_grad()
         loss.backward()
+        if cfg.lr_schedule == "cosine":  # the share of the run done: of its seconds under a time limit
+            done = ((elapsed_before + time.perf_counter() - started) / (elapsed_before + stop_after_s)
+                    if stop_after_s is not None else iteration / cfg.iterations)
+            for group in optimizer.param_groups:
+                group["lr"] = scheduled_rate(cfg, done)
+        step_rate = optimizer.param_groups[0]["lr"]
         if bf16 and not all(bool(torch.isfinite(p.grad).all()) for p in params if p.grad is not None):
             skipped += 1  # a bfloat16 product overflowed: no step, as a loss scaler does
             if skipped > MAX_SKIPPED_FRACTION * max(iteration + 1 - start_iteration, 100):
@@ -717,7 +757,7 @@ def _loop(cfg, source, model, optimizer, scheduler, device, iteration, rows, log
         iteration += 1
         if bar is not None:
             bar.update(1)
-        last = {"iteration": iteration, "train_loss": float(loss.item()), "lr": scheduler.get_last_lr()[0]}
+        last = {"iteration": iteration, "train_loss": float(loss.item()), "lr": step_rate}
         interrupted = run.any(signalled.is_set())  # every rank stops at the same iteration
         stopping = interrupted or run.any(stop_after_s is not None and time.perf_counter() - started >= stop_after_s)
         if not run.main:

@@ -41,11 +41,60 @@ def test_resume_after_an_interruption_gives_the_same_model(campaign, tmp_path, m
     assert elapsed == sorted(elapsed) and elapsed[0] > 0
 
 
+def test_the_cosine_schedule_warms_up_then_falls_to_zero_over_the_iterations(campaign, tmp_path):
+    """lr_schedule = "cosine": step k (from 0) is taken at scheduled_rate(k / iterations), which is
+    linear over the warm-up and the closed form (1 + cos(pi s)) / 2 after it."""
+    import math
+
+    import learn.train as tr
+
+    cfg = config(campaign, tmp_path / "c", iterations=10, val_every=1, checkpoint_every=5, lr=1e-3,
+                 lr_schedule="cosine", lr_warmup=0.2)
+    tr.train(cfg, log=lambda *_: None)
+    rates = [float(r["lr"]) for r in csv.DictReader(open(tmp_path / "c" / "log.csv"))]
+    want = [0.0, 5e-4] + [1e-3 * 0.5 * (1 + math.cos(math.pi * (k / 10 - 0.2) / 0.8)) for k in range(2, 10)]
+    assert rates == pytest.approx(want, rel=1e-6, abs=1e-12)
+    assert rates[2] == pytest.approx(1e-3) and rates[-1] < 0.05 * 1e-3
+
+
+def test_under_a_time_limit_the_cosine_runs_over_the_seconds(campaign, tmp_path, monkeypatch):
+    """Under stop_after_s the cosine's progress is the training seconds against the limit: on a
+    clock that ticks 1 s per reading the rate falls monotonically to near 0 when the time is up,
+    and a resume given more seconds stretches it to the new end (a warm restart at that point)."""
+    import types
+
+    import learn.train as tr
+
+    clock = {"t": 0.0}
+
+    def tick():
+        clock["t"] += 1.0
+        return clock["t"]
+
+    monkeypatch.setattr(tr, "time", types.SimpleNamespace(perf_counter=tick))
+    cfg = config(campaign, tmp_path / "c", iterations=10_000, val_every=1, checkpoint_every=1000, lr=1e-3,
+                 lr_schedule="cosine")
+    tr.train(cfg, stop_after_s=40.0, log=lambda *_: None)
+    rows = list(csv.DictReader(open(tmp_path / "c" / "log.csv")))
+    rates = [float(r["lr"]) for r in rows]
+    assert 5 < len(rates) < 40  # stopped by the time limit, long before 10000 iterations
+    assert all(b <= a for a, b in zip(rates, rates[1:])) and rates[0] > 0.9e-3 and rates[-1] < 0.05e-3
+    before = float(rows[-1]["elapsed_s"])
+    tr.train(cfg, resume=True, stop_after_s=3 * before, log=lambda *_: None)  # 4x the seconds in all
+    rates = [float(r["lr"]) for r in csv.DictReader(open(tmp_path / "c" / "log.csv"))][len(rows):]
+    assert tr.scheduled_rate(cfg, 0.30) < rates[0] < tr.scheduled_rate(cfg, 0.20)  # progress 1/4: a warm restart
+    assert rates[-1] < 0.05e-3
+
+
 def test_refusals_name_the_key(campaign, tmp_path):
     from learn.train import TrainConfigError, load_train_config, train
 
     with pytest.raises(TrainConfigError, match="lr"):
         config(campaign, tmp_path, lr=-1.0)
+    with pytest.raises(TrainConfigError, match="lr_schedule must be one of 'step', 'cosine'"):
+        config(campaign, tmp_path, lr_schedule="linear")
+    with pytest.raises(TrainConfigError, match=r"lr_warmup must be in \[0, 0.5\]"):
+        config(campaign, tmp_path, lr_warmup=0.8)
     with pytest.raises(TrainConfigError, match="weights_path"):
         config(campaign, tmp_path, weights="imagenet_local")
     bad = tmp_path / "bad.toml"
