@@ -74,6 +74,7 @@ from sim.materials import MATERIALS, mu_linear, nominal_density
 __all__ = [
     "DistractorError",
     "random_tools",
+    "implanted_tools",
     "ToolMesh",
     "Distractor",
     "DistractorField",
@@ -518,6 +519,57 @@ def _random_rotation(rng: np.random.Generator) -> np.ndarray:
 RANDOM_TOOL_KINDS = ("screw", "k_wire", "plate", "retractor")
 
 
+def _random_tool_mesh(rng: np.random.Generator) -> ToolMesh:
+    """One tool of :data:`RANDOM_TOOL_KINDS`, of a random kind and random sizes (mm; the ranges of
+    :func:`random_tools`)."""
+    kind = RANDOM_TOOL_KINDS[int(rng.integers(len(RANDOM_TOOL_KINDS)))]
+    if kind == "screw":
+        return screw(rng.uniform(25, 80), rng.uniform(4.5, 7.5))
+    if kind == "k_wire":
+        return k_wire(rng.uniform(80, 200), rng.uniform(1.6, 2.5), sides=12)
+    if kind == "plate":
+        return plate(rng.uniform(40, 140), rng.uniform(10, 16), rng.uniform(2.0, 4.0),
+                     holes=int(rng.integers(2, 11)), hole_diameter_mm=4.0, sides=12)
+    return retractor(rng.uniform(40, 80), rng.uniform(80, 160), rng.uniform(20, 40), rng.uniform(1.0, 2.5),
+                     bend_deg=rng.uniform(45, 110))
+
+
+def implanted_tools(rng: np.random.Generator, center_lps, *, tools: tuple[int, int] = (2, 5),
+                    spread_mm: tuple[float, float, float] = (80.0, 50.0, 70.0)) -> list[Distractor]:
+    """Metal tools fixed to the patient around the anatomy, as in a frame of instrumented surgery.
+
+    ``tools`` (``(low, high)``, inclusive) screws, K-wires, plates and retractors of the sizes of
+    :func:`random_tools`, each at a uniformly random orientation with its centre uniform in the
+    box ``center_lps +- spread_mm`` (LPS mm: left-right, anterior-posterior, inferior-superior),
+    in the patient frame (``frame="lps"``): unlike :func:`random_tools`' camera-fixed ones they
+    move with the anatomy from view to view, as a screw in the bone or a retractor in the wound
+    does, so a registration cannot tell them from anatomy by their place in the image.
+
+    >>> import numpy as np
+    >>> tools = implanted_tools(np.random.default_rng(0), [0.0, 0.0, 0.0], tools=(3, 3))
+    >>> len(tools), {t.frame for t in tools}
+    (3, {'lps'})
+    """
+    if not isinstance(rng, np.random.Generator):
+        raise DistractorError(f"implanted_tools needs a numpy Generator, got {type(rng).__name__}")
+    lo, hi = (int(v) for v in tools)
+    if not 0 <= lo <= hi:
+        raise DistractorError(f"implanted_tools: tools must be (low, high) with 0 <= low <= high, got {tools!r}")
+    center = np.asarray(center_lps, dtype=np.float64).reshape(3)
+    spread = np.asarray(spread_mm, dtype=np.float64).reshape(3)
+    if not (np.isfinite(center).all() and np.isfinite(spread).all() and (spread >= 0).all()):
+        raise DistractorError(f"implanted_tools: center_lps and spread_mm must be finite (spread >= 0), got "
+                              f"{center.tolist()} and {spread.tolist()}")
+    out = []
+    for _ in range(int(rng.integers(lo, hi + 1))):
+        mesh = _random_tool_mesh(rng)
+        pose = np.eye(4)
+        pose[:3, :3] = _random_rotation(rng)
+        pose[:3, 3] = center + rng.uniform(-1.0, 1.0, 3) * spread
+        out.append(Distractor(mesh, pose, frame="lps"))
+    return out
+
+
 def random_tools(rng: np.random.Generator, geometry, *, tools: tuple[int, int] = (1, 4),
                  table_probability: float = 0.5, cable_probability: float = 0.3) -> list[Distractor]:
     """A random arrangement of tools in the field of view of ``geometry``, in the camera frame.
@@ -549,17 +601,7 @@ def random_tools(rng: np.random.Generator, geometry, *, tools: tuple[int, int] =
         return pose
 
     for _ in range(int(rng.integers(lo, hi + 1))):
-        kind = RANDOM_TOOL_KINDS[int(rng.integers(len(RANDOM_TOOL_KINDS)))]
-        if kind == "screw":
-            mesh = screw(rng.uniform(25, 80), rng.uniform(4.5, 7.5))
-        elif kind == "k_wire":
-            mesh = k_wire(rng.uniform(80, 200), rng.uniform(1.6, 2.5), sides=12)
-        elif kind == "plate":
-            mesh = plate(rng.uniform(40, 140), rng.uniform(10, 16), rng.uniform(2.0, 4.0),
-                         holes=int(rng.integers(2, 11)), hole_diameter_mm=4.0, sides=12)
-        else:
-            mesh = retractor(rng.uniform(40, 80), rng.uniform(80, 160), rng.uniform(20, 40), rng.uniform(1.0, 2.5),
-                             bend_deg=rng.uniform(45, 110))
+        mesh = _random_tool_mesh(rng)
         out.append(Distractor(mesh, place(g.sod_mm + rng.uniform(-80, 80), _random_rotation(rng)), frame="camera"))
     if rng.random() < table_probability:
         a = np.radians(rng.uniform(-20, 20))  # table top tilted a little against the detector plane

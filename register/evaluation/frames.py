@@ -7,7 +7,9 @@ detector signal (full physics: spectrum, materials, CsI detector, scatter, noise
 :class:`sim.physics.display.Collimator` (or an open field) and a
 :class:`sim.physics.display.DisplayChain`, written as DICOM with its geometry tags
 (``DistanceSourceToDetector``, ``DistanceSourceToPatient``, ``ImagerPixelSpacing``), Modality RF and
-the chain's bits: a frame as a C-arm delivers it.
+the chain's bits: a frame as a C-arm delivers it. With ``tools`` each frame also shows metal tools
+fixed to the patient (:func:`sim.distractors.implanted_tools`: screws, K-wires, plates,
+retractors around the anatomy centre), a new arrangement per frame seed.
 """
 
 from __future__ import annotations
@@ -22,24 +24,46 @@ from register.xray.io import write_xray_dicom
 
 __all__ = ["FrameSimulator"]
 
+#: The random stream of a frame's tools (beside its noise and Monte Carlo, which use the seed itself).
+_TOOLS_STREAM = 7
+#: Bumped when :func:`sim.distractors.implanted_tools` draws differently (cached frames are redone).
+_TOOLS_VERSION = 1
+
 
 class FrameSimulator:
     """Frames of one imager through one display chain, collimated by ``collimator`` (None: open).
 
     ``imager``: the :class:`sim.physics.imaging.XRayImager`; ``chain``: the
     :class:`sim.physics.display.DisplayChain`; ``geometry``: the geometry written into the DICOM
-    tags (default the imager's)."""
+    tags (default the imager's); ``tools``: ``(low, high)`` metal tools fixed to the patient in
+    every frame (None: none; :func:`sim.distractors.implanted_tools`), their kinds, sizes, places
+    and orientations drawn from the frame's seed."""
 
-    def __init__(self, imager, chain, collimator=None, *, geometry=None):
+    def __init__(self, imager, chain, collimator=None, *, geometry=None, tools: tuple[int, int] | None = None):
         self.imager = imager
         self.chain = chain
         self.collimator = collimator
         self.geometry = imager.geometry if geometry is None else geometry
+        self.tools = None if tools is None else (int(tools[0]), int(tools[1]))
+
+    def implants(self, seed: int) -> list:
+        """The :class:`sim.distractors.Distractor` s of the frame of ``seed`` (empty without ``tools``)."""
+        if self.tools is None:
+            return []
+        from sim.distractors import implanted_tools
+
+        rng = np.random.default_rng([int(seed), _TOOLS_STREAM])
+        return implanted_tools(rng, self.imager.renderer.center_lps, tools=self.tools)
 
     def raw(self, pose: np.ndarray, seed: int) -> np.ndarray:
         """The detector signal ``(H, W)`` float64 at ``pose`` ``(4, 4)``, its noise and Monte Carlo
-        drawn from ``seed``."""
-        return self.imager.render(pose, seed=seed)["raw"][0].astype(np.float64)
+        drawn from ``seed`` (and its tools, with ``tools``)."""
+        imager = self.imager
+        if self.tools is not None:
+            from sim.distractors import imager_with_distractors
+
+            imager = imager_with_distractors(imager, self.implants(seed))
+        return imager.render(pose, seed=seed)["raw"][0].astype(np.float64)
 
     def display(self, raw: np.ndarray, *, collimated: bool = True) -> tuple[np.ndarray, np.ndarray | None]:
         """The displayed frame of ``raw`` and its field mask (None: open): through the collimator
@@ -67,6 +91,7 @@ class FrameSimulator:
         mc = self.imager.scatter
         what = {"physics": self.imager.record(), "monte_carlo": None if mc is None else repr(mc.settings),
                 "chain": repr(self.chain), "collimator": repr(self.collimator), "geometry": repr(self.geometry),
+                **({"tools": list(self.tools), "tools_version": _TOOLS_VERSION} if self.tools is not None else {}),
                 "pose": np.asarray(pose, dtype=np.float64).round(9).tolist(), "seed": int(seed)}
         return hashlib.sha256(json.dumps(what, sort_keys=True, default=repr).encode()).hexdigest()
 

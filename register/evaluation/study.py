@@ -33,6 +33,7 @@ variants x domains, a plot and the commands that reproduce it. A study file::
     physics = { level = "full", kvp = 70, mas = 1.0, grid_ratio = 0 }
     collimator = { shape = "circle", radius = 0.45, transmission = 0.02 }
     display = { log = true, polarity = "bone-dark", gamma = 0.7, bits = 12, shutter = "black" }
+    tools = [2, 5]             # optional (xray only): 2 to 5 metal tools fixed to the patient
 
 Target kinds:
 
@@ -44,7 +45,9 @@ Target kinds:
   registered through :func:`register.api.register_xray` with its default preprocessing, as
   ``ctxreg register`` would. A frame whose content registration refuses (a field, preprocessing
   or intensity error, e.g. no valid pixel left after the field detection) is a failed case, scored at its start pose,
-  with the message in ``cases.csv`` (column ``refused``).
+  with the message in ``cases.csv`` (column ``refused``). ``tools = [low, high]`` puts that many
+  metal tools (screws, K-wires, plates, retractors) fixed to the patient around the anatomy centre
+  into every frame, a new arrangement per frame (:func:`sim.distractors.implanted_tools`).
 
 Outputs in ``--out``: ``variants/<name>/`` (the training run: ``train.toml``, ``checkpoint.pt``,
 ``log.csv``), ``results/<variant>/<target>/summary.json`` (and ``cases.csv``), ``table.md``,
@@ -131,7 +134,8 @@ class Target:
     """A target domain: ``kind`` (:data:`TARGET_KINDS`), the targets' ``physics`` (keyword
     arguments of :class:`sim.physics.imaging.PhysicsSettings`, with ``level``), and for
     ``kind = "xray"`` the ``collimator`` and ``display`` records (``None``: open field / the
-    fluoroscopy default)."""
+    fluoroscopy default) and ``tools``, ``(low, high)`` metal tools fixed to the patient per
+    frame (``None``: none)."""
 
     name: str
     kind: str = "drr"
@@ -139,6 +143,7 @@ class Target:
     collimator: dict[str, Any] | None = None
     display: dict[str, Any] | None = None
     cases: int | None = None  #: this domain's case count (default the study's ``cases``)
+    tools: tuple[int, int] | None = None
 
 
 @dataclass(frozen=True)
@@ -161,12 +166,21 @@ class Study:
                 "methods": list(self.methods), "size": list(self.size), "moving_physics": self.moving_physics,
                 "variants": {v.name: v.to_dict() for v in self.variants},
                 "targets": {t.name: {"kind": t.kind, "physics": t.physics, "collimator": t.collimator,
-                                     "display": t.display, **({"cases": t.cases} if t.cases else {})}
+                                     "display": t.display, **({"cases": t.cases} if t.cases else {}),
+                                     **({"tools": list(t.tools)} if t.tools else {})}
                             for t in self.targets}}
 
     def cases_of(self, target: "Target") -> int:
         """The number of cases of ``target`` (its own ``cases``, else the study's)."""
         return target.cases or self.cases
+
+
+#: The most metal tools a study frame may hold (``tools = [low, high]``).
+MAX_TOOLS = 20
+
+
+def _is_count(v: Any) -> bool:
+    return isinstance(v, int) and not isinstance(v, bool) and v >= 0
 
 
 def _name(value: Any, key: str) -> str:
@@ -268,8 +282,9 @@ def load_study(path: str | Path) -> Study:
         raise StudyError(f"{path}: needs at least one [[target]] (name, kind, physics)")
     for i, row in enumerate(rows):
         where = f"{path}: target[{i}]"
-        if not isinstance(row, dict) or set(row) - {"name", "kind", "physics", "collimator", "display", "cases"}:
-            raise StudyError(f"{where}: keys are name, kind, physics, collimator, display, cases; got {row!r}")
+        if not isinstance(row, dict) or set(row) - {"name", "kind", "physics", "collimator", "display", "cases",
+                                                    "tools"}:
+            raise StudyError(f"{where}: keys are name, kind, physics, collimator, display, cases, tools; got {row!r}")
         name = _name(row.get("name"), f"{where}.name")
         kind = row.get("kind", "drr")
         if kind not in TARGET_KINDS:
@@ -291,7 +306,16 @@ def load_study(path: str | Path) -> Study:
                 raise StudyError(f"{where}.{key}: a table, got {value!r}")
             _checked(cls.from_dict, value, f"{where}.{key}", unpack=False)
         cases = _int(row, "cases", 0, 1, 10000, where) if "cases" in row else None
-        targets.append(Target(name, kind, physics, coll, disp, cases))
+        tools = row.get("tools")
+        if tools is not None:
+            if kind != "xray":
+                raise StudyError(f"{where}.tools: tools apply to kind 'xray' only")
+            if not (isinstance(tools, list) and len(tools) == 2 and all(_is_count(v) for v in tools)
+                    and tools[0] <= tools[1] <= MAX_TOOLS):
+                raise StudyError(f"{where}.tools: [low, high], whole numbers with 0 <= low <= high <= {MAX_TOOLS} "
+                                 f"(metal tools per frame), got {tools!r}")
+            tools = (int(tools[0]), int(tools[1]))
+        targets.append(Target(name, kind, physics, coll, disp, cases, tools))
 
     if any(t.kind == "xray" for t in targets) and min(study_kw["size"]) < api.REGISTER_MIN_SIDE_PX:
         raise StudyError(f"{path}: study.size: {list(study_kw['size'])}: kind 'xray' targets are registered as "
@@ -411,7 +435,8 @@ def evaluation_settings(study: Study, target: Target, network: dict) -> dict:
     methods, size, moving physics)."""
     return _plain({"network": network,
                    "target": {"kind": target.kind, "physics": target.physics, "collimator": target.collimator,
-                              "display": target.display, "cases": study.cases_of(target)},
+                              "display": target.display, "cases": study.cases_of(target),
+                              **({"tools": list(target.tools)} if target.tools else {})},
                    "protocol": {"ct": study.ct, "start": study.start, "seed": study.seed,
                                 "methods": list(study.methods), "size": list(study.size),
                                 "moving_physics": study.moving_physics}})
@@ -590,14 +615,14 @@ def frame_refusals() -> tuple[type, ...]:
 def study_frames(study: Study, target: Target, volume, center) -> FrameSimulator:
     """The realistic frames of a study's ``xray`` target (:class:`register.evaluation.frames.FrameSimulator`):
     full physics with noise (the target's ``physics``, the study's seed), its collimator and display
-    chain (default: log, bone dark, 12 bits, black shutter); frame ``case`` is drawn from
-    :func:`frame_seed`."""
+    chain (default: log, bone dark, 12 bits, black shutter) and its tools; frame ``case`` is drawn
+    from :func:`frame_seed`."""
     physics = PhysicsSettings(**{**target.physics, "noise": True, "seed": study.seed})
     imager = XRayImager(volume, physics, size=study.size, center_lps=center)
     chain = DisplayChain.from_dict(target.display or {"log": True, "polarity": "bone-dark", "bits": 12,
                                                        "shutter": "black"})
     collimator = None if target.collimator is None else Collimator.from_dict(target.collimator)
-    return FrameSimulator(imager, chain, collimator)
+    return FrameSimulator(imager, chain, collimator, tools=target.tools)
 
 
 def frame_seed(study: Study, case: int) -> int:

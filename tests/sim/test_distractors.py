@@ -315,6 +315,41 @@ def test_random_tools_are_reproducible_closed_and_in_view():
         random_tools(0, geom)
 
 
+def test_implanted_tools_are_reproducible_in_their_box_and_move_with_the_patient():
+    """implanted_tools: the same seed the same tools; every tool's origin in the box centre +-
+    spread; tools in the patient frame, so that their chords at a pose are those of the same
+    meshes placed in the camera frame by that pose's extrinsic (the anatomy's own map)."""
+    from sim.distractors import implanted_tools
+    from sim.geometry import extrinsic_lps_to_camera
+
+    geom = CArmGeometry(sdd_mm=1020.0, sod_mm=700.0, height=32, width=32, pixel_spacing_mm=9.3)
+    center, spread = np.array([10.0, -20.0, 150.0]), np.array([80.0, 50.0, 70.0])
+    kinds, counts = set(), set()
+    for seed in range(10):
+        tools = implanted_tools(np.random.default_rng(seed), center, tools=(2, 5))
+        again = implanted_tools(np.random.default_rng(seed), center, tools=(2, 5))
+        assert [t.mesh.kind for t in tools] == [t.mesh.kind for t in again]
+        for t, u in zip(tools, again):
+            np.testing.assert_array_equal(t.pose, u.pose)
+            assert t.frame == "lps" and np.all(np.abs(t.pose[:3, 3] - center) <= spread)
+        kinds |= {t.mesh.kind for t in tools}
+        counts.add(len(tools))
+    assert kinds == {"screw", "k_wire", "plate", "retractor"} and counts <= {2, 3, 4, 5} and len(counts) >= 3
+    T = pose_from_params(np.array([12.0, -7.0, 20.0, 5.0, -10.0, 8.0]), geom.sod_mm)
+    E = extrinsic_lps_to_camera(T[None], center)[0]
+    in_camera = [Distractor(t.mesh, E @ t.pose, frame="camera") for t in tools]
+    got = DistractorField(tools, geom, center).chords(T)
+    want = DistractorField(in_camera, geom, center).chords(np.eye(4))
+    assert got.max() > 1.0
+    np.testing.assert_allclose(got, want, atol=1e-2)  # float32 ray parameters of two placements
+    with pytest.raises(DistractorError, match="implanted_tools needs a numpy Generator"):
+        implanted_tools(3, center)
+    with pytest.raises(DistractorError, match="0 <= low <= high"):
+        implanted_tools(np.random.default_rng(0), center, tools=(4, 2))
+    with pytest.raises(DistractorError, match="must be finite"):
+        implanted_tools(np.random.default_rng(0), [0.0, np.nan, 0.0])
+
+
 @pytest.mark.parametrize("length, diameter", [(25.0, 4.5), (31.7, 6.1), (57.3, 7.4), (80.0, 5.2)])
 def test_screws_of_any_size_are_closed_manifolds(length, diameter):
     # the parts of a screw overlap: coincident rims made some sizes non-manifold before
