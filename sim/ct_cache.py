@@ -19,7 +19,11 @@ what :func:`sim.ct_io.load_ct` returns, with the anatomy centre, in one ``.npz``
 * **Folder**: ``$CTXREG_CT_CACHE`` if set, else ``$XDG_CACHE_HOME/ctxreg/ct`` (default
   ``~/.cache/ctxreg/ct``). It holds at most :data:`MAX_CACHE_MB` MB (``$CTXREG_CT_CACHE_MB``):
   after a write, the least recently used entries (by modification time, touched on every hit)
-  are removed until the rest fit. The folder may be deleted at any time.
+  are removed until the rest fit. The cache owns only what it wrote: a file counts as an entry
+  only when its name is ``<40 hex digits>.npz`` *and* its ``meta`` records that very key
+  (:func:`is_entry`); any other file in the folder (a user's own ``.npz`` files, when a data
+  folder is given as the cache) is neither counted nor ever removed. The folder may be deleted
+  at any time.
 
 Label maps, resampling and a chosen DICOM series bypass the cache (:func:`load_ct` then reads the
 files as always). Example::
@@ -33,6 +37,7 @@ from __future__ import annotations
 import hashlib
 import json
 import os
+import re
 import zipfile
 from pathlib import Path
 from typing import Callable
@@ -139,16 +144,40 @@ def load_ct_cached(path: str | os.PathLike, *, cache_dir: str | os.PathLike | No
             f"(set CTXREG_CT_CACHE to a writable folder, or turn the cache off)")
         return volume
     log(f"CT cache: {path} stored as {entry} ({entry.stat().st_size / 1e6:.0f} MB)")
-    evict(folder, keep=entry, limit_bytes=limit)
+    removed = evict(folder, keep=entry, limit_bytes=limit)
+    if removed:
+        log(f"CT cache: removed {len(removed)} least recently used entr{'y' if len(removed) == 1 else 'ies'} of "
+            f"{folder} to stay within {limit / (1 << 20):g} MB")
     return volume
 
 
+_ENTRY_NAME = re.compile(r"[0-9a-f]{40}\.npz")
+
+
+def is_entry(path: str | os.PathLike) -> bool:
+    """True when ``path`` is an entry this cache wrote: named ``<key>.npz`` (``key`` 40 hex
+    digits) with a ``meta`` member whose ``key`` is that key. Anything else (another program's
+    or the user's file, whatever its name) is not the cache's to count or remove."""
+    path = Path(path)
+    if not _ENTRY_NAME.fullmatch(path.name) or not path.is_file():
+        return False
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            meta = json.loads(str(z["meta"]))
+    except (OSError, ValueError, KeyError, zipfile.BadZipFile, json.JSONDecodeError, EOFError):
+        return False
+    return isinstance(meta, dict) and meta.get("key") == path.name[:-4]
+
+
 def evict(folder: str | os.PathLike, *, keep: Path | None = None, limit_bytes: int | None = None) -> list[Path]:
-    """Remove the least recently used entries of ``folder`` until it holds at most ``limit_bytes``
-    (default :func:`cache_limit_bytes`); ``keep`` is never removed. Returns the removed files."""
+    """Remove the least recently used entries of ``folder`` until its entries take at most
+    ``limit_bytes`` (default :func:`cache_limit_bytes`); ``keep`` is never removed, nor any file
+    that is not an entry (:func:`is_entry`). Returns the removed files."""
     limit = cache_limit_bytes() if limit_bytes is None else int(limit_bytes)
     entries = []
     for f in Path(folder).glob("*.npz"):
+        if not is_entry(f):
+            continue  # not the cache's: never counted, never removed
         try:
             st = f.stat()
         except FileNotFoundError:  # another process removed it

@@ -131,6 +131,35 @@ def test_the_folder_keeps_its_limit_least_recently_used_first(tmp_path, monkeypa
     assert [e.name for e in cache.glob("*.npz")] == [f"{ct_hash(fresh)}.npz"]
 
 
+def test_a_folder_of_the_users_files_keeps_every_file_whatever_the_limit(tmp_path, monkeypatch):
+    """A data folder given as the cache: the user's own .npz files (one even named like an entry,
+    and one like an entry with another key in its meta), a text file and a subfolder survive a
+    limit of 0 bytes, byte for byte; only the cache's own older entries are removed."""
+    data = tmp_path / "userdata"
+    data.mkdir()
+    np.savez(data / "experiment.npz", x=np.arange(5))
+    np.savez(data / "my_results.npz", meta=np.array('{"key": "mine"}'))
+    lookalike = data / ("ab" * 20 + ".npz")
+    np.savez(lookalike, hu=np.zeros(3))
+    impostor = data / ("cd" * 20 + ".npz")
+    np.savez(impostor, meta=np.array('{"key": "' + "ef" * 20 + '"}'))
+    (data / "notes.txt").write_text("keep me")
+    (data / "sub").mkdir()
+    np.savez(data / "sub" / "deep.npz", x=np.ones(2))
+    before = {p: p.read_bytes() for p in data.rglob("*") if p.is_file()}
+    old = _saved(tmp_path, 1, "old.nii")
+    load_ct_cached(old, cache_dir=data)
+    monkeypatch.setenv("CTXREG_CT_CACHE_MB", "0")
+    lines = []
+    new = _saved(tmp_path, 2, "new.nii")
+    load_ct_cached(new, cache_dir=data, log=lines.append)
+    assert {p: p.read_bytes() for p in before} == before  # every file of the user's, unchanged
+    assert not (data / f"{ct_hash(old)}.npz").exists() and (data / f"{ct_hash(new)}.npz").is_file()
+    assert any("removed 1 least recently used entry" in line for line in lines)
+    assert ct_cache.is_entry(data / f"{ct_hash(new)}.npz")
+    assert not any(ct_cache.is_entry(p) for p in before)
+
+
 def test_bad_settings_and_inputs_are_named(tmp_path, monkeypatch):
     path = _saved(tmp_path, 1)
     not_a_folder = tmp_path / "file"
