@@ -23,6 +23,7 @@ Example::
 from __future__ import annotations
 
 import contextlib
+import json
 import re
 from typing import Callable
 from dataclasses import dataclass
@@ -82,13 +83,39 @@ def parse_scheduler(text: str) -> Scheduler:
             raise SchedulerError(f"--scheduler {text}: local:N needs N worker processes, 1 to {MAX_LOCAL_WORKERS}")
         return Scheduler(t, local=int(n))
     if t.endswith(".json"):
-        if not Path(t).is_file():
-            raise SchedulerError(f"--scheduler {text}: scheduler file not found")
+        _check_scheduler_file(Path(t), text)
         return Scheduler(t, scheduler_file=t)
     if _ADDRESS.match(t):
-        return Scheduler(t, address=t if "://" in t else f"tcp://{t}")
+        address = t if "://" in t else f"tcp://{t}"
+        if address.startswith("tcp://"):
+            host, colon, port = address[len("tcp://"):].rpartition(":")
+            if not colon or not host or not port.isdigit() or not 1 <= int(port) <= 65535:
+                raise SchedulerError(f"--scheduler {text}: a TCP address needs a host and a port 1-65535 "
+                                     "(tcp://host:8786)")
+        return Scheduler(t, address=address)
     raise SchedulerError(f"--scheduler {text}: give local:N, a scheduler address (tcp://host:8786) or a "
                          "scheduler file (*.json)")
+
+
+def _check_scheduler_file(path: Path, text: str) -> None:
+    """A scheduler file as ``dask scheduler --scheduler-file`` writes it: a JSON object whose
+    ``address`` is a scheduler address; anything else is refused in one line naming the file."""
+    if path.is_dir():
+        raise SchedulerError(f"--scheduler {text}: a folder, not a scheduler file")
+    if not path.is_file():
+        raise SchedulerError(f"--scheduler {text}: scheduler file not found")
+    try:
+        info = json.loads(path.read_text())
+    except (OSError, UnicodeDecodeError) as e:
+        raise SchedulerError(f"--scheduler {text}: cannot read the scheduler file ({e})") from None
+    except json.JSONDecodeError as e:
+        why = "empty" if not path.read_bytes().strip() else f"not valid JSON ({e.msg} at line {e.lineno})"
+        raise SchedulerError(f"--scheduler {text}: the scheduler file is {why}; is the scheduler still starting, "
+                             "or was the file cut short?") from None
+    address = info.get("address") if isinstance(info, dict) else None
+    if not isinstance(address, str) or not _ADDRESS.match(address.strip()):
+        raise SchedulerError(f"--scheduler {text}: the scheduler file holds no scheduler address (its \"address\" "
+                             f"is {address!r}); give the file the scheduler wrote (dask scheduler --scheduler-file)")
 
 
 @contextlib.contextmanager

@@ -27,6 +27,34 @@ def test_parse_scheduler():
             parse_scheduler(bad)
 
 
+@pytest.mark.parametrize("content, words", [
+    ("", "the scheduler file is empty"),
+    ('{"address": "tcp://10.0.0.1:87', "the scheduler file is not valid JSON"),
+    ('{"id": "Scheduler-1", "type": "Scheduler"}', "holds no scheduler address"),
+    ('["tcp://10.0.0.1:8786"]', "holds no scheduler address"),
+    ('{"address": 8786}', "holds no scheduler address"),
+    (None, "a folder, not a scheduler file"),
+])
+def test_bad_scheduler_files_and_addresses_are_named_in_one_line(tmp_path, content, words):
+    """A truncated, empty or address-less scheduler file (or a folder named *.json) is refused when
+    parsed, before any work, in one line naming the file (Dask's own client ended in an
+    AssertionError)."""
+    path = tmp_path / "sched.json"
+    if content is None:
+        path.mkdir()
+    else:
+        path.write_text(content)
+    with pytest.raises(SchedulerError) as e:
+        parse_scheduler(str(path))
+    assert words in str(e.value) and str(path) in str(e.value) and "\n" not in str(e.value)
+    good = tmp_path / "good.json"
+    good.write_text('{"type": "Scheduler", "address": "tcp://10.0.0.1:8786"}')
+    assert parse_scheduler(str(good)).scheduler_file == str(good)
+    for bad in ("tcp://bogus", "tcp://:8786", "tcp://host:99999"):
+        with pytest.raises(SchedulerError, match="a TCP address needs a host and a port"):
+            parse_scheduler(bad)
+
+
 def test_a_local_cluster_writes_the_same_bytes_and_survives_a_killed_worker(reference, small_cts, tmp_path):
     """Two worker processes; the first worker seen rendering a shard is killed (SIGKILL) mid-shard. The
     nanny restarts it, the scheduler retries the shard: every checksum equals the single-process run's,
