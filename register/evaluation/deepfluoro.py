@@ -42,7 +42,7 @@ from register.evaluation.evaluate import START_MODES, start_params
 from register.plots import overlay_png
 from register.xray.prepare import fit_to_size
 from register.xray.preprocess import DEFAULT_STEPS
-from sim.atomic import atomic_path, jsonable, write_csv, write_json
+from sim.atomic import atomic_path, jsonable, sha256_file, write_csv, write_json
 from sim.outputs import check_output_dir
 from sim.geometry import params_from_pose, pose_from_params, project_points, projection_matrix
 from sim.progress import Progress
@@ -202,9 +202,11 @@ def _overlay(path: Path, frame: DeepFluoroProjection, specimen: DeepFluoroSpecim
 
 
 def _progress_record(path, settings: DeepFluoroSettings, model) -> dict:
-    """What a resumed run must share with the run it continues: the file, the settings, the model."""
+    """What a resumed run must share with the run it continues: the file (by its path and its
+    content's SHA-256: a file changed in place, even at the same size, is another run), the
+    settings, the model."""
     p = Path(path)
-    return {"file": str(p.resolve()), "file_bytes": p.stat().st_size if p.exists() else None,
+    return {"file": str(p.resolve()), "file_sha256": sha256_file(p) if p.is_file() else None,
             "settings": json.loads(json.dumps(asdict(settings))),
             "model": None if model is None else (str(model) if not callable(model) else type(model).__name__)}
 
@@ -219,12 +221,37 @@ def _resumed_rows(out: Path, record: dict) -> list[dict]:
         rows = saved["rows"]
     except (OSError, ValueError, KeyError, TypeError) as exc:
         raise DeepFluoroError(f"--resume: {f} cannot be read ({exc}); run without --resume to start again") from None
+    problem = _rows_problem(rows)
+    if problem or not isinstance(saved.get("settings"), dict):
+        raise DeepFluoroError(f"--resume: {f} is damaged ({problem or 'its settings are not a table'}); run without "
+                              "--resume to start again")
     differ = [k for k in record if k != "settings" and saved.get(k) != record[k]]
     differ += [f"settings.{k}" for k, v in record["settings"].items() if saved.get("settings", {}).get(k) != v]
     if differ:
         raise DeepFluoroError(f"--resume: {f} was written by another run (differs in {', '.join(differ)}); run "
                               f"without --resume, or with the same file, options and model")
     return rows
+
+
+#: What every row of ``progress.json`` holds (and its type), as :func:`_register_frame` writes it.
+_ROW_TYPES = {"specimen": str, "frame": int, "method": str, "mtre_mm": float, "initial_mtre_mm": float,
+              "time_s": float, "pose": list}
+
+
+def _rows_problem(rows) -> str | None:
+    """What is wrong with the rows of a ``progress.json`` (None: nothing)."""
+    if not isinstance(rows, list):
+        return f"its rows are {type(rows).__name__}, not a list"
+    for i, row in enumerate(rows):
+        if not isinstance(row, dict):
+            return f"row {i} is {type(row).__name__}, not a table"
+        for key, kind in _ROW_TYPES.items():
+            value = row.get(key)
+            ok = (isinstance(value, (int, float)) and not isinstance(value, bool) if kind is float
+                  else isinstance(value, kind) and not isinstance(value, bool))
+            if not ok:
+                return f"row {i} has no {key} of type {kind.__name__} (got {value!r})"
+    return None
 
 
 _SPECIMENS: dict = {}  # (file, specimen) -> DeepFluoroSpecimen with its CT: one per process
@@ -299,7 +326,8 @@ def evaluate_deepfluoro(path, settings: DeepFluoroSettings, out, *, model=None, 
     rows = _resumed_rows(out, record) if resume else []
     done = {(r["specimen"], int(r["frame"]), r["method"]) for r in rows}
     with DeepFluoroFile(path) as f:
-        chosen = [f.resolve(s) for s in settings.specimens] or list(f.specimens)
+        # a specimen named twice (by number and by name) is registered once
+        chosen = list(dict.fromkeys(f.resolve(s) for s in settings.specimens)) or list(f.specimens)
         p = f.params
         cx, cy = p.principal_point
         if abs(cx - (p.cols - 1) / 2) > 0.5 or abs(cy - (p.rows - 1) / 2) > 0.5:

@@ -328,6 +328,47 @@ def test_an_interrupted_run_resumes_where_it_stopped(small_file, tmp_path):
     assert r.returncode == 2 and "settings.start" in r.stderr, r.stderr
 
 
+def test_a_damaged_or_changed_progress_is_refused_and_a_specimen_named_twice_runs_once(small_file, tmp_path, capsys):
+    """--resume with a progress.json whose rows are damaged ends in one line naming the file; a
+    file changed in place at the same size is another run (its content hash, not its size); the
+    same specimen by number and by name is registered once."""
+    import shutil
+
+    path, _ = small_file
+    copy = tmp_path / "copy.h5"
+    shutil.copy(path, copy)
+    with DeepFluoroFile(copy) as f:
+        name = f.specimens[0]
+    out = tmp_path / "run"
+    common = ["--deepfluoro", copy, "--start", "truth", "--method", "cmaes", "--size", "64", "64", "--out", out,
+              "--specimen", "1", name]
+    rc, err = _evaluate_here(capsys, *common)
+    assert rc == 0, err
+    full = json.loads((out / "progress.json").read_text())
+    assert len(full["rows"]) == len(PARAMS)  # each frame once, not once per naming
+    row = full["rows"][0]
+    for rows, words in (("abc", "its rows are str, not a list"),
+                        ([{k: v for k, v in row.items() if k != "specimen"}], "row 0 has no specimen"),
+                        ([{**row, "frame": "0"}], "row 0 has no frame of type int"),
+                        ([row, 7], "row 1 is int, not a table")):
+        (out / "progress.json").write_text(json.dumps({**full, "rows": rows}))
+        rc, err = _evaluate_here(capsys, *common, "--resume")
+        assert rc == 2 and "is damaged" in err and words in err and err.count("\n") == 1, err
+    (out / "progress.json").write_text(json.dumps({**full, "rows": full["rows"][:1]}))
+    size = copy.stat().st_size
+    with h5py.File(copy, "r+") as h:  # one value changed in place: the same size, other content
+        found = []
+        h.visititems(lambda k, v: found.append(k) if isinstance(v, h5py.Dataset) and v.dtype.kind == "f"
+                     and v.size > 0 and not found else None)
+        data = h[found[0]]
+        flat = data[()].reshape(-1)
+        flat[0] += 1.0
+        data[()] = flat.reshape(data.shape)
+    assert copy.stat().st_size == size
+    rc, err = _evaluate_here(capsys, *common, "--resume")
+    assert rc == 2 and "file_sha256" in err, err
+
+
 def test_start_params_of_every_start_mode():
     """The starts both protocols share (register.evaluation.evaluate.start_params)."""
     from register.evaluation.evaluate import start_params
