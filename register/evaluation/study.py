@@ -175,6 +175,37 @@ class Study:
         return target.cases or self.cases
 
 
+def _check_training_inputs(table: dict, where: str, earlier: list[str]) -> None:
+    """The files a variant's training reads, checked when the study is read (so that a missing
+    dataset of the last variant is named before the first one trains): the dataset (a campaign
+    file, read and checked with its CTs, or a campaign folder, opened), ``init_from`` (an
+    existing file, or ``.../variants/<an earlier variant>/checkpoint.pt``: what the study trains
+    first) and ``weights_path``."""
+    from sim.campaign import DatasetError, load_campaign, open_dataset
+    from sim.campaign.config import CampaignConfigError
+
+    dataset = str(table["dataset"])
+    try:
+        if dataset.endswith(".toml"):
+            load_campaign(dataset)
+        elif not Path(dataset).is_dir():
+            raise StudyError(f"{where}.dataset: {dataset} not found (a campaign .toml file or a campaign folder)")
+        else:
+            open_dataset(dataset)
+    except (CampaignConfigError, DatasetError) as e:
+        raise StudyError(f"{where}.dataset: {e}") from None
+    for key in ("init_from", "weights_path"):
+        value = table.get(key)
+        if not isinstance(value, str) or Path(value).is_file():
+            continue
+        parts = Path(value).parts
+        if key == "init_from" and parts[-3:-2] == ("variants",) and parts[-1] == "checkpoint.pt" and parts[-2] in earlier:
+            continue  # the checkpoint of a variant this study trains before
+        raise StudyError(f"{where}.{key}: {value} not found" + (" (nor the checkpoint of an earlier variant, "
+                                                                ".../variants/<name>/checkpoint.pt)"
+                                                                if key == "init_from" else ""))
+
+
 #: The most metal tools a study frame may hold (``tools = [low, high]``).
 MAX_TOOLS = 20
 
@@ -274,6 +305,7 @@ def load_study(path: str | Path) -> Study:
             if isinstance(table.get(key), str):
                 table[key] = resolve(table[key])
         _checked(TrainConfig, {**table, "out": "-"}, f"{where}.train")  # as ctxreg train checks it
+        _check_training_inputs(table, f"{where} ({name}).train", [v.name for v in variants])  # before any trains
         variants.append(Variant(name, table))
 
     targets = []

@@ -12,6 +12,7 @@ from register.evaluation.study import StudyError, load_study
 
 ROOT = Path(__file__).resolve().parents[2]
 
+_SMOKE = str(ROOT / "campaigns" / "smoke.toml")
 TINY = f'''
 [study]
 ct = "phantom"
@@ -159,6 +160,13 @@ BAD = {
                               "target[2].tools: tools apply to kind 'xray' only"),
     "tools reversed": (TINY.replace('kind = "xray"', 'kind = "xray"\ntools = [3, 1]'), "target[1].tools: [low, high]"),
     "tools not whole": (TINY.replace('kind = "xray"', 'kind = "xray"\ntools = [1, 2.5]'), "target[1].tools: [low, high]"),
+    "second variant's dataset missing": (_SMOKE.join(TINY.split(_SMOKE, 2)[:2]) + str(ROOT / "campaigns" / "nope.toml")
+                                         + TINY.split(_SMOKE, 2)[2],
+                                         "variant[1] (tiny-realistic).train.dataset: campaign file"),
+    "a dataset folder missing": (TINY.replace(_SMOKE, str(ROOT / "campaigns" / "no_folder"), 1),
+                                 "variant[0] (tiny).train.dataset: "),
+    "init_from missing": (TINY.replace("iterations = 2\n", 'init_from = "no_such.pt"\niterations = 2\n', 1),
+                          "variant[0] (tiny).train.init_from: "),
     "not TOML": ("[study\n", "not valid TOML"),
     "model and train": (TINY.replace('name = "tiny"\n', 'name = "tiny"\nmodel = "x.pt"\n', 1),
                         "either train (a [variant.train] table) or model"),
