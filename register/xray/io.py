@@ -160,6 +160,35 @@ class XRayImage:
         """``(H, W)`` in pixels."""
         return int(self.pixels.shape[0]), int(self.pixels.shape[1])
 
+    def binned(self, factor: int) -> "XRayImage":
+        """This image with its pixels averaged in ``factor`` x ``factor`` blocks: ``(H // f, W // f)``
+        px of ``f`` times the pitch (``pixel_spacing_mm``, and ``meta["pixel_spacing_rc_mm"]``),
+        the rows and columns that do not fill a block cut evenly from both sides so that the
+        centre (the principal point) stays within half an original pixel. ``meta["binned"]``
+        records ``factor``; 1 returns the image itself.
+
+        >>> img = XRayImage(np.arange(36.0).reshape(6, 6), pixel_spacing_mm=0.2)
+        >>> b = img.binned(2)
+        >>> b.shape, b.pixel_spacing_mm, float(b.pixels[0, 0])
+        ((3, 3), 0.4, 3.5)
+        """
+        f = int(factor)
+        if f < 1 or f != factor:
+            raise XRayInputError(f"{self.source or 'XRayImage'}: binning factor must be a whole number >= 1, got {factor!r}")
+        if f == 1:
+            return self
+        h, w = self.shape
+        if h < 2 * f or w < 2 * f:
+            raise XRayInputError(f"{self.source or 'XRayImage'}: {h} x {w} px is too small to bin by {f}")
+        top, left = (h % f) // 2, (w % f) // 2
+        block = self.pixels[top:top + h // f * f, left:left + w // f * f].astype(np.float64)
+        pixels = block.reshape(h // f, f, w // f, f).mean(axis=(1, 3)).astype(np.float32)
+        meta = dict(self.meta, binned=f * int(self.meta.get("binned", 1)))
+        if meta.get("pixel_spacing_rc_mm") is not None:
+            meta["pixel_spacing_rc_mm"] = [float(v) * f for v in meta["pixel_spacing_rc_mm"]]
+        return replace(self, pixels=pixels, meta=meta,
+                       pixel_spacing_mm=None if self.pixel_spacing_mm is None else self.pixel_spacing_mm * f)
+
     def reoriented(self, orientation: str) -> "XRayImage":
         """This image turned by ``orientation`` (a name of :data:`ORIENTATIONS`): the pixels
         ``(H, W)`` mirrored or rotated (``(W, H)`` after a quarter turn), the geometry unchanged (square
@@ -439,6 +468,23 @@ def _is_square(rc: list[float] | tuple[float, float]) -> bool:
     return abs(rc[0] - rc[1]) <= _SQUARE_RTOL * max(rc)
 
 
+def _native_pixels_short(ds) -> str | None:
+    """Where uncompressed pixel data is shorter than its tags say (a file cut short): the words
+    saying so; else None."""
+    try:
+        rows, cols = int(ds.Rows), int(ds.Columns)
+        bits = int(ds.get("BitsAllocated", 16) or 16)
+        samples = int(ds.get("SamplesPerPixel", 1) or 1)
+        have = len(ds.PixelData)
+    except (AttributeError, TypeError, ValueError, KeyError):
+        return None
+    need = rows * cols * samples * bits // 8
+    if have >= need:
+        return None
+    return (f"it holds {have} bytes where {rows} x {cols} px of {bits} bits need {need}: the file is cut short "
+            "(a copy not finished, or a damaged file)")
+
+
 def _load_dicom(p: Path) -> XRayImage:
     import pydicom
     from pydicom.errors import InvalidDicomError
@@ -473,6 +519,10 @@ def _load_dicom(p: Path) -> XRayImage:
         arr = ds.pixel_array  # pydicom 3 converts YBR colour spaces to RGB here
     except Exception as e:  # decoder plugins raise RuntimeError / NotImplementedError / ValueError
         name = getattr(tsyntax, "name", str(tsyntax))
+        if tsyntax is None or not getattr(tsyntax, "is_compressed", True):  # native pixels: no decoder involved
+            short = _native_pixels_short(ds)
+            raise XRayInputError(f"{src}: cannot read the pixel data (transfer syntax {name}, uncompressed): "
+                                 + (short or f"{type(e).__name__}: {e}")) from None
         raise XRayInputError(
             f"{src}: cannot decode the pixel data (transfer syntax {name}): {type(e).__name__}: {e}. "
             f"JPEG 2000 / JPEG-LS / lossless JPEG need a pydicom decoder plugin (Pillow with OpenJPEG, "

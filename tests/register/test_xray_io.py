@@ -656,3 +656,46 @@ def test_real_dicoms_intensity_tags_and_geometry_sources():
         assert line.startswith("geometry: SDD ") and "\n" not in line
         assert set(src.assumed) == {n for n, s in [("sdd_mm", src.sdd_source), ("sod_mm", src.sod_source),
                                                    ("pixel_spacing_mm", src.pixel_spacing_source)] if "(assumed)" in s}
+
+
+def test_binning_averages_blocks_scales_the_pitch_and_keeps_the_centre():
+    """XRayImage.binned: each output pixel the mean of its f x f block (a block-constant image
+    comes back exactly); the pitch (and an anisotropic one in meta) times f; rows and columns that
+    do not fill a block cut evenly, so the centre moves by at most half an original pixel; bad
+    factors refused."""
+    from register.xray.io import XRayImage, XRayInputError
+
+    rng = np.random.default_rng(0)
+    blocks = rng.uniform(0, 1, (7, 5)).astype(np.float32)
+    img = XRayImage(np.repeat(np.repeat(blocks, 3, axis=0), 3, axis=1), pixel_spacing_mm=0.15, source="x",
+                    meta={"pixel_spacing_rc_mm": [0.15, 0.2]})
+    b = img.binned(3)
+    np.testing.assert_allclose(b.pixels, blocks, rtol=1e-6)
+    assert b.pixel_spacing_mm == pytest.approx(0.45) and b.meta["pixel_spacing_rc_mm"] == pytest.approx([0.45, 0.6])
+    assert b.meta["binned"] == 3 and img.binned(1) is img
+    # 23 x 22 px by 4: 5 x 5 blocks from rows 1..20 and columns 1..20; centres 11 / 10.5 -> 10.5
+    odd = XRayImage(np.arange(23 * 22, dtype=np.float32).reshape(23, 22))
+    o = odd.binned(4)
+    assert o.shape == (5, 5) and o.pixel_spacing_mm is None
+    np.testing.assert_allclose(o.pixels[0, 0], odd.pixels[1:5, 1:5].mean())
+    for bad in (0, 2.5, -1):
+        with pytest.raises(XRayInputError, match="binning factor"):
+            odd.binned(bad)
+    with pytest.raises(XRayInputError, match="too small to bin by 20"):
+        odd.binned(20)
+
+
+def test_a_truncated_uncompressed_dicom_is_called_cut_short_not_a_missing_decoder(tmp_path):
+    """An uncompressed DICOM cut inside its pixel data: the message says how many bytes it holds
+    and needs, and blames no JPEG decoder."""
+    from register.xray.io import XRayInputError, load_xray, write_xray_dicom
+
+    p = write_xray_dicom(tmp_path / "a.dcm", np.random.default_rng(0).uniform(0, 1000, (64, 64)).astype(np.float32),
+                         pixel_spacing_mm=0.3, sdd_mm=1000.0, sod_mm=700.0)
+    cut = tmp_path / "cut.dcm"
+    cut.write_bytes(p.read_bytes()[:-3000])
+    with pytest.raises(XRayInputError) as e:
+        load_xray(cut)
+    msg = str(e.value)
+    assert "holds 5192 bytes where 64 x 64 px of 16 bits need 8192: the file is cut short" in msg
+    assert "JPEG" not in msg and "\n" not in msg
