@@ -26,6 +26,7 @@ from register.engines.search import GlobalSearchSettings
 from register.evaluation.evaluate import (LOCAL_ROT_DEG, LOCAL_TRANS_MM, START_MODES, EvaluationError,
                                           EvaluationSettings, MethodSpec, evaluate)
 from register.xray.intensity import POLARITIES, SCALES, TONES
+from register.serve import FolderWatch, ServeError, serve_frames, stdin_frames
 from register.xray.io import ORIENTATIONS
 from sim.cli import CT_HELP
 from sim.cliargs import IMAGE_SIDE_PX, Range, opt, refuse_unused, refuse_unused_label_map
@@ -364,75 +365,30 @@ def run_register(cmd: RegisterCommand) -> list[Path]:
     return written
 
 
-#: File names ``ctxreg serve`` takes from a watched folder as X-rays (DICOM files often have no suffix).
-SERVE_SUFFIXES = ("", ".dcm", ".dicom", ".ima", ".png", ".tif", ".tiff", ".jpg", ".jpeg", ".npy")
-#: Seconds between two looks at a watched folder; a file is taken once its size held for one look.
-SERVE_POLL_S = 0.5
-
-
-class ServeError(RegistrationError):
-    """A ``ctxreg serve`` option that cannot work (the message names it)."""
-
-
 @dataclass(frozen=True)
 class ServeCommand(RegisterCommand):
     """Defaults of ``ctxreg serve``: ``ctxreg register``'s options, for a case's frames in one process."""
 
     xray: str = field(default="-", metadata=opt(
         "where the frames come from: '-' reads X-ray paths from stdin, one per line, until its end; a folder is "
-        "watched for new X-ray files (DICOM, PNG, TIFF, JPEG, .npy; each taken once its size holds, in name order) "
-        "until --frames or Ctrl-C", group="input", metavar="-|DIR"))
+        "watched for new X-ray files (DICOM, PNG, TIFF, JPEG, .npy; each taken once its size and time hold, in name "
+        "order; a refused one again when it changes; one already registered into --out, by path and content, not "
+        "again, so a restart continues) until --frames, SIGTERM or Ctrl-C (the first finishes the frame in hand, "
+        "a second abandons it)", group="input", metavar="-|DIR"))
     out: str = field(default="out/serve", metadata=opt(
         "folder that gets one folder per frame (its file name's stem; _2, _3, ... where taken) with register's "
-        "outputs", group="output", metavar="DIR"))
+        "outputs and frame.json (the X-ray's path and SHA-256), each written whole or not at all", group="output", metavar="DIR"))
     frames: int = field(default=0, metadata=opt(
         "stop after this many frames (0: at the end of stdin, or never for a folder)", group="input", metavar="N",
         bounds=Range(0, 1_000_000)))
 
 
-def _stdin_frames():
-    for line in sys.stdin:
-        if line.strip():
-            yield Path(line.strip())
-
-
-def _folder_frames(folder: Path):
-    """New X-ray files of ``folder`` as they arrive, in name order, each once its size held for one look."""
-    import time
-
-    seen: set[str] = set()
-    sizes: dict[str, int] = {}
-    while True:
-        for path in sorted(folder.iterdir()):
-            if path.name in seen or not path.is_file() or path.name.startswith(".") \
-                    or path.suffix.lower() not in SERVE_SUFFIXES:
-                continue
-            size = path.stat().st_size
-            if sizes.get(path.name) == size and size > 0:
-                seen.add(path.name)
-                yield path
-            else:
-                sizes[path.name] = size
-        time.sleep(SERVE_POLL_S)
-
-
-def _frame_out(root: Path, stem: str) -> Path:
-    """``root/stem``, or ``root/stem_2``, ``_3``, ... where that is taken."""
-    out, k = root / stem, 1
-    while out.exists():
-        k += 1
-        out = root / f"{stem}_{k}"
-    return out
-
-
 def run_serve(cmd: ServeCommand) -> list[Path]:
-    """Register a case's frames in one process: the CT, its anatomy centre and the network loaded
-    once, Dr.Jit's kernels compiled once, each frame as it arrives (stdin or a watched folder). One
-    JSON line per frame on stdout (``xray``, ``out``, ``params`` deg/mm, ``similarity``, ``seconds``,
-    ``search_status``; or ``error`` where the frame was refused: the next frame goes on)."""
-    import json
-    import time
-
+    """Register a case's frames in one process (:mod:`register.serve`): the CT, its anatomy centre
+    and the network loaded once, Dr.Jit's kernels compiled once, each frame as it arrives (stdin or
+    a watched folder). One JSON line per frame on stdout (``xray``, ``out``, ``params`` deg/mm,
+    ``similarity``, ``seconds``, ``search_status``; or ``error`` where the frame was refused: the
+    next frame goes on). Refused (exit 2) when no frame was registered."""
     from sim import load_ct
     from sim.anatomy import anatomy_center
     from sim.errors import USER_OS_ERRORS, CtxregError
@@ -442,7 +398,8 @@ def run_serve(cmd: ServeCommand) -> list[Path]:
     if source is not None and not source.is_dir():
         raise ServeError(f"--xray {cmd.xray}: not a folder to watch (or '-' for paths on stdin)")
     root = Path(cmd.out)
-    root.mkdir(parents=True, exist_ok=True)
+    if root.exists() and not root.is_dir():
+        raise ServeError(f"--out {cmd.out}: a file, not a folder")
     volume = load_ct(cmd.ct, label_map=cmd.label_map, cache=keywords.pop("ct_cache"),
                      log=lambda line: print(f"ctxreg serve: {line}", file=sys.stderr))
     if keywords["center"] is None:
@@ -450,25 +407,13 @@ def run_serve(cmd: ServeCommand) -> list[Path]:
     model = load_predictor(cmd.model) if needs_model(cmd.method) else None
     print(f"ctxreg serve: {volume.source} and the {cmd.method} method ready; frames from "
           f"{'stdin' if source is None else source}", file=sys.stderr, flush=True)
-    done = 0
-    for path in (_stdin_frames() if source is None else _folder_frames(source)):
-        out = _frame_out(root, path.stem if path.suffix else path.name)
-        t0 = time.perf_counter()
-        try:
-            outcome = register_xray(volume, path, model=model, **keywords)
-            outcome.write(out)
-        except (CtxregError, *USER_OS_ERRORS) as e:
-            line = {"xray": str(path), "error": str(e)}
-        else:
-            line = {"xray": str(path), "out": str(out), "params": outcome.params, "similarity": outcome.similarity,
-                    "seconds": round(time.perf_counter() - t0, 3), "search_status": outcome.search_status}
-            if cmd.verbose:
-                print(f"ctxreg serve: {path.name}: " + ", ".join(f"{k} {v:.2f} s" for k, v in outcome.timings.items()),
-                      file=sys.stderr)
-        print(json.dumps(line), flush=True)
-        done += 1
-        if cmd.frames and done >= cmd.frames:
-            break
+    watch = None if source is None else FolderWatch(source)
+    summary = serve_frames(lambda path: register_xray(volume, path, model=model, **keywords),
+                           stdin_frames() if watch is None else watch, root, watch=watch, limit=cmd.frames,
+                           errors=(CtxregError, *USER_OS_ERRORS), verbose=cmd.verbose)
+    if summary.registered + summary.skipped == 0:
+        raise ServeError(f"no frame was registered ({summary.refused} refused"
+                         + (f"; stopped by {summary.stopped_by}" if summary.stopped_by else "") + ")")
     return [root]
 
 
