@@ -59,7 +59,12 @@ class AdaptSettings:
         virtual_patients: virtual patients of the CT in the training subjects (besides the CT).
         batch_size: pairs per step. xvr adapts with 116 DRRs a step; 32 keeps a step near a
             second on 2 CPU cores, so the validation curve has points within minutes.
-        lr: Adam's learning rate, constant (a fine-tuning: a third of the base run's 3e-4).
+        lr: Adam's peak learning rate.
+        lr_schedule / lr_warmup: the rate's schedule over the minutes given
+            (:class:`learn.train.TrainConfig`): ``"cosine"`` warms up linearly over the first
+            ``lr_warmup`` of the time, then falls as a half cosine to 0 when the time is up, so
+            the last minutes average out the noise of single batches; ``"step"`` is a constant
+            ``lr``. A ``--resume`` with more minutes stretches the cosine to the new end.
         val_pairs: held-out validation pairs (poses of the CT itself, never trained on).
         val_every: steps between validations (and checkpoints).
         near_fraction: the share of near pairs (the base models' 0.5).
@@ -69,6 +74,8 @@ class AdaptSettings:
     virtual_patients: int = 8
     batch_size: int = 32
     lr: float = 1e-4
+    lr_schedule: str = "cosine"
+    lr_warmup: float = 0.05
     val_pairs: int = 128
     val_every: int = 40
     near_fraction: float = 0.5
@@ -127,7 +134,8 @@ def _train_config(out: Path, base_path: Path, base, settings: AdaptSettings):
         backbone=base.backbone, head_channels=int(base.head_channels), preprocess=tuple(base.preprocess),
         pairs="batched", randomize=physics["randomize"], current_field=config.get("current_field", "masked"),
         framing=config.get("framing", "field"), batch_size=settings.batch_size, iterations=_OPEN_ENDED,
-        lr=settings.lr, lr_step=_OPEN_ENDED, lr_decay=1.0, val_pairs=settings.val_pairs,
+        lr=settings.lr, lr_step=_OPEN_ENDED, lr_decay=1.0, lr_schedule=settings.lr_schedule,
+        lr_warmup=settings.lr_warmup if settings.lr_schedule == "cosine" else 0.0, val_pairs=settings.val_pairs,
         val_every=settings.val_every, checkpoint_every=settings.val_every, near_fraction=settings.near_fraction,
         loss="relative", relative_eps=float(config.get("relative_eps", 0.1)), seed=settings.seed,
         precision="auto")
@@ -172,7 +180,7 @@ def adapt(ct: str | os.PathLike, out: str | os.PathLike, *, minutes: float = 10.
     from learn.checkpoint import load_checkpoint
     from learn.shipped import DEFAULT_MODEL, resolve_model
     from learn.train import resolve_device, train
-    from sim.atomic import atomic_path, write_json
+    from sim.atomic import atomic_path, folder_lock, write_json
     from sim.ct_cache import ct_hash
     from sim.ct_io import load_ct
 
@@ -208,37 +216,38 @@ def adapt(ct: str | os.PathLike, out: str | os.PathLike, *, minutes: float = 10.
     if base_ckpt.image_size is None:
         raise AdaptError(f"--from {base_path}: the checkpoint does not record its image size")
     out.mkdir(parents=True, exist_ok=True)
-    from sim.scene import DEFAULT_SCENE
+    with folder_lock(out, "ctxreg adapt"):  # one run per folder at a time: a second is refused at once
+        from sim.scene import DEFAULT_SCENE
 
-    val_link = out / f"heldout_poses_{ct.name}"
-    if val_link.is_symlink() or val_link.exists():
-        val_link.unlink()
-    try:
-        val_link.symlink_to(ct, target_is_directory=ct.is_dir())
-    except OSError as e:
-        raise AdaptError(f"--out {out}: cannot link the validation CT there ({e.strerror or e})") from None
-    with atomic_path(out / "campaign.toml") as tmp:
-        tmp.write_text(_campaign_text(ct, val_link, base_ckpt.image_size, settings, DEFAULT_SCENE))
-    cfg = _train_config(out, base_path, base_ckpt, settings)
-    from learn.train import validate_checkpoint
+        val_link = out / f"heldout_poses_{ct.name}"
+        if val_link.is_symlink() or val_link.exists():
+            val_link.unlink()
+        try:
+            val_link.symlink_to(ct, target_is_directory=ct.is_dir())
+        except OSError as e:
+            raise AdaptError(f"--out {out}: cannot link the validation CT there ({e.strerror or e})") from None
+        with atomic_path(out / "campaign.toml") as tmp:
+            tmp.write_text(_campaign_text(ct, val_link, base_ckpt.image_size, settings, DEFAULT_SCENE))
+        cfg = _train_config(out, base_path, base_ckpt, settings)
+        from learn.train import validate_checkpoint
 
-    if record.get("before") is None:  # the base network on this CT's held-out poses: the curve's start
-        log(f"adapt: the base network {record['base']} on {settings.val_pairs} held-out poses of {ct.name} ...")
-        row = validate_checkpoint(cfg, base_path, device=str(dev))
-        record["before"] = {"rotation_deg": float(row["val_rot_err_deg"]), "translation_mm": float(row["val_trans_err_mm"])}
-        log(f"adapt: before adaptation: rotation {row['val_rot_err_deg']:.2f} deg, translation "
-            f"{row['val_trans_err_mm']:.1f} mm (single predictions)")
+        if record.get("before") is None:  # the base network on this CT's held-out poses: the curve's start
+            log(f"adapt: the base network {record['base']} on {settings.val_pairs} held-out poses of {ct.name} ...")
+            row = validate_checkpoint(cfg, base_path, device=str(dev))
+            record["before"] = {"rotation_deg": float(row["val_rot_err_deg"]), "translation_mm": float(row["val_trans_err_mm"])}
+            log(f"adapt: before adaptation: rotation {row['val_rot_err_deg']:.2f} deg, translation "
+                f"{row['val_trans_err_mm']:.1f} mm (single predictions)")
+            write_json(record_path, record)
+        started = time.perf_counter()
+        when = time.strftime("%Y-%m-%d %H:%M", time.localtime())
+        log(f"adapt: {ct.name} from {record['base']} for {minutes:g} min on {dev} (Ctrl-C or SIGTERM stops with a "
+            "checkpoint; --resume continues)")
+        last = train(cfg, resume=resume, device=str(dev), stop_after_s=60.0 * minutes, log=log)
+        spent = (time.perf_counter() - started) / 60.0
+        record["sessions"].append({"started": when, "minutes": round(spent, 2), "device": _device_name(dev),
+                                   "iteration": int(last.get("iteration", 0))})
         write_json(record_path, record)
-    started = time.perf_counter()
-    when = time.strftime("%Y-%m-%d %H:%M", time.localtime())
-    log(f"adapt: {ct.name} from {record['base']} for {minutes:g} min on {dev} (Ctrl-C or SIGTERM stops with a "
-        "checkpoint; --resume continues)")
-    last = train(cfg, resume=resume, device=str(dev), stop_after_s=60.0 * minutes, log=log)
-    spent = (time.perf_counter() - started) / 60.0
-    record["sessions"].append({"started": when, "minutes": round(spent, 2), "device": _device_name(dev),
-                               "iteration": int(last.get("iteration", 0))})
-    write_json(record_path, record)
-    return _export(out, record, settings, log)
+        return _export(out, record, settings, log)
 
 
 def _device_name(dev) -> str:
@@ -275,7 +284,9 @@ def _export(out: Path, record: dict, settings: AdaptSettings, log) -> Path:
         "config": str(out / "run"),
         "command": f"ctxreg adapt --ct {record['ct']} --out {out}",
         "iterations": iterations, "batch_size": settings.batch_size, "pairs_seen": pairs, "seed": settings.seed,
-        "duration_s": round(60.0 * minutes, 1), "machine": ", ".join(devices), "lr": f"{settings.lr:g}, constant"}
+        "duration_s": round(60.0 * minutes, 1), "machine": ", ".join(devices), "lr": (f"{settings.lr:g}, a linear warm-up over {settings.lr_warmup:.0%} of the minutes, then a half "
+                                    "cosine to 0 at their end" if settings.lr_schedule == "cosine"
+                                    else f"{settings.lr:g}, constant")}
     accuracy = {"protocol": "the network alone: single predictions on held-out poses of the adapted CT (realistic "
                             "randomized targets), no iteration, no search, no refinement",
                 "headline": ["held_out_poses"]}

@@ -25,6 +25,7 @@ Every key of the ``[train]`` table is type-checked (``batch_size = "2"``, ``batc
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import math
 import os
@@ -39,6 +40,7 @@ import numpy as np
 import torch
 
 from learn.distributed import DistributedRun, unwrap
+from sim.atomic import folder_lock
 from sim.errors import InputError
 
 
@@ -602,78 +604,80 @@ def train(cfg: TrainConfig, *, resume: bool = False, log=print, device: str = "a
     if ckpt_path.exists() and not resume:
         raise TrainConfigError(f"{out} already holds a checkpoint: use --resume, or another train.out")
     out.mkdir(parents=True, exist_ok=True)
-    for path in (ckpt_path, out / "log.csv", out / "loss.png") if run.main else ():  # a killed write's temporaries
-        remove_stale_temps(path)
-    # the checkpoints are read first: a bad one is refused before any rendering or caching
-    resumed = _resume_checkpoint(ckpt_path, cfg) if resume and ckpt_path.exists() else None
-    init = _init_checkpoint(cfg) if cfg.init_from and resumed is None else None
-    torch.manual_seed(cfg.seed)
-    np.random.seed(cfg.seed)
-    source = _OnlineSource(cfg, device) if cfg.online else None if cfg.cache_features else _CampaignSource(cfg)
-    model = pose_update_net(backbone=cfg.backbone,
-                            weights=Weights.IMAGENET_LOCAL if cfg.weights == "imagenet_local" else Weights.NONE,
-                            weights_path=cfg.weights_path, freeze_backbone=cfg.freeze_backbone,
-                            head_channels=cfg.head_channels)
-    if init is not None:
-        _init_weights(model, init)
-        log(f"weights from {cfg.init_from}")
-    model.to(device)
-    if device.type != "cpu":
-        log(f"training on {device} ({torch.cuda.get_device_name(device) if device.type == 'cuda' else device})")
-    if source is None:  # the cache needs the (frozen) backbone; neither draws random numbers
-        source = _CachedSource(cfg, model, rebuild=resumed is None, log=log)
-    params = [p for p in model.parameters() if p.requires_grad]
-    optimizer = torch.optim.Adam(params, lr=cfg.lr)
-    scheduler = torch.optim.lr_scheduler.StepLR(optimizer, step_size=cfg.lr_step, gamma=cfg.lr_decay)
-    iteration = 0
-    if resumed is not None:
-        load_weights(model, resumed.model_state, source=f"checkpoint {ckpt_path}")
-        try:
-            optimizer.load_state_dict(resumed.optimizer)
-            scheduler.load_state_dict(resumed.scheduler)
-        except (ValueError, KeyError) as e:  # torch's refusal of another optimiser's state
-            raise CheckpointError(f"checkpoint {ckpt_path}: its optimiser state does not fit this run ({e})") from None
-        iteration = resumed.iteration
-        restore_rng(resumed.rng, source=f"checkpoint {ckpt_path}")
-        log(f"resumed at iteration {iteration}")
-        changed = set()
-        for key in RESUME_MAY_CHANGE:
-            was = resumed.config.get(key, next(f.default for f in fields(TrainConfig) if f.name == key))
-            if _plain(was) != _plain(getattr(cfg, key)):
-                changed.add(key)
-                log(f"train.{key} {was!r} -> {getattr(cfg, key)!r} from here on")
-        if changed & {"lr", "lr_step", "lr_decay", "lr_schedule"} and cfg.lr_schedule == "step":
-            _follow_schedule(optimizer, scheduler, cfg, iteration)
-            log(f"learning rate {optimizer.param_groups[0]['lr']:.3g} at iteration {iteration}")
-    precision = step_precision(cfg.precision, device)
-    if cfg.precision == "auto":
-        log(f"precision auto: {precision} on {device.type} (native bf16: {'yes' if precision == 'bf16' else 'no'})")
-    elif precision == "bf16" and not native_bf16(device):
-        log(f"warning: train.precision = 'bf16' on a {device.type} without native bf16 (emulated: a step can "
-            "take several times fp32's); precision = 'auto' chooses fp32 here")
-    log_path = out / "log.csv"
-    rows = []
-    if resume and log_path.exists():
-        with open(log_path) as f:
-            rows = [r for r in csv.DictReader(f) if int(r["iteration"]) <= iteration]
-    model = run.wrap(model, device)  # DDP under torchrun (after the weights are in place)
-    model.train()
-    started = time.perf_counter()
-    from sim.progress import Progress
+    # one run per folder at a time (rank 0 holds it under torchrun); a second is refused at once
+    with folder_lock(out, "ctxreg train") if run.main else contextlib.nullcontext():
+        for path in (ckpt_path, out / "log.csv", out / "loss.png") if run.main else ():  # a killed write's temporaries
+            remove_stale_temps(path)
+        # the checkpoints are read first: a bad one is refused before any rendering or caching
+        resumed = _resume_checkpoint(ckpt_path, cfg) if resume and ckpt_path.exists() else None
+        init = _init_checkpoint(cfg) if cfg.init_from and resumed is None else None
+        torch.manual_seed(cfg.seed)
+        np.random.seed(cfg.seed)
+        source = _OnlineSource(cfg, device) if cfg.online else None if cfg.cache_features else _CampaignSource(cfg)
+        model = pose_update_net(backbone=cfg.backbone,
+                                weights=Weights.IMAGENET_LOCAL if cfg.weights == "imagenet_local" else Weights.NONE,
+                                weights_path=cfg.weights_path, freeze_backbone=cfg.freeze_backbone,
+                                head_channels=cfg.head_channels)
+        if init is not None:
+            _init_weights(model, init)
+            log(f"weights from {cfg.init_from}")
+        model.to(device)
+        if device.type != "cpu":
+            log(f"training on {device} ({torch.cuda.get_device_name(device) if device.type == 'cuda' else device})")
+        if source is None:  # the cache needs the (frozen) backbone; neither draws random numbers
+            source = _CachedSource(cfg, model, rebuild=resumed is None, log=log)
+        params = [p for p in model.parameters() if p.requires_grad]
+        optimizer = torch.optim.Adam(params, lr=cfg.lr)
+        scheduler = torch.optim.lr_scheduler.StepLR(optimizer, step_size=cfg.lr_step, gamma=cfg.lr_decay)
+        iteration = 0
+        if resumed is not None:
+            load_weights(model, resumed.model_state, source=f"checkpoint {ckpt_path}")
+            try:
+                optimizer.load_state_dict(resumed.optimizer)
+                scheduler.load_state_dict(resumed.scheduler)
+            except (ValueError, KeyError) as e:  # torch's refusal of another optimiser's state
+                raise CheckpointError(f"checkpoint {ckpt_path}: its optimiser state does not fit this run ({e})") from None
+            iteration = resumed.iteration
+            restore_rng(resumed.rng, source=f"checkpoint {ckpt_path}")
+            log(f"resumed at iteration {iteration}")
+            changed = set()
+            for key in RESUME_MAY_CHANGE:
+                was = resumed.config.get(key, next(f.default for f in fields(TrainConfig) if f.name == key))
+                if _plain(was) != _plain(getattr(cfg, key)):
+                    changed.add(key)
+                    log(f"train.{key} {was!r} -> {getattr(cfg, key)!r} from here on")
+            if changed & {"lr", "lr_step", "lr_decay", "lr_schedule"} and cfg.lr_schedule == "step":
+                _follow_schedule(optimizer, scheduler, cfg, iteration)
+                log(f"learning rate {optimizer.param_groups[0]['lr']:.3g} at iteration {iteration}")
+        precision = step_precision(cfg.precision, device)
+        if cfg.precision == "auto":
+            log(f"precision auto: {precision} on {device.type} (native bf16: {'yes' if precision == 'bf16' else 'no'})")
+        elif precision == "bf16" and not native_bf16(device):
+            log(f"warning: train.precision = 'bf16' on a {device.type} without native bf16 (emulated: a step can "
+                "take several times fp32's); precision = 'auto' chooses fp32 here")
+        log_path = out / "log.csv"
+        rows = []
+        if resume and log_path.exists():
+            with open(log_path) as f:
+                rows = [r for r in csv.DictReader(f) if int(r["iteration"]) <= iteration]
+        model = run.wrap(model, device)  # DDP under torchrun (after the weights are in place)
+        model.train()
+        started = time.perf_counter()
+        from sim.progress import Progress
 
-    bar = Progress(cfg.iterations, iteration, f"train {out.name}", "iterations", rate_unit="pairs/s",
-                   rate_scale=cfg.batch_size, time_limit_s=stop_after_s) if run.main else None
-    with _StopOnSignal() as signalled:
-        last = _loop(cfg, source, model, optimizer, scheduler, device, iteration, rows, log_path, ckpt_path, bar,
-                     started, stop_after_s, signalled, log, precision, run, _elapsed_before(rows))
-    if run.main:
-        try:
-            _plot(rows, out / "loss.png")
-        except ImportError as e:  # a bare GPU machine: the log.csv holds the curve
-            log(f"loss.png not written: {e}")
-    source.close()
-    run.finish()
-    return last
+        bar = Progress(cfg.iterations, iteration, f"train {out.name}", "iterations", rate_unit="pairs/s",
+                       rate_scale=cfg.batch_size, time_limit_s=stop_after_s) if run.main else None
+        with _StopOnSignal() as signalled:
+            last = _loop(cfg, source, model, optimizer, scheduler, device, iteration, rows, log_path, ckpt_path, bar,
+                         started, stop_after_s, signalled, log, precision, run, _elapsed_before(rows))
+        if run.main:
+            try:
+                _plot(rows, out / "loss.png")
+            except ImportError as e:  # a bare GPU machine: the log.csv holds the curve
+                log(f"loss.png not written: {e}")
+        source.close()
+        run.finish()
+        return last
 
 
 def _silent(*_args, **_kwargs) -> None:

@@ -34,7 +34,7 @@ from pathlib import Path
 from typing import Callable, Iterator
 
 from register.engines.result import RegistrationError
-from sim.atomic import atomic_folder, remove_stale_temps, sha256_file, write_json
+from sim.atomic import atomic_folder, folder_lock, remove_stale_temps, sha256_file, write_json
 
 __all__ = ["SERVE_SUFFIXES", "SERVE_POLL_S", "FRAME_RECORD", "ServeError", "FolderWatch", "stdin_frames",
            "done_frames", "serve_frames", "ServeSummary"]
@@ -163,7 +163,11 @@ def serve_frames(register: Callable[[Path], object], frames, root: Path, *, watc
     ``note``: a line to stderr."""
     emit = emit or (lambda line: print(json.dumps(line), flush=True))
     note = note or (lambda text: print(f"ctxreg serve: {text}", file=sys.stderr, flush=True))
-    root.mkdir(parents=True, exist_ok=True)
+    with folder_lock(root, "ctxreg serve"):  # one server per --out: a second is refused at once
+        return _serve(register, frames, root, watch, limit, errors, verbose, emit, note)
+
+
+def _serve(register, frames, root: Path, watch, limit: int, errors, verbose: bool, emit, note) -> ServeSummary:
     for stale in remove_stale_temps(root):
         note(f"removed {stale.name}: the partial outputs of a frame whose process was killed")
     done = done_frames(root) if watch is not None else {}

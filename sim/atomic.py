@@ -22,6 +22,8 @@ import tempfile
 from pathlib import Path
 from typing import Iterator
 
+from sim.errors import InputError
+
 #: ``.NAME.PID@HOST-RANDOM.tmp...``: the target's name, the writer's PID and host.
 _TEMP_NAME = re.compile(r"^\.(?P<name>.+)\.(?P<pid>\d+)@(?P<host>[A-Za-z0-9_-]*)-[a-z0-9_]+\.tmp")
 
@@ -126,6 +128,37 @@ def atomic_folder(path: str | os.PathLike) -> Iterator[Path]:
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
+
+
+class FolderBusyError(InputError):
+    """Another live process works in the folder (:func:`folder_lock`); the message names it."""
+
+
+@contextlib.contextmanager
+def folder_lock(folder: str | os.PathLike, what: str) -> Iterator[Path]:
+    """Hold ``folder/.ctxreg.lock`` (an exclusive ``flock``, created if needed) for the ``with``
+    block, so that two runs (``what``: e.g. ``"ctxreg train"``) never write into one folder at
+    once: a second is refused at once with :class:`FolderBusyError` naming the folder and the
+    holder's PID. The lock dies with its process (``kill -9`` included): nothing stale is left
+    to remove by hand."""
+    import fcntl
+
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    path = folder / ".ctxreg.lock"
+    fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o666)
+    try:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            holder = os.pread(fd, 200, 0).decode(errors="replace").strip() or "another process"
+            raise FolderBusyError(f"{folder}: {holder} is working in this folder; wait for it to end, or give "
+                                  "another folder") from None
+        os.ftruncate(fd, 0)
+        os.pwrite(fd, f"{what} (PID {os.getpid()} on {_host()})".encode(), 0)
+        yield path
+    finally:
+        os.close(fd)  # closing releases the lock
 
 
 def jsonable(obj):

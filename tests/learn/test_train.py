@@ -256,3 +256,16 @@ def test_a_bf16_step_with_a_non_finite_gradient_is_skipped_and_too_many_stop_the
     monkeypatch.setattr(tr, "_loss", loss_poisoned_on({2, 5}))
     with pytest.raises(tr.TrainConfigError, match="2 of the 5 steps .* non-finite gradient; train with precision = 'fp32'"):
         tr.train(config(campaign, tmp_path / "b", precision="bf16"), log=lambda *_: None)
+
+
+def test_a_second_run_into_one_folder_is_refused_at_once(campaign, tmp_path):
+    """Two trainings (or adaptations) writing one checkpoint would corrupt it: while a run holds
+    its folder, a second is refused in one line naming the holder, before any work."""
+    from learn.train import train
+    from sim.atomic import FolderBusyError, folder_lock
+
+    cfg = config(campaign, tmp_path / "busy", iterations=1)
+    with folder_lock(tmp_path / "busy", "ctxreg train"):
+        with pytest.raises(FolderBusyError, match=r"ctxreg train \(PID \d+ on .*\) is working in this folder"):
+            train(cfg, log=lambda *_: None)
+    assert not (tmp_path / "busy" / "checkpoint.pt").exists()

@@ -143,7 +143,7 @@ def test_sigterm_finishes_the_frame_in_hand_and_a_second_abandons_it(tmp_path):
                      emit=lambda _: None, note=notes.append)
     t.join()
     assert s.registered == 0 and any("abandoned a.dcm" in n for n in notes), notes
-    assert list(root.iterdir()) == []  # nothing half-written left, not even a hidden temporary folder
+    assert [p.name for p in root.iterdir()] == [".ctxreg.lock"]  # nothing half-written, no hidden temporary folder
     assert signal.getsignal(signal.SIGTERM) == signal.SIG_DFL or callable(signal.getsignal(signal.SIGTERM))
 
 
@@ -185,4 +185,16 @@ def test_kills_at_random_moments_leave_whole_folders_and_a_restart_registers_the
         assert f"summary {4 - len(before)} {len(before)}" in r.stdout, (trial, r.stdout, r.stderr[-2000:])
         after = _whole_or_absent(root)
         assert sorted(p.name for p in after) == [f"f{k}" for k in range(4)], (trial, after)
-        assert not [p for p in root.iterdir() if p.name.startswith(".")], trial  # no partial folder left
+        assert [p.name for p in root.iterdir() if p.name.startswith(".")] == [".ctxreg.lock"], trial  # no partial
+
+
+def test_a_second_server_on_one_out_folder_is_refused_at_once(tmp_path):
+    """Two servers writing frames into one --out would collide: while one holds the folder, a
+    second is refused in one line naming the holder."""
+    from sim.atomic import FolderBusyError, folder_lock
+
+    root = tmp_path / "out"
+    with folder_lock(root, "ctxreg serve"):
+        with pytest.raises(FolderBusyError, match=r"ctxreg serve \(PID \d+ on .*\) is working in this folder"):
+            serve_frames(_register(), [], root, emit=lambda _: None, note=lambda _: None)
+    assert serve_frames(_register(), [], root, emit=lambda _: None, note=lambda _: None).registered == 0  # released
