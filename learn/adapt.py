@@ -163,7 +163,8 @@ def adapt(ct: str | os.PathLike, out: str | os.PathLike, *, minutes: float = 10.
     """Fine-tune ``base`` to ``ct`` for ``minutes`` of training; returns the model folder ``out``.
 
     Args:
-        ct: the CT (NIfTI file or DICOM folder).
+        ct: the CT (NIfTI file or DICOM folder), or ``phantom[:SEED]``: the built-in phantom,
+            written as ``out/phantom_SEED.nii.gz`` and adapted to as a file.
         out: the output folder (module doc); an existing adaptation there is refused unless
             ``resume``.
         minutes: training time (min, > 0); with ``resume``, more minutes on top of what the run
@@ -182,13 +183,25 @@ def adapt(ct: str | os.PathLike, out: str | os.PathLike, *, minutes: float = 10.
     from learn.train import resolve_device, train
     from sim.atomic import atomic_path, folder_lock, write_json
     from sim.ct_cache import ct_hash
-    from sim.ct_io import load_ct
+    from sim.ct_io import is_phantom_spec, load_ct
+    from sim.outputs import check_output_dir
+    from sim.phantom import write_phantom_nifti
 
     if not (isinstance(minutes, (int, float)) and not isinstance(minutes, bool) and math.isfinite(minutes)
             and minutes > 0):
         raise AdaptError(f"--minutes must be a positive number of minutes, got {minutes!r}")
+    out = check_output_dir(Path(out).expanduser().resolve(), ADAPT_FILES, flag="--out")
+    if is_phantom_spec(str(ct)):  # the built-in phantom: adapted as a NIfTI file of it in --out
+        seed_text = str(ct).partition(":")[2] or "0"
+        if not seed_text.isdigit():
+            raise AdaptError(f"--ct {ct}: the phantom seed must be a whole number")
+        written = out / f"phantom_{int(seed_text)}.nii.gz"
+        if not written.is_file():
+            out.mkdir(parents=True, exist_ok=True)
+            write_phantom_nifti(written, int(seed_text))
+            log(f"adapt: the built-in phantom {ct} written to {written}")
+        ct = written
     ct = Path(ct).expanduser().resolve()
-    out = Path(out).expanduser().resolve()
     run = out / "run"
     load_ct(ct)  # a missing or damaged CT is refused here, before any work
     dev = resolve_device(device)

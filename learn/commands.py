@@ -25,6 +25,10 @@ class TrainCommand:
         "default: no limit, the run goes to train.iterations (Ctrl-C or SIGTERM also stops with a checkpoint at "
         "that step)",
         group="run", unit="s", metavar="S", bounds=Range(0.0, None, lo_open=True)))
+    procs: int = field(default=1, metadata=opt(
+        "train in N processes on this machine (data-parallel, torch DDP, as torchrun --nproc-per-node N): the "
+        "config is checked once here before they start, and a refusal is printed once", group="run",
+        metavar="N", bounds=Range(1, 64)))
 
 
 #: What ``ctxreg train`` writes into the config's ``out`` folder, and ``ctxreg accuracy`` into ``--out``.
@@ -47,7 +51,19 @@ def run_train(cmd: TrainCommand) -> list[Path]:
 
         raise TrainConfigError(f"--resume: {out} holds no checkpoint.pt to resume from (train.out of {cmd.config}); "
                                f"run without --resume to start the training")
-    train(cfg, resume=cmd.resume, device=cmd.device, stop_after_s=cmd.stop_after)
+    from learn.distributed import DistributedRun, launch, under_torchrun
+
+    if cmd.procs > 1 and not under_torchrun():
+        DistributedRun(world=cmd.procs).check_batch(cfg.batch_size)  # the ranks' checks, once, before they start
+        if cfg.cache_features:
+            from learn.train import TrainConfigError
+
+            raise TrainConfigError("train.cache_features: not with --procs (the cached heads' forward would bypass "
+                                   "DDP's gradient averaging); train in one process or without the cache")
+        launch(cmd.procs, ["train", str(cmd.config), "--device", cmd.device, *(["--resume"] if cmd.resume else []),
+                           *(["--stop-after", repr(cmd.stop_after)] if cmd.stop_after is not None else [])])
+    else:
+        train(cfg, resume=cmd.resume, device=cmd.device, stop_after_s=cmd.stop_after)
     return [out / name for name in TRAIN_FILES]
 
 
@@ -55,7 +71,8 @@ def run_train(cmd: TrainCommand) -> list[Path]:
 class AdaptCommand:
     """Defaults of ``ctxreg adapt`` (:mod:`learn.adapt`)."""
 
-    ct: str = field(metadata=opt("the CT to adapt the network to (NIfTI file or DICOM series folder)", group="input",
+    ct: str = field(metadata=opt("the CT to adapt the network to (NIfTI file or DICOM series folder; phantom[:SEED]: "
+                                 "the built-in pelvis, written into --out first)", group="input",
                                  metavar="CT"))
     out: str = field(metadata=opt("the output folder: the adapted model (model.pt, model.toml, for register --model "
                                   "DIR), the training run (run/) and adapt.json", group="output", metavar="DIR"))

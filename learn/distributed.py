@@ -27,7 +27,34 @@ import torch
 
 from sim.errors import InputError
 
-__all__ = ["DistributedRun", "DistributedError"]
+__all__ = ["DistributedRun", "DistributedError", "launch", "under_torchrun"]
+
+
+def under_torchrun() -> bool:
+    """Whether this process is a rank that torchrun started (its ``RANK`` is set)."""
+    return "RANK" in os.environ and "WORLD_SIZE" in os.environ
+
+
+def launch(procs: int, argv: list[str]) -> None:
+    """Run ``python -m register.cli ARGV`` in ``procs`` processes on this machine, as
+    ``torchrun --standalone --nproc-per-node PROCS`` does (torch's own launcher, in this process).
+    Each rank prints its refusals only where it is rank 0 (``register.cli``); a rank that fails
+    raises :class:`DistributedError` here in one line (the rank and its exit code; its own
+    message is above), instead of the launcher's traceback. ``OMP_NUM_THREADS`` defaults to the
+    cores shared among the processes."""
+    from torch.distributed.elastic.multiprocessing.errors import ChildFailedError
+    from torch.distributed.run import parse_args, run
+
+    if "OMP_NUM_THREADS" not in os.environ:
+        os.environ["OMP_NUM_THREADS"] = str(max(1, (os.cpu_count() or 1) // procs))
+    try:
+        run(parse_args(["--standalone", "--nproc-per-node", str(procs), "-m", "register.cli", *argv]))
+    except ChildFailedError as e:
+        ranks = sorted(e.failures)
+        codes = sorted({f.exitcode for f in e.failures.values()})
+        raise DistributedError(f"{procs} processes: rank{'s' if len(ranks) > 1 else ''} "
+                               f"{', '.join(map(str, ranks))} ended with exit code {', '.join(map(str, codes))} "
+                               "(the message above says why)") from None
 
 
 class DistributedError(InputError):
@@ -74,7 +101,7 @@ class DistributedRun:
     def check_batch(self, batch_size: int) -> None:
         if self.active and batch_size % self.world:
             raise DistributedError(f"train.batch_size {batch_size} does not divide among {self.world} processes "
-                                   f"(torchrun --nproc-per-node): give a multiple of {self.world}")
+                                   f"(--procs or torchrun --nproc-per-node): give a multiple of {self.world}")
 
     def wrap(self, model: torch.nn.Module, device: torch.device) -> torch.nn.Module:
         """``model`` in DDP (SyncBatchNorm on CUDA), or itself in a single process."""

@@ -22,6 +22,7 @@ method (:func:`register.engines.methods.build_method`) and registers. ``ctxreg r
 
 from __future__ import annotations
 
+import math
 import os
 import time
 from dataclasses import asdict, dataclass, field
@@ -78,6 +79,11 @@ SEARCH_MODES = ("auto", "off", "always")
 #: check) and needs 8 px per side there and a field left after erosion (at 16 x 16 and 24 x 24 the
 #: masked gradient similarity has no pixel left: "mask: empty after erosion").
 REGISTER_MIN_SIDE_PX = 32
+#: The longest side (px) of an X-ray prepared as it is; a larger frame is binned by the smallest
+#: whole factor that brings it to this or below (its pitch scaled; :meth:`XRayImage.binned`), so
+#: that a 6000 x 6000 px frame costs what a 2000 x 2000 one does. The registration itself works at
+#: ``size`` (128 px by default) whatever the frame's.
+MAX_XRAY_SIDE_PX = 2048
 
 #: The field pixels the coarsest level (1/4) must keep after erosion by one pixel, the global
 #: search's own minimum (:meth:`register.engines.search.GlobalSearch._field`).
@@ -395,6 +401,14 @@ def register_xray(ct, xray, *, method: str = "contextual+cmaes", model=None, ini
     # asks for, the CT, the view at the start
     with clock("xray"):
         xr = (xray if isinstance(xray, XRayImage) else load_xray(xray)).reoriented(orient)
+        if max(xr.shape) > MAX_XRAY_SIDE_PX:  # a huge frame: binned at once, not prepared at full size
+            factor = math.ceil(max(xr.shape) / MAX_XRAY_SIDE_PX)
+            was = xr.shape
+            xr = xr.binned(factor)
+            if pixel_spacing_mm is not None:
+                pixel_spacing_mm = float(pixel_spacing_mm) * factor  # --pixel-spacing is the file's pixels'
+            log(f"{xr.source}: {was[0]} x {was[1]} px binned {factor} x {factor} to {xr.shape[0]} x {xr.shape[1]} px "
+                f"(frames over {MAX_XRAY_SIDE_PX} px per side are binned before the preparation)")
     if not xr.attenuation_bright and not {"intensity", "log", "invert"} & set(steps):
         raise RegistrationError(f"{xr.source}: raw detector data (bone dark): add 'intensity' or 'log' to --preprocess")
     full_geometry, _ = resolve_geometry(xr, scene, sdd_mm=sdd_mm, sod_mm=sod_mm, pixel_spacing_mm=pixel_spacing_mm)

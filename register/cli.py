@@ -92,7 +92,8 @@ def main(argv: list[str] | None = None) -> int:
     except _user_errors() as e:
         if os.environ.get("CTXREG_DEBUG"):
             raise
-        print(f"ctxreg {args.command}: error: {e}", file=sys.stderr)
+        if os.environ.get("RANK", "0") == "0" or "WORLD_SIZE" not in os.environ:  # under torchrun: rank 0 says it
+            print(f"ctxreg {args.command}: error: {e}", file=sys.stderr)
         return 2
     for path in result if isinstance(result, list) else [result]:
         print(f"wrote {path}")

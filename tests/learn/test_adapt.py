@@ -7,6 +7,7 @@ from __future__ import annotations
 import json
 from dataclasses import replace
 
+import numpy as np
 import pytest
 
 from learn.adapt import ADAPT, AdaptError, adapt, adapted_ct_warning
@@ -82,6 +83,17 @@ def test_refusals(adapted, cts, tmp_path):
             adapt(cts[0], tmp_path / "x", minutes=bad, device="cpu", settings=TINY)
     with pytest.raises(AdaptError, match="not trained on randomized realistic pairs"):
         adapt(cts[0], tmp_path / "line", minutes=MINUTES, base="pelvis_line", device="cpu", settings=TINY)
+    with pytest.raises(AdaptError, match="the phantom seed must be a whole number"):
+        adapt("phantom:x", tmp_path / "ph", minutes=MINUTES, device="cpu", settings=TINY)
+    lines = []
+    with pytest.raises(AdaptError, match="not trained on randomized realistic pairs"):  # after the phantom's file
+        adapt("phantom:2", tmp_path / "ph", minutes=MINUTES, base="pelvis_line", device="cpu", settings=TINY,
+              log=lines.append)
+    from sim.ct_io import load_ct
+    from sim.phantom import make_pelvis_phantom
+
+    np.testing.assert_allclose(load_ct(tmp_path / "ph" / "phantom_2.nii.gz").hu, make_pelvis_phantom(2).hu, atol=1e-3)
+    assert any("the built-in phantom phantom:2 written to" in line for line in lines)
     (tmp_path / "damaged" / "run").mkdir(parents=True)
     (tmp_path / "damaged" / "run" / "checkpoint.pt").write_bytes(b"x")
     (tmp_path / "damaged" / "adapt.json").write_text("{")

@@ -67,16 +67,44 @@ def test_two_processes_train_the_weights_of_one(campaign, tmp_path):
     first = replace(one, out=str(tmp_path / "resumed"), iterations=2)
     r = _torchrun(_write_config(first, tmp_path / "first.toml"))
     assert r.returncode == 0, r.stderr[-3000:]
-    r = _torchrun(_write_config(replace(first, iterations=4), tmp_path / "resumed.toml"), "--resume")
+    r = _ctxreg_train(_write_config(replace(first, iterations=4), tmp_path / "resumed.toml"), "--resume",
+                      "--procs", "2")  # resumed by ctxreg train's own launcher
     assert r.returncode == 0, r.stderr[-3000:]
+    assert "Traceback" not in r.stderr
     again = load_checkpoint(tmp_path / "resumed" / "checkpoint.pt")
     assert again.iteration == 4
     for key, value in ref.model_state.items():
         torch.testing.assert_close(again.model_state[key], value, rtol=0, atol=2e-5, msg=key)
 
 
-def test_a_batch_that_does_not_divide_is_refused(campaign, tmp_path):
+def _ctxreg_train(config_path: Path, *extra: str):
+    env = dict(os.environ, OMP_NUM_THREADS="1")
+    return subprocess.run([str(REPO / ".venv" / "bin" / "python"), "-m", "register.cli", "train", str(config_path),
+                           *extra], capture_output=True, text=True, cwd=REPO, env=env, timeout=900)
+
+
+def test_a_batch_that_does_not_divide_is_refused_once(campaign, tmp_path):
+    """Under torchrun every rank refuses, rank 0 alone prints it; ctxreg train --procs refuses it
+    before any process starts: one line, exit 2, no traceback."""
     cfg = config(campaign, tmp_path / "odd", batch_size=3, iterations=2)
-    r = _torchrun(_write_config(cfg, tmp_path / "odd.toml"))
+    path = _write_config(cfg, tmp_path / "odd.toml")
+    r = _torchrun(path)
     assert r.returncode != 0
-    assert "does not divide among 2 processes" in r.stderr
+    assert r.stderr.count("does not divide among 2 processes") == 1, r.stderr[-3000:]
+    r = _ctxreg_train(path, "--procs", "2")
+    assert r.returncode == 2 and "Traceback" not in r.stderr
+    assert r.stderr.strip().splitlines() == ["ctxreg train: error: train.batch_size 3 does not divide among 2 processes "
+                                             "(--procs or torchrun --nproc-per-node): give a multiple of 2"]
+
+
+def test_a_refusal_inside_the_ranks_is_printed_once_and_ends_in_one_line(campaign, tmp_path):
+    """A dataset that only the ranks open (not a campaign folder): rank 0 names it once, the
+    launcher's failure is one line with the ranks and exit code, no traceback."""
+    empty = tmp_path / "not_a_campaign"
+    empty.mkdir()
+    cfg = replace(config(campaign, tmp_path / "run", iterations=2), dataset=str(empty))
+    r = _ctxreg_train(_write_config(cfg, tmp_path / "bad.toml"), "--procs", "2")
+    assert r.returncode == 2 and "Traceback" not in r.stderr, r.stderr[-3000:]
+    errors = [line for line in r.stderr.splitlines() if line.startswith("ctxreg train: error:")]
+    assert len(errors) == 2 and str(empty) in errors[0], r.stderr[-3000:]
+    assert "2 processes: ranks 0, 1 ended with exit code 2" in errors[1]

@@ -285,6 +285,28 @@ def test_register_undoes_a_stored_mirror_or_rotation_with_orient(synthetic_case,
     assert np.abs(est[:3] - truth[:3]).max() > 2.0 or np.abs(est[3:5] - truth[3:5]).max() > 5.0, est
 
 
+def test_a_huge_frame_is_binned_at_once_and_registers_as_the_original(synthetic_case, tmp_path):
+    """The 192 px DRR blown up 11 x to 2112 px (pitch / 11): over MAX_XRAY_SIDE_PX, so binned 2 x 2
+    to 1056 px (pitch x 2) when read, said in one line; the pose comes back as from the original."""
+    from register.api import MAX_XRAY_SIDE_PX
+    from register.xray.io import load_xray, write_xray_dicom
+
+    ct, xray, truth, center = synthetic_case
+    x = load_xray(xray)
+    big = np.repeat(np.repeat(x.pixels, 11, axis=0), 11, axis=1)
+    assert MAX_XRAY_SIDE_PX < big.shape[0] <= 2 * MAX_XRAY_SIDE_PX
+    path = write_xray_dicom(tmp_path / "big.dcm", big, pixel_spacing_mm=x.pixel_spacing_mm / 11, sdd_mm=x.sdd_mm,
+                            sod_mm=x.sod_mm)
+    start = truth + np.array([4.0, 3.0, -3.0, -8.0, 6.0, 15.0])
+    out = tmp_path / "out"
+    r = run_cli("register", "--ct", ct, "--xray", path, "--init", *start, "--size", 96, 96, "--center", *center,
+                "--method", "cmaes", "--out", out)
+    assert r.returncode == 0, r.stderr
+    assert "2112 x 2112 px binned 2 x 2 to 1056 x 1056 px" in r.stdout + r.stderr
+    result = _assert_recovered(out, truth)
+    assert result["geometry"]["sdd_mm"] == pytest.approx(1020.0)
+
+
 def test_serve_registers_each_frame_of_a_case_in_one_process(synthetic_case, tmp_path):
     """Paths on stdin, one JSON line per frame: the pose of each (the same frame twice gets its own
     folders, the second _2), a refused frame named with its error while the next goes on; then a
@@ -315,3 +337,7 @@ def test_serve_registers_each_frame_of_a_case_in_one_process(synthetic_case, tmp
     _assert_recovered(tmp_path / "watched" / "frame1", truth)
     bad = run_cli("serve", *common, "--xray", tmp_path / "nowhere")
     assert bad.returncode == 2 and "not a folder to watch" in bad.stderr
+    # every frame refused: no "wrote", exit 2, the count said
+    r = subprocess.run([sys.executable, "-m", "register.cli", "serve", *map(str, common), "--out", str(tmp_path / "none")],
+                       input=f"{tmp_path / 'missing.dcm'}\n", capture_output=True, text=True, cwd=REPO, timeout=600)
+    assert r.returncode == 2 and "no frame was registered (1 refused)" in r.stderr and "wrote" not in r.stdout
