@@ -85,6 +85,10 @@ def main() -> int:
     ap.add_argument("--refine-polish", choices=("pattern", "powell"), default=None,
                     help="the refinement's polish (register.engines.pipeline.REFINE_SETTINGS.polish_method; default "
                          "the pipeline's own): to measure one against the other on the same frames")
+    ap.add_argument("--rows", default=None,
+                    help="append every registration as a JSON line to this file: the condition, CT, model, method, "
+                         "case, its errors (mTRE, rotation, translation) and register's whole result (result.json's "
+                         "content): the data a verdict on registrations is calibrated on")
     a = ap.parse_args()
     if a.refine_polish is not None:  # the pipeline's refinement is built from this module constant
         import register.engines.methods as methods
@@ -134,6 +138,18 @@ def main() -> int:
                 print(f"| {name} | {refused} | {method} | {c['hit']} | {c['ok']} | {c['rot']} | {c['trans']} | "
                       f"{c['median_s']} | {c['skipped']} |")
     return 0
+
+
+def _append_row(path: str, row: dict) -> None:
+    """One JSON line appended to ``path`` (a whole line per write: a killed run loses at most its last)."""
+    import json
+
+    def plain(v):  # NumPy arrays and scalars as JSON, anything else by its repr
+        return v.tolist() if hasattr(v, "tolist") else repr(v)
+
+    line = json.dumps(row, default=plain) + "\n"
+    with open(path, "a") as f:
+        f.write(line)
 
 
 #: ``--methods`` key: (row name, register_xray's keywords); the model is the shipped default where
@@ -227,6 +243,11 @@ def _measure(a, study, target, volume, center):
                                "grid_s": res.result.stage_seconds.get("search_grid", np.nan),
                                "skipped": (not res.search_ran) if searched else None, "search_mode": res.search_mode,
                                "refused": False})
+            if a.rows is not None:
+                _append_row(a.rows, {"target": target.name, "study": study.source, "ct": a.ct, "model": a.model,
+                                     "method": name, "case": i, "mtre_mm": e["mtre_mm"],
+                                     "rot_err_deg": e["rot_err_deg"], "trans_err_mm": e["trans_err_mm"],
+                                     "seconds": seconds, "result": res.to_dict()})
             record = res.result.search
             if key == "null" and record["grid_poses"]:  # the grid's two parts on this frame
                 split.append((record["grid_poses"], record["grid_render_s"], record["grid_ncc_s"]))

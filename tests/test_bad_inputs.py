@@ -178,19 +178,23 @@ def _run(line: str, inputs: dict, work) -> tuple[int, set[str]]:
     return status, _files(work) - before
 
 
+def assert_refused(status: int, err: str, new: set[str], line: str, words) -> str:
+    """A row's run was refused: exit 2, one line ``ctxreg COMMAND: error: ...`` holding every one
+    of ``words``, no traceback, no file written. Returns the line."""
+    lines = [ln for ln in err.splitlines() if ln.strip()]
+    assert status == 2 and "Traceback" not in err, (status, err)
+    assert len(lines) == 1 and lines[0].startswith(f"ctxreg {line.split()[0]}: error: "), err
+    for word in words:
+        assert word in lines[0], (word, lines[0])
+    assert not new, f"files written: {sorted(new)}"
+    return lines[0]
+
+
 @pytest.mark.parametrize("name", list(BAD))
 def test_a_bad_input_is_one_line_exit_2_and_writes_nothing(name, inputs, tmp_path, capsys):
     line, words = BAD[name]
     status, new = _run(line, inputs, tmp_path)
-    err = capsys.readouterr().err
-    lines = [ln for ln in err.splitlines() if ln.strip()]
-    command = line.split()[0]
-    assert status == 2, (status, err)
-    assert "Traceback" not in err
-    assert len(lines) == 1 and lines[0].startswith(f"ctxreg {command}: error: "), err
-    for word in words:
-        assert word in lines[0], (word, lines[0])
-    assert not new, f"files written: {sorted(new)}"
+    assert_refused(status, capsys.readouterr().err, new, line, words)
 
 
 @pytest.mark.parametrize("name", list(GOOD))

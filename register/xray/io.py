@@ -162,7 +162,9 @@ class XRayImage:
 
     def binned(self, factor: int) -> "XRayImage":
         """This image with its pixels averaged in ``factor`` x ``factor`` blocks: ``(H // f, W // f)``
-        px of ``f`` times the pitch (``pixel_spacing_mm``, and ``meta["pixel_spacing_rc_mm"]``),
+        px of ``f`` times the pitch (``pixel_spacing_mm``, ``meta["pixel_spacing_rc_mm"]`` and the
+        DICOM pitch tags in ``meta["geometry_tags"]``: ImagerPixelSpacing, PixelSpacing; a file
+        with only DetectorElementSpacing gets ImagerPixelSpacing = f x it),
         the rows and columns that do not fill a block cut evenly from both sides so that the
         centre (the principal point) stays within half an original pixel. ``meta["binned"]``
         records ``factor``; 1 returns the image itself.
@@ -186,6 +188,15 @@ class XRayImage:
         meta = dict(self.meta, binned=f * int(self.meta.get("binned", 1)))
         if meta.get("pixel_spacing_rc_mm") is not None:
             meta["pixel_spacing_rc_mm"] = [float(v) * f for v in meta["pixel_spacing_rc_mm"]]
+        tags = meta.get("geometry_tags")
+        if isinstance(tags, dict):  # the image's pixel pitch tags follow; the detector's element stays
+            tags = dict(tags)
+            for key in ("ImagerPixelSpacing", "PixelSpacing"):
+                if tags.get(key):
+                    tags[key] = [float(v) * f for v in tags[key]]
+            if not tags.get("ImagerPixelSpacing") and tags.get("DetectorElementSpacing"):
+                tags["ImagerPixelSpacing"] = [float(v) * f for v in tags["DetectorElementSpacing"]]
+            meta["geometry_tags"] = tags
         return replace(self, pixels=pixels, meta=meta,
                        pixel_spacing_mm=None if self.pixel_spacing_mm is None else self.pixel_spacing_mm * f)
 

@@ -668,8 +668,13 @@ def test_binning_averages_blocks_scales_the_pitch_and_keeps_the_centre():
     rng = np.random.default_rng(0)
     blocks = rng.uniform(0, 1, (7, 5)).astype(np.float32)
     img = XRayImage(np.repeat(np.repeat(blocks, 3, axis=0), 3, axis=1), pixel_spacing_mm=0.15, source="x",
-                    meta={"pixel_spacing_rc_mm": [0.15, 0.2]})
+                    meta={"pixel_spacing_rc_mm": [0.15, 0.2],
+                          "geometry_tags": {"ImagerPixelSpacing": [0.15, 0.15], "DetectorElementSpacing": [0.15, 0.15],
+                                            "DistanceSourceToDetector": 1000.0}})
     b = img.binned(3)
+    tags = b.meta["geometry_tags"]
+    assert tags["ImagerPixelSpacing"] == pytest.approx([0.45, 0.45]) and tags["DetectorElementSpacing"] == [0.15, 0.15]
+    assert tags["DistanceSourceToDetector"] == 1000.0 and img.meta["geometry_tags"]["ImagerPixelSpacing"] == [0.15, 0.15]
     np.testing.assert_allclose(b.pixels, blocks, rtol=1e-6)
     assert b.pixel_spacing_mm == pytest.approx(0.45) and b.meta["pixel_spacing_rc_mm"] == pytest.approx([0.45, 0.6])
     assert b.meta["binned"] == 3 and img.binned(1) is img
