@@ -59,7 +59,9 @@ class AdaptSettings:
         virtual_patients: virtual patients of the CT in the training subjects (besides the CT).
         batch_size: pairs per step. xvr adapts with 116 DRRs a step; 32 keeps a step near a
             second on 2 CPU cores, so the validation curve has points within minutes.
-        lr: Adam's peak learning rate.
+        lr: Adam's peak learning rate, chosen on the built-in phantom (seed 5; never the
+            validation pelvis) among 1e-4, 3e-4, 1e-3 and 3e-3 for 10 minutes on 2 cores
+            (docs/training.md, "Adapting to one CT").
         lr_schedule / lr_warmup: the rate's schedule over the minutes given
             (:class:`learn.train.TrainConfig`): ``"cosine"`` warms up linearly over the first
             ``lr_warmup`` of the time, then falls as a half cosine to 0 when the time is up, so
@@ -73,7 +75,7 @@ class AdaptSettings:
 
     virtual_patients: int = 8
     batch_size: int = 32
-    lr: float = 1e-4
+    lr: float = 1e-3
     lr_schedule: str = "cosine"
     lr_warmup: float = 0.05
     val_pairs: int = 128
