@@ -8,6 +8,8 @@ Rows, each timed as whole processes (wall seconds: minimum, median, maximum of `
 one run so that they share the machine's speed:
 
 * ``import floor``: ``python -c "import torch, mitsuba"``, what any registration in Python pays;
+* ``refused typo``: ``ctxreg register --xray missing.dcm``, refused before torch or Mitsuba load;
+* ``ctxreg models``: the shipped cards listed (their weights' sha256 checked, not read);
 * ``cold register, frame N``: one ``ctxreg register`` process per call on frame N of the study's
   target (``studies/domain_gap.toml``'s ``fluoro-65kV`` by default: frame 1's network pose is
   right and the grid is skipped, frame 3's is lost and the grid runs), with the median of each
@@ -79,6 +81,13 @@ def _wall(cmd: list[str]) -> float:
     return time.perf_counter() - t0
 
 
+def _wall_any(cmd: list[str]) -> float:
+    """Wall seconds of a command whatever its exit status (a refusal's)."""
+    t0 = time.perf_counter()
+    subprocess.run(cmd, cwd=REPO, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    return time.perf_counter() - t0
+
+
 def _row(name: str, seconds: list[float], floor: float | None, stages: dict | None = None) -> str:
     lo, med, hi = min(seconds), statistics.median(seconds), max(seconds)
     above = "-" if floor is None else f"{med - floor:+.1f}"
@@ -104,6 +113,12 @@ def main(argv=None) -> int:
     floor = [_wall([py, "-c", "import torch, mitsuba"]) for _ in range(a.runs)]
     med_floor = statistics.median(floor)
     rows.append(_row("import floor (`import torch, mitsuba`)", floor, None))
+    # the refusals that need no torch or Mitsuba: a typo answers before the imports
+    typo = [_wall_any([ctxreg, "register", "--ct", str(CT), "--xray", "missing.dcm", "--out", "unused"])
+            for _ in range(a.runs)]
+    rows.append(_row("refused typo (`register --xray missing.dcm`)", typo, None))
+    listing = [_wall([ctxreg, "models"]) for _ in range(a.runs)]
+    rows.append(_row("`ctxreg models` (cards, no weights read)", listing, None))
     with tempfile.TemporaryDirectory() as tmp:
         for i, frame in zip(a.frames, frames):
             seconds, stages, ran = [], [], None

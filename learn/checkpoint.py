@@ -53,9 +53,9 @@ from typing import Any
 import numpy as np
 import torch
 
+from learn.errors import CheckpointError
 from learn.model import _BACKBONE_CONFIG, Backbone, pose_update_net
 from learn.torch_file import first_line, read_plain_torch_file
-from sim.errors import InputError
 
 __all__ = ["FORMAT", "FORMAT_VERSION", "Checkpoint", "CheckpointError", "capture_rng", "load_checkpoint",
            "load_weights", "remove_stale_temps", "restore_rng", "save_checkpoint"]
@@ -64,10 +64,6 @@ __all__ = ["FORMAT", "FORMAT_VERSION", "Checkpoint", "CheckpointError", "capture
 FORMAT = "ctxreg pose-update network"
 #: The format version this code writes (and the newest it reads).
 FORMAT_VERSION = 1
-
-
-class CheckpointError(InputError):
-    """A checkpoint cannot be used; the one-line message names the file and the problem."""
 
 
 @dataclass(frozen=True)

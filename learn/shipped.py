@@ -32,7 +32,7 @@ from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
-from learn.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
+from learn.errors import CheckpointError
 from sim.atomic import read_toml, sha256_file
 
 __all__ = ["MODELS_DIR", "DEFAULT_MODEL", "CARD_SCHEMA", "export_model", "load_card", "check_card",
@@ -156,6 +156,7 @@ def export_model(checkpoint: str | Path, folder: str | Path, *, name: str, summa
     image size, preprocessing, physics, config) and ``folder/model.toml`` (the card); returns the
     card's path. ``training``, ``accuracy`` and (a model adapted to one CT) ``adaptation`` are
     the card's tables in :data:`CARD_SCHEMA` (checked before anything is written)."""
+    from learn.checkpoint import load_checkpoint, save_checkpoint  # torch: only where weights are read or written
     from sim.atomic import write_toml
 
     ckpt = load_checkpoint(checkpoint)
@@ -177,11 +178,13 @@ def export_model(checkpoint: str | Path, folder: str | Path, *, name: str, summa
     return folder / CARD
 
 
-def load_card(folder: str | Path) -> dict[str, Any]:
+def load_card(folder: str | Path, *, read_weights: bool = True) -> dict[str, Any]:
     """The card of the model in ``folder``, checked against its schema (:func:`check_card`) and its
-    weights: the file exists, its sha256 matches, and the architecture, image size and
-    preprocessing the card states are those the checkpoint records. Raises
-    :class:`ModelCardError` naming the file and the key."""
+    weights: the file exists, its sha256 matches, and (``read_weights``) the architecture, image
+    size and preprocessing the card states are those the checkpoint records. Listing the cards
+    (``ctxreg models``) passes ``read_weights=False``: the sha256 still ties the card to its
+    weights, and torch is not imported. Raises :class:`ModelCardError` naming the file and the
+    key."""
     folder = Path(folder)
     path = folder / CARD
     if not path.is_file():
@@ -194,6 +197,10 @@ def load_card(folder: str | Path) -> dict[str, Any]:
         raise ModelCardError(f"{path}: model.file {model['file']!r} not found in {folder}")
     if sha256_file(weights) != model.get("sha256"):
         raise ModelCardError(f"{path}: model.sha256 does not match {weights} (the weights changed after the card)")
+    if not read_weights:
+        return card
+    from learn.checkpoint import load_checkpoint  # torch: only where weights are read
+
     ckpt = load_checkpoint(weights)
     recorded = {"backbone": ckpt.backbone, "head_channels": ckpt.head_channels,
                 "image_size": list(ckpt.image_size) if ckpt.image_size else None,
@@ -284,7 +291,7 @@ def describe_models(root: str | Path = MODELS_DIR, width: int = 100) -> str:
 
     blocks = []
     for name, folder in shipped_models(root).items():
-        card = load_card(folder)
+        card = load_card(folder, read_weights=False)
         m, t, acc = card["model"], card["training"], card["accuracy"]
         size = " x ".join(str(v) for v in m["image_size"])
         pre = ", ".join(p if isinstance(p, str) else str(p.get("name")) for p in m["preprocess"]) or "none"
@@ -303,9 +310,10 @@ def describe_models(root: str | Path = MODELS_DIR, width: int = 100) -> str:
 
 
 def describe_model(name: str, root: str | Path = MODELS_DIR) -> dict[str, Any]:
-    """The whole card of shipped model ``name`` (checked, :func:`load_card`). Raises
+    """The whole card of shipped model ``name`` (checked against its weights' sha256,
+    :func:`load_card`, without reading them). Raises
     :class:`ModelCardError` naming the shipped models when ``name`` is not one."""
     shipped = shipped_models(root)
     if name not in shipped:
         raise ModelCardError(f"no shipped model {name!r} (shipped: {', '.join(shipped) or 'none'})")
-    return load_card(shipped[name])
+    return load_card(shipped[name], read_weights=False)

@@ -47,6 +47,8 @@ from register.xray.preprocess import DEFAULT_STEPS, Pipeline, PreprocessError
 from sim.atomic import atomic_path, write_json
 from sim.campaign.poses import PARAM_NAMES
 from sim.cliargs import check_memory
+from sim.ct_io import is_phantom_spec
+from sim.volume import CTInputError
 from sim.outputs import check_output_dir
 from sim.progress import StageClock
 
@@ -200,13 +202,14 @@ class XRayRegistration:
 
     def summary(self) -> str:
         """Similarity, renders and the pose (deg, mm) in one line; for a method with the global
-        search two lines before it: ``search: ran|skipped (...)|off`` (:attr:`search_status`) and,
-        where it was built, what it did (:func:`register.engines.search.describe_search`)."""
+        search a line before it, ``search: ran|skipped (...)|off`` (:attr:`search_status`), and
+        where the grid ran a second one saying what it did
+        (:func:`register.engines.search.describe_search`)."""
         r = self.result
         line = (f"similarity {r.similarity:.4f} after {r.renders} renders; pose: "
                 + " ".join(f"{v:.2f}" for v in r.params))
         head = [] if self.search_mode is None else [f"search: {self.search_status}"]
-        if r.search is not None:
+        if r.search is not None and r.search["grid_poses"]:  # a skipped grid: the status line says it all
             head.append(describe_search(r.search))
         return "\n".join([*head, line])
 
@@ -391,14 +394,9 @@ def register_xray(ct, xray, *, method: str = "contextual+cmaes", model=None, ini
                                 f"--size 128 128")
     moving = _moving_physics(physics)
     clock = StageClock()
-    with clock("model"):
-        predictor = load_predictor(model) if needs_model(method) else None
-    if predictor is not None and isinstance(model, (str, os.PathLike)) and isinstance(ct, (str, os.PathLike)):
-        warning = adapted_ct_warning(model, ct)  # a model adapted to another patient's CT
-        if warning is not None:
-            log(warning)
-    # -- the X-ray and its geometry (a quick read: its refusals come first), the memory the size
-    # asks for, the CT, the view at the start
+    # -- the X-ray and its geometry (a quick read: its refusals come first, before the network and
+    # its torch load), the memory the size asks for; a CT that is not there; then the network
+    # and the CT, the view at the start
     with clock("xray"):
         xr = (xray if isinstance(xray, XRayImage) else load_xray(xray)).reoriented(orient)
         if max(xr.shape) > MAX_XRAY_SIDE_PX:  # a huge frame: binned at once, not prepared at full size
@@ -413,6 +411,14 @@ def register_xray(ct, xray, *, method: str = "contextual+cmaes", model=None, ini
         raise RegistrationError(f"{xr.source}: raw detector data (bone dark): add 'intensity' or 'log' to --preprocess")
     full_geometry, _ = resolve_geometry(xr, scene, sdd_mm=sdd_mm, sod_mm=sod_mm, pixel_spacing_mm=pixel_spacing_mm)
     check_registration_memory(box, (xr.pixels.shape[0], xr.pixels.shape[1]), full_geometry)
+    if isinstance(ct, (str, os.PathLike)) and not is_phantom_spec(str(ct)) and not Path(ct).exists():
+        raise CTInputError(f"{ct}: file or folder not found")  # before the network's load
+    with clock("model"):
+        predictor = load_predictor(model) if needs_model(method) else None
+    if predictor is not None and isinstance(model, (str, os.PathLike)) and isinstance(ct, (str, os.PathLike)):
+        warning = adapted_ct_warning(model, ct)  # a model adapted to another patient's CT
+        if warning is not None:
+            log(warning)
     with clock("ct"):
         volume = load_ct(ct, label_map=label_map, cache=ct_cache, log=log)
         found = find_center(volume, center=center)

@@ -83,7 +83,7 @@ class RenderCommand:
     primary: bool = field(default=False, metadata=opt(
         "also write the noise-free primary signal as <out stem>_primary.npy, and with --physics "
         "full the expected scatter signal as <out stem>_scatter.npy (poly, full)", group="output"))
-    out: str = field(default="drr.png", metadata=opt(
+    out: str = field(default="out/drr.png", metadata=opt(
         ".npy: float32 (H, W) raw values; .png: display image (bone bright). A .json sidecar "
         "with the geometry is written beside it. With --physics poly or full the image is -log(I/I0) and the "
         "raw detector signal goes to <out stem>_raw.npy", group="output", metavar="FILE"))

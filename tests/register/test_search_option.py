@@ -143,6 +143,8 @@ def test_search_auto_skips_the_grid_for_a_good_pose_and_always_runs_it(phantom):
     assert skipped.search_ran is False and record["grid_poses"] == 0 and record["given_score"] >= 0.85
     assert skipped.search_status == f"skipped (network pose scored {record['given_score']:.2f} >= 0.85)"
     assert skipped.to_dict()["search_status"] == skipped.search_status
+    said = skipped.summary()
+    assert said.count("skipped") == 1 and said.splitlines()[0] == f"search: {skipped.search_status}"  # said once
     always = register_drr(phantom, NEAR, search="always")
     assert always.search_ran is True and always.result.search["grid_poses"] > 0
     assert always.result.search["always_grid"] is True and always.search_status.startswith("ran")
