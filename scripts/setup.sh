@@ -47,6 +47,8 @@ if [ "$(cat "$stamp" 2>/dev/null)" != "$want" ]; then
     # pip's notes about this machine's unused local package indexes are dropped; errors stay
     pip_quiet() { .venv/bin/python -m pip "$@" 2>&1 | { grep -v -e "is ignored: it is neither" || true; }; }
     pip_quiet install -q --upgrade pip
-    pip_quiet install -q -e ".[dev]"
+    # setuptools' banner on every editable install ("folders ... with the same name as your package"):
+    # the layout is known (sim/, learn/, register/ are the packages), so it says nothing here
+    PYTHONWARNINGS="ignore::UserWarning:setuptools.command.editable_wheel" pip_quiet install -q -e ".[dev]"
     echo "$want" > "$stamp"
 fi
