@@ -314,7 +314,7 @@ class RegisterCommand:
         "'auto' = $CTXREG_CT_CACHE or ~/.cache/ctxreg/ct, 'off' = read the CT's files every time",
         group="input", metavar="DIR|auto|off"))
     verbose: bool = field(default=False, metadata=opt(
-        "print where the call's seconds went (start-up and imports, model, X-ray, CT, preparation, polarity check, "
+        "print where the call's seconds went (start-up and imports, X-ray, model, CT, preparation, polarity check, "
         "registration stages, outputs) to stderr; result.json keeps them either way (timings_s, stage_seconds)",
         group="output"))
 

@@ -35,6 +35,8 @@ TYPE_CASES = [
     ("lr", "nan", "a finite number, got the number nan"),
     ("lr_decay", "inf", "a finite number, got the number inf"),
     ("lr_step", "false", "an integer, got false (a boolean)"),
+    ("lr_schedule", "1", "a string, got the integer 1"),
+    ("lr_warmup", '"0.1"', "a finite number, got the string '0.1'"),
     ("pairs_per_epoch", '"all"', "an integer, got the string 'all'"),
     ("val_pairs", "8.0", "an integer, got the number 8.0"),
     ("val_every", "true", "an integer, got true (a boolean)"),
@@ -197,7 +199,7 @@ def test_resume_removes_the_temporary_file_of_a_killed_write(tmp_path):
     (tmp_path / "run" / ".checkpoint.pt.k1ll3d00.tmp.pt").write_bytes(b"half")
     with pytest.raises(TrainConfigError, match="missing_campaign.toml"):
         train(cfg, resume=True, log=lambda *_: None)
-    assert sorted(p.name for p in (tmp_path / "run").iterdir()) == ["checkpoint.pt"]
+    assert sorted(p.name for p in (tmp_path / "run").iterdir()) == [".ctxreg.lock", "checkpoint.pt"]  # the run's lock
 
 
 def test_init_from_a_checkpoint_of_other_weights_is_one_line(tmp_path):

@@ -79,7 +79,7 @@ def test_register_recovers_the_pose_of_a_synthetic_dicom(synthetic_case, tmp_pat
     # where the seconds went: every stage of the call (the default method: the network, the search),
     # in order, each >= 0, printed with --verbose; the registration's own split stays in stage_seconds
     timings = result["timings_s"]
-    assert list(timings) == ["startup", "model", "xray", "ct", "prepare", "search_setup", "engine_setup", "register",
+    assert list(timings) == ["startup", "xray", "model", "ct", "prepare", "search_setup", "engine_setup", "register",
                              "polarity", "write"]
     assert all(v >= 0 for v in timings.values()) and timings["startup"] > 0
     assert sum(result["stage_seconds"].values()) <= timings["register"] + 1e-3
