@@ -5,9 +5,10 @@ Usage (from the repository root, after set-up; about 25 s a trial on 2 cores)::
 
     .venv/bin/python benchmarks/serve_kills.py [--trials 20] [--seed 0]
 
-A synthetic case: the built-in phantom (3 mm) as a NIfTI CT and 4 DRRs of it at known poses as
-DICOM frames in a watched folder. Each trial starts ``ctxreg serve --xray FOLDER --frames 4`` (the
-real command: CT, kernels, CMA-ES at 64 px), kills it after a random 2-20 s with SIGKILL or SIGTERM
+A synthetic case: the built-in phantom (3 mm) as a NIfTI CT and 8 DRRs of it at known poses as
+DICOM frames in a watched folder. Each trial starts ``ctxreg serve --xray FOLDER --frames 8`` (the
+real command: CT, kernels, CMA-ES at 64 px; a whole run takes 6-8 s here), kills it after a random
+1-8 s with SIGKILL or SIGTERM
 (alternating), then checks every visible frame folder (``result.json``, ``frame.json`` and the
 figures all there) and restarts the same command, which must register exactly the frames with no
 folder and skip the others. Prints one row per trial and a summary line; exit status 1 if any
@@ -33,7 +34,9 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 POSES = [[0.0, 0.0, 0.0, 0.0, 0.0, 0.0], [6.0, -4.0, 3.0, 8.0, -6.0, 15.0], [-5.0, 3.0, -4.0, -6.0, 5.0, -10.0],
-         [4.0, 5.0, 2.0, 5.0, 8.0, 20.0]]
+         [4.0, 5.0, 2.0, 5.0, 8.0, 20.0], [-3.0, -6.0, 5.0, -8.0, -4.0, 10.0], [7.0, 2.0, -2.0, 3.0, -9.0, -15.0],
+         [-6.0, 4.0, 4.0, 9.0, 3.0, 5.0], [2.0, -3.0, -5.0, -4.0, 7.0, -20.0]]
+N = len(POSES)
 
 
 def _case(folder: Path) -> tuple[Path, Path, np.ndarray]:
@@ -82,7 +85,7 @@ def main() -> int:
     bad = 0
     with tempfile.TemporaryDirectory() as tmp:
         ct, incoming, center = _case(Path(tmp))
-        command = [ctxreg, "serve", "--ct", str(ct), "--xray", str(incoming), "--frames", "4", "--method", "cmaes",
+        command = [ctxreg, "serve", "--ct", str(ct), "--xray", str(incoming), "--frames", str(N), "--method", "cmaes",
                    "--size", "64", "64", "--center", *map(str, center), "--ct-cache", "off"]
         print("| trial | signal | after s | whole folders | broken | hidden leftovers | restart registered | "
               "restart skipped | rules kept |")
@@ -90,7 +93,7 @@ def main() -> int:
         for trial in range(a.trials):
             out = Path(tmp) / f"out{trial}"
             sig = signal.SIGKILL if trial % 2 == 0 else signal.SIGTERM
-            after = rng.uniform(2.0, 20.0)
+            after = rng.uniform(1.0, 8.0)  # a whole run takes about 6-8 s here: kills land in it
             p = subprocess.Popen([*command, "--out", str(out)], cwd=REPO, stdout=subprocess.PIPE,
                                  stderr=subprocess.PIPE, text=True)
             try:
@@ -106,8 +109,8 @@ def main() -> int:
             after_whole, after_broken, after_hidden = _folders(out)
             done_before = {w.split("_")[0] for w in whole}
             ok = (not broken and not after_broken and not after_hidden and r.returncode == 0
-                  and sorted(after_whole) == [f"frame{k}" for k in range(4)]
-                  and sorted(registered) == sorted({f"frame{k}" for k in range(4)} - done_before)
+                  and sorted(after_whole) == [f"frame{k}" for k in range(N)]
+                  and sorted(registered) == sorted({f"frame{k}" for k in range(N)} - done_before)
                   and skipped == len(done_before))
             bad += not ok
             print(f"| {trial} | {signal.Signals(sig).name} | {after:.1f} | {len(whole)} | {len(broken)} | "
