@@ -10,6 +10,28 @@ REPO = Path(__file__).resolve().parents[1]
 SHARED_DATA = (REPO / ".." / "shared" / "data").resolve()
 
 
+def pytest_addoption(parser):
+    parser.addoption("--shuffle", type=int, default=None, metavar="SEED",
+                     help="run the modules in a shuffled order, and the tests of each module shuffled too, from SEED "
+                          "(a module's tests stay together, so its module-scoped fixtures are made once): finds tests "
+                          "that pass only in the order they were written")
+
+
+def pytest_collection_modifyitems(config, items):
+    import random
+
+    seed = config.getoption("--shuffle")
+    if seed is None:
+        return
+    rng = random.Random(seed)
+    modules: dict = {}
+    for item in items:
+        modules.setdefault(item.nodeid.split("::")[0], []).append(item)
+    order = list(modules)
+    rng.shuffle(order)
+    items[:] = [item for name in order for item in rng.sample(modules[name], len(modules[name]))]
+
+
 def shared_file(relative: str) -> Path:
     """A file under ../shared/data, or skip the test saying what is missing."""
     path = SHARED_DATA / relative
