@@ -26,8 +26,8 @@ class TrainCommand:
         "that step)",
         group="run", unit="s", metavar="S", bounds=Range(0.0, None, lo_open=True)))
     procs: int = field(default=1, metadata=opt(
-        "train in N processes on this machine (data-parallel, torch DDP, as torchrun --nproc-per-node N): the "
-        "config is checked once here before they start, and a refusal is printed once", group="run",
+        "train in N processes on this machine (data-parallel torch DDP, as torchrun --nproc-per-node N; the "
+        "config is checked once before they start, a refusal printed once)", group="run",
         metavar="N", bounds=Range(1, 64)))
 
 
