@@ -160,11 +160,12 @@ METHODS = {
     "contextual": ("contextual alone (default network)", dict(method="contextual")),
     "off": ("contextual+cmaes, no grid (search off, default network)", dict(method="contextual+cmaes", search="off")),
     "network": ("contextual+cmaes (default network)", dict(method="contextual+cmaes")),
+    "always": ("contextual+cmaes, grid always (default network)", dict(method="contextual+cmaes", search="always")),
 }
 
 
 #: The ``--methods`` keys that run the network (``--model`` replaces it).
-NETWORK_METHODS = ("contextual", "off", "network")
+NETWORK_METHODS = ("contextual", "off", "network", "always")
 
 
 def _pct(values) -> str:
@@ -245,7 +246,7 @@ def _measure(a, study, target, volume, center):
                                "refused": False})
             if a.rows is not None:
                 _append_row(a.rows, {"target": target.name, "study": study.source, "ct": a.ct, "model": a.model,
-                                     "method": name, "case": i, "mtre_mm": e["mtre_mm"],
+                                     "method": name, "case": i, "true_params": params, "mtre_mm": e["mtre_mm"],
                                      "rot_err_deg": e["rot_err_deg"], "trans_err_mm": e["trans_err_mm"],
                                      "seconds": seconds, "result": res.to_dict()})
             record = res.result.search

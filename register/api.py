@@ -37,6 +37,7 @@ from register.engines.methods import build_method, check_method, load_predictor,
 from register.engines.metrics import downsample, gradient_ncc
 from register.engines.result import RegistrationError
 from register.engines.search import GlobalSearch, GlobalSearchSettings, describe_search
+from register.verdict import Verdict, judge_result
 from register.plots import checkerboard_png, convergence_plot, overlay_png, trajectory_figure, trajectory_gif
 from register.xray.geometry import resolve_geometry
 from register.xray.io import XRayImage, check_orientation, load_xray
@@ -146,7 +147,10 @@ class XRayRegistration:
             ``result.stage_seconds``), ``polarity`` (the check against the CT: before ``register``
             where it ran on the search's grid, whose render it then holds), and ``write`` once
             :meth:`write` ran; a CLI call adds ``startup`` first (the process's start-up and
-            imports, before the call).
+            imports, before the call); ``verdict`` (its evidence's DRR and checks).
+        verdict: whether to trust the pose (:class:`register.verdict.Verdict`: ``registered``,
+            ``doubtful`` or ``failed`` with its reasons and evidence); in ``result.json`` as
+            ``verdict``, ``verdict_reasons`` and ``verdict_evidence``.
     """
 
     method: str
@@ -162,6 +166,7 @@ class XRayRegistration:
     search_ran: bool = False
     timings: dict[str, float] = field(default_factory=dict)
     center_how: str = ""
+    verdict: Verdict | None = None
 
     @property
     def search_status(self) -> str:
@@ -213,6 +218,13 @@ class XRayRegistration:
             head.append(describe_search(r.search))
         return "\n".join([*head, line])
 
+    def _title(self) -> str:
+        """The figures' title: the verdict and its reasons, the similarity and the pose."""
+        p = self.result.params
+        pose = f"pose {p[0]:.1f}, {p[1]:.1f}, {p[2]:.1f} deg; {p[3]:.1f}, {p[4]:.1f}, {p[5]:.1f} mm"
+        head = self.verdict.line() if self.verdict is not None else f"similarity {self.similarity:.3f}"
+        return f"{head}. {pose}"
+
     def to_dict(self) -> dict:
         """``result.json``: the pose, its projection, the similarity, the method, the inputs (CT,
         X-ray, start, anatomy centre), the prepared X-ray's summary and preprocessing record, the
@@ -223,6 +235,7 @@ class XRayRegistration:
         return {
             **self.result.to_dict(), "method": self.method, "search_mode": self.search_mode,
             "search_ran": bool(self.search_ran), "search_status": self.search_status,
+            **(self.verdict.to_dict() if self.verdict is not None else {}),
             "timings_s": {k: round(v, 4) for k, v in self.timings.items()}, "ct": self.volume.source,
             "xray": self.prepared.xray.source, "init_params": self.init_params.tolist(),
             "anatomy_center_lps_mm": self.center_lps.tolist(), "anatomy_center_how": self.center_how,
@@ -268,6 +281,7 @@ class XRayRegistration:
                 params.append(result.params)
                 labels.append("final (CMA-ES)")
             trajectory_gif(image, np.array(drrs), np.array(params), out / "trajectory.gif", errors=trajectory_errors,
+                           title=f"verdict: {self.verdict.label}" if self.verdict is not None else None,
                            labels=labels)
             written = [out / "trajectory.npz", out / "trajectory.png", out / "trajectory.gif"]
         # figures at the X-ray's own resolution: a line DRR with the X-ray's full geometry (its
@@ -275,9 +289,10 @@ class XRayRegistration:
         full = prepared.full_geometry
         full_drr = DRRRenderer(self.volume, RenderSettings(size=(full.height, full.width)), center_lps=self.center_lps,
                                geometry=full).render(result.pose)[0]
-        overlay_png(prepared.xray.pixels, full_drr, out / "overlay.png", mask=prepared.full_mask)
+        overlay_png(prepared.xray.pixels, full_drr, out / "overlay.png", mask=prepared.full_mask, title=self._title())
         checkerboard_png(prepared.full_image, full_drr, out / "checkerboard.png", mask=prepared.full_mask)
-        convergence_plot(result.history, out / "convergence.png")
+        convergence_plot(result.history, out / "convergence.png", title=self._title(),
+                         search_status=self.search_status if self.search_mode is not None else None)
         self.timings["write"] = time.perf_counter() - t0
         write_json(out / "result.json", self.to_dict())
         return [out / "result.json", out / "overlay.png", out / "checkerboard.png", out / "convergence.png", *written]
@@ -484,10 +499,27 @@ def register_xray(ct, xray, *, method: str = "contextual+cmaes", model=None, ini
     if line is not None:
         log(line)
     ran = result.search is not None and bool(result.search.get("grid_poses"))
+    with clock("verdict"):
+        verdict = _verdict(volume, c, prepared, result)
     return XRayRegistration(method=method, result=result, prepared=prepared, volume=volume, center_lps=c,
                             init_params=x0, physics=moving, label_materials=label_materials, notes=notes,
                             search_mode=search if method in SEARCH_METHODS else None, search_ran=ran,
-                            timings=clock.seconds, center_how=found.to_dict()["anatomy_center_how"])
+                            timings=clock.seconds, center_how=found.to_dict()["anatomy_center_how"],
+                            verdict=verdict)
+
+
+def _verdict(volume, center_lps, prepared, result) -> Verdict:
+    """The verdict (:func:`register.verdict.judge_result`) on a registration's ``result``: one line
+    DRR at its pose, at the optimiser's size."""
+    from sim.drr import DRRRenderer, RenderSettings  # Dr.Jit loads where a render is due, after the input checks
+
+    g = prepared.geometry
+    drr = DRRRenderer(volume, RenderSettings(size=(g.height, g.width)), center_lps=center_lps,
+                      geometry=g).render(result.pose)[0]
+    fld = prepared.step("field")
+    fraction = fld["valid_fraction"] if fld is not None and "valid_fraction" in fld else None
+    return judge_result(result, prepared.image, drr=drr, sod_mm=g.sod_mm, mask=prepared.mask, toned=prepared.toned,
+                        field_fraction=fraction)
 
 
 def grid_bytes(box, shape, geometry) -> float:

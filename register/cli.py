@@ -17,6 +17,7 @@ from sim.cliargs import HelpFormatter, add_options, from_namespace
 from learn.commands import AccuracyCommand, AdaptCommand, ModelsCommand, TrainCommand
 from register.commands import EvaluateCommand, RegisterCommand, ServeCommand, StudyCommand
 from register.evaluation.demo import DemoCommand
+from register.verdict import EXIT_STATUS
 from sim.cli import RenderCommand, SimulateCommand
 
 COMMANDS = {
@@ -97,8 +98,14 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     for path in result if isinstance(result, list) else [result]:
         print(f"wrote {path}")
-    return 0
+    if getattr(result, "last_line", None):  # sim.outputs.Written: e.g. register's verdict, printed last
+        print(result.last_line)
+    return getattr(result, "exit_status", 0)
 
+
+#: ``ctxreg register``'s exit status where the registration is doubtful or failed, every output
+#: written (:data:`register.verdict.EXIT_STATUS`).
+DOUBTFUL_EXIT = EXIT_STATUS["doubtful"]
 
 #: Commands after which :func:`entry` ends the process at once: every output written atomically and
 #: flushed, nothing left for the interpreter's teardown to do.
@@ -114,7 +121,7 @@ def entry() -> None:
     and logs) exit normally."""
     code = main()
     argv = sys.argv[1:]
-    if code == 0 and argv and argv[0] in FAST_EXIT_COMMANDS:
+    if code in (0, DOUBTFUL_EXIT) and argv and argv[0] in FAST_EXIT_COMMANDS:
         try:
             sys.stdout.flush()
             sys.stderr.flush()

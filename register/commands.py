@@ -30,7 +30,7 @@ from register.serve import FolderWatch, ServeError, serve_frames, stdin_frames
 from register.xray.io import ORIENTATIONS
 from sim.cli import CT_HELP
 from sim.cliargs import IMAGE_SIDE_PX, Range, opt, refuse_unused, refuse_unused_label_map
-from sim.outputs import check_output_dir
+from sim.outputs import Written, check_output_dir
 from sim.progress import process_seconds
 from sim.scale import dask_client, parse_scheduler
 from sim.physics.options import (check_level_options, label_materials, level_field, physics_option,
@@ -345,9 +345,11 @@ def _register_keywords(cmd: RegisterCommand, command: str = "register") -> dict:
                 note=lambda text: print(f"ctxreg {command}: note: {text}", file=sys.stderr))
 
 
-def run_register(cmd: RegisterCommand) -> list[Path]:
+def run_register(cmd: RegisterCommand) -> Written:
     """Check the options and the output folder, register (:func:`register.api.register_xray`: it
-    checks the method, model, start, CT, X-ray and geometry before the work) and write the outputs."""
+    checks the method, model, start, CT, X-ray and geometry before the work) and write the outputs.
+    The verdict (:mod:`register.verdict`) is the last line printed and sets the exit status: 0
+    registered, 3 doubtful or failed (every output written either way)."""
     keywords = _register_keywords(cmd)
     out = check_output_dir(cmd.out, OUTPUT_FILES)
     startup = process_seconds()  # the interpreter's start-up and the imports, before any work
@@ -356,13 +358,14 @@ def run_register(cmd: RegisterCommand) -> list[Path]:
         outcome.timings = {"startup": startup, **outcome.timings}
     written = outcome.write(out)
     print(outcome.summary())
+    verdict = outcome.verdict
     if cmd.verbose:
         total = process_seconds()
         lines = [f"  {k}: {v:.2f} s" for k, v in outcome.timings.items()]
         lines += [f"    {k}: {v:.2f} s" for k, v in outcome.result.stage_seconds.items()]
         print("ctxreg register: where the seconds went (wall; the indented ones split register):\n" + "\n".join(lines)
               + (f"\n  total since the process started: {total:.2f} s" if total is not None else ""), file=sys.stderr)
-    return written
+    return Written(written, last_line=verdict.line(), exit_status=verdict.exit_status)
 
 
 @dataclass(frozen=True)

@@ -220,4 +220,5 @@ def _one_frame(register, path: Path, digest: str | None, root: Path, errors, ver
     if verbose:
         note(f"{path.name}: " + ", ".join(f"{k} {v:.2f} s" for k, v in outcome.timings.items()))
     return {"xray": str(path), "out": str(out), "params": outcome.params, "similarity": outcome.similarity,
-            "seconds": round(time.perf_counter() - t0, 3), "search_status": outcome.search_status}
+            "seconds": round(time.perf_counter() - t0, 3), "search_status": outcome.search_status,
+            "verdict": outcome.verdict.label, "verdict_reasons": list(outcome.verdict.reasons)}

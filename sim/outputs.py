@@ -22,7 +22,18 @@ from typing import Iterable
 
 from sim.errors import InputError
 
-__all__ = ["OutputError", "check_output_file", "check_output_dir"]
+__all__ = ["OutputError", "Written", "check_output_file", "check_output_dir"]
+
+
+class Written(list):
+    """The paths a command wrote (a list), with the line it prints after them (``last_line``, e.g.
+    ``register``'s verdict; None: none) and its exit status (``exit_status``, 0 by default;
+    ``ctxreg register`` exits 3 on a doubtful or failed registration after writing every output)."""
+
+    def __init__(self, paths=(), *, last_line: str | None = None, exit_status: int = 0):
+        super().__init__(paths)
+        self.last_line = last_line
+        self.exit_status = int(exit_status)
 
 
 class OutputError(InputError):

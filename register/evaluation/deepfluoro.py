@@ -38,7 +38,7 @@ from register.api import register_xray
 from register.datasets.deepfluoro import DeepFluoroError, DeepFluoroFile, DeepFluoroProjection, DeepFluoroSpecimen
 from register.engines.methods import METHOD_NAMES, load_predictor, needs_model
 from register.evaluation.errors import pose_errors
-from register.evaluation.evaluate import START_MODES, start_params
+from register.evaluation.evaluate import START_MODES, start_params, verdict_rates
 from register.plots import overlay_png
 from register.xray.prepare import fit_to_size
 from register.xray.preprocess import DEFAULT_STEPS
@@ -166,6 +166,7 @@ def summarize(rows: list[dict]) -> dict:
             for col in _ERRORS:
                 g[col] = _stats(r[col] for r in rs)
                 g[f"initial_{col}"] = _stats(r[f"initial_{col}"] for r in rs)
+            g.update(verdict_rates(rs, 10.0))
             for mm in SUCCESS_MM:
                 g[f"under_{mm:g}mm"] = float(np.mean([r["mtre_mm"] < mm for r in rs]))
                 g[f"initial_under_{mm:g}mm"] = float(np.mean([r["initial_mtre_mm"] < mm for r in rs]))
@@ -176,15 +177,18 @@ def summarize(rows: list[dict]) -> dict:
 def format_table(summary: dict) -> str:
     """The summary as a Markdown table: a row per method and specimen."""
     lines = ["| method | specimen | frames | mTRE initial -> final, median (mm) | mean (mm) | < 10 mm initial -> final "
-             "| < 1 mm | mPD median (mm) | mRPE median (mm) | rotation median (deg) | s / frame |",
-             "|---|---|---|---|---|---|---|---|---|---|---|"]
+             "| < 1 mm | mPD median (mm) | mRPE median (mm) | rotation median (deg) | s / frame | registered within "
+             "10 mm | registered further off |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for method, groups in summary.items():
         for name, g in groups.items():
+            accepted = "-" if not g.get("within") else f"{100 * g['accepted']:.0f} %"
             lines.append(
                 f"| {method} | {name} | {g['frames']} | {g['initial_mtre_mm']['median']:.1f} -> "
                 f"{g['mtre_mm']['median']:.2f} | {g['mtre_mm']['mean']:.2f} | {100 * g['initial_under_10mm']:.0f} % -> "
                 f"{100 * g['under_10mm']:.0f} % | {100 * g['under_1mm']:.0f} % | {g['mpd_mm']['median']:.2f} | "
-                f"{g['mrpe_mm']['median']:.2f} | {g['rot_err_deg']['median']:.2f} | {g['time_s']['median']:.1f} |")
+                f"{g['mrpe_mm']['median']:.2f} | {g['rot_err_deg']['median']:.2f} | {g['time_s']['median']:.1f} | "
+                f"{accepted} | {g.get('false_accepts', 0)} of {g.get('off', 0)} |")
     return "\n".join(lines)
 
 
@@ -286,7 +290,7 @@ def _register_frame(f: DeepFluoroFile, sid: str, index: int, start, methods: tup
         out.append({"specimen": spec.id, "frame": fr.index, "method": method, "start": settings.start,
                     "rot_180_for_up": fr.rot_180_for_up, **err, **{f"initial_{k}": v for k, v in initial.items()},
                     "time_s": seconds, "renders": reg.result.renders, "similarity": reg.similarity,
-                    "search": reg.search_status,
+                    "search": reg.search_status, "verdict": reg.verdict.label,
                     **{f"true_{k}": float(v) for k, v in zip(("phi", "theta", "psi", "tx", "ty", "tz"),
                                                              params_from_pose(T_true, settings.sod_mm))},
                     **{f"est_{k}": float(v) for k, v in reg.params.items()}, "pose": np.asarray(reg.pose).tolist()})

@@ -28,6 +28,7 @@ import numpy as np
 
 from register.engines.methods import RegistrationMethod, build_method, load_predictor, needs_model
 from register.evaluation.errors import bone_points, pose_errors
+from register.verdict import judge_result
 from sim.atomic import atomic_path, save_figure, write_csv, write_json
 from sim.campaign.poses import ORIGINAL_PROTOCOL
 from sim.cliargs import Range
@@ -120,6 +121,21 @@ def sample_cases(settings: EvaluationSettings, distribution=None) -> tuple[np.nd
                                  local_trans_mm=settings.local_trans_mm)
 
 
+def verdict_rates(rows: list[dict], within_mm: float) -> dict:
+    """How the verdicts (``rows[i]["verdict"]``; rows without one are left out) match the truth
+    (``mtre_mm``): ``accepted`` the share of the registrations within ``within_mm`` called
+    ``registered``, ``false_accepts`` the number further off called ``registered`` (the one count
+    that must be 0), with the counts of each (``within``, ``off``) and of each verdict."""
+    judged = [r for r in rows if r.get("verdict")]
+    within = [r for r in judged if r["mtre_mm"] < within_mm]
+    off = [r for r in judged if not r["mtre_mm"] < within_mm]
+    return {"within": len(within), "off": len(off),
+            "accepted": float(np.mean([r["verdict"] == "registered" for r in within])) if within else float("nan"),
+            "false_accepts": sum(r["verdict"] == "registered" for r in off),
+            "verdicts": {label: sum(r["verdict"] == label for r in judged) for label in ("registered", "doubtful",
+                                                                                       "failed")}}
+
+
 def summarize(rows: list[dict], settings: EvaluationSettings) -> dict:
     """Per method: mean, std, median, min, max of each error, success rates, time."""
     out = {}
@@ -133,6 +149,7 @@ def summarize(rows: list[dict], settings: EvaluationSettings) -> dict:
         stats["success_mtre"] = float(np.mean([r["mtre_mm"] < settings.success_mtre_mm for r in sel]))
         stats["success_rot"] = float(np.mean([r["rot_err_deg"] < settings.success_rot_deg for r in sel]))
         stats["success"] = float(np.mean([r["success"] for r in sel]))
+        stats.update(verdict_rates(sel, settings.success_mtre_mm))
         stats["cases"] = len(sel)
         stats["refused"] = sum(1 for r in sel if r.get("refused"))  # frames the registration refused (study)
         out[method] = stats
@@ -153,6 +170,14 @@ def format_table(summary: dict, settings: EvaluationSettings) -> str:
                      f"{100 * stats['success_mtre']:.0f} % | | | | |")
         lines.append(f"| {method} | success: rotation < {settings.success_rot_deg:g} deg | "
                      f"{100 * stats['success_rot']:.0f} % | | | | |")
+        if "verdicts" in stats and sum(stats["verdicts"].values()):
+            v = stats["verdicts"]
+            lines.append(f"| {method} | verdict: registered / doubtful / failed | {v['registered']} / {v['doubtful']} / "
+                         f"{v['failed']} | | | | |")
+            acc = "-" if not stats["within"] else f"{100 * stats['accepted']:.0f} % of {stats['within']}"
+            lines.append(f"| {method} | verdict: registered within {settings.success_mtre_mm:g} mm (mTRE) | {acc} | | | | |")
+            lines.append(f"| {method} | verdict: registered further off (false accepts) | "
+                         f"{stats['false_accepts']} of {stats['off']} | | | | |")
     return "\n".join(lines)
 
 
@@ -209,9 +234,19 @@ def _worker_methods(spec: MethodSpec, settings: EvaluationSettings):
     return _WORKER_BUILT[key]
 
 
+def verdict_renderer(volume, center_lps, geometry):
+    """The line DRR renderer of the verdict's evidence (:func:`register.verdict.judge_result`) on
+    images of ``geometry``."""
+    from sim.drr import DRRRenderer, RenderSettings  # Dr.Jit loads with the first renderer, not at import
+
+    return DRRRenderer(volume, RenderSettings(size=(geometry.height, geometry.width)), center_lps=center_lps,
+                       geometry=geometry)
+
+
 def _case_rows(i: int, target, start, image, methods: dict, settings: EvaluationSettings, points, center_lps,
-               geometry) -> tuple[list[dict], list[dict]]:
-    """One case registered by every method: its rows and the contextual methods' trajectories."""
+               geometry, judge_with) -> tuple[list[dict], list[dict]]:
+    """One case registered by every method: its rows (with the verdict on each, ``judge_with``: the
+    line DRR renderer of :func:`verdict_renderer`) and the contextual methods' trajectories."""
     rows, trajectories = [], []
     T_true = pose_from_params(target, geometry.sod_mm)
     for name, method in methods.items():
@@ -219,7 +254,8 @@ def _case_rows(i: int, target, start, image, methods: dict, settings: Evaluation
         result = method.register(image, start)
         elapsed = time.perf_counter() - t0
         err = pose_errors(result.pose, T_true, points, center_lps, geometry)
-        rows.append({"case": i, "method": name, "start": settings.start, **err,
+        verdict = judge_result(result, image, drr=judge_with.render(result.pose)[0], sod_mm=geometry.sod_mm)
+        rows.append({"case": i, "method": name, "start": settings.start, **err, "verdict": verdict.label,
                      "success": err["mtre_mm"] < settings.success_mtre_mm and err["rot_err_deg"] < settings.success_rot_deg,
                      "time_s": elapsed, "renders": result.renders, "similarity": result.similarity,
                      **{f"true_{k}": float(v) for k, v in zip("phi theta psi tx ty tz".split(), target)},
@@ -233,8 +269,10 @@ def _case_rows(i: int, target, start, image, methods: dict, settings: Evaluation
 
 def _dask_case(spec: MethodSpec, i: int, target, start, image, settings: EvaluationSettings, geometry):
     """:func:`_case_rows` on a Dask worker, its methods built there (:func:`_worker_methods`)."""
-    _, methods, points = _worker_methods(spec, settings)
-    return _case_rows(i, target, start, image, methods, settings, points, np.asarray(spec.center_lps), geometry)
+    volume, methods, points = _worker_methods(spec, settings)
+    center = np.asarray(spec.center_lps)
+    return _case_rows(i, target, start, image, methods, settings, points, center, geometry,
+                      verdict_renderer(volume, center, geometry))
 
 
 def evaluate(volume, methods: dict[str, RegistrationMethod], settings: EvaluationSettings, out: Path,
@@ -265,8 +303,9 @@ def evaluate(volume, methods: dict[str, RegistrationMethod], settings: Evaluatio
 
     if client is None:
         points = bone_points(volume, settings.max_points, settings.seed)
+        judge_with = verdict_renderer(volume, center_lps, geometry)
         for i, (target, start, image) in enumerate(zip(targets, starts, target_images)):
-            done(i, _case_rows(i, target, start, image, methods, settings, points, center_lps, geometry))
+            done(i, _case_rows(i, target, start, image, methods, settings, points, center_lps, geometry, judge_with))
     else:
         if spec is None:
             raise EvaluationError("evaluate on a Dask client needs the methods' spec (MethodSpec)")

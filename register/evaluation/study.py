@@ -675,16 +675,16 @@ def _xray_case(study: Study, method_model, volume, center, frame: FrameSimulator
         try:
             res = api.register_xray(volume, path, method=method, model=method_model, init=start, center=center,
                                     size=study.size, physics=_moving(study) or "line")
-            pose, similarity, refused = res.pose, res.similarity, ""
+            pose, similarity, refused, verdict = res.pose, res.similarity, "", res.verdict.label
         except frame_refusals() as e:  # the frame's content refused (e.g. no valid pixel left): a failed case
             pose = pose_from_params(np.asarray(start, float), g.sod_mm)  # the user keeps the start pose
-            similarity, refused = float("nan"), str(e)
+            similarity, refused, verdict = float("nan"), str(e), "failed"
         elapsed = time.perf_counter() - t0
         err = pose_errors(pose, T_true, points, center, g)  # the frame's geometry: both poses projected
         rows.append({"case": i, "method": method, "start": study.start, **err,
                      "success": not refused and err["mtre_mm"] < settings.success_mtre_mm
                      and err["rot_err_deg"] < settings.success_rot_deg,
-                     "time_s": elapsed, "similarity": similarity, "refused": refused})
+                     "time_s": elapsed, "similarity": similarity, "refused": refused, "verdict": verdict})
     return rows
 
 

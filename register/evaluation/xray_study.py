@@ -145,6 +145,7 @@ def run_xray_study(ct: str, out: str | Path, *, cases: int = 10, size: int = 256
                     truth_field = frame["field_mask"]
                     inp = jsonable(outcome.xray_input)
                     row.update({k2: err[k2] for k2 in ("rot_err_deg", "trans_err_mm", "mtre_mm")},
+                               verdict=outcome.verdict.label,
                                intensity=(inp["polarity_check"] or inp["intensity"])["polarity"],
                                decided_polarity=inp["intensity"]["polarity"],
                                scale=inp["intensity"]["scale"],

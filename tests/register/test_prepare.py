@@ -101,11 +101,19 @@ def test_overlay_and_checkerboard_are_at_full_resolution_with_the_field_outline(
     from pathlib import Path
 
     with tempfile.TemporaryDirectory() as d:
-        overlay_png(xray, drr, Path(d) / "o.png", mask=mask)
+        top, factor = overlay_png(xray, drr, Path(d) / "o.png", mask=mask, title="verdict: registered (a; b)")
         checkerboard_png(xray, drr, Path(d) / "c.png", mask=mask, tiles=6)
-        o = np.asarray(Image.open(Path(d) / "o.png"))
+        png = np.asarray(Image.open(Path(d) / "o.png"))
         c = np.asarray(Image.open(Path(d) / "c.png"))
-    assert o.shape == (h, w, 3) and c.shape == (h, w)
+    # a 360 px X-ray enlarged 2 x 2 (to >= 512 px), the title above, the legend below (>= 3 lines of
+    # 13 px); each X-ray pixel a whole block: the X-ray's own pixels, nothing interpolated
+    assert factor == 2 and png.shape[1] == 2 * w and top > 13 and png.shape[0] > top + 2 * h + 3 * 13
+    block = png[top:top + 2 * h]
+    assert (block[0::2] == block[1::2]).all() and (block[:, 0::2] == block[:, 1::2]).all()
+    o = block[::2, ::2]
+    assert c.shape == (h, w)
+    legend = png[top + 2 * h:]
+    assert ((legend[..., 0] > 200) & (legend[..., 1] < 80)).any() and ((legend[..., 0] < 80) & (legend[..., 2] > 200)).any()
     red = (o[..., 0] > 200) & (o[..., 1] < 80) & (o[..., 2] < 80)
     cyan = (o[..., 0] < 80) & (o[..., 1] > 180) & (o[..., 2] > 200)
     box_edge = np.zeros((h, w), bool)

@@ -19,6 +19,17 @@ def run_cli(*args):
                           text=True, cwd=REPO, timeout=600)
 
 
+def _assert_exit_says_the_verdict(r, out) -> dict:
+    """The run wrote every output and exited with its verdict's status (0 registered, 3 otherwise),
+    the verdict its last printed line; returns result.json."""
+    from register.verdict import EXIT_STATUS
+
+    result = json.loads((out / "result.json").read_text())
+    assert r.returncode == EXIT_STATUS[result["verdict"]], r.stderr
+    assert r.stdout.strip().splitlines()[-1].startswith(f"verdict: {result['verdict']} (")
+    return result
+
+
 def _assert_recovered(out, truth) -> dict:
     """result.json of a run whose pose is within 1 deg, 3 mm in-plane and 15 mm in depth (the
     weakly observed direction) of ``truth``; returns the result."""
@@ -75,12 +86,19 @@ def test_register_recovers_the_pose_of_a_synthetic_dicom(synthetic_case, tmp_pat
     assert "geometry: SDD 1020 mm (DICOM DistanceSourceToDetector)" in r.stdout
     for name in ("overlay.png", "checkerboard.png", "convergence.png"):
         assert (out / name).read_bytes()[:4] == b"\x89PNG"
-    assert np.asarray(Image.open(out / "overlay.png")).shape == (192, 192, 3)  # the X-ray's own size
+    # the X-ray's own pixels, each a 3 x 3 block (a 192 px X-ray is enlarged to >= 512 px), with the
+    # verdict above and the legend below
+    h, w, _ = np.asarray(Image.open(out / "overlay.png")).shape
+    assert w == 3 * 192 and h > 3 * 192
+    # a right pose of a clean DRR: registered, said last, exit 0
+    assert result["verdict"] == "registered" and r.stdout.strip().splitlines()[-1].startswith("verdict: registered")
+    assert set(result["verdict_evidence"]) >= {"similarity", "tone_fit", "runner_up", "search", "network_gap",
+                                               "field_fraction"}
     # where the seconds went: every stage of the call (the default method: the network, the search),
     # in order, each >= 0, printed with --verbose; the registration's own split stays in stage_seconds
     timings = result["timings_s"]
     assert list(timings) == ["startup", "xray", "model", "ct", "prepare", "search_setup", "engine_setup", "register",
-                             "polarity", "write"]
+                             "polarity", "verdict", "write"]
     assert all(v >= 0 for v in timings.values()) and timings["startup"] > 0
     assert sum(result["stage_seconds"].values()) <= timings["register"] + 1e-3
     said = r.stderr[r.stderr.index("where the seconds went"):]
@@ -193,7 +211,8 @@ def test_contextual_register_saves_a_consistent_trajectory(synthetic_case, tmp_p
     out = tmp_path / "ctx"
     r = run_cli("register", "--ct", ct, "--xray", xray, "--init", *start, "--size", 64, 64, "--center", *center,
                 "--method", "contextual", "--model", ckpt, "--out", out)
-    assert r.returncode == 0, r.stderr
+    # an untrained network ends anywhere: its pose is not trusted, yet every output is written
+    assert _assert_exit_says_the_verdict(r, out)["verdict"] != "registered"
     t = np.load(out / "trajectory.npz")
     params, g, drrs = t["params_deg_mm"], t["g_rad_mm"], t["drrs"]
     k = len(g)
@@ -272,14 +291,14 @@ def test_register_undoes_a_stored_mirror_or_rotation_with_orient(synthetic_case,
         out = tmp_path / orient
         r = run_cli("register", "--ct", ct, "--xray", path, "--init", *start, "--size", 96, 96, "--center",
                     *center, "--method", "cmaes", "--orient", orient, "--out", out)
-        assert r.returncode == 0, r.stderr
+        _assert_exit_says_the_verdict(r, out)
         assert f"orientation: {orient} (--orient)" in r.stdout
         result = _assert_recovered(out, truth)
         assert result["xray_input"]["orientation"] == orient
     out = tmp_path / "as-stored"
     r = run_cli("register", "--ct", ct, "--xray", tmp_path / "flip-left-right.dcm", "--init", *start, "--size", 96,
                 96, "--center", *center, "--method", "cmaes", "--out", out)
-    assert r.returncode == 0, r.stderr
+    _assert_exit_says_the_verdict(r, out)
     est = np.array([json.loads((out / "result.json").read_text())["params"][k]
                     for k in ("phi", "theta", "psi", "tx", "ty", "tz")])
     assert np.abs(est[:3] - truth[:3]).max() > 2.0 or np.abs(est[3:5] - truth[3:5]).max() > 5.0, est
@@ -301,7 +320,7 @@ def test_a_huge_frame_is_binned_at_once_and_registers_as_the_original(synthetic_
     out = tmp_path / "out"
     r = run_cli("register", "--ct", ct, "--xray", path, "--init", *start, "--size", 96, 96, "--center", *center,
                 "--method", "cmaes", "--out", out)
-    assert r.returncode == 0, r.stderr
+    _assert_exit_says_the_verdict(r, out)
     assert "2112 x 2112 px binned 2 x 2 to 1056 x 1056 px" in r.stdout + r.stderr
     result = _assert_recovered(out, truth)
     assert result["geometry"]["sdd_mm"] == pytest.approx(1020.0)
@@ -325,6 +344,8 @@ def test_serve_registers_each_frame_of_a_case_in_one_process(synthetic_case, tmp
     for line in (lines[0], lines[2]):
         _assert_recovered(Path(line["out"]), truth)
         assert line["seconds"] > 0 and line["search_status"].startswith("none")
+        assert line["verdict"] == json.loads((Path(line["out"]) / "result.json").read_text())["verdict"]
+        assert line["verdict_reasons"]
     assert r.stderr.count("ready; frames from stdin") == 1  # the CT and method loaded once
     folder = tmp_path / "incoming"
     folder.mkdir()

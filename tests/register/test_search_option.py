@@ -224,7 +224,7 @@ def test_a_registered_pose_that_matches_confirms_the_polarity_without_a_grid_of_
     assert check["similarity_as_decided"] >= POLARITY_CONFIRMED_ABOVE
     assert check["similarity_inverted"] == -check["similarity_as_decided"]
     assert np.allclose(check["pose_params"], list(res.params.values()))
-    assert list(res.timings)[-2:] == ["register", "polarity"] and res.timings["polarity"] < res.timings["register"]
+    assert list(res.timings)[-3:] == ["register", "polarity", "verdict"] and res.timings["polarity"] < res.timings["register"]
 
 
 def test_where_the_grid_runs_the_polarity_is_checked_on_it_first_and_rendered_once(phantom, monkeypatch):

@@ -22,6 +22,8 @@ from pathlib import Path
 
 import pytest
 
+from register.verdict import Verdict
+
 from register.serve import FRAME_RECORD, FolderWatch, done_frames, serve_frames
 from tests.conftest import REPO
 
@@ -34,6 +36,7 @@ class _Outcome:
     similarity = 0.5
     search_status = "none"
     timings = {"register": 0.0}
+    verdict = Verdict("doubtful", ("similarity 0.50 < 0.60",))
 
     def __init__(self, pause_s: float = 0.0):
         self.pause_s = pause_s

@@ -1,0 +1,199 @@
+"""The verdict on registrations (register/verdict.py) against the truth: false accepts and the share
+of good registrations accepted, per condition; and the calibration of its thresholds.
+
+Rows: registrations of known truth written by ``benchmarks/search.py --rows FILE`` (each with
+result.json's ``verdict_evidence``), and rows of X-rays that no pose can register (``mtre_mm``
+null: every pose counts as off, e.g. the paediatric radiographs against an adult CT, written by
+``benchmarks/verdict.py --unmatched``). The verdict is judged again from each row's evidence with
+the current :class:`register.verdict.VerdictSettings` (or the calibrated ones with
+``--calibrate``) and the runner-up found again from the search's record by the current rule of
+distinct poses, so a change of thresholds or of that rule needs no registration again.
+
+The calibration data (docs/results.md, "Whether to trust a registration")::
+
+    B=".venv/bin/python benchmarks/search.py --cases 10 --methods network always"
+    $B --study studies/domain_gap.toml --target fluoro-65kV --out runs/verdict/frames --rows runs/verdict/calib.jsonl
+    $B --study studies/heldout.toml --target all --out runs/verdict/frames --rows runs/verdict/calib.jsonl
+    $B --study studies/metal.toml --target all --out runs/verdict/frames --rows runs/verdict/calib.jsonl
+    .venv/bin/python benchmarks/verdict.py runs/verdict/calib.jsonl --calibrate
+
+and the held-out check: the validation pelvis adapted for 10 minutes (``ctxreg adapt --ct
+../shared/data/ct/pelvis_chiconasa_2mm.nii.gz --out runs/adapt_chiconasa --minutes 10``), its
+frames of four conditions, new conditions on the training pelvis, and the paediatric radiographs::
+
+    $B --ct ../shared/data/ct/pelvis_chiconasa_2mm.nii.gz --model runs/adapt_chiconasa \\
+       --study studies/domain_gap.toml studies/heldout.toml studies/metal.toml --target all ... --rows runs/verdict/heldout.jsonl
+    $B --study studies/heldout2.toml --target all --out runs/verdict/frames --rows runs/verdict/heldout.jsonl
+    .venv/bin/python benchmarks/verdict.py --unmatched ../shared/data/xray/paediatric_ap_pelvis/dicoms \\
+       --ct ../shared/data/ct/pelvis_abdomen_3mm.nii.gz runs/verdict/unmatched.jsonl
+    .venv/bin/python benchmarks/verdict.py runs/verdict/heldout.jsonl runs/verdict/unmatched.jsonl
+"""
+
+from __future__ import annotations
+
+import argparse
+import itertools
+import json
+import sys
+import time
+from dataclasses import asdict, replace
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from register.verdict import VerdictSettings, judge, runner_up  # noqa: E402
+
+#: A registration within this mTRE (mm) is good: the issue's bar, and the study's success.
+WITHIN_MM = 10.0
+
+#: The thresholds ``--calibrate`` tries (every combination; the others stay at their defaults).
+GRID = {"min_similarity": (0.15, 0.2, 0.25, 0.3, 0.35, 0.4, 0.5, 0.6),
+        "min_tone_fit": (0.0, 0.2, 0.3, 0.4, 0.5, 0.6),
+        "min_margin": (0.0, 0.02, 0.03, 0.05, 0.07, 0.1, 0.15),
+        "sure_similarity": (0.85, 0.88, 0.9, 0.92, 0.95, 1.0)}
+
+
+def load_rows(paths) -> list[dict]:
+    """The judged rows of ``paths`` (JSON lines): ``condition``, ``mtre_mm`` (None: no pose is
+    right), ``evidence``; rows without evidence (refused frames, older files) are counted and left out."""
+    rows, skipped = [], 0
+    for path in paths:
+        for line in Path(path).read_text().splitlines():
+            if not line.strip():
+                continue
+            r = json.loads(line)
+            ev = (r.get("result") or {}).get("verdict_evidence")
+            if ev is None:
+                skipped += 1
+                continue
+            res = r["result"]
+            if ev["search"] == "ran":  # the runner-up again, by the current rule of distinct poses
+                ev = {**ev, "runner_up": runner_up(res.get("search"), np.array(res["pose_4x4"]),
+                                                   res["geometry"]["sod_mm"])}
+            ct = Path(str(r.get("ct"))).name.split(".")[0]
+            model = "adapted" if r.get("model") and "adapt" in str(r["model"]) else "shipped"
+            method = "grid always" if "always" in str(r.get("method", "")) else "default"
+            rows.append({"condition": f"{r['target']}, {ct}, {model}, {method}", "mtre_mm": r.get("mtre_mm"),
+                         "evidence": ev})
+    if skipped:
+        print(f"verdict: {skipped} rows without the verdict's evidence left out", file=sys.stderr)
+    return rows
+
+
+def _good(row) -> bool:
+    return row["mtre_mm"] is not None and row["mtre_mm"] < WITHIN_MM
+
+
+def rates(rows, settings: VerdictSettings) -> dict:
+    """``within``, ``off``, ``accepted`` (share of the good ones called registered), ``false_accepts``
+    (off ones called registered) and each verdict's count."""
+    labels = [judge(r["evidence"], settings).label for r in rows]
+    good = [lab for r, lab in zip(rows, labels) if _good(r)]
+    off = [lab for r, lab in zip(rows, labels) if not _good(r)]
+    return {"within": len(good), "off": len(off),
+            "accepted": float(np.mean([lab == "registered" for lab in good])) if good else float("nan"),
+            "false_accepts": sum(lab == "registered" for lab in off),
+            "registered": labels.count("registered"), "doubtful": labels.count("doubtful"),
+            "failed": labels.count("failed")}
+
+
+def calibrate(rows) -> tuple[VerdictSettings, dict]:
+    """The settings of :data:`GRID` with no false accept on ``rows`` that accept the most good
+    registrations (ties: the stricter, i.e. the larger thresholds summed)."""
+    best, best_key = None, None
+    for values in itertools.product(*GRID.values()):
+        s = replace(VerdictSettings(), **dict(zip(GRID, values)))
+        r = rates(rows, s)
+        if r["false_accepts"]:
+            continue
+        key = (r["accepted"], sum(values))
+        if best_key is None or key > best_key:
+            best, best_key = (s, r), key
+    if best is None:
+        raise SystemExit("verdict: no thresholds of the grid avoid every false accept on these rows")
+    return best
+
+
+def table(rows, settings: VerdictSettings) -> str:
+    lines = ["| condition (target, CT, network, search) | registrations | within 10 mm | called registered of "
+             "those | further off | called registered of those (false accepts) | registered / doubtful / failed |",
+             "|---|---|---|---|---|---|---|"]
+    groups = {}
+    for r in rows:
+        groups.setdefault(r["condition"], []).append(r)
+    for name, rs in [*groups.items(), ("all", rows)]:
+        x = rates(rs, settings)
+        acc = "-" if not x["within"] else f"{100 * x['accepted']:.0f} %"
+        lines.append(f"| {name} | {len(rs)} | {x['within']} | {acc} | {x['off']} | {x['false_accepts']} | "
+                     f"{x['registered']} / {x['doubtful']} / {x['failed']} |")
+    return "\n".join(lines)
+
+
+def unmatched(a) -> int:
+    """Register every X-ray of a folder against a CT it cannot match (``mtre_mm`` null) into ``--rows``."""
+    from register.api import register_xray
+    from sim import load_ct
+    from sim.errors import CtxregError
+
+    files = sorted(p for p in Path(a.unmatched).iterdir() if p.suffix.lower() in (".dcm", ".png", ".jpg", ".tif"))
+    if not files:
+        print(f"verdict: --unmatched {a.unmatched}: no X-ray files", file=sys.stderr)
+        return 2
+    volume = load_ct(a.ct)
+    t0 = time.perf_counter()
+    for i, f in enumerate(files):
+        try:
+            res = register_xray(volume, f, model=a.model)
+            row = {"target": a.label, "ct": a.ct, "model": a.model, "xray": str(f), "mtre_mm": None,
+                   "result": res.to_dict()}
+            said = res.verdict.line()
+        except CtxregError as e:
+            row, said = {"target": a.label, "ct": a.ct, "model": a.model, "xray": str(f), "refused": str(e)}, str(e)
+        with open(a.rows, "a") as out:
+            out.write(json.dumps(row, default=lambda v: v.tolist() if hasattr(v, "tolist") else repr(v)) + "\n")
+        rate = (i + 1) / (time.perf_counter() - t0)
+        print(f"verdict: {f.name}: {said} ({i + 1}/{len(files)}, {rate:.2f}/s, ETA {(len(files) - i - 1) / rate:.0f} s)",
+              file=sys.stderr, flush=True)
+    return 0
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("rows", nargs="*", help="JSON-lines files of registrations (benchmarks/search.py --rows)")
+    ap.add_argument("--calibrate", action="store_true",
+                    help="choose the thresholds of GRID with no false accept that accept the most good registrations")
+    ap.add_argument("--unmatched", default=None, metavar="DIR",
+                    help="register the X-rays of DIR against --ct (no pose can be right) into --rows")
+    ap.add_argument("--ct", default=None, help="with --unmatched: the CT")
+    ap.add_argument("--model", default=None, help="with --unmatched: the network (default: the shipped default)")
+    ap.add_argument("--label", default="unmatched X-ray", help="with --unmatched: the condition's name")
+    a = ap.parse_args()
+    if a.unmatched is not None:
+        if a.ct is None or not a.rows or len(a.rows) != 1:
+            print("verdict: --unmatched needs --ct and one ROWS file to append to", file=sys.stderr)
+            return 2
+        a.rows = a.rows[0]
+        return unmatched(a)
+    missing = [p for p in a.rows if not Path(p).is_file()]
+    if not a.rows or missing:
+        print(f"verdict: rows file(s) not found: {missing or 'none given'}", file=sys.stderr)
+        return 2
+    rows = load_rows(a.rows)
+    if not rows:
+        print("verdict: no judged rows", file=sys.stderr)
+        return 2
+    settings = VerdictSettings()
+    if a.calibrate:
+        settings, r = calibrate(rows)
+        print(f"calibrated on {len(rows)} registrations: {asdict(settings)}\n")
+    print(f"{len(rows)} registrations, VerdictSettings {asdict(settings)}; good: mTRE < {WITHIN_MM:g} mm "
+          f"({time.strftime('%Y-%m-%d %H:%M')})\n")
+    print(table(rows, settings))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,239 @@
+"""Whether to trust a registration: a verdict, ``registered``, ``doubtful`` or ``failed``, with its reasons.
+
+A wrong pose can score like a right one: a vertebra shifted by one level, or a pelvis turned
+10 deg and moved 25 mm in a small field, keeps a gradient NCC of 0.86-0.89 while a right pose on
+a linear display scores 0.29. The similarity alone cannot tell them apart, so the verdict weighs
+independent evidence, each gathered once after the registration (:func:`gather_evidence`):
+
+* ``similarity``: the final similarity (the registration's own score, 1 = identical edges);
+* ``tone_fit``: the NCC of the X-ray's intensities (its toned version for a display image) with
+  the line DRR at the final pose over the field: the intensities agree where the pose is right,
+  whatever the edges do (0th order where the similarity is 1st);
+* ``runner_up``: the best refined start of the global search that ended at a distinct pose
+  (:data:`DISTINCT_DEG` / :data:`DISTINCT_MM` away): two poses that score alike mean the X-ray
+  does not decide between them. Where the search's grid did not run, no alternative was
+  examined, and only a clear match (``sure_similarity``) may be called registered;
+* ``network_gap``: how far the network's own pose is from the final one (deg, mm): recorded, not
+  judged (a network on a patient it never saw is often far off where the search found the pose);
+* ``field_fraction``: the share of the X-ray's pixels the registration used.
+
+:func:`judge` turns the evidence into the verdict with :class:`VerdictSettings`, whose thresholds
+were calibrated on registrations of known truth (``benchmarks/verdict.py``; docs/results.md,
+"Whether to trust a registration"). ``ctxreg register`` prints it as its last line and exits with
+:data:`EXIT_STATUS` (0 registered, 3 otherwise) after writing every output.
+
+Example::
+
+    >>> s = VerdictSettings()
+    >>> judge({"similarity": 0.05, "tone_fit": 0.1, "runner_up": None, "search": "ran",
+    ...        "field_fraction": 0.5}, s).label
+    'failed'
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field
+
+import numpy as np
+
+from register.engines.metrics import ncc
+from register.engines.result import RegistrationError
+from sim.geometry import pose_from_params
+from sim.se3 import rotation_error_deg
+
+__all__ = ["Verdict", "VerdictSettings", "gather_evidence", "judge", "judge_result", "pose_gap", "runner_up", "EXIT_STATUS",
+           "LABELS", "DISTINCT_DEG", "DISTINCT_MM", "DISTINCT_DEPTH_MM"]
+
+#: The verdicts, best first.
+LABELS = ("registered", "doubtful", "failed")
+
+#: ``ctxreg register``'s exit status by verdict (after every output is written): a script keeps
+#: the poses that exit 0.
+EXIT_STATUS = {"registered": 0, "doubtful": 3, "failed": 3}
+
+#: Two poses are distinct (another answer, not the same one refined differently) when their
+#: rotations differ by more than this (deg), their anatomy centres by more than
+#: :data:`DISTINCT_MM` (mm) across the view, or by more than :data:`DISTINCT_DEPTH_MM` (mm) along
+#: it: at 100 mm from the centre, 4 deg moves a point 7 mm. A single view sees depth through the
+#: magnification alone (20 mm at 700 mm from the source moves a point 100 mm off the centre by
+#: 3 mm in the image), so the refined starts of a right registration often differ by 10-20 mm
+#: in depth alone with similarities within 0.05 (benchmarks/verdict.py); counted as distinct, they
+#: made 27 % of right registrations doubtful where 20 mm made 13 % so, with no false accept either way.
+DISTINCT_DEG = 4.0
+DISTINCT_MM = 10.0
+DISTINCT_DEPTH_MM = 20.0
+
+
+@dataclass(frozen=True)
+class VerdictSettings:
+    """The thresholds of :func:`judge`. ``min_similarity``, ``min_tone_fit``, ``min_margin`` and
+    ``sure_similarity`` are ``benchmarks/verdict.py --calibrate``'s choice on 120 registrations of
+    known truth (the training pelvis, six conditions, the default pipeline and the grid always):
+    no false accept, the most right registrations accepted, ties to the stricter; ``fail_below``,
+    ``tone_fail_below`` and ``min_field_fraction`` are floors no right registration came near.
+
+    Attributes:
+        fail_below: a final similarity below this is ``failed`` (the DRR does not match the X-ray).
+        tone_fail_below: a tone fit below this is ``failed`` (the intensities disagree: a wrong
+            pose, or an X-ray of other anatomy).
+        min_similarity: ``registered`` needs at least this similarity.
+        min_tone_fit: ``registered`` needs at least this tone fit.
+        min_margin: ``registered`` needs the final similarity to beat a distinct runner-up by at
+            least this much.
+        sure_similarity: where the search's grid did not run (skipped, off, or a method without
+            it: no alternative was examined), ``registered`` needs at least this similarity.
+        min_field_fraction: ``registered`` needs at least this share of the X-ray's pixels used.
+    """
+
+    fail_below: float = 0.15
+    tone_fail_below: float = 0.0
+    min_similarity: float = 0.4
+    min_tone_fit: float = 0.5
+    min_margin: float = 0.07
+    sure_similarity: float = 0.9
+    min_field_fraction: float = 0.1
+
+    def __post_init__(self) -> None:
+        for name, v in asdict(self).items():
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not np.isfinite(v) or not -1 <= v <= 1:
+                raise RegistrationError(f"VerdictSettings.{name} must be a number in [-1, 1], got {v!r}")
+
+
+@dataclass(frozen=True)
+class Verdict:
+    """A registration's verdict: ``label`` (one of :data:`LABELS`), ``reasons`` (one sentence each:
+    what decided it, and for ``registered`` what was checked) and the ``evidence`` it weighed
+    (:func:`gather_evidence`)."""
+
+    label: str
+    reasons: tuple[str, ...]
+    evidence: dict = field(default_factory=dict)
+
+    @property
+    def exit_status(self) -> int:
+        return EXIT_STATUS[self.label]
+
+    def line(self) -> str:
+        """The verdict in one line, as ``ctxreg register`` prints it last."""
+        return f"verdict: {self.label} ({'; '.join(self.reasons)})"
+
+    def to_dict(self) -> dict:
+        return {"verdict": self.label, "verdict_reasons": list(self.reasons), "verdict_evidence": self.evidence}
+
+
+def pose_gap(T_a: np.ndarray, T_b: np.ndarray) -> tuple[float, float, float]:
+    """``(deg, mm, depth_mm)``: the rotation angle between two poses ``(4, 4)`` and how far apart
+    they put the anatomy centre (their translations: ``X_cam = R (X - c) + t``), across the view
+    (camera x, y) and along it (camera z, the depth)."""
+    d = np.asarray(T_a, float)[:3, 3] - np.asarray(T_b, float)[:3, 3]
+    return float(rotation_error_deg(T_a, T_b)), float(np.hypot(d[0], d[1])), float(abs(d[2]))
+
+
+def distinct(gap: tuple[float, float, float]) -> bool:
+    """Whether a pose gap ``(deg, mm, depth_mm)`` is another answer (:data:`DISTINCT_DEG`,
+    :data:`DISTINCT_MM`, :data:`DISTINCT_DEPTH_MM`)."""
+    return gap[0] > DISTINCT_DEG or gap[1] > DISTINCT_MM or gap[2] > DISTINCT_DEPTH_MM
+
+
+def gather_evidence(*, similarity: float, pose: np.ndarray, image: np.ndarray, mask: np.ndarray | None,
+                    drr: np.ndarray, toned: np.ndarray | None, search: dict | None, search_ran: bool,
+                    network_pose: np.ndarray | None, sod_mm: float, field_fraction: float) -> dict:
+    """The evidence of the module doc, as plain numbers (JSON).
+
+    Args:
+        similarity: the final similarity. pose: ``(4, 4)`` the final pose.
+        image / toned / mask: ``(h, w)`` the prepared X-ray, its toned version (None: not a display
+            image) and its valid pixels (None: all). drr: ``(h, w)`` the line DRR at ``pose``.
+        search: the global search's record (None: no search); search_ran: whether its grid ran.
+        network_pose: ``(4, 4)`` where the network's iteration ended (None: no network).
+        sod_mm: the geometry's source-object distance (mm): the refined starts' poses from their parameters.
+        field_fraction: the share of the X-ray's pixels in the registration's field.
+    """
+    ev: dict = {"similarity": float(similarity), "field_fraction": float(field_fraction)}
+    ev["tone_fit"] = float(ncc(image if toned is None else toned, drr, mask=mask)[0])
+    ev["search"] = "none" if search is None else ("ran" if search_ran else "skipped")
+    ev["network_gap"] = None
+    if network_pose is not None:
+        ev["network_gap"] = dict(zip(("deg", "mm", "depth_mm"), np.round(pose_gap(network_pose, pose), 3).tolist()))
+    ev["runner_up"] = runner_up(search, pose, sod_mm) if search_ran else None
+    if search_ran and search is not None and search.get("refined"):
+        ev["alternatives"] = len(search["refined"]) - 1
+    return ev
+
+
+def runner_up(search: dict | None, pose: np.ndarray, sod_mm: float) -> dict | None:
+    """The best of the global search's refined starts (``search["refined"]`` similarities,
+    ``search["refined_params"]`` deg/mm) that is :func:`distinct` from ``pose`` ``(4, 4)``:
+    ``{"similarity", "deg", "mm", "depth_mm"}`` (its gap, :func:`pose_gap`), or None (no search,
+    or every start ended at the same answer)."""
+    if search is None or not search.get("refined"):
+        return None
+    best = None
+    for s, p in zip(search["refined"], search["refined_params"]):
+        gap = pose_gap(pose_from_params(np.asarray(p, float), sod_mm), pose)
+        if distinct(gap) and (best is None or s > best["similarity"]):
+            best = {"similarity": float(s), "deg": round(gap[0], 3), "mm": round(gap[1], 3), "depth_mm": round(gap[2], 3)}
+    return best
+
+
+def judge(evidence: dict, settings: VerdictSettings | None = None) -> Verdict:
+    """The verdict on ``evidence`` (:func:`gather_evidence`) with ``settings``: ``failed`` where the
+    similarity or the tone fit is below its floor; ``registered`` where every check passes;
+    ``doubtful`` otherwise. Each check that decided it gives a reason."""
+    s = settings or VerdictSettings()
+    sim_, tone = evidence["similarity"], evidence["tone_fit"]
+    if not np.isfinite(sim_) or sim_ < s.fail_below:
+        return Verdict("failed", (f"similarity {sim_:.2f} < {s.fail_below:.2f}: the DRR does not match the X-ray",),
+                       evidence)
+    if not np.isfinite(tone) or tone < s.tone_fail_below:
+        return Verdict("failed", (f"tone fit {tone:.2f} < {s.tone_fail_below:.2f}: the X-ray's intensities disagree with "
+                                  f"the CT's at this pose",), evidence)
+    doubts, checks = [], []
+    if sim_ < s.min_similarity:
+        doubts.append(f"similarity {sim_:.2f} < {s.min_similarity:.2f}")
+    else:
+        checks.append(f"similarity {sim_:.2f}")
+    if tone < s.min_tone_fit:
+        doubts.append(f"tone fit {tone:.2f} < {s.min_tone_fit:.2f}")
+    else:
+        checks.append(f"tone fit {tone:.2f}")
+    runner = evidence.get("runner_up")
+    if evidence["search"] == "ran":
+        if runner is not None and sim_ - runner["similarity"] < s.min_margin:
+            doubts.append(f"a distinct pose ({runner['deg']:.0f} deg, {runner['mm']:.0f} mm across and "
+                          f"{runner.get('depth_mm', 0):.0f} mm in depth away) scored "
+                          f"{runner['similarity']:.2f}, within {s.min_margin:.2f} of it")
+        else:
+            checks.append("no distinct pose of the search scored within "
+                          f"{s.min_margin:.2f}" if runner is not None else "the search found no distinct pose")
+    elif sim_ < s.sure_similarity:
+        doubts.append(f"no alternative examined (search {evidence['search']}) and similarity {sim_:.2f} < "
+                      f"{s.sure_similarity:.2f}")
+    else:
+        checks.append(f"similarity {sim_:.2f} >= {s.sure_similarity:.2f} without a search")
+    if evidence["field_fraction"] < s.min_field_fraction:
+        doubts.append(f"{100 * evidence['field_fraction']:.0f} % of the X-ray used (< "
+                      f"{100 * s.min_field_fraction:.0f} %)")
+    if doubts:
+        return Verdict("doubtful", tuple(doubts), evidence)
+    return Verdict("registered", tuple(checks), evidence)
+
+
+def judge_result(result, image: np.ndarray, *, drr: np.ndarray, sod_mm: float, mask: np.ndarray | None = None,
+                 toned: np.ndarray | None = None, field_fraction: float | None = None,
+                 settings: VerdictSettings | None = None) -> Verdict:
+    """The verdict on an engine's :class:`register.engines.result.RegistrationResult` of ``image``
+    ``(h, w)`` (its ``mask`` and ``toned`` version as registered), with ``drr`` ``(h, w)`` the line
+    DRR at ``result.pose`` and ``sod_mm`` the geometry's source-object distance (the poses of the
+    search's refined starts); ``field_fraction``: the share of pixels used (default: the mask's)."""
+    search = result.search
+    ran = search is not None and bool(search.get("grid_poses"))
+    network = None
+    if result.trajectory is not None and len(result.trajectory.get("params", ())):
+        network = pose_from_params(np.asarray(result.trajectory["params"][-1], float), sod_mm)
+    if field_fraction is None:
+        field_fraction = 1.0 if mask is None else float(np.mean(mask))
+    ev = gather_evidence(similarity=result.similarity, pose=result.pose, image=image, mask=mask, drr=drr, toned=toned,
+                         search=search, search_ran=ran, network_pose=network, sod_mm=sod_mm,
+                         field_fraction=field_fraction)
+    return judge(ev, settings)

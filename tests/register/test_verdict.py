@@ -1,0 +1,148 @@
+"""The verdict on a registration (register/verdict.py): its evidence from known poses, its rules,
+its rates against the truth, and the exit status it sets."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from register.engines.result import RegistrationError, RegistrationResult
+from register.evaluation.evaluate import verdict_rates
+from register.verdict import (DISTINCT_DEG, DISTINCT_DEPTH_MM, DISTINCT_MM, EXIT_STATUS, Verdict, VerdictSettings, gather_evidence, judge,
+                              judge_result, pose_gap)
+from sim.geometry import params_from_pose, pose_from_params
+
+SOD = 700.0
+
+
+def _evidence(**kw) -> dict:
+    ev = {"similarity": 0.9, "tone_fit": 0.8, "runner_up": None, "search": "ran", "field_fraction": 0.5}
+    ev.update(kw)
+    return ev
+
+
+def test_pose_gap_is_the_rotation_angle_and_the_centre_displacement_across_and_along_the_view():
+    a = np.zeros(6)
+    b = np.array([0.0, 0.0, 7.0, 3.0, 4.0, -12.0])  # 7 deg about one axis, the centre moved (3, 4, -12) mm
+    deg, mm, depth = pose_gap(pose_from_params(a, SOD), pose_from_params(b, SOD))
+    assert deg == pytest.approx(7.0, abs=1e-9) and mm == pytest.approx(5.0, abs=1e-9)
+    assert depth == pytest.approx(12.0, abs=1e-9)
+
+
+def test_a_similarity_below_the_floor_fails_whatever_else_holds():
+    s = VerdictSettings()
+    v = judge(_evidence(similarity=s.fail_below - 0.01), s)
+    assert v.label == "failed" and "does not match" in v.reasons[0] and v.exit_status == 3
+    v = judge(_evidence(similarity=float("nan")), s)
+    assert v.label == "failed"
+
+
+def test_a_tone_fit_below_its_floor_fails():
+    s = VerdictSettings()
+    v = judge(_evidence(tone_fit=s.tone_fail_below - 0.05), s)
+    assert v.label == "failed" and "intensities disagree" in v.reasons[0]
+
+
+def test_a_clear_winner_of_the_search_is_registered_and_says_what_was_checked():
+    s = VerdictSettings()
+    runner = {"similarity": 0.9 - s.min_margin - 0.01, "deg": 12.0, "mm": 40.0}
+    v = judge(_evidence(runner_up=runner), s)
+    assert v.label == "registered" and v.exit_status == 0
+    assert any("no distinct pose" in r for r in v.reasons) and any("tone fit" in r for r in v.reasons)
+
+
+def test_a_distinct_pose_scoring_alike_makes_it_doubtful():
+    s = VerdictSettings()
+    runner = {"similarity": 0.9 - s.min_margin + 0.01, "deg": 11.0, "mm": 80.0, "depth_mm": 5.0}
+    v = judge(_evidence(runner_up=runner), s)
+    assert v.label == "doubtful" and "11 deg, 80 mm across and 5 mm in depth away" in v.reasons[0]
+
+
+def test_without_a_search_only_a_clear_match_is_registered():
+    s = VerdictSettings()
+    assert judge(_evidence(search="skipped", similarity=s.sure_similarity + 0.01), s).label == "registered"
+    v = judge(_evidence(search="skipped", similarity=s.sure_similarity - 0.01), s)
+    assert v.label == "doubtful" and "no alternative examined" in v.reasons[0]
+    assert judge(_evidence(search="none", similarity=s.sure_similarity - 0.01), s).label == "doubtful"
+
+
+def test_low_similarity_low_tone_fit_and_a_small_field_each_give_a_doubt():
+    s = VerdictSettings()
+    v = judge(_evidence(similarity=max(s.min_similarity - 0.01, s.fail_below), tone_fit=s.min_tone_fit - 0.01,
+                        field_fraction=s.min_field_fraction / 2), s)
+    assert v.label == "doubtful" and len(v.reasons) == 3
+
+
+@pytest.mark.parametrize("bad", [{"min_margin": float("nan")}, {"fail_below": 2.0}, {"sure_similarity": True}])
+def test_settings_out_of_range_are_refused(bad):
+    with pytest.raises(RegistrationError, match=next(iter(bad))):
+        VerdictSettings(**bad)
+
+
+def test_the_runner_up_is_the_best_distinct_refined_start_not_the_winner_refined_again():
+    final = np.array([5.0, -3.0, 2.0, 10.0, -4.0, 15.0])
+    near = final + np.array([DISTINCT_DEG / 2, 0, 0, DISTINCT_MM / 2, 0, 0])  # the same answer, refined apart
+    deeper = final + np.array([0, 0, 0, 0, 0, DISTINCT_DEPTH_MM * 0.9])  # the same answer but for the depth
+    far = final + np.array([0, 0, 0, 0, 3 * DISTINCT_MM, 0])
+    farther = final + np.array([3 * DISTINCT_DEG, 0, 0, 0, 0, 0])
+    search = {"refined": [0.80, 0.79, 0.78, 0.70, 0.60],
+              "refined_params": [final.tolist(), near.tolist(), deeper.tolist(), far.tolist(), farther.tolist()],
+              "grid_poses": 1980}
+    T = pose_from_params(final, SOD)
+    image = np.random.default_rng(0).random((32, 32))
+    ev = gather_evidence(similarity=0.8, pose=T, image=image, mask=None, drr=2 * image + 1, toned=None,
+                         search=search, search_ran=True, network_pose=pose_from_params(far, SOD), sod_mm=SOD,
+                         field_fraction=0.4)
+    assert ev["runner_up"]["similarity"] == pytest.approx(0.70) and ev["runner_up"]["mm"] == pytest.approx(30.0, abs=1e-6)
+    assert ev["runner_up"]["depth_mm"] == pytest.approx(0.0, abs=1e-6)
+    assert ev["alternatives"] == 4 and ev["search"] == "ran"
+    assert ev["tone_fit"] == pytest.approx(1.0)  # a DRR that is the image's affine map: intensities agree
+    assert ev["network_gap"]["mm"] == pytest.approx(30.0, abs=1e-3) and ev["network_gap"]["deg"] < 1e-6
+    # the toned image, where given, is what the tone fit compares
+    ev = gather_evidence(similarity=0.8, pose=T, image=image, mask=None, drr=2 * image + 1, toned=-image,
+                         search=None, search_ran=False, network_pose=None, sod_mm=SOD, field_fraction=0.4)
+    assert ev["tone_fit"] == pytest.approx(-1.0) and ev["runner_up"] is None and ev["search"] == "none"
+
+
+def test_judge_result_reads_the_network_pose_from_the_trajectory_and_the_field_from_the_mask():
+    final = np.array([0.0, 0.0, 0.0, 0.0, 0.0, 0.0])
+    network = np.array([0.0, 0.0, 9.0, 0.0, 0.0, 0.0])
+    T = pose_from_params(final, SOD)
+    image = np.random.default_rng(1).random((24, 24))
+    mask = np.zeros((24, 24), bool)
+    mask[:, :12] = True
+    res = RegistrationResult(params=final, pose=T, projection=np.eye(3, 4), similarity=0.95, renders=1, stage_seconds={},
+                             trajectory={"params": np.array([network * 0.5, network])})
+    v = judge_result(res, image, drr=image, sod_mm=SOD, mask=mask)
+    assert v.evidence["network_gap"]["deg"] == pytest.approx(9.0, abs=1e-6)
+    assert v.evidence["field_fraction"] == pytest.approx(0.5) and v.evidence["search"] == "none"
+    assert v.label == "registered"  # similarity 0.95 >= sure_similarity, tone fit 1
+    assert params_from_pose(T, SOD) == pytest.approx(final)
+
+
+def test_verdict_rates_count_false_accepts_and_the_share_of_good_ones_accepted():
+    rows = [{"mtre_mm": 2.0, "verdict": "registered"}, {"mtre_mm": 3.0, "verdict": "doubtful"},
+            {"mtre_mm": 25.0, "verdict": "registered"}, {"mtre_mm": 40.0, "verdict": "failed"},
+            {"mtre_mm": 1.0}]  # not judged: left out
+    r = verdict_rates(rows, 10.0)
+    assert r["within"] == 2 and r["off"] == 2 and r["accepted"] == pytest.approx(0.5) and r["false_accepts"] == 1
+    assert r["verdicts"] == {"registered": 2, "doubtful": 1, "failed": 1}
+
+
+def test_the_verdict_line_and_exit_statuses():
+    v = Verdict("doubtful", ("a", "b"))
+    assert v.line() == "verdict: doubtful (a; b)" and v.to_dict()["verdict_reasons"] == ["a", "b"]
+    assert EXIT_STATUS == {"registered": 0, "doubtful": 3, "failed": 3}
+
+
+def test_the_command_line_prints_the_last_line_and_exits_with_the_status(monkeypatch, capsys):
+    """register's verdict reaches the exit status through sim.outputs.Written (main's plumbing)."""
+    import register.commands as commands
+    from register import cli
+    from sim.outputs import Written
+
+    monkeypatch.setattr(commands, "run_register",
+                        lambda cmd: Written(["a.png"], last_line="verdict: doubtful (x)", exit_status=3))
+    code = cli.main(["register", "--ct", "phantom", "--xray", "x.png", "--out", "o"])
+    out = capsys.readouterr().out.strip().splitlines()
+    assert code == 3 and out[-1] == "verdict: doubtful (x)" and out[-2] == "wrote a.png"
