@@ -184,7 +184,7 @@ def convergence_plot(history, path: str | Path, *, title: str | None = None, sea
     network = [-v for stage, v in rows if _stage_kind(stage) == "network"]
     other = [(stage, v) for stage, v in rows if _stage_kind(stage) != "network"]
     panels = int(bool(network)) + int(bool(other))
-    fig, axes = plt.subplots(1, max(panels, 1), figsize=(5.5 * max(panels, 1), 4.0), squeeze=False)
+    fig, axes = plt.subplots(1, max(panels, 1), figsize=(5.5 * max(panels, 1), 5.2), squeeze=False)
     axes = list(axes[0])
     if network:
         ax = axes.pop(0)
@@ -199,9 +199,9 @@ def convergence_plot(history, path: str | Path, *, title: str | None = None, sea
         x = 0
         search = sorted((v for stage, v in other if stage == "search"), reverse=True)
         if search:
-            what = "local search of the network's pose" if len(search) == 1 else f"{len(search)} local searches"
+            what = "the network's pose searched locally" if len(search) == 1 else f"{len(search)} local searches"
             ax.plot(range(len(search)), search, "o", ms=4, color="tab:orange",
-                    label=f"search: {what}" + (f" ({search_status})" if search_status else ""))
+                    label=f"{what}" + (f"; grid {search_status}" if search_status else ""))
             x = len(search) + 1
         runs = list(dict.fromkeys(stage for stage, _ in other if stage != "search"))
         finals = []
@@ -223,7 +223,7 @@ def convergence_plot(history, path: str | Path, *, title: str | None = None, sea
         ax.set_ylabel("similarity (1 = identical edges)")
         ax.set_title(("2. " if network else "") + "search and refinement", fontsize=10)
         ax.grid(alpha=0.3)
-        ax.legend(fontsize=7, loc="lower right")
+        ax.legend(fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.16), ncol=1, frameon=False)
     if title:
         fig.suptitle(title, fontsize=10)
     save_figure(fig, path)

@@ -284,6 +284,6 @@ def run_demo(cmd: DemoCommand) -> list[Path]:
                  "collimator": "circle r 0.46", "display": "log, bone dark, gamma 0.8, unsharp, 12 bits"}})
     print("\n".join(["", *times, "", f"outputs in {out}: xray.dcm, overlay.png, checkerboard.png, trajectory.gif, "
                      "convergence.png, result.json, demo.json", "",
-                     network, f"the registration's own {outcome.verdict.line()} (without the truth)",
+                     network, f"the registration's own {outcome.verdict.line().replace('verdict: ', 'verdict, without the truth: ')}",
                      f"ctxreg demo: {verdict} (mTRE {final['mtre_mm']:.1f} mm; success < 10 mm)", "", *table]))
     return []  # the outputs are listed above: the error table stays the last thing printed
