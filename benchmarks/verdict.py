@@ -53,7 +53,8 @@ WITHIN_MM = 10.0
 GRID = {"min_similarity": (0.15, 0.2, 0.25, 0.3, 0.35, 0.4, 0.5, 0.6),
         "min_tone_fit": (0.0, 0.2, 0.3, 0.4, 0.5, 0.6),
         "min_margin": (0.0, 0.02, 0.03, 0.05, 0.07, 0.1, 0.15),
-        "sure_similarity": (0.85, 0.88, 0.9, 0.92, 0.95, 1.0)}
+        "sure_similarity": (0.85, 0.88, 0.9, 0.92, 0.95, 1.0),
+        "min_depth_drop": (0.0, 0.03, 0.05, 0.07)}
 
 
 def load_rows(paths) -> list[dict]:

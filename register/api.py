@@ -509,17 +509,16 @@ def register_xray(ct, xray, *, method: str = "contextual+cmaes", model=None, ini
 
 
 def _verdict(volume, center_lps, prepared, result) -> Verdict:
-    """The verdict (:func:`register.verdict.judge_result`) on a registration's ``result``: one line
-    DRR at its pose, at the optimiser's size."""
+    """The verdict (:func:`register.verdict.judge_result`) on a registration's ``result``: three line
+    DRRs (its pose and the depth probe's), at the optimiser's size."""
     from sim.drr import DRRRenderer, RenderSettings  # Dr.Jit loads where a render is due, after the input checks
 
     g = prepared.geometry
-    drr = DRRRenderer(volume, RenderSettings(size=(g.height, g.width)), center_lps=center_lps,
-                      geometry=g).render(result.pose)[0]
+    renderer = DRRRenderer(volume, RenderSettings(size=(g.height, g.width)), center_lps=center_lps, geometry=g)
     fld = prepared.step("field")
     fraction = fld["valid_fraction"] if fld is not None and "valid_fraction" in fld else None
-    return judge_result(result, prepared.image, drr=drr, sod_mm=g.sod_mm, mask=prepared.mask, toned=prepared.toned,
-                        field_fraction=fraction)
+    return judge_result(result, prepared.image, render=renderer.render, sod_mm=g.sod_mm, mask=prepared.mask,
+                        toned=prepared.toned, field_fraction=fraction)
 
 
 def grid_bytes(box, shape, geometry) -> float:

@@ -15,7 +15,12 @@ independent evidence, each gathered once after the registration (:func:`gather_e
   examined, and only a clear match (``sure_similarity``) may be called registered;
 * ``network_gap``: how far the network's own pose is from the final one (deg, mm): recorded, not
   judged (a network on a patient it never saw is often far off where the search found the pose);
-* ``field_fraction``: the share of the X-ray's pixels the registration used.
+* ``field_fraction``: the share of the X-ray's pixels the registration used;
+* ``depth_drop``: how much the similarity falls when the pose moves :data:`DEPTH_PROBE_MM` along
+  the ray through the anatomy centre, nearer or farther (the image scaled about the centre's
+  projection): a single view reads depth from the magnification alone, and where the similarity
+  barely changes over +-30 mm the depth is not determined (most wrong registrations of known
+  truth were off in depth: 14-170 mm).
 
 :func:`judge` turns the evidence into the verdict with :class:`VerdictSettings`, whose thresholds
 were calibrated on registrations of known truth (``benchmarks/verdict.py``; docs/results.md,
@@ -36,12 +41,13 @@ from dataclasses import asdict, dataclass, field
 
 import numpy as np
 
-from register.engines.metrics import ncc
+from register.engines.metrics import bind_metric, ncc
 from register.engines.result import RegistrationError
 from sim.geometry import pose_from_params
 from sim.se3 import rotation_error_deg
 
-__all__ = ["Verdict", "VerdictSettings", "gather_evidence", "judge", "judge_result", "pose_gap", "runner_up", "EXIT_STATUS",
+__all__ = ["Verdict", "VerdictSettings", "gather_evidence", "judge", "judge_result", "pose_gap", "runner_up",
+           "depth_probe_poses", "DEPTH_PROBE_MM", "EXIT_STATUS",
            "LABELS", "DISTINCT_DEG", "DISTINCT_MM", "DISTINCT_DEPTH_MM"]
 
 #: The verdicts, best first.
@@ -63,6 +69,10 @@ DISTINCT_DEG = 4.0
 DISTINCT_MM = 10.0
 DISTINCT_DEPTH_MM = 20.0
 
+#: How far (mm) along the ray through the anatomy centre the depth probe moves the final pose, each
+#: way (:func:`depth_probe_poses`): 30 mm at 700 mm from the source scales the image by 4 %.
+DEPTH_PROBE_MM = 30.0
+
 
 @dataclass(frozen=True)
 class VerdictSettings:
@@ -83,6 +93,8 @@ class VerdictSettings:
         sure_similarity: where the search's grid did not run (skipped, off, or a method without
             it: no alternative was examined), ``registered`` needs at least this similarity.
         min_field_fraction: ``registered`` needs at least this share of the X-ray's pixels used.
+        min_depth_drop: ``registered`` needs the similarity to fall by at least this much
+            :data:`DEPTH_PROBE_MM` nearer or farther (the better of the two).
     """
 
     fail_below: float = 0.15
@@ -92,6 +104,7 @@ class VerdictSettings:
     min_margin: float = 0.07
     sure_similarity: float = 0.9
     min_field_fraction: float = 0.1
+    min_depth_drop: float = 0.07
 
     def __post_init__(self) -> None:
         for name, v in asdict(self).items():
@@ -129,6 +142,18 @@ def pose_gap(T_a: np.ndarray, T_b: np.ndarray) -> tuple[float, float, float]:
     return float(rotation_error_deg(T_a, T_b)), float(np.hypot(d[0], d[1])), float(abs(d[2]))
 
 
+def depth_probe_poses(T: np.ndarray, d_mm: float = DEPTH_PROBE_MM) -> np.ndarray:
+    """``(3, 4, 4)``: the pose ``T`` ``(4, 4)``, then moved ``d_mm`` farther from and nearer to the
+    source along the ray through the anatomy centre (its translation scaled: ``X_cam = R (X - c)
+    + t``, the centre's projection kept)."""
+    T = np.asarray(T, float)
+    out = np.repeat(T[None], 3, axis=0)
+    depth = T[2, 3]
+    for i, d in ((1, d_mm), (2, -d_mm)):
+        out[i, :3, 3] = T[:3, 3] * (depth + d) / depth
+    return out
+
+
 def distinct(gap: tuple[float, float, float]) -> bool:
     """Whether a pose gap ``(deg, mm, depth_mm)`` is another answer (:data:`DISTINCT_DEG`,
     :data:`DISTINCT_MM`, :data:`DISTINCT_DEPTH_MM`)."""
@@ -137,7 +162,8 @@ def distinct(gap: tuple[float, float, float]) -> bool:
 
 def gather_evidence(*, similarity: float, pose: np.ndarray, image: np.ndarray, mask: np.ndarray | None,
                     drr: np.ndarray, toned: np.ndarray | None, search: dict | None, search_ran: bool,
-                    network_pose: np.ndarray | None, sod_mm: float, field_fraction: float) -> dict:
+                    network_pose: np.ndarray | None, sod_mm: float, field_fraction: float,
+                    depth_scores=None) -> dict:
     """The evidence of the module doc, as plain numbers (JSON).
 
     Args:
@@ -148,6 +174,7 @@ def gather_evidence(*, similarity: float, pose: np.ndarray, image: np.ndarray, m
         network_pose: ``(4, 4)`` where the network's iteration ended (None: no network).
         sod_mm: the geometry's source-object distance (mm): the refined starts' poses from their parameters.
         field_fraction: the share of the X-ray's pixels in the registration's field.
+        depth_scores: ``(3,)`` the similarity at :func:`depth_probe_poses` (None: not probed).
     """
     ev: dict = {"similarity": float(similarity), "field_fraction": float(field_fraction)}
     ev["tone_fit"] = float(ncc(image if toned is None else toned, drr, mask=mask)[0])
@@ -155,6 +182,10 @@ def gather_evidence(*, similarity: float, pose: np.ndarray, image: np.ndarray, m
     ev["network_gap"] = None
     if network_pose is not None:
         ev["network_gap"] = dict(zip(("deg", "mm", "depth_mm"), np.round(pose_gap(network_pose, pose), 3).tolist()))
+    ev["depth_drop"] = None
+    if depth_scores is not None:
+        d = np.asarray(depth_scores, float).reshape(3)
+        ev["depth_drop"] = float(d[0] - max(d[1], d[2]))
     ev["runner_up"] = runner_up(search, pose, sod_mm) if search_ran else None
     if search_ran and search is not None and search.get("refined"):
         ev["alternatives"] = len(search["refined"]) - 1
@@ -211,6 +242,12 @@ def judge(evidence: dict, settings: VerdictSettings | None = None) -> Verdict:
                       f"{s.sure_similarity:.2f}")
     else:
         checks.append(f"similarity {sim_:.2f} >= {s.sure_similarity:.2f} without a search")
+    drop = evidence.get("depth_drop")
+    if drop is not None and drop < s.min_depth_drop:
+        doubts.append(f"the depth is not determined: {DEPTH_PROBE_MM:.0f} mm nearer or farther scores within "
+                      f"{max(drop, 0.0):.3f} (< {s.min_depth_drop:.3f})")
+    elif drop is not None:
+        checks.append(f"depth: +-{DEPTH_PROBE_MM:.0f} mm scores {drop:.3f} lower")
     if evidence["field_fraction"] < s.min_field_fraction:
         doubts.append(f"{100 * evidence['field_fraction']:.0f} % of the X-ray used (< "
                       f"{100 * s.min_field_fraction:.0f} %)")
@@ -219,13 +256,16 @@ def judge(evidence: dict, settings: VerdictSettings | None = None) -> Verdict:
     return Verdict("registered", tuple(checks), evidence)
 
 
-def judge_result(result, image: np.ndarray, *, drr: np.ndarray, sod_mm: float, mask: np.ndarray | None = None,
+def judge_result(result, image: np.ndarray, *, render, sod_mm: float, mask: np.ndarray | None = None,
                  toned: np.ndarray | None = None, field_fraction: float | None = None,
                  settings: VerdictSettings | None = None) -> Verdict:
     """The verdict on an engine's :class:`register.engines.result.RegistrationResult` of ``image``
-    ``(h, w)`` (its ``mask`` and ``toned`` version as registered), with ``drr`` ``(h, w)`` the line
-    DRR at ``result.pose`` and ``sod_mm`` the geometry's source-object distance (the poses of the
-    search's refined starts); ``field_fraction``: the share of pixels used (default: the mask's)."""
+    ``(h, w)`` (its ``mask`` and ``toned`` version as registered). ``render``: ``(B, 4, 4) -> (B, h,
+    w)`` line DRRs at the image's geometry (the tone fit's at ``result.pose`` and the depth probe's,
+    :func:`depth_probe_poses`, scored by the refinement's similarity: tone-tolerant gradient NCC for
+    a display image, gradient NCC otherwise); ``sod_mm``: the geometry's source-object distance (the
+    poses of the search's refined starts); ``field_fraction``: the share of pixels used (default:
+    the mask's)."""
     search = result.search
     ran = search is not None and bool(search.get("grid_poses"))
     network = None
@@ -233,7 +273,9 @@ def judge_result(result, image: np.ndarray, *, drr: np.ndarray, sod_mm: float, m
         network = pose_from_params(np.asarray(result.trajectory["params"][-1], float), sod_mm)
     if field_fraction is None:
         field_fraction = 1.0 if mask is None else float(np.mean(mask))
-    ev = gather_evidence(similarity=result.similarity, pose=result.pose, image=image, mask=mask, drr=drr, toned=toned,
-                         search=search, search_ran=ran, network_pose=network, sod_mm=sod_mm,
-                         field_fraction=field_fraction)
+    drrs = np.asarray(render(depth_probe_poses(result.pose)), float)
+    depth = bind_metric("tone_tolerant_gncc" if toned is not None else "gncc", image, mask)(drrs)
+    ev = gather_evidence(similarity=result.similarity, pose=result.pose, image=image, mask=mask, drr=drrs[0],
+                         toned=toned, search=search, search_ran=ran, network_pose=network, sod_mm=sod_mm,
+                         field_fraction=field_fraction, depth_scores=depth)
     return judge(ev, settings)

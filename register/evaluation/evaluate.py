@@ -254,7 +254,7 @@ def _case_rows(i: int, target, start, image, methods: dict, settings: Evaluation
         result = method.register(image, start)
         elapsed = time.perf_counter() - t0
         err = pose_errors(result.pose, T_true, points, center_lps, geometry)
-        verdict = judge_result(result, image, drr=judge_with.render(result.pose)[0], sod_mm=geometry.sod_mm)
+        verdict = judge_result(result, image, render=judge_with.render, sod_mm=geometry.sod_mm)
         rows.append({"case": i, "method": name, "start": settings.start, **err, "verdict": verdict.label,
                      "success": err["mtre_mm"] < settings.success_mtre_mm and err["rot_err_deg"] < settings.success_rot_deg,
                      "time_s": elapsed, "renders": result.renders, "similarity": result.similarity,

@@ -102,7 +102,10 @@ def test_every_command_scores_with_the_one_function():
 
 class _Outcome:
     def __init__(self, pose):
+        from register.verdict import Verdict
+
         self.pose, self.similarity = pose, 0.5
+        self.verdict = Verdict("doubtful", ("similarity 0.50",))
 
 
 WRONG = np.array([30.0, 8.0, -4.0, 15.0, -10.0, 25.0])  # start + this: the known wrong estimate
@@ -147,7 +150,7 @@ def test_a_study_scores_a_known_wrong_pose_right_for_every_target_kind(tmp_path,
                 from sim.geometry import params_from_pose
 
                 return SimpleNamespace(pose=pose, params=params_from_pose(pose, g.sod_mm), renders=0,
-                                       similarity=0.5, trajectory=None)
+                                       similarity=0.5, trajectory=None, search=None)
 
         monkeypatch.setattr(S, "build_method", lambda *a, **k: Fake())
         S._evaluate_drr(study, target, volume, center, object(), tmp_path, lambda s: None)

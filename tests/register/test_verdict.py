@@ -8,7 +8,7 @@ import pytest
 
 from register.engines.result import RegistrationError, RegistrationResult
 from register.evaluation.evaluate import verdict_rates
-from register.verdict import (DISTINCT_DEG, DISTINCT_DEPTH_MM, DISTINCT_MM, EXIT_STATUS, Verdict, VerdictSettings, gather_evidence, judge,
+from register.verdict import (DISTINCT_DEG, DISTINCT_DEPTH_MM, DISTINCT_MM, EXIT_STATUS, depth_probe_poses, Verdict, VerdictSettings, gather_evidence, judge,
                               judge_result, pose_gap)
 from sim.geometry import params_from_pose, pose_from_params
 
@@ -113,11 +113,29 @@ def test_judge_result_reads_the_network_pose_from_the_trajectory_and_the_field_f
     mask[:, :12] = True
     res = RegistrationResult(params=final, pose=T, projection=np.eye(3, 4), similarity=0.95, renders=1, stage_seconds={},
                              trajectory={"params": np.array([network * 0.5, network])})
-    v = judge_result(res, image, drr=image, sod_mm=SOD, mask=mask)
+    v = judge_result(res, image, render=lambda poses: np.repeat(image[None], len(poses), axis=0), sod_mm=SOD, mask=mask)
     assert v.evidence["network_gap"]["deg"] == pytest.approx(9.0, abs=1e-6)
     assert v.evidence["field_fraction"] == pytest.approx(0.5) and v.evidence["search"] == "none"
     assert v.label == "registered"  # similarity 0.95 >= sure_similarity, tone fit 1
     assert params_from_pose(T, SOD) == pytest.approx(final)
+    assert v.evidence["depth_drop"] == pytest.approx(0.0)  # the same image at every depth: nothing drops
+
+
+def test_the_depth_probe_moves_the_pose_along_the_ray_through_the_centre():
+    T = pose_from_params(np.array([5.0, -3.0, 2.0, 20.0, -10.0, 15.0]), SOD)
+    poses = depth_probe_poses(T, 30.0)
+    assert np.allclose(poses[0], T) and np.allclose(poses[:, :3, :3], T[:3, :3])
+    for p, d in ((poses[1], 30.0), (poses[2], -30.0)):
+        assert p[2, 3] == pytest.approx(T[2, 3] + d)
+        # the anatomy centre (X = c, camera point t) projects to the same pixel: t / t_z unchanged
+        assert np.allclose(p[:2, 3] / p[2, 3], T[:2, 3] / T[2, 3])
+
+
+def test_an_undetermined_depth_is_doubtful():
+    s = VerdictSettings(min_depth_drop=0.02)
+    v = judge(_evidence(depth_drop=0.005), s)
+    assert v.label == "doubtful" and "depth is not determined" in v.reasons[0]
+    assert judge(_evidence(depth_drop=0.05), s).label == "registered"
 
 
 def test_verdict_rates_count_false_accepts_and_the_share_of_good_ones_accepted():
