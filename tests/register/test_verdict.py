@@ -113,12 +113,15 @@ def test_judge_result_reads_the_network_pose_from_the_trajectory_and_the_field_f
     mask[:, :12] = True
     res = RegistrationResult(params=final, pose=T, projection=np.eye(3, 4), similarity=0.95, renders=1, stage_seconds={},
                              trajectory={"params": np.array([network * 0.5, network])})
-    v = judge_result(res, image, render=lambda poses: np.repeat(image[None], len(poses), axis=0), sod_mm=SOD, mask=mask)
+    other = np.random.default_rng(2).random((2, 24, 24))  # what the depth probe's poses see: unlike the X-ray
+    v = judge_result(res, image, render=lambda poses: np.concatenate([image[None], other]), sod_mm=SOD, mask=mask)
     assert v.evidence["network_gap"]["deg"] == pytest.approx(9.0, abs=1e-6)
     assert v.evidence["field_fraction"] == pytest.approx(0.5) and v.evidence["search"] == "none"
-    assert v.label == "registered"  # similarity 0.95 >= sure_similarity, tone fit 1
+    assert v.label == "registered"  # similarity 0.95 >= sure_similarity, tone fit 1, the depth probe falls
     assert params_from_pose(T, SOD) == pytest.approx(final)
-    assert v.evidence["depth_drop"] == pytest.approx(0.0)  # the same image at every depth: nothing drops
+    assert v.evidence["depth_drop"] > 0.5  # gradient NCC 1 at the pose, about 0 at the probes
+    same = judge_result(res, image, render=lambda poses: np.repeat(image[None], len(poses), axis=0), sod_mm=SOD)
+    assert same.evidence["depth_drop"] == pytest.approx(0.0) and same.label == "doubtful"  # depth undetermined
 
 
 def test_the_depth_probe_moves_the_pose_along_the_ray_through_the_centre():
