@@ -22,7 +22,7 @@ from __future__ import annotations
 
 import math
 
-from sim.errors import InputError
+from sim.core.errors import InputError
 
 import numpy as np
 import torch
@@ -44,7 +44,7 @@ def sample_eval_pairs(kind: str, rng: np.random.Generator, n: int, sod_mm: float
     from learn.labels import apply_update
     from learn.online import NearPairs
     from sim.campaign.poses import ORIGINAL_PROTOCOL
-    from sim.geometry import pose_from_params
+    from sim.projection.geometry import pose_from_params
 
     if kind not in PAIR_KINDS:
         raise AccuracyError(f"pair kind must be one of {PAIR_KINDS}, got {kind!r}")
@@ -108,13 +108,13 @@ def single_prediction_errors(checkpoint: str, volume, *, pairs: int = 200, size=
     """Errors of the weighted sum, of each depth, and of the zero baseline (median and mean)
     on ``pairs`` pairs of ``kind`` for one CT volume. ``size``: image size (default: the model's)."""
     from learn.predict import NetworkPredictor
-    from sim.anatomy import anatomy_center
-    from sim.drr import DRRRenderer, RenderSettings
+    from sim.ct.anatomy import anatomy_center
+    from sim.projection.drr import DRRRenderer, RenderSettings
 
     predictor = NetworkPredictor(checkpoint)
     center = anatomy_center(volume) if center_lps is None else np.asarray(center_lps, float)
     renderer = DRRRenderer(volume, RenderSettings(size=tuple(size or predictor.size)), center_lps=center)
-    from sim.seeds import KIND_ACCURACY_PAIRS, rng_for
+    from sim.core.seeds import KIND_ACCURACY_PAIRS, rng_for
 
     rng = rng_for(seed, KIND_ACCURACY_PAIRS)
     T_a, T_b = sample_eval_pairs(kind, rng, pairs, renderer.geometry.sod_mm, distribution, near)
@@ -153,7 +153,7 @@ def accuracy_figure(errors: dict[str, dict[str, tuple[np.ndarray, np.ndarray]]],
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from sim.atomic import save_figure
+    from sim.core.atomic import save_figure
 
     kinds = list(errors)
     fig, axes = plt.subplots(len(kinds), 2, figsize=(10, 3.2 * len(kinds)), squeeze=False)

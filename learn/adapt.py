@@ -5,7 +5,7 @@ person's it is lost. :func:`adapt` continues a base network (``--from``, default
 default model) on realistic randomized pairs of the user's CT: the batched pairs
 (:class:`learn.batched.BatchedPairs`) with the randomization the base model recorded (tube,
 filtration, dose, scatter, collimators, display chains, tools: all of it), rendered from the CT
-and from virtual patients of it (:mod:`sim.augment`: shape and intensity variation around this
+and from virtual patients of it (:mod:`sim.ct.patients`: shape and intensity variation around this
 anatomy), for the time given. It validates, as it goes, on poses of this CT that training never
 draws (the CT itself as the ``val`` subject, its own seed), and prints the error as it falls.
 
@@ -42,7 +42,7 @@ from pathlib import Path
 
 import numpy as np
 
-from sim.errors import InputError
+from sim.core.errors import InputError
 
 __all__ = ["AdaptSettings", "ADAPT", "AdaptError", "adapt", "adapted_ct_warning", "ADAPT_FILES"]
 
@@ -183,11 +183,11 @@ def adapt(ct: str | os.PathLike, out: str | os.PathLike, *, minutes: float = 10.
     from learn.checkpoint import load_checkpoint
     from learn.shipped import DEFAULT_MODEL, resolve_model
     from learn.train import resolve_device, train
-    from sim.atomic import atomic_path, folder_lock, write_json
-    from sim.ct_cache import ct_hash
-    from sim.ct_io import is_phantom_spec, load_ct
-    from sim.outputs import check_output_dir
-    from sim.phantom import write_phantom_nifti
+    from sim.core.atomic import atomic_path, folder_lock, write_json
+    from sim.ct.cache import ct_hash
+    from sim.ct.io import is_phantom_spec, load_ct
+    from sim.core.outputs import check_output_dir
+    from sim.ct.phantom import write_phantom_nifti
 
     if not (isinstance(minutes, (int, float)) and not isinstance(minutes, bool) and math.isfinite(minutes)
             and minutes > 0):
@@ -232,7 +232,7 @@ def adapt(ct: str | os.PathLike, out: str | os.PathLike, *, minutes: float = 10.
         raise AdaptError(f"--from {base_path}: the checkpoint does not record its image size")
     out.mkdir(parents=True, exist_ok=True)
     with folder_lock(out, "ctxreg adapt"):  # one run per folder at a time: a second is refused at once
-        from sim.scene import DEFAULT_SCENE
+        from sim.projection.scene import DEFAULT_SCENE
 
         val_link = out / f"heldout_poses_{ct.name}"
         if val_link.is_symlink() or val_link.exists():
@@ -338,7 +338,7 @@ def _plot_curve(curve: list[list[float]], path: Path, ct_name: str, base: str) -
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from sim.atomic import save_figure
+    from sim.core.atomic import save_figure
 
     c = np.asarray(curve, float)
     fig, ax = plt.subplots(1, 2, figsize=(9, 3.4))
@@ -364,8 +364,8 @@ def adapted_ct_warning(model: str | os.PathLike | None, ct: str | os.PathLike) -
     if not card_path.is_file() or not isinstance(ct, (str, os.PathLike)) or not Path(ct).exists():
         return None
     from learn.shipped import ModelCardError
-    from sim.atomic import read_toml
-    from sim.ct_cache import ct_hash
+    from sim.core.atomic import read_toml
+    from sim.ct.cache import ct_hash
 
     try:
         adaptation = read_toml(card_path, ModelCardError, "model card").get("adaptation")

@@ -7,7 +7,7 @@ its pose distribution, near pairs, :mod:`sim.randomize`'s settings drawn per pai
 ``(seed, index)``) with every image stage batched over the pairs in torch, on the CPU or CUDA:
 
 1. the ray march of the targets and currents of every pair of every subject
-   (:func:`sim.raymarch.volumes_for`: Dr.Jit's Siddon kernel on a CPU, ``grid_sample`` on a GPU):
+   (:func:`sim.projection.raymarch.volumes_for`: Dr.Jit's Siddon kernel on a CPU, ``grid_sample`` on a GPU):
    ``mu`` for the currents and ideal targets (the line DRR registration renders), the water and
    bone basis densities of :mod:`sim.physics.two_basis` for the realistic targets;
 2. the targets' polychromatic signal from the two basis line integrals and the tools' density
@@ -26,7 +26,7 @@ skip stages 1-3's realistic work (basis march, signal, noise, display), the rest
 goes through it as one batch. The
 currents are line DRRs of ``mu`` (the campaign's first physics entry must be a line entry, as
 registration's moving images). Each pair's noise comes from a generator of its own
-(:func:`sim.seeds.pair_normals`), so a pair is a function of ``(seed, batch, index)`` only: the same
+(:func:`sim.core.seeds.pair_normals`), so a pair is a function of ``(seed, batch, index)`` only: the same
 in a batch of 1 or 256 (tested); a CPU and a GPU draw different noise of the same distribution.
 
 What the two-basis model leaves out, against the per-pair path: nothing of the randomization
@@ -47,7 +47,7 @@ from learn.online import MAX_BATCH, NearPairs, OnlinePairs, OnlinePairsError, ch
 
 __all__ = ["BatchedPairs", "NOISE_STREAM_QUANTUM", "NOISE_STREAM_ELECTRONIC", "NOISE_STREAM_SCATTER", "tool_arrangements", "tool_looks"]
 
-#: :func:`sim.seeds.pair_normals` streams of a pair's noise (the seed is the randomization seed).
+#: :func:`sim.core.seeds.pair_normals` streams of a pair's noise (the seed is the randomization seed).
 NOISE_STREAM_QUANTUM = 1
 NOISE_STREAM_ELECTRONIC = 2
 NOISE_STREAM_SCATTER = 3
@@ -133,7 +133,7 @@ class BatchedPairs(OnlinePairs):
         self.device = torch.device(device)
         self.tables = None if tables is None else Path(tables)
         self.step_fraction = step_fraction
-        from sim.scene import load_scene
+        from sim.projection.scene import load_scene
 
         h, w = cfg.scene.size
         self.geometry = load_scene(cfg.scene.name).geometry_at(h, w)
@@ -144,9 +144,9 @@ class BatchedPairs(OnlinePairs):
     # -- built on first use --------------------------------------------------------------------
     def _build(self):
         from sim.campaign.runner import subject_volume
-        from sim.materials import mu_from_hu
+        from sim.physics.materials import mu_from_hu
         from sim.physics.two_basis import BasisDecomposition, TorchImager
-        from sim.raymarch import volumes_for
+        from sim.projection.raymarch import volumes_for
 
         table = self._table()
         basis = BasisDecomposition(matrix=table.basis)
@@ -196,7 +196,7 @@ class BatchedPairs(OnlinePairs):
                 return tool_looks(arrangements)
         arrangements = tool_arrangements(ToolBank(self.seed, self.geometry, scene=self.cfg.scene.name), TOOL_CHANNELS)
         if path is not None:
-            from sim.atomic import atomic_path
+            from sim.core.atomic import atomic_path
 
             path.parent.mkdir(parents=True, exist_ok=True)
             with atomic_path(path) as tmp:
@@ -240,7 +240,7 @@ class BatchedPairs(OnlinePairs):
         entries ``p`` and draws): the module doc's stages 1-3."""
         from sim.physics.batched import apply_image_batched, gaussian_reflect
         from sim.physics.settings import SETTINGS
-        from sim.seeds import pair_normals
+        from sim.core.seeds import pair_normals
 
         g = self.geometry
         h, w = g.height, g.width
@@ -280,8 +280,8 @@ class BatchedPairs(OnlinePairs):
         every current image at registration's start from AP (pose parameters zero,
         ``register.api.parse_init("ap")``): the pair kind ``ap`` of :mod:`learn.accuracy`, the far
         pairs every registration from AP begins with. Shapes as :meth:`batch`."""
-        from sim.geometry import pose_from_params
-        from sim.scene import load_scene
+        from sim.projection.geometry import pose_from_params
+        from sim.projection.scene import load_scene
 
         if n > MAX_BATCH:
             raise OnlinePairsError(f"batch size must be <= {MAX_BATCH}, got {n}")

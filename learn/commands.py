@@ -5,7 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from sim.cliargs import Range, opt
+from sim.core.cliargs import Range, opt
 
 
 @dataclass(frozen=True)
@@ -39,7 +39,7 @@ ACCURACY_FILES = ("accuracy.md", "accuracy.json", "accuracy.png")
 def run_train(cmd: TrainCommand) -> list[Path]:
     from learn.train import load_train_config, train
 
-    from sim.outputs import check_output_dir
+    from sim.core.outputs import check_output_dir
 
     from learn.train import resolve_device
 
@@ -92,7 +92,7 @@ class AdaptCommand:
 
 def run_adapt(cmd: AdaptCommand) -> list[Path]:
     from learn.adapt import ADAPT_FILES, adapt
-    from sim.outputs import check_output_dir
+    from sim.core.outputs import check_output_dir
 
     out = check_output_dir(cmd.out, ADAPT_FILES)
     adapt(cmd.ct, out, minutes=cmd.minutes, base=cmd.from_model, device=cmd.device, resume=cmd.resume)
@@ -136,9 +136,9 @@ def run_accuracy(cmd: AccuracyCommand) -> list[Path]:
     from learn.accuracy import (AccuracyError, accuracy_figure, finite_or_none, format_accuracy_table, merge_errors,
                                 prediction_errors, sample_eval_pairs, summarize_errors)
     from learn.predict import NetworkPredictor
-    from sim.atomic import atomic_path, write_json
+    from sim.core.atomic import atomic_path, write_json
 
-    from sim.outputs import check_output_dir
+    from sim.core.outputs import check_output_dir
 
     out = check_output_dir(cmd.out, ACCURACY_FILES)
     if (cmd.ct is None) == (cmd.campaign is None):
@@ -152,7 +152,7 @@ def run_accuracy(cmd: AccuracyCommand) -> list[Path]:
     note = predictor.physics_mismatch(current_settings, advice="pick a matching --current-entry")
     if note:
         print(f"note: {note}")
-    from sim.seeds import KIND_ACCURACY_PAIRS, rng_for
+    from sim.core.seeds import KIND_ACCURACY_PAIRS, rng_for
 
     errors, results = {}, {}
     for ki, kind in enumerate(cmd.kind):
@@ -186,11 +186,11 @@ def _accuracy_renderers(cmd: AccuracyCommand, size) -> tuple[list, tuple[str, st
     """Per subject ``(target renderer, current renderer)``; the two images' physics names; the
     current images' :class:`~sim.physics.imaging.PhysicsSettings` (None for line DRRs)."""
     from learn.accuracy import AccuracyError
-    from sim.drr import DRRRenderer, RenderSettings
+    from sim.projection.drr import DRRRenderer, RenderSettings
 
     if cmd.ct is not None:
-        from sim.anatomy import anatomy_center
-        from sim.ct_io import load_ct_spec
+        from sim.ct.anatomy import anatomy_center
+        from sim.ct.io import load_ct_spec
 
         if cmd.entry is not None or cmd.current_entry is not None:
             raise AccuracyError("--entry and --current-entry name [[physics]] entries of --campaign; "

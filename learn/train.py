@@ -40,8 +40,8 @@ import numpy as np
 import torch
 
 from learn.distributed import DistributedRun, unwrap
-from sim.atomic import folder_lock
-from sim.errors import InputError
+from sim.core.atomic import folder_lock
+from sim.core.errors import InputError
 
 
 class TrainConfigError(InputError):
@@ -379,7 +379,7 @@ _FIELD_TYPES = typing.get_type_hints(TrainConfig)
 
 def load_train_config(path: str | os.PathLike) -> TrainConfig:
     """Read and validate a training config file."""
-    from sim.atomic import read_toml
+    from sim.core.atomic import read_toml
 
     path = Path(path)
     data = read_toml(path, TrainConfigError, "training config")
@@ -663,7 +663,7 @@ def train(cfg: TrainConfig, *, resume: bool = False, log=print, device: str = "a
         model = run.wrap(model, device)  # DDP under torchrun (after the weights are in place)
         model.train()
         started = time.perf_counter()
-        from sim.progress import Progress
+        from sim.core.progress import Progress
 
         bar = Progress(cfg.iterations, iteration, f"train {out.name}", "iterations", rate_unit="pairs/s",
                        rate_scale=cfg.batch_size, time_limit_s=stop_after_s) if run.main else None
@@ -1063,7 +1063,7 @@ def _validate(model, source, cfg: TrainConfig, device=None) -> dict:
 def _write_log(path: Path, rows: list[dict]) -> None:
     """The log rows as CSV; columns: every key of any row (a group column appears once batched
     pairs log it; earlier rows leave it empty)."""
-    from sim.atomic import write_csv
+    from sim.core.atomic import write_csv
 
     keys = list(dict.fromkeys(k for r in rows for k in r))
     write_csv(path, [{k: r.get(k, "") for k in keys} for r in rows])
@@ -1077,7 +1077,7 @@ def _plot(rows: list[dict], path: Path) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from sim.atomic import save_figure
+    from sim.core.atomic import save_figure
 
     it = [int(r["iteration"]) for r in rows]
     fig, ax = plt.subplots(figsize=(6, 3.5))

@@ -37,7 +37,7 @@ finished signal (as :mod:`sim.physics.display`).
 
 Drawing (:meth:`DomainRandomization.draw`): pair ``index`` under ``seed`` reads one uniform number
 per setting, in declaration order, from the stream ``(KIND_RANDOMIZE, index, 0)`` of
-:mod:`sim.seeds`, and turns it into the setting's value by its inverse distribution function.
+:mod:`sim.core.seeds`, and turns it into the setting's value by its inverse distribution function.
 So a draw depends on ``(seed, index)`` only (not on other draws or their order), and narrowing
 one setting's range changes no other setting's value. Every setting is drawn, also where its
 condition (:attr:`Randomized.when`) does not hold; :meth:`Draw.to_dict` records the active ones.
@@ -72,8 +72,8 @@ from typing import Any, Mapping
 
 import numpy as np
 
-from sim.errors import InputError
-from sim.seeds import KIND_RANDOMIZE, rng_for
+from sim.core.errors import InputError
+from sim.core.seeds import KIND_RANDOMIZE, rng_for
 
 __all__ = ["RandomizeError", "Randomized", "DECLARATION", "STAGES", "DISTRIBUTIONS", "DomainRandomization",
            "Draw", "ToolBank", "TOOL_BANK_SIZE", "apply_image", "sks_model", "sks_texture",
@@ -508,7 +508,7 @@ def _check_index(name: str, v) -> int:
 
 def image_rng(seed: int, index: int) -> np.random.Generator:
     """The post-render noise stream of pair ``index`` (``(KIND_RANDOMIZE, index, 1)`` of
-    :mod:`sim.seeds`): the ``rng`` to pass to :func:`apply_image`."""
+    :mod:`sim.core.seeds`): the ``rng`` to pass to :func:`apply_image`."""
     return rng_for(_check_index("seed", seed), KIND_RANDOMIZE, _check_index("index", index), 1)
 
 
@@ -687,7 +687,7 @@ class ToolBank:
 
     Args:
         seed: the randomization seed (integer >= 0).
-        geometry: the :class:`sim.geometry.CArmGeometry` of the images.
+        geometry: the :class:`sim.projection.geometry.CArmGeometry` of the images.
         scene: the C-arm scene whose sensor makes the rays.
     """
 
@@ -730,7 +730,7 @@ class ToolBank:
 def load_randomization(path: str | Path) -> DomainRandomization:
     """The :class:`DomainRandomization` of a TOML file's ``[randomize]`` table (the declaration
     where the file has none; other tables are left to their readers)."""
-    from sim.atomic import read_toml
+    from sim.core.atomic import read_toml
 
     path = Path(path)
     data = read_toml(path, RandomizeError, "randomization config")
@@ -785,7 +785,7 @@ def apply_image(raw_intensity: np.ndarray, i0: float, draw: Draw, rng: np.random
     ``scatter``) -> ``(image, field_mask)``: display integers ``(H, W)`` ``uint16`` in
     ``0 .. 2^bits - 1`` and the collimated field ``(H, W)`` bool (all True when open).
 
-    Where the draw's scatter is ``sks``: ``geometry`` (the :class:`sim.geometry.CArmGeometry` of
+    Where the draw's scatter is ``sks``: ``geometry`` (the :class:`sim.projection.geometry.CArmGeometry` of
     the image: the kernels are mm at the detector) is required; ``gap_mm`` the air gap of the
     target pose (anatomy centre to detector, mm; :func:`sim.physics.scatter_kernel.detector_gap_mm`;
     None: the model's reference gap); ``sks_table`` the :class:`ScatterKernelTable` (None: the
@@ -829,7 +829,7 @@ def apply_image(raw_intensity: np.ndarray, i0: float, draw: Draw, rng: np.random
     if mode == "kernel":
         raw = raw + float(draw["scatter_spr"]) * _kernel_scatter(raw, float(draw["scatter_sigma"]) * min(h, w))
     if mode == "sks":
-        from sim.geometry import CArmGeometry
+        from sim.projection.geometry import CArmGeometry
 
         if not isinstance(geometry, CArmGeometry) or (geometry.height, geometry.width) != (h, w):
             raise RandomizeError(f"apply_image: the draw's scatter is sks: pass the image's geometry (a CArmGeometry "

@@ -23,7 +23,7 @@ import numpy as np
 
 from register.engines.metrics import gradient_ncc
 from register.engines.result import RegistrationError, RegistrationResult
-from sim.geometry import params_from_pose, pose_from_params
+from sim.projection.geometry import params_from_pose, pose_from_params
 from sim.prepare import masked_fill
 
 __all__ = ["ContextualSettings", "ContextualRegistration", "Iteration", "checked_inputs"]
@@ -91,7 +91,7 @@ class ContextualRegistration:
     def __init__(self, volume, predictor, settings: ContextualSettings | None = None, *, size=(128, 128),
                  scene: str = "cios_fusion", geometry=None, center_lps=None, physics=None,
                  label_materials: dict[int, str] | None = None):
-        from sim.anatomy import anatomy_center
+        from sim.ct.anatomy import anatomy_center
         from sim.physics.imaging import moving_renderer
 
         self.settings = settings or ContextualSettings()

@@ -84,20 +84,20 @@ from register.evaluation.frames import FrameSimulator
 from register.xray.preprocess import PreprocessError
 from register.xray.field import FieldError
 from register.xray.intensity import IntensityError
-from sim.anatomy import anatomy_center
-from sim.atomic import (atomic_path, read_toml, save_figure, sha256_file, toml_text, write_csv, write_json,
+from sim.ct.anatomy import anatomy_center
+from sim.core.atomic import (atomic_path, read_toml, save_figure, sha256_file, toml_text, write_csv, write_json,
                         write_toml)
-from sim.cliargs import IMAGE_SIDE_PX
-from sim.ct_io import load_ct_spec
-from sim.errors import InputError
-from sim.geometry import pose_from_params
-from sim.outputs import check_output_dir
+from sim.core.cliargs import IMAGE_SIDE_PX
+from sim.ct.io import load_ct_spec
+from sim.core.errors import InputError
+from sim.projection.geometry import pose_from_params
+from sim.core.outputs import check_output_dir
 from sim.physics.display import Collimator, DisplayChain
 from sim.physics.imaging import LogImageRenderer, PhysicsSettings, XRayImager
-from sim.progress import Progress
-from sim.scale import each_result
-from sim.drr import DRRRenderer, RenderSettings
-from sim.scene import SceneError, load_scene
+from sim.core.progress import Progress
+from sim.core.scale import each_result
+from sim.projection.drr import DRRRenderer, RenderSettings
+from sim.projection.scene import SceneError, load_scene
 
 __all__ = ["StudyError", "Variant", "Target", "Study", "load_study", "run_domain_study", "format_study_table",
            "STUDY_FILES"]
@@ -754,7 +754,7 @@ def run_domain_study(study: Study, out: str | Path, *, log: Callable[[str], None
     evaluations they have finished (a summary on disk) and are not trained or evaluated, so
     processes with disjoint ``only`` can share one output folder. ``targets``: the same for target
     domains (the others' finished evaluations are kept, unfinished ones skipped). ``client``: a
-    :class:`distributed.Client` (:func:`sim.scale.dask_client`): each evaluation's cases run on its
+    :class:`distributed.Client` (:func:`sim.core.scale.dask_client`): each evaluation's cases run on its
     workers (the variants still train here, one after another)."""
     from learn.predict import NetworkPredictor
 

@@ -42,7 +42,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from register.xray.io import _ERMF, XRayImage, XRayInputError, _is_square, _positive
-from sim.geometry import CArmGeometry
+from sim.projection.geometry import CArmGeometry
 
 __all__ = ["GeometrySources", "resolve_geometry", "geometry_for"]
 
@@ -214,7 +214,7 @@ def resolve_geometry(
     sc = None
     scene_src = ""
     if scene is not None:
-        from sim.scene import load_scene
+        from sim.projection.scene import load_scene
 
         sc = load_scene(scene).geometry
         scene_src = f"scene {os.fspath(scene)!r} (assumed)"
