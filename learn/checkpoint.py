@@ -56,6 +56,7 @@ import torch
 from learn.errors import CheckpointError
 from learn.model import _BACKBONE_CONFIG, Backbone, pose_update_net
 from learn.torch_file import first_line, read_plain_torch_file
+from sim.core.atomic import atomic_path
 
 __all__ = ["FORMAT", "FORMAT_VERSION", "Checkpoint", "CheckpointError", "capture_rng", "load_checkpoint",
            "load_weights", "remove_stale_temps", "restore_rng", "save_checkpoint"]
@@ -164,7 +165,7 @@ def remove_stale_temps(path: str | Path) -> list[Path]:
         return []
     removed = []
     try:
-        from sim.core.atomic import remove_stale_temps as remove_writerless
+        from sim.core.atomic import remove_stale_temps as remove_writerless  # guarded: an older sim.core.atomic has no such function
     except ImportError:  # a sim.core.atomic without writer-named temporary files
         remove_writerless = None
     if remove_writerless is not None:
@@ -184,7 +185,6 @@ def save_checkpoint(path: str | Path, checkpoint: Checkpoint) -> None:
     Raises:
         CheckpointError: the weights hold NaN or infinite values (the previous file is kept).
     """
-    from sim.core.atomic import atomic_path
 
     path = Path(path)
     _check_finite(checkpoint.model_state, f"refusing to write checkpoint {path}",

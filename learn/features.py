@@ -76,6 +76,7 @@ from learn.model import (
     _tap_channels,
 )
 from sim.core.errors import InputError
+from sim.core.atomic import atomic_path
 
 __all__ = [
     "CACHE_FILE",
@@ -324,7 +325,6 @@ class FeatureCache:
     def _build(self, data, model: PoseUpdateNet, transform, physics: str, batch_size: int, log) -> None:
         import h5py
 
-        from sim.core.atomic import atomic_path
 
         for stale in self.path.parent.glob(f".{CACHE_FILE}.*.tmp*"):  # left by a killed build
             stale.unlink(missing_ok=True)

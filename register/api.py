@@ -52,6 +52,12 @@ from sim.ct.io import is_phantom_spec
 from sim.ct.volume import CTInputError
 from sim.core.outputs import check_output_dir
 from sim.core.progress import StageClock
+from sim import load_ct
+from sim.ct.anatomy import find_center
+from sim.physics.imaging import PhysicsSettings
+from sim.physics.settings import LEVELS
+from sim.projection.drr import DRRRenderer, RenderSettings, check_in_view
+from sim.projection.geometry import pose_from_params
 
 __all__ = ["register_xray", "XRayRegistration", "parse_init", "REGISTER_RESTARTS", "REGISTER_SCATTER_PHOTONS",
            "OUTPUT_FILES", "SEARCH_MODES", "SEARCH_METHODS"]
@@ -257,7 +263,6 @@ class XRayRegistration:
         and the field outline over the X-ray at its full resolution), ``checkerboard.png``,
         ``convergence.png`` and ``result.json`` (:meth:`to_dict`), each atomically. Returns the paths.
         Its seconds (up to ``result.json``) go to ``timings["write"]``."""
-        from sim.projection.drr import DRRRenderer, RenderSettings
 
         t0 = time.perf_counter()
         out = check_output_dir(out, OUTPUT_FILES)
@@ -301,8 +306,6 @@ class XRayRegistration:
 def _moving_physics(physics):
     """The :class:`PhysicsSettings` of the moving images: a level name gets the defaults of a
     registration (noise-free, :data:`REGISTER_SCATTER_PHOTONS`)."""
-    from sim.physics.imaging import PhysicsSettings
-    from sim.physics.settings import LEVELS
 
     if isinstance(physics, PhysicsSettings):
         return physics
@@ -371,10 +374,6 @@ def register_xray(ct, xray, *, method: str = "contextual+cmaes", model=None, ini
     ``result.json``. Raises :class:`sim.core.errors.InputError` subclasses naming the bad input, before
     the work where the input allows it (everything but the image's contents).
     """
-    from sim import load_ct
-    from sim.ct.anatomy import find_center
-    from sim.projection.geometry import pose_from_params
-    from sim.projection.drr import check_in_view
 
     log = log or (lambda line: None)
     notes: list[str] = []
@@ -564,7 +563,6 @@ def _plain_score(volume, center_lps, prepared, pose) -> float:
     """The gradient NCC of the prepared X-ray (as decided, over its field) with the line DRR at
     ``pose`` ``(4, 4)``, at the optimiser's size: the score that confirms a polarity
     (:func:`register.xray.prepare.confirm_polarity_by_pose`)."""
-    from sim.projection.drr import DRRRenderer, RenderSettings
 
     g = prepared.geometry
     drr = DRRRenderer(volume, RenderSettings(size=(g.height, g.width)), center_lps=center_lps, geometry=g).render(pose)

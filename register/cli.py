@@ -19,6 +19,7 @@ from register.commands import EvaluateCommand, RegisterCommand, ServeCommand, St
 from register.evaluation.demo import DemoCommand
 from register.verdict import EXIT_STATUS
 from sim.cli import RenderCommand, SimulateCommand
+from sim.core.errors import CtxregError, USER_OS_ERRORS
 
 COMMANDS = {
     "render": (RenderCommand, "render a DRR of a CT at one pose", "sim.cli:run_render"),
@@ -67,7 +68,6 @@ def build_parser() -> argparse.ArgumentParser:
 def _user_errors() -> tuple[type[BaseException], ...]:
     """Exception types a user can act on (:mod:`sim.core.errors`): one line, no traceback. Anything
     else is a bug and keeps its traceback."""
-    from sim.core.errors import USER_OS_ERRORS, CtxregError
 
     return (CtxregError, *USER_OS_ERRORS)
 

@@ -15,6 +15,7 @@ float32 image. ``import sim`` stays cheap: both import their modules when first 
 """
 
 from sim.projection import llvm as _llvm
+from sim.ct.volume import CTInputError, CTVolume
 
 _llvm.configure()
 
@@ -41,13 +42,12 @@ def load_ct(ct, *, label_map=None, resample_mm=None, cache=False, log=None):
     Raises :class:`sim.ct.volume.CTInputError` (an :class:`sim.core.errors.InputError`) naming the file and
     the problem.
     """
-    from sim.ct.io import is_phantom_spec, load_ct_spec, resample
-    from sim.ct.volume import CTInputError, CTVolume
+    from sim.ct.io import is_phantom_spec, load_ct_spec, resample  # loads SciPy: imported where first needed (start-up)
 
     if isinstance(ct, CTVolume) and label_map is not None:
         raise CTInputError(f"{ct.source}: a loaded CTVolume keeps its own labels; load the CT with label_map=...")
     if cache and label_map is None and not isinstance(ct, CTVolume) and not is_phantom_spec(ct):
-        from sim.ct.cache import load_ct_cached
+        from sim.ct.cache import load_ct_cached  # loads SciPy: imported where first needed (start-up)
 
         volume = load_ct_cached(ct, cache_dir=None if cache is True else cache, log=log)
     else:

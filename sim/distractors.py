@@ -70,6 +70,10 @@ import numpy as np
 
 from sim.core.errors import InputError
 from sim.physics.materials import MATERIALS, mu_linear, nominal_density
+from sim.physics.poly import Polychromatic
+from sim.projection.drr import DRRRenderer, MAX_RAYS_PER_LAUNCH, camera_from_sensor
+from sim.projection.geometry import CArmGeometry, extrinsic_lps_to_camera
+from sim.projection.scene import DEFAULT_SCENE, load_mitsuba_scene, load_scene
 
 __all__ = [
     "DistractorError",
@@ -653,8 +657,6 @@ class DistractorField:
     """
 
     def __init__(self, tools: Sequence[Distractor], geometry, center_lps, *, scene: str | None = None):
-        from sim.projection.geometry import CArmGeometry
-        from sim.projection.scene import DEFAULT_SCENE
 
         tools = tuple(tools)
         for t in tools:
@@ -687,8 +689,6 @@ class DistractorField:
             return
         import mitsuba as mi
 
-        from sim.projection.drr import camera_from_sensor
-        from sim.projection.scene import load_mitsuba_scene, load_scene
 
         self._sensor_scene = load_mitsuba_scene(load_scene(self.scene_name), self.geometry)
         self._sensor = self._sensor_scene.sensors()[0]
@@ -757,7 +757,6 @@ class DistractorField:
     def chords(self, poses) -> np.ndarray:
         """Path lengths (mm) inside the tools, per channel: ``(B, C, H, W)`` float32 for poses
         ``(4, 4)`` or ``(B, 4, 4)`` (volume poses T, as the renderer's; ``B = 1`` for one)."""
-        from sim.projection.drr import MAX_RAYS_PER_LAUNCH, DRRRenderer
 
         poses = DRRRenderer._check_poses(poses)
         b, h, w = len(poses), self.geometry.height, self.geometry.width
@@ -775,7 +774,6 @@ class DistractorField:
         return out
 
     def _chords(self, poses: np.ndarray) -> tuple[np.ndarray, int]:
-        from sim.projection.geometry import extrinsic_lps_to_camera
 
         b, h, w = len(poses), self.geometry.height, self.geometry.width
         out = np.zeros((b, len(self.channels), h, w), np.float32)
@@ -909,7 +907,6 @@ def imager_with_distractors(imager, tools: Sequence[Distractor]):
     tools: its density renderer becomes a :class:`RendererWithDistractors` and its
     polychromatic model gains the tools' materials; spectrum, detector, noise, flat field and
     scatter (which sees the CT only) are shared. With no tools the imager itself is returned."""
-    from sim.physics.poly import Polychromatic
 
     tools = tuple(tools)
     if not tools:

@@ -26,6 +26,7 @@ from sim.physics.imaging import XRayImager
 from sim.physics.settings import LEVELS, PhysicsSettings
 from sim.projection.scene import DEFAULT_SCENE
 from sim.ct.volume import CTVolume
+from sim.core.cliargs import IMAGE_SIDE_PX
 
 
 @dataclass
@@ -135,7 +136,6 @@ def render(ct, pose=(0.0, 0.0, 0.0, 0.0, 0.0, 0.0), *, size: tuple[int, int] = (
         >>> drr.shape, drr.dtype                                                           # doctest: +SKIP
         ((64, 64), dtype('float32'))
     """
-    from sim.core.cliargs import IMAGE_SIDE_PX
 
     volume = ct if isinstance(ct, CTVolume) else _load(ct)
     try:
@@ -150,7 +150,7 @@ def render(ct, pose=(0.0, 0.0, 0.0, 0.0, 0.0, 0.0), *, size: tuple[int, int] = (
 
 
 def _load(spec) -> CTVolume:
-    from sim.ct.io import load_ct_spec
+    from sim.ct.io import load_ct_spec  # loads SciPy: imported where first needed (start-up)
 
     return load_ct_spec(spec)
 

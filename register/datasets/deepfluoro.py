@@ -507,8 +507,8 @@ class DeepFluoroFile:
     def specimen(self, key: str | int, *, ct: bool = True, log=None) -> DeepFluoroSpecimen:
         """The specimen ``key`` (name or number 1-6) with its CT, segmentation and landmarks read
         (``ct=False``: the landmarks and the frames' list only; ``volume`` and ``center_lps`` are None)."""
-        from sim.ct.anatomy import anatomy_center, bone_mask, mask_centroid_lps
-        from sim.ct.io import ct_from_array
+        from sim.ct.anatomy import anatomy_center, bone_mask, mask_centroid_lps  # loads SciPy: imported where first needed (start-up)
+        from sim.ct.io import ct_from_array  # loads SciPy: imported where first needed (start-up)
 
         sid = self.resolve(key)
         r = self._r

@@ -34,6 +34,7 @@ from sim.projection.geometry import CArmGeometry, pose_from_params
 from sim.physics.display import Collimator
 from sim.physics.settings import PhysicsSettings
 from sim.ct.volume import CTVolume
+from sim.physics.imaging import XRayImager
 
 __all__ = ["SyntheticSettings", "synthesize_deepfluoro", "canonical_lps", "synthetic_landmarks", "hemipelvis_labels",
            "DEEPFLUORO_WORLD_FROM_CAMERA"]
@@ -165,7 +166,6 @@ def synthesize_deepfluoro(path: str | os.PathLike, volume: CTVolume, params: Seq
 
     Returns ``{"path", "center_lps" (3,), "poses" (N, 4, 4) ctxreg truth, "geometry", "landmarks_lps"}``.
     """
-    from sim.physics.imaging import XRayImager
 
     s = settings or SyntheticSettings()
     log = log or (lambda line: None)

@@ -26,6 +26,8 @@ from register.engines.metrics import bind_metric, downsample, get_metric
 from register.engines.result import RegistrationError, RegistrationResult
 from sim.core.errors import InputError
 from sim.projection.geometry import pose_from_params
+from sim.ct.anatomy import anatomy_center
+from sim.physics.imaging import moving_renderer
 
 
 #: The polish's optimisers (:attr:`CMAESSettings.polish_method`).
@@ -170,8 +172,6 @@ class CMAESRegistration:
     def __init__(self, volume, settings: CMAESSettings | None = None, *, scene: str = "cios_fusion",
                  geometry=None, center_lps=None, ray_model: str = "siddon", physics=None,
                  label_materials: dict[int, str] | None = None):
-        from sim.ct.anatomy import anatomy_center
-        from sim.physics.imaging import moving_renderer
 
         self.settings = s = settings or CMAESSettings()
         if center_lps is None:

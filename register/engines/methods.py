@@ -26,6 +26,7 @@ from register.engines.cmaes import CMAESRegistration, CMAESSettings
 from register.engines.contextual import ContextualRegistration, ContextualSettings
 from register.engines.pipeline import REFINE_SETTINGS, ContextualPipeline
 from register.engines.result import RegistrationError, RegistrationResult
+from learn.predict import NetworkPredictor
 
 __all__ = ["METHOD_NAMES", "RegistrationMethod", "check_method", "load_predictor", "build_method"]
 
@@ -61,7 +62,6 @@ def load_predictor(model):
     :func:`learn.shipped.resolve_model`) or an already loaded predictor (returned as it is)."""
     if callable(model):
         return model
-    from learn.predict import NetworkPredictor
 
     return NetworkPredictor(model)
 

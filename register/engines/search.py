@@ -42,6 +42,8 @@ from register.engines.metrics import downsample, get_metric, gradient_ncc, plain
 from register.engines.result import RegistrationError, RegistrationResult
 from sim.core.errors import InputError
 from sim.projection.geometry import CArmGeometry, pose_from_params
+from sim.ct.anatomy import anatomy_center
+from sim.physics.imaging import moving_renderer
 
 __all__ = ["GlobalSearchSettings", "GlobalSearch", "masked_ncc_shifts", "describe_search"]
 
@@ -242,7 +244,6 @@ class GlobalSearch:
     def __init__(self, volume, settings: GlobalSearchSettings | None = None, *, size=(128, 128),
                  scene: str = "cios_fusion", geometry=None, center_lps=None, physics=None,
                  label_materials: dict[int, str] | None = None):
-        from sim.ct.anatomy import anatomy_center
 
         self.settings = s = settings or GlobalSearchSettings()
         size = (int(size[0]), int(size[1]))
@@ -306,7 +307,6 @@ class GlobalSearch:
 
     def _padded_renderer(self, volume, scene, g, pad):
         """A line-DRR renderer of ``g``'s detector grown by ``pad`` pixels on every side."""
-        from sim.physics.imaging import moving_renderer
 
         cx, cy = g.principal_point
         padded = CArmGeometry(g.sdd_mm, g.sod_mm, g.height + 2 * pad, g.width + 2 * pad, g.pixel_spacing_mm,

@@ -48,6 +48,7 @@ from sim.projection.geometry import params_from_pose, pose_from_params, project_
 from sim.core.progress import Progress
 from sim.core.scale import each_result
 from sim.core.seeds import KIND_EVALUATE_CASES, rng_for
+from sim.projection.drr import DRRRenderer, RenderSettings
 
 __all__ = ["DeepFluoroSettings", "evaluate_deepfluoro", "frame_errors", "START_MODES", "DEEPFLUORO_FILES"]
 
@@ -195,7 +196,6 @@ def format_table(summary: dict) -> str:
 def _overlay(path: Path, frame: DeepFluoroProjection, specimen: DeepFluoroSpecimen, T: np.ndarray, geometry,
              side: int = 384) -> None:
     """The frame (as a log image, at most ``side`` px) with the line DRR's edges at ``T`` in red."""
-    from sim.projection.drr import DRRRenderer, RenderSettings
 
     raw = frame.ctxreg_pixels().astype(np.float64)
     log_image = -np.log(np.clip(raw, max(float(raw.max()) * 1e-6, 1e-12), None))

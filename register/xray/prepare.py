@@ -36,6 +36,9 @@ from sim.core.cliargs import IMAGE_SIDE_PX
 from sim.projection.geometry import pose_from_params
 from sim.prepare import invert, masked_fill, normalize, percentile_bounds
 from sim.core.seeds import KIND_POLARITY_POSES, rng_for
+from sim.physics.display import apply_tone
+from sim.projection.drr import DRRRenderer, RenderSettings
+from sim.ct.anatomy import anatomy_center
 
 __all__ = ["PreparedXRay", "prepare_xray", "confirm_polarity", "confirm_polarity_by_pose", "polarity_needs_check",
            "fit_to_size", "fit_box", "reference_drrs", "recorded_tone_curve", "toned_image",
@@ -116,7 +119,6 @@ def reference_drrs(volume, center_lps, geometry, init_params, *, poses: int = RE
     :func:`fit_to_size` samples the X-ray to ``longer`` px. Returns a
     :class:`register.xray.intensity.PolarityReference`.
     """
-    from sim.projection.drr import DRRRenderer, RenderSettings
 
     _, _, _, small = _fit_plan((geometry.height, geometry.width), geometry, longer)
 
@@ -223,7 +225,6 @@ def prepare_xray(xray, *, volume=None, center_lps=None, init_params=None, scene:
     reference = None
     wants_tone = tone == "ct" and scale in ("auto", "display")
     if "intensity" in steps and volume is not None and (polarity == "auto" or wants_tone):
-        from sim.ct.anatomy import anatomy_center
 
         center = anatomy_center(volume) if center_lps is None else center_lps
         reference = reference_drrs(volume, center, full_geometry, np.zeros(6) if init_params is None else init_params)
@@ -271,7 +272,6 @@ def toned_image(image: np.ndarray, mask: np.ndarray | None, curve) -> np.ndarray
     (:func:`register.xray.intensity.tone_curve`), normalised as :class:`register.xray.preprocess.Normalize`
     does (1st / 99th percentiles of the valid pixels to 0 / 1, clipped); outside the mask the
     valid median. None when ``curve`` is None."""
-    from sim.physics.display import apply_tone
 
     if curve is None:
         return None

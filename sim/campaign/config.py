@@ -40,6 +40,7 @@ from sim.physics.settings import (FORMER_NAMES, LEVELS, SETTINGS, PhysicsSetting
                                   with_campaign_settings)
 from sim.projection.scene import DEFAULT_SCENE, SceneError, load_scene
 from sim.core.seeds import KIND_SPLIT, rng_for
+from sim.physics.materials import MaterialError, parse_label_materials
 
 #: Split names, in the order used everywhere (tie-breaks, listings).
 SPLIT_NAMES: tuple[str, ...] = ("train", "val", "test")
@@ -797,7 +798,6 @@ class _Parser:
                 lm = self.table(t["label_materials"], lk, '{ 3 = "titanium" }')
                 if label_map is None and not phantom:
                     raise self.err(lk, "needs a label_map (the labels it refers to)")
-                from sim.physics.materials import MaterialError, parse_label_materials
 
                 try:
                     parsed = parse_label_materials([f"{k}:{v}" for k, v in lm.items()])
@@ -840,7 +840,7 @@ class _Parser:
                            f"values must be numbers, strings, booleans, arrays or tables ({e})") from None
         if raw:
             try:
-                from sim.ct.patients import VirtualPatientRanges
+                from sim.ct.patients import VirtualPatientRanges  # guarded: the ranges are checked where the module imports
             except ImportError as e:
                 raise self.err("virtual_patients",
                                f"cannot check the ranges: sim.ct.patients is not importable ({e})") from None

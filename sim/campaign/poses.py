@@ -33,6 +33,7 @@ from typing import Any, Mapping
 import numpy as np
 
 from sim.core.errors import InputError
+from sim.core.atomic import atomic_path
 
 #: Pose parameter names, in the order of :func:`sim.projection.geometry.pose_from_params`.
 PARAM_NAMES: tuple[str, ...] = ("phi", "theta", "psi", "tx", "ty", "tz")
@@ -402,7 +403,6 @@ def pose_histogram(params: np.ndarray, dist: PoseDistribution, path: str | os.Pa
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 
-    from sim.core.atomic import atomic_path
 
     fig = Figure(figsize=(12, 6.5), dpi=100, layout="constrained")
     FigureCanvasAgg(fig)

@@ -42,6 +42,7 @@ from scipy import ndimage
 
 from sim.core.atomic import atomic_path
 from sim.ct.volume import PLAUSIBLE_HU_RANGE, CTInputError, CTVolume
+from sim.ct.phantom import make_pelvis_phantom
 
 #: RAS <-> LPS: flip x and y (its own inverse).
 RAS_TO_LPS = np.diag([-1.0, -1.0, 1.0, 1.0])
@@ -89,7 +90,6 @@ def load_ct_spec(spec: str | os.PathLike, *, label_map: str | os.PathLike | None
     """
     text = str(spec)
     if is_phantom_spec(text):
-        from sim.ct.phantom import make_pelvis_phantom
 
         seed_text = text.partition(":")[2] or "0"
         try:

@@ -68,6 +68,7 @@ from scipy.spatial import cKDTree
 from sim.core.errors import InputError
 from sim.core.seeds import TAG_PELVIS_SHAPE, TAG_PHANTOM_TEXTURE, tagged_rng
 from sim.ct.volume import CTVolume
+from sim.core.atomic import atomic_path
 
 __all__ = [
     "LABEL_NAMES",
@@ -1248,7 +1249,6 @@ def write_phantom_nifti(path: str | os.PathLike, seed: int | None = 0, *,
     the label map (uint8) the same way. Returns the volume."""
     import nibabel as nib
 
-    from sim.core.atomic import atomic_path
 
     for name, p in (("path", path), ("labels_path", labels_path)):
         if p is None:

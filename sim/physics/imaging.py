@@ -27,6 +27,13 @@ import numpy as np
 from sim.physics import PhysicsError
 from sim.physics.settings import PhysicsSettings  # noqa: F401  (declared in settings; imported from here too)
 from sim.core.seeds import image_noise_rng, pose_seed
+from sim.physics.materials import LabelOverride, TISSUE_DECOMPOSITION
+from sim.physics.poly import Detector, Polychromatic
+from sim.physics.scatter import upsample_cells
+from sim.physics.spectrum import tube_spectrum
+from sim.projection.drr import DRRRenderer, RenderSettings
+from sim.projection.geometry import extrinsic_lps_to_camera
+from sim.physics.scatter import MonteCarloScatter, ScatterSettings
 
 
 class XRayImager:
@@ -49,10 +56,6 @@ class XRayImager:
     def __init__(self, volume, physics: PhysicsSettings | None = None, *, scene: str = "cios_fusion",
                  size=None, ray_model: str = "siddon", center_lps=None, geometry=None,
                  label_materials: dict[int, str] | None = None, fixed_scatter_seed: bool = False):
-        from sim.physics.materials import TISSUE_DECOMPOSITION, LabelOverride
-        from sim.physics.poly import Detector, Polychromatic
-        from sim.physics.spectrum import tube_spectrum
-        from sim.projection.drr import DRRRenderer, RenderSettings
 
         self.physics = physics or PhysicsSettings()
         self.label_materials = dict(label_materials or {})
@@ -75,7 +78,6 @@ class XRayImager:
         self.scatter = None
         self.gain = 1.0
         if p.level == "full":
-            from sim.physics.scatter import MonteCarloScatter, ScatterSettings
 
             self.scatter = MonteCarloScatter(materials.partial_densities(volume.hu), volume.affine,
                                              TISSUE_DECOMPOSITION.names, self.spectrum, self.detector,
@@ -85,8 +87,6 @@ class XRayImager:
 
     def _scatter_images(self, poses: np.ndarray, seed: int) -> tuple[np.ndarray, np.ndarray]:
         """Expected scattered signal and interacting scattered photons, each ``(B, H, W)``."""
-        from sim.projection.geometry import extrinsic_lps_to_camera
-        from sim.physics.scatter import upsample_cells
 
         g = self.geometry
         mc = self.scatter
@@ -167,7 +167,6 @@ def moving_renderer(volume, physics: PhysicsSettings | None = None, *, scene: st
     from dataclasses import replace
 
     if physics is None or physics.level == "line":
-        from sim.projection.drr import DRRRenderer, RenderSettings
 
         if label_materials:
             raise PhysicsError("label materials need physics poly or full (line DRRs use mu from HU)")

@@ -17,6 +17,8 @@ from typing import Any
 
 from sim.core.cliargs import Range, opt
 from sim.physics.settings import LEVELS, SETTINGS, PhysicsSettings
+from sim.physics import PhysicsError
+from sim.physics.materials import parse_label_materials
 
 #: Command-line physics options that are not settings of :class:`PhysicsSettings`:
 #: name -> (default, help, opt() keywords, physics levels where it means something).
@@ -83,7 +85,6 @@ def check_level_options(cmd, *, level_attr: str = "physics", extra: dict[str, tu
 
     ``extra`` adds a command's own level-bound options (name -> levels).
     """
-    from sim.physics import PhysicsError
 
     level = getattr(cmd, level_attr)
     defaults = {f.name: f.default for f in dataclasses.fields(cmd)}
@@ -113,7 +114,6 @@ def physics_settings(cmd, *, level_attr: str = "physics", **overrides) -> Physic
 
 def label_materials(cmd) -> dict[int, str] | None:
     """The command's ``--label-material`` items as ``{label: material}``, or None when none."""
-    from sim.physics.materials import parse_label_materials
 
     items = getattr(cmd, "label_material", ())
     return parse_label_materials(items) if items else None

@@ -63,6 +63,11 @@ from typing import Any
 import numpy as np
 
 from sim.physics import PhysicsError
+from sim.core.atomic import write_json
+from sim.physics.imaging import XRayImager
+from sim.physics.materials import TISSUE_DECOMPOSITION
+from sim.physics.scatter import MonteCarloScatter, ScatterSettings, upsample_cells
+from sim.projection.geometry import CArmGeometry, extrinsic_lps_to_camera
 
 #: Version of :meth:`ScatterKernelModel.to_dict`.
 FORMAT_VERSION = 1
@@ -230,7 +235,6 @@ class ScatterKernelModel:
             float64 scatter signal per pixel, the shape of ``log_primary``, >= 0. The FFTs run
             in float32 (4x faster than float64 at these sizes): relative error ~1e-6.
         """
-        from sim.projection.geometry import CArmGeometry
 
         if not isinstance(geometry, CArmGeometry):
             raise PhysicsError(f"geometry must be a CArmGeometry, got {type(geometry).__name__}")
@@ -429,7 +433,6 @@ def fit_maps(log_primary: np.ndarray, scatter_cells: np.ndarray, geometry, *, ce
     """
     from scipy.optimize import least_squares, nnls
 
-    from sim.projection.geometry import CArmGeometry
 
     if not isinstance(geometry, CArmGeometry):
         raise PhysicsError(f"geometry must be a CArmGeometry, got {type(geometry).__name__}")
@@ -528,9 +531,6 @@ def monte_carlo_maps(imager, poses: np.ndarray, *, cell_px: int = 4, photons: in
     import time
     from dataclasses import replace as _replace
 
-    from sim.projection.geometry import extrinsic_lps_to_camera
-    from sim.physics.materials import TISSUE_DECOMPOSITION
-    from sim.physics.scatter import MonteCarloScatter, ScatterSettings, upsample_cells
 
     p = imager.physics
     g = imager.geometry
@@ -602,7 +602,6 @@ def fit_scatter_kernel(volume, physics, poses: np.ndarray, *, size=(64, 64), sce
     """
     from dataclasses import replace as _replace
 
-    from sim.physics.imaging import XRayImager
 
     if imager is None:
         imager = XRayImager(volume, _replace(physics, level="poly", noise=False), scene=scene, size=size,
@@ -814,7 +813,6 @@ class ScatterKernelTable:
 
     def save(self, path) -> None:
         """Write the table as JSON, atomically."""
-        from sim.core.atomic import write_json
 
         write_json(path, self.to_dict())
 

@@ -38,6 +38,11 @@ from pathlib import Path
 import numpy as np
 
 from sim.physics import PhysicsError
+from sim.core.atomic import atomic_path
+from sim.physics.materials import TISSUE_DECOMPOSITION, mass_attenuation
+from sim.physics.poly import Detector
+from sim.physics.settings import SETTINGS
+from sim.physics.spectrum import filtered_tube_spectrum
 
 __all__ = ["BASES", "TOOL_CHANNELS", "basis_coefficients", "basis_matrix", "basis_densities", "BasisDecomposition",
            "SpectralTable", "TorchImager"]
@@ -55,7 +60,6 @@ def basis_coefficients(material: str, bases: tuple[str, str] = BASES) -> np.ndar
     """``(2,)`` coefficients ``(a, b)`` with ``(mu/rho)_material ~ a (mu/rho)_bases[0] + b
     (mu/rho)_bases[1]`` over :data:`FIT_ENERGIES_KEV`: least squares of the relative error
     (each energy's row divided by the material's own coefficient), dimensionless."""
-    from sim.physics.materials import mass_attenuation
 
     e = FIT_ENERGIES_KEV
     target = mass_attenuation(material, e)
@@ -81,7 +85,6 @@ class BasisDecomposition:
     """
 
     def __init__(self, decomposition=None, *, matrix=None):
-        from sim.physics.materials import TISSUE_DECOMPOSITION
 
         self.decomposition = decomposition or TISSUE_DECOMPOSITION
         # (M, 2); a stored one (SpectralTable.basis) spares xraylib where it is not installed
@@ -151,10 +154,6 @@ class SpectralTable:
     def build(cls, kvps, al_mm, cu_mm, *, bins: int | None = None, anode_angle_deg: float | None = None,
               detector=None) -> "SpectralTable":
         """Every combination of the given kV, Al mm and Cu mm (spekpy once per kV)."""
-        from sim.physics.materials import mass_attenuation
-        from sim.physics.poly import Detector
-        from sim.physics.settings import SETTINGS
-        from sim.physics.spectrum import filtered_tube_spectrum
 
         bins = SETTINGS["bins"].default if bins is None else int(bins)
         angle = SETTINGS["anode_angle_deg"].default if anode_angle_deg is None else float(anode_angle_deg)
@@ -172,7 +171,6 @@ class SpectralTable:
                     att.append(np.stack([mass_attenuation(m, s.energies_keV) for m in cls.channels]))
                     resp.append(det.response(s.energies_keV))
                     inter.append(counting.response(s.energies_keV))
-        from sim.physics.materials import TISSUE_DECOMPOSITION
 
         return cls(np.asarray(rows), np.asarray(energies), np.asarray(fluence), np.asarray(att), np.asarray(resp),
                    np.asarray(inter), (float(det.thickness_mm), str(det.mode)), angle, bins,
@@ -202,7 +200,6 @@ class SpectralTable:
 
     def save(self, path: str | Path) -> Path:
         """Write an ``.npz`` (plain arrays, no pickles) atomically."""
-        from sim.core.atomic import atomic_path
 
         path = Path(path)
         with atomic_path(path) as tmp:

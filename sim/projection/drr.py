@@ -147,7 +147,7 @@ def shared_upload(volume: CTVolume, what: tuple, storage: str, channels, factors
     """The volume of ``volume`` holding ``what`` (``("mu", mu_water_per_mm)`` or ``("density",
     materials)``) in ``storage``, averaged over ``factors`` voxels per axis (:func:`coarsened`),
     uploaded once per process: ``channels()`` gives the full ``(C, I, J, K)`` array on the first call."""
-    from sim.projection.integrators.drr import store_volume
+    from sim.projection.integrators.drr import store_volume  # loads Dr.Jit, Mitsuba, SciPy: imported where first needed (start-up)
 
     factors = tuple(int(f) for f in factors)
     key = (what, storage, factors)
@@ -235,7 +235,7 @@ class DRRRenderer:
             rows, cols = self.settings.size if self.settings.size is not None else (None, None)
             self.geometry = self.scene_info.geometry_at(rows, cols)
         if center_lps is None:
-            from sim.ct.anatomy import anatomy_center
+            from sim.ct.anatomy import anatomy_center  # loads SciPy: imported where first needed (start-up)
 
             center_lps = anatomy_center(volume)
         center = np.asarray(center_lps, dtype=np.float64).reshape(-1)

@@ -30,6 +30,9 @@ import math
 import numpy as np
 
 from sim.core.errors import InputError
+from sim.ct.volume import CTVolume
+from sim.projection.geometry import CArmGeometry
+from sim.projection.drr import DRRRenderer, RenderSettings
 
 __all__ = ["RaymarchError", "TorchVolumes", "DrJitVolumes", "volumes_for"]
 
@@ -70,7 +73,6 @@ class TorchVolumes:
                  scene: str = "cios_fusion"):
         import torch
 
-        from sim.projection.geometry import CArmGeometry
 
         if not isinstance(geometry, CArmGeometry):
             raise RaymarchError(f"geometry must be a CArmGeometry, got {type(geometry).__name__}")
@@ -224,7 +226,6 @@ class DrJitVolumes:
                  step_fraction: float = 0.5):
         import torch
 
-        from sim.ct.volume import CTVolume
 
         if not (len(channels) == len(affines) == len(centers) >= 1):
             raise RaymarchError(f"one affine and one centre per volume: got {len(channels)} volumes, "
@@ -251,7 +252,6 @@ class DrJitVolumes:
     def _renderer(self, u: int, chans: tuple[int, ...]):
         key = (u, chans)
         if key not in self._renderers:
-            from sim.projection.drr import DRRRenderer, RenderSettings
 
             h, w = self.geometry.height, self.geometry.width
             # the density quantity divides by 10 (g/cm^3 mm -> g/cm^2): channels go in x 10 so the
