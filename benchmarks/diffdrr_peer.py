@@ -1,6 +1,6 @@
 """DiffDRR 0.6.1 as a measured peer renderer, adapted to ctxreg's geometry and units.
 
-ctxreg's camera (see ``sim/geometry.py``): ``X_cam = E @ X_lps`` with ``E`` a ``(4, 4)`` rigid map
+ctxreg's camera (see ``sim/projection/geometry.py``): ``X_cam = E @ X_lps`` with ``E`` a ``(4, 4)`` rigid map
 from LPS mm to camera mm; the camera's origin is the focal spot, +z runs along the principal ray
 toward the detector, +x along detector columns (increasing column index ``j``), +y along rows
 (increasing row index ``i``); the detector plane is ``z = SDD`` and pixel ``(i, j)`` has its centre
@@ -51,7 +51,7 @@ from typing import Any
 
 import numpy as np
 
-from sim.materials import MU_WATER_60KEV_PER_MM
+from sim.physics.materials import MU_WATER_60KEV_PER_MM
 
 __all__ = [
     "MU_WATER_PER_MM",

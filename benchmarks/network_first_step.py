@@ -164,7 +164,7 @@ def main() -> int:
     from learn.predict import NetworkPredictor
     from register.api import parse_init, register_xray
     from register.evaluation.study import frame_refusals
-    from sim.geometry import pose_from_params
+    from sim.projection.geometry import pose_from_params
 
     model = NetworkPredictor(a.model)
     randomize = (model.checkpoint.config or {}).get("randomize")

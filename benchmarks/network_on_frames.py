@@ -61,8 +61,8 @@ def study_frame_files(study_path, target: str, ct, cases: int, out):
     from register.evaluation.evaluate import EvaluationSettings, sample_cases
     from register.evaluation.study import frame_seed, load_study, study_frames
     from sim import load_ct
-    from sim.anatomy import anatomy_center
-    from sim.geometry import pose_from_params
+    from sim.ct.anatomy import anatomy_center
+    from sim.projection.geometry import pose_from_params
 
     study = load_study(study_path)
     targets = {t.name: t for t in study.targets if t.kind == "xray"}
@@ -132,7 +132,7 @@ def main() -> int:
     from register.api import register_xray
     from register.evaluation.errors import bone_points, pose_errors
     from register.evaluation.study import frame_refusals
-    from sim.geometry import pose_from_params
+    from sim.projection.geometry import pose_from_params
 
     if a.mask == "valid":  # the network shown what CMA-ES is: the valid pixels
         import register.api as api

@@ -45,10 +45,10 @@ def main(argv=None) -> int:
     sys.path.insert(0, str(REPO))
     import numpy as np
 
-    from sim.ct_io import load_ct
-    from sim.geometry import pose_from_params
+    from sim.ct.io import load_ct
+    from sim.projection.geometry import pose_from_params
     from sim.physics.imaging import PhysicsSettings, XRayImager
-    from sim.drr import DRRRenderer, RenderSettings
+    from sim.projection.drr import DRRRenderer, RenderSettings
 
     ct = REPO.parent / "shared" / "data" / "ct" / "pelvis_abdomen_3mm.nii.gz"
     if not ct.is_file():
@@ -83,7 +83,7 @@ def main(argv=None) -> int:
         matplotlib.use("Agg")
         import matplotlib.pyplot as plt
 
-        from sim.atomic import save_figure
+        from sim.core.atomic import save_figure
 
         f = full.render(pose)
         images = [("line (60 keV line integral)", line.render(pose)[0]),
@@ -121,7 +121,7 @@ def _throughput(imager, pose, repeats: int) -> None:
     """Histories per second: Dr.Jit transport on the pelvis and a slab; NumPy peer on the slab."""
     import numpy as np
 
-    from sim.geometry import CArmGeometry, extrinsic_lps_to_camera
+    from sim.projection.geometry import CArmGeometry, extrinsic_lps_to_camera
     from tests.sim.slab_mc import run_slab
 
     n = 2_000_000
@@ -150,7 +150,7 @@ def _batched(vol, center_lps, repeats: int) -> None:
     import numpy as np
 
     from sim.campaign.poses import ORIGINAL_PROTOCOL
-    from sim.geometry import extrinsic_lps_to_camera, pose_from_params
+    from sim.projection.geometry import extrinsic_lps_to_camera, pose_from_params
     from sim.physics.imaging import PhysicsSettings, XRayImager
 
     small = XRayImager(vol, PhysicsSettings(level="full", noise=False, scatter_photons=30_000), size=(64, 64),
@@ -171,7 +171,7 @@ def _spr_table() -> None:
     """SPR at the detector centre of water slabs (100 mm air gap, 30 x 30 cm field, 120 kVp)."""
     import numpy as np
 
-    from sim.geometry import CArmGeometry
+    from sim.projection.geometry import CArmGeometry
     from sim.physics.poly import Detector, Polychromatic
     from sim.physics.spectrum import tube_spectrum
     from tests.sim.slab_mc import run_slab

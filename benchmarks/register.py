@@ -38,10 +38,10 @@ def main(argv=None) -> int:
 
     from register.engines.cmaes import CMAESRegistration, CMAESSettings
     from register.evaluation.evaluate import EvaluationSettings, sample_cases
-    from sim.anatomy import anatomy_center
-    from sim.ct_io import load_ct_spec
+    from sim.ct.anatomy import anatomy_center
+    from sim.ct.io import load_ct_spec
     from register.commands import REGISTER_SCATTER_PHOTONS
-    from sim.geometry import pose_from_params
+    from sim.projection.geometry import pose_from_params
     from sim.physics.imaging import PhysicsSettings
 
     spec = str(PELVIS) if PELVIS.is_file() else "phantom:0"

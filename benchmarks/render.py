@@ -82,7 +82,7 @@ def gather_floor(shape_words: tuple[int, int, int], repeats: int, *, coherent: b
     slice), so one SIMD packet's reads share cache lines; else at scattered places (a hash)."""
     import numpy as np
 
-    from sim.backend import ensure_variant
+    from sim.projection.backend import ensure_variant
 
     ensure_variant()
     import drjit as dr
@@ -137,9 +137,9 @@ def main(argv=None) -> int:
 
     import numpy as np
 
-    from sim.ct_io import load_ct
-    from sim.geometry import extrinsic_lps_to_camera, pose_from_params
-    from sim.drr import DRRRenderer, RenderSettings
+    from sim.ct.io import load_ct
+    from sim.projection.geometry import extrinsic_lps_to_camera, pose_from_params
+    from sim.projection.drr import DRRRenderer, RenderSettings
 
     try:
         sys.path.insert(0, str(REPO / "benchmarks"))
@@ -162,7 +162,7 @@ def main(argv=None) -> int:
             print(f"# {CTS[ct_name]} not found; skipping {ct_name}")
             continue
         vol = load_ct(CTS[ct_name])
-        from sim.drr import memory_order
+        from sim.projection.drr import memory_order
 
         order = memory_order(vol.affine)
         stored = tuple(vol.shape[a] + 2 for a in order)  # the integrator's padded volume, slowest first

@@ -80,7 +80,7 @@ def main() -> int:
         print(problem, file=sys.stderr)
         return 2
 
-    from sim.geometry import extrinsic_lps_to_camera
+    from sim.projection.geometry import extrinsic_lps_to_camera
     from sim.physics.scatter import upsample_cells
 
     try:

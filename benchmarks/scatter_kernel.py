@@ -51,7 +51,7 @@ from timing import timed  # noqa: E402  (benchmarks/timing.py)
 def _poses(rng, n: int, sod_mm: float):
     import numpy as np
 
-    from sim.geometry import pose_from_params
+    from sim.projection.geometry import pose_from_params
 
     lim = np.array([40.0, 20.0, 20.0, 40.0, 40.0, 40.0])
     return pose_from_params(rng.uniform(-lim, lim, size=(n, 6)), sod_mm)
@@ -89,9 +89,9 @@ def main(argv=None) -> int:
     sys.path.insert(0, str(REPO))
     import numpy as np
 
-    from sim.atomic import write_json
-    from sim.ct_io import load_ct
-    from sim.phantom import make_pelvis_phantom
+    from sim.core.atomic import write_json
+    from sim.ct.io import load_ct
+    from sim.ct.phantom import make_pelvis_phantom
     from sim.physics.imaging import PhysicsSettings, XRayImager
     from sim.physics.scatter_kernel import (data_tau_nodes, default_table, detector_gap_mm, fit_maps,
                                             interpolate_kvp, monte_carlo_maps, physics_record)

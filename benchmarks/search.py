@@ -103,7 +103,7 @@ def main() -> int:
 
     from register.evaluation.study import load_study
     from sim import load_ct
-    from sim.anatomy import anatomy_center
+    from sim.ct.anatomy import anatomy_center
 
     chosen = []  # (study, target) pairs to measure
     for path in a.study:
@@ -199,7 +199,7 @@ def _measure(a, study, target, volume, center):
     from register.evaluation.errors import bone_points, pose_errors
     from register.evaluation.evaluate import EvaluationSettings, sample_cases
     from register.evaluation.study import frame_refusals, frame_seed, study_frames
-    from sim.geometry import pose_from_params
+    from sim.projection.geometry import pose_from_params
 
     frames = study_frames(study, target, volume, center)
     if a.scatter_smooth_mm is not None and frames.imager.scatter is not None:  # the frames' fingerprint has it

@@ -41,10 +41,10 @@ N = len(POSES)
 
 def _case(folder: Path) -> tuple[Path, Path, np.ndarray]:
     from register.xray.io import write_xray_dicom
-    from sim.anatomy import anatomy_center
-    from sim.ct_io import save_nifti
-    from sim.drr import DRRRenderer, RenderSettings
-    from sim.phantom import make_pelvis_phantom
+    from sim.ct.anatomy import anatomy_center
+    from sim.ct.io import save_nifti
+    from sim.projection.drr import DRRRenderer, RenderSettings
+    from sim.ct.phantom import make_pelvis_phantom
 
     vol = make_pelvis_phantom(3, spacing_mm=3.0)
     ct = folder / "ct.nii.gz"

@@ -55,8 +55,8 @@ def _frames(target: str, indices: list[int]) -> list[Path]:
     from register.evaluation.evaluate import EvaluationSettings, sample_cases
     from register.evaluation.study import frame_seed, load_study, study_frames
     from sim import load_ct
-    from sim.anatomy import anatomy_center
-    from sim.geometry import pose_from_params
+    from sim.ct.anatomy import anatomy_center
+    from sim.projection.geometry import pose_from_params
 
     study = load_study(REPO / "studies" / "domain_gap.toml")
     chosen = [t for t in study.targets if t.kind == "xray" and t.name == target]

@@ -38,7 +38,7 @@ def main(argv=None) -> int:
             return 2
 
     from learn.train import TrainConfigError, load_train_config, validate_checkpoint
-    from sim.atomic import write_json
+    from sim.core.atomic import write_json
 
     rows = []
     t0 = time.perf_counter()

@@ -137,7 +137,7 @@ def unmatched(a) -> int:
     """Register every X-ray of a folder against a CT it cannot match (``mtre_mm`` null) into ``--rows``."""
     from register.api import register_xray
     from sim import load_ct
-    from sim.errors import CtxregError
+    from sim.core.errors import CtxregError
 
     files = sorted(p for p in Path(a.unmatched).iterdir() if p.suffix.lower() in (".dcm", ".png", ".jpg", ".tif"))
     if not files:

@@ -20,7 +20,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from register.evaluation.xray_study import format_xray_study, run_xray_study, summarize_xray_study  # noqa: E402
-from sim.atomic import write_json  # noqa: E402
+from sim.core.atomic import write_json  # noqa: E402
 
 
 def main() -> int:

@@ -22,10 +22,18 @@ from __future__ import annotations
 
 import math
 
-from sim.errors import InputError
+from sim.core.errors import InputError
 
 import numpy as np
 import torch
+from learn.labels import apply_update, geodesic_label
+from learn.online import NearPairs
+from learn.predict import NetworkPredictor
+from sim.campaign.poses import ORIGINAL_PROTOCOL
+from sim.core.atomic import save_figure
+from sim.core.seeds import KIND_ACCURACY_PAIRS, rng_for
+from sim.projection.drr import DRRRenderer, RenderSettings
+from sim.projection.geometry import pose_from_params
 
 #: Kinds of evaluation pairs (see the module doc).
 PAIR_KINDS = ("far", "ap", "near")
@@ -41,10 +49,6 @@ class AccuracyError(InputError):
 def sample_eval_pairs(kind: str, rng: np.random.Generator, n: int, sod_mm: float, distribution=None,
                       near=None) -> tuple[np.ndarray, np.ndarray]:
     """``(T_target, T_current)``, each ``(n, 4, 4)`` (mm), of the given pair kind."""
-    from learn.labels import apply_update
-    from learn.online import NearPairs
-    from sim.campaign.poses import ORIGINAL_PROTOCOL
-    from sim.geometry import pose_from_params
 
     if kind not in PAIR_KINDS:
         raise AccuracyError(f"pair kind must be one of {PAIR_KINDS}, got {kind!r}")
@@ -69,7 +73,6 @@ def prediction_errors(predictor, renderer, T_a: np.ndarray, T_b: np.ndarray, *,
     Raises:
         AccuracyError: the network's predictions are not finite (NaN or infinite) for some pair.
     """
-    from learn.labels import geodesic_label
 
     ia = renderer.render(T_a)
     ib = (renderer if current_renderer is None else current_renderer).render(T_b)
@@ -107,14 +110,11 @@ def single_prediction_errors(checkpoint: str, volume, *, pairs: int = 200, size=
                              center_lps=None, distribution=None, kind: str = "far", near=None) -> dict:
     """Errors of the weighted sum, of each depth, and of the zero baseline (median and mean)
     on ``pairs`` pairs of ``kind`` for one CT volume. ``size``: image size (default: the model's)."""
-    from learn.predict import NetworkPredictor
-    from sim.anatomy import anatomy_center
-    from sim.drr import DRRRenderer, RenderSettings
+    from sim.ct.anatomy import anatomy_center  # loads SciPy: imported where first needed (start-up)
 
     predictor = NetworkPredictor(checkpoint)
     center = anatomy_center(volume) if center_lps is None else np.asarray(center_lps, float)
     renderer = DRRRenderer(volume, RenderSettings(size=tuple(size or predictor.size)), center_lps=center)
-    from sim.seeds import KIND_ACCURACY_PAIRS, rng_for
 
     rng = rng_for(seed, KIND_ACCURACY_PAIRS)
     T_a, T_b = sample_eval_pairs(kind, rng, pairs, renderer.geometry.sod_mm, distribution, near)
@@ -153,7 +153,6 @@ def accuracy_figure(errors: dict[str, dict[str, tuple[np.ndarray, np.ndarray]]],
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from sim.atomic import save_figure
 
     kinds = list(errors)
     fig, axes = plt.subplots(len(kinds), 2, figsize=(10, 3.2 * len(kinds)), squeeze=False)

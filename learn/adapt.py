@@ -5,7 +5,7 @@ person's it is lost. :func:`adapt` continues a base network (``--from``, default
 default model) on realistic randomized pairs of the user's CT: the batched pairs
 (:class:`learn.batched.BatchedPairs`) with the randomization the base model recorded (tube,
 filtration, dose, scatter, collimators, display chains, tools: all of it), rendered from the CT
-and from virtual patients of it (:mod:`sim.augment`: shape and intensity variation around this
+and from virtual patients of it (:mod:`sim.ct.patients`: shape and intensity variation around this
 anatomy), for the time given. It validates, as it goes, on poses of this CT that training never
 draws (the CT itself as the ``val`` subject, its own seed), and prints the error as it falls.
 
@@ -42,7 +42,11 @@ from pathlib import Path
 
 import numpy as np
 
-from sim.errors import InputError
+from sim.core.errors import InputError
+from learn.shipped import DEFAULT_MODEL, ModelCardError, export_model, resolve_model
+from sim.core.atomic import atomic_path, folder_lock, read_toml, save_figure, write_json
+from sim.core.outputs import check_output_dir
+from sim.projection.scene import DEFAULT_SCENE
 
 __all__ = ["AdaptSettings", "ADAPT", "AdaptError", "adapt", "adapted_ct_warning", "ADAPT_FILES"]
 
@@ -123,7 +127,7 @@ split = "val"
 
 
 def _train_config(out: Path, base_path: Path, base, settings: AdaptSettings):
-    from learn.train import TrainConfig
+    from learn.train import TrainConfig  # loads torch: imported where first needed (start-up)
 
     physics = base.physics or {}
     if physics.get("level") != "randomized" or not isinstance(physics.get("randomize"), dict):
@@ -180,14 +184,11 @@ def adapt(ct: str | os.PathLike, out: str | os.PathLike, *, minutes: float = 10.
     Raises :class:`AdaptError` (and the CT's, model's and config's own errors) naming the problem,
     before any training.
     """
-    from learn.checkpoint import load_checkpoint
-    from learn.shipped import DEFAULT_MODEL, resolve_model
-    from learn.train import resolve_device, train
-    from sim.atomic import atomic_path, folder_lock, write_json
-    from sim.ct_cache import ct_hash
-    from sim.ct_io import is_phantom_spec, load_ct
-    from sim.outputs import check_output_dir
-    from sim.phantom import write_phantom_nifti
+    from learn.checkpoint import load_checkpoint  # loads torch: imported where first needed (start-up)
+    from learn.train import resolve_device, train  # loads torch: imported where first needed (start-up)
+    from sim.ct.cache import ct_hash  # loads SciPy: imported where first needed (start-up)
+    from sim.ct.io import is_phantom_spec, load_ct  # loads SciPy: imported where first needed (start-up)
+    from sim.ct.phantom import write_phantom_nifti  # loads SciPy: imported where first needed (start-up)
 
     if not (isinstance(minutes, (int, float)) and not isinstance(minutes, bool) and math.isfinite(minutes)
             and minutes > 0):
@@ -232,7 +233,6 @@ def adapt(ct: str | os.PathLike, out: str | os.PathLike, *, minutes: float = 10.
         raise AdaptError(f"--from {base_path}: the checkpoint does not record its image size")
     out.mkdir(parents=True, exist_ok=True)
     with folder_lock(out, "ctxreg adapt"):  # one run per folder at a time: a second is refused at once
-        from sim.scene import DEFAULT_SCENE
 
         val_link = out / f"heldout_poses_{ct.name}"
         if val_link.is_symlink() or val_link.exists():
@@ -244,7 +244,7 @@ def adapt(ct: str | os.PathLike, out: str | os.PathLike, *, minutes: float = 10.
         with atomic_path(out / "campaign.toml") as tmp:
             tmp.write_text(_campaign_text(ct, val_link, base_ckpt.image_size, settings, DEFAULT_SCENE))
         cfg = _train_config(out, base_path, base_ckpt, settings)
-        from learn.train import validate_checkpoint
+        from learn.train import validate_checkpoint  # loads torch: imported where first needed (start-up)
 
         if record.get("before") is None:  # the base network on this CT's held-out poses: the curve's start
             log(f"adapt: the base network {record['base']} on {settings.val_pairs} held-out poses of {ct.name} ...")
@@ -275,8 +275,7 @@ def _device_name(dev) -> str:
 
 def _export(out: Path, record: dict, settings: AdaptSettings, log) -> Path:
     """The adapted model folder: ``model.pt`` and its card, from the run's checkpoint."""
-    from learn.checkpoint import load_checkpoint
-    from learn.shipped import export_model
+    from learn.checkpoint import load_checkpoint  # loads torch: imported where first needed (start-up)
 
     ckpt_path = out / "run" / "checkpoint.pt"
     ckpt = load_checkpoint(ckpt_path)
@@ -338,7 +337,6 @@ def _plot_curve(curve: list[list[float]], path: Path, ct_name: str, base: str) -
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from sim.atomic import save_figure
 
     c = np.asarray(curve, float)
     fig, ax = plt.subplots(1, 2, figsize=(9, 3.4))
@@ -363,9 +361,7 @@ def adapted_ct_warning(model: str | os.PathLike | None, ct: str | os.PathLike) -
     card_path = folder / "model.toml"
     if not card_path.is_file() or not isinstance(ct, (str, os.PathLike)) or not Path(ct).exists():
         return None
-    from learn.shipped import ModelCardError
-    from sim.atomic import read_toml
-    from sim.ct_cache import ct_hash
+    from sim.ct.cache import ct_hash  # loads SciPy: imported where first needed (start-up)
 
     try:
         adaptation = read_toml(card_path, ModelCardError, "model card").get("adaptation")

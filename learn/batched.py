@@ -7,7 +7,7 @@ its pose distribution, near pairs, :mod:`sim.randomize`'s settings drawn per pai
 ``(seed, index)``) with every image stage batched over the pairs in torch, on the CPU or CUDA:
 
 1. the ray march of the targets and currents of every pair of every subject
-   (:func:`sim.raymarch.volumes_for`: Dr.Jit's Siddon kernel on a CPU, ``grid_sample`` on a GPU):
+   (:func:`sim.projection.raymarch.volumes_for`: Dr.Jit's Siddon kernel on a CPU, ``grid_sample`` on a GPU):
    ``mu`` for the currents and ideal targets (the line DRR registration renders), the water and
    bone basis densities of :mod:`sim.physics.two_basis` for the realistic targets;
 2. the targets' polychromatic signal from the two basis line integrals and the tools' density
@@ -26,7 +26,7 @@ skip stages 1-3's realistic work (basis march, signal, noise, display), the rest
 goes through it as one batch. The
 currents are line DRRs of ``mu`` (the campaign's first physics entry must be a line entry, as
 registration's moving images). Each pair's noise comes from a generator of its own
-(:func:`sim.seeds.pair_normals`), so a pair is a function of ``(seed, batch, index)`` only: the same
+(:func:`sim.core.seeds.pair_normals`), so a pair is a function of ``(seed, batch, index)`` only: the same
 in a batch of 1 or 256 (tested); a CPU and a GPU draw different noise of the same distribution.
 
 What the two-basis model leaves out, against the per-pair path: nothing of the randomization
@@ -44,10 +44,24 @@ import torch
 
 from learn.labels import LabelNormalizer, geodesic_label
 from learn.online import MAX_BATCH, NearPairs, OnlinePairs, OnlinePairsError, check_trainable
+from learn.online import FRAMINGS
+from learn.prepare_batched import prepare_like_registration_batched
+from sim.campaign.runner import subject_volume
+from sim.core.seeds import pair_normals
+from sim.physics.batched import apply_image_batched, draw_tensors, field_masks, gaussian_reflect
+from sim.physics.materials import mu_from_hu
+from sim.physics.settings import SETTINGS
+from sim.physics.two_basis import BasisDecomposition, SpectralTable, TOOL_CHANNELS, TorchImager
+from sim.projection.geometry import pose_from_params
+from sim.projection.raymarch import volumes_for
+from sim.projection.scene import load_scene
+from sim.randomize import TOOL_BANK_SIZE, ToolBank
+from sim.core.atomic import atomic_path
+from sim.physics.scatter_kernel import detector_gap_mm
 
 __all__ = ["BatchedPairs", "NOISE_STREAM_QUANTUM", "NOISE_STREAM_ELECTRONIC", "NOISE_STREAM_SCATTER", "tool_arrangements", "tool_looks"]
 
-#: :func:`sim.seeds.pair_normals` streams of a pair's noise (the seed is the randomization seed).
+#: :func:`sim.core.seeds.pair_normals` streams of a pair's noise (the seed is the randomization seed).
 NOISE_STREAM_QUANTUM = 1
 NOISE_STREAM_ELECTRONIC = 2
 NOISE_STREAM_SCATTER = 3
@@ -57,7 +71,6 @@ def tool_arrangements(bank, names: tuple[str, ...]) -> np.ndarray:
     """``(TOOL_BANK_SIZE, len(names), H, W)`` float32 density integrals (g/cm^2) of every
     arrangement of a :class:`sim.randomize.ToolBank`, one channel per material name (a tool
     material outside ``names`` is refused)."""
-    from sim.randomize import TOOL_BANK_SIZE
 
     out = []
     for j in range(TOOL_BANK_SIZE):
@@ -124,7 +137,6 @@ class BatchedPairs(OnlinePairs):
         if self.current_entry.level != "line":
             raise OnlinePairsError(f"batched pairs render line DRRs as current images: the campaign's physics entry "
                                    f"{self.current_entry.name!r} is {self.current_entry.level!r}")
-        from learn.online import FRAMINGS
 
         if framing not in FRAMINGS:
             raise OnlinePairsError(f"framing must be one of {', '.join(FRAMINGS)}, got {framing!r}")
@@ -133,7 +145,6 @@ class BatchedPairs(OnlinePairs):
         self.device = torch.device(device)
         self.tables = None if tables is None else Path(tables)
         self.step_fraction = step_fraction
-        from sim.scene import load_scene
 
         h, w = cfg.scene.size
         self.geometry = load_scene(cfg.scene.name).geometry_at(h, w)
@@ -143,10 +154,6 @@ class BatchedPairs(OnlinePairs):
 
     # -- built on first use --------------------------------------------------------------------
     def _build(self):
-        from sim.campaign.runner import subject_volume
-        from sim.materials import mu_from_hu
-        from sim.physics.two_basis import BasisDecomposition, TorchImager
-        from sim.raymarch import volumes_for
 
         table = self._table()
         basis = BasisDecomposition(matrix=table.basis)
@@ -163,7 +170,6 @@ class BatchedPairs(OnlinePairs):
         self._tools = self._tool_bank().to(self.device)
 
     def _table(self):
-        from sim.physics.two_basis import SpectralTable
 
         if self.tables is None:
             return SpectralTable.for_randomization(self.randomization)
@@ -176,8 +182,6 @@ class BatchedPairs(OnlinePairs):
         return table
 
     def _tool_bank(self) -> torch.Tensor:
-        from sim.physics.two_basis import TOOL_CHANNELS
-        from sim.randomize import ToolBank
 
         h, w = self.geometry.height, self.geometry.width
         path = None
@@ -196,7 +200,6 @@ class BatchedPairs(OnlinePairs):
                 return tool_looks(arrangements)
         arrangements = tool_arrangements(ToolBank(self.seed, self.geometry, scene=self.cfg.scene.name), TOOL_CHANNELS)
         if path is not None:
-            from sim.atomic import atomic_path
 
             path.parent.mkdir(parents=True, exist_ok=True)
             with atomic_path(path) as tmp:
@@ -238,9 +241,6 @@ class BatchedPairs(OnlinePairs):
         """The displayed realistic targets ``(R, H, W)`` and their fields ``(R, H, W)`` bool of the
         pairs ``index`` ``(R,)`` (their subjects, target poses ``(R, 4, 4)``, :func:`draw_tensors`
         entries ``p`` and draws): the module doc's stages 1-3."""
-        from sim.physics.batched import apply_image_batched, gaussian_reflect
-        from sim.physics.settings import SETTINGS
-        from sim.seeds import pair_normals
 
         g = self.geometry
         h, w = g.height, g.width
@@ -262,7 +262,6 @@ class BatchedPairs(OnlinePairs):
         sks = p["scatter"] == 3
         scatter_normals = gaps = None
         if bool(sks.any()):  # the scatter-kernel model's quantum noise, and the targets' air gaps
-            from sim.physics.scatter_kernel import detector_gap_mm
 
             scatter_normals = pair_normals(self.seed, index, NOISE_STREAM_SCATTER, (2, h, w), device=self.device,
                                            dtype=raw.dtype)
@@ -280,8 +279,6 @@ class BatchedPairs(OnlinePairs):
         every current image at registration's start from AP (pose parameters zero,
         ``register.api.parse_init("ap")``): the pair kind ``ap`` of :mod:`learn.accuracy`, the far
         pairs every registration from AP begins with. Shapes as :meth:`batch`."""
-        from sim.geometry import pose_from_params
-        from sim.scene import load_scene
 
         if n > MAX_BATCH:
             raise OnlinePairsError(f"batch size must be <= {MAX_BATCH}, got {n}")
@@ -306,7 +303,6 @@ class BatchedPairs(OnlinePairs):
         ``index`` ``(n,)`` the pairs' numbers (the randomization's draw and noise streams of pair
         ``i``: :meth:`batch` ``k`` uses ``k * MAX_BATCH + arange(n)``) -> as :meth:`batch`. Used
         by :meth:`batch` and to render the training's own pairs at chosen poses (the benchmarks)."""
-        from sim.physics.batched import draw_tensors, field_masks
 
         index = np.asarray(index, np.int64)
         n = len(index)
@@ -362,7 +358,6 @@ class BatchedPairs(OnlinePairs):
     def _prepared(self, display, field, current, log_display, bone_dark, t_a, t_b):
         """Registration's preparation of the displayed targets and currents (``(n, H, W)`` each),
         the transform and the labels of ``t_a`` from ``t_b``: the returns of :meth:`batch`."""
-        from learn.prepare_batched import prepare_like_registration_batched
 
         n = len(display)
         target, cur = prepare_like_registration_batched(display, field, current, log_display=log_display,

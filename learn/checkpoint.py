@@ -36,7 +36,7 @@ refused with a one-line :class:`CheckpointError` naming the file. Weights that d
 (:func:`load_weights`) are refused in one line naming the architecture difference (e.g.
 ``growth_rate 32`` vs ``8``) or the first mismatching tensor.
 
-Writing (:func:`save_checkpoint`) is atomic (:func:`sim.atomic.atomic_path`): a reader sees the
+Writing (:func:`save_checkpoint`) is atomic (:func:`sim.core.atomic.atomic_path`): a reader sees the
 old file or the new one. A process killed hard during the write leaves its hidden temporary file
 (``.checkpoint.pt.<writer>-XXXXXXXX.tmp.pt``); the next save or ``--resume`` removes it
 (:func:`remove_stale_temps`).
@@ -56,6 +56,7 @@ import torch
 from learn.errors import CheckpointError
 from learn.model import _BACKBONE_CONFIG, Backbone, pose_update_net
 from learn.torch_file import first_line, read_plain_torch_file
+from sim.core.atomic import atomic_path
 
 __all__ = ["FORMAT", "FORMAT_VERSION", "Checkpoint", "CheckpointError", "capture_rng", "load_checkpoint",
            "load_weights", "remove_stale_temps", "restore_rng", "save_checkpoint"]
@@ -147,7 +148,7 @@ def restore_rng(state: Mapping, *, source: str = "the checkpoint") -> None:
 
 
 def _old_temp_pattern(path: Path) -> re.Pattern:
-    """Temporary names of ``path`` as :func:`sim.atomic.atomic_path` made them before it recorded
+    """Temporary names of ``path`` as :func:`sim.core.atomic.atomic_path` made them before it recorded
     the writer (``.<name>.<8 random characters>.tmp<suffixes>``, ``tempfile.mkstemp``'s)."""
     sfx = "".join(path.suffixes)
     return re.compile(rf"\.{re.escape(path.name)}\.[a-z0-9_]{{8}}\.tmp{re.escape(sfx)}")
@@ -156,7 +157,7 @@ def _old_temp_pattern(path: Path) -> re.Pattern:
 def remove_stale_temps(path: str | Path) -> list[Path]:
     """Remove the temporary files that killed writes of ``path`` left beside it; returns them.
 
-    Temporary files named with their writer (:func:`sim.atomic.remove_stale_temps`: removed
+    Temporary files named with their writer (:func:`sim.core.atomic.remove_stale_temps`: removed
     when that process is gone) and those of the older unnamed form (removed always: call this
     only where no other process writes ``path``, as ``ctxreg train`` owns its output folder)."""
     path = Path(path)
@@ -164,8 +165,8 @@ def remove_stale_temps(path: str | Path) -> list[Path]:
         return []
     removed = []
     try:
-        from sim.atomic import remove_stale_temps as remove_writerless
-    except ImportError:  # a sim.atomic without writer-named temporary files
+        from sim.core.atomic import remove_stale_temps as remove_writerless  # guarded: an older sim.core.atomic has no such function
+    except ImportError:  # a sim.core.atomic without writer-named temporary files
         remove_writerless = None
     if remove_writerless is not None:
         removed += remove_writerless(path.parent, path.name)
@@ -184,7 +185,6 @@ def save_checkpoint(path: str | Path, checkpoint: Checkpoint) -> None:
     Raises:
         CheckpointError: the weights hold NaN or infinite values (the previous file is kept).
     """
-    from sim.atomic import atomic_path
 
     path = Path(path)
     _check_finite(checkpoint.model_state, f"refusing to write checkpoint {path}",

@@ -5,7 +5,16 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from sim.cliargs import Range, opt
+from sim.core.cliargs import Range, opt
+from learn.adapt import ADAPT_FILES, adapt
+from learn.predict import NetworkPredictor
+from learn.shipped import describe_model, describe_models, shipped_models
+from sim.campaign.config import load_campaign
+from sim.campaign.runner import SubjectContext
+from sim.core.atomic import atomic_path, write_json
+from sim.core.outputs import check_output_dir
+from sim.core.seeds import KIND_ACCURACY_PAIRS, rng_for
+from sim.projection.drr import DRRRenderer, RenderSettings
 
 
 @dataclass(frozen=True)
@@ -37,26 +46,25 @@ ACCURACY_FILES = ("accuracy.md", "accuracy.json", "accuracy.png")
 
 
 def run_train(cmd: TrainCommand) -> list[Path]:
-    from learn.train import load_train_config, train
+    from learn.train import load_train_config, train  # loads torch: imported where first needed (start-up)
 
-    from sim.outputs import check_output_dir
 
-    from learn.train import resolve_device
+    from learn.train import resolve_device  # loads torch: imported where first needed (start-up)
 
     cfg = load_train_config(cmd.config)
     resolve_device(cmd.device)  # refused before any work
     out = check_output_dir(cfg.out, TRAIN_FILES, flag=f"{cmd.config}: [train] out")
     if cmd.resume and not (out / "checkpoint.pt").is_file():
-        from learn.train import TrainConfigError
+        from learn.train import TrainConfigError  # loads torch: imported where first needed (start-up)
 
         raise TrainConfigError(f"--resume: {out} holds no checkpoint.pt to resume from (train.out of {cmd.config}); "
                                f"run without --resume to start the training")
-    from learn.distributed import DistributedRun, launch, under_torchrun
+    from learn.distributed import DistributedRun, launch, under_torchrun  # loads torch: imported where first needed (start-up)
 
     if cmd.procs > 1 and not under_torchrun():
         DistributedRun(world=cmd.procs).check_batch(cfg.batch_size)  # the ranks' checks, once, before they start
         if cfg.cache_features:
-            from learn.train import TrainConfigError
+            from learn.train import TrainConfigError  # loads torch: imported where first needed (start-up)
 
             raise TrainConfigError("train.cache_features: not with --procs (the cached heads' forward would bypass "
                                    "DDP's gradient averaging); train in one process or without the cache")
@@ -91,8 +99,6 @@ class AdaptCommand:
 
 
 def run_adapt(cmd: AdaptCommand) -> list[Path]:
-    from learn.adapt import ADAPT_FILES, adapt
-    from sim.outputs import check_output_dir
 
     out = check_output_dir(cmd.out, ADAPT_FILES)
     adapt(cmd.ct, out, minutes=cmd.minutes, base=cmd.from_model, device=cmd.device, resume=cmd.resume)
@@ -133,12 +139,9 @@ class AccuracyCommand:
 def run_accuracy(cmd: AccuracyCommand) -> list[Path]:
     import numpy as np
 
-    from learn.accuracy import (AccuracyError, accuracy_figure, finite_or_none, format_accuracy_table, merge_errors,
+    from learn.accuracy import (AccuracyError, accuracy_figure, finite_or_none, format_accuracy_table, merge_errors,  # loads torch: imported where first needed (start-up)
                                 prediction_errors, sample_eval_pairs, summarize_errors)
-    from learn.predict import NetworkPredictor
-    from sim.atomic import atomic_path, write_json
 
-    from sim.outputs import check_output_dir
 
     out = check_output_dir(cmd.out, ACCURACY_FILES)
     if (cmd.ct is None) == (cmd.campaign is None):
@@ -152,7 +155,6 @@ def run_accuracy(cmd: AccuracyCommand) -> list[Path]:
     note = predictor.physics_mismatch(current_settings, advice="pick a matching --current-entry")
     if note:
         print(f"note: {note}")
-    from sim.seeds import KIND_ACCURACY_PAIRS, rng_for
 
     errors, results = {}, {}
     for ki, kind in enumerate(cmd.kind):
@@ -185,12 +187,11 @@ def run_accuracy(cmd: AccuracyCommand) -> list[Path]:
 def _accuracy_renderers(cmd: AccuracyCommand, size) -> tuple[list, tuple[str, str], object]:
     """Per subject ``(target renderer, current renderer)``; the two images' physics names; the
     current images' :class:`~sim.physics.imaging.PhysicsSettings` (None for line DRRs)."""
-    from learn.accuracy import AccuracyError
-    from sim.drr import DRRRenderer, RenderSettings
+    from learn.accuracy import AccuracyError  # loads torch: imported where first needed (start-up)
 
     if cmd.ct is not None:
-        from sim.anatomy import anatomy_center
-        from sim.ct_io import load_ct_spec
+        from sim.ct.anatomy import anatomy_center  # loads SciPy: imported where first needed (start-up)
+        from sim.ct.io import load_ct_spec  # loads SciPy: imported where first needed (start-up)
 
         if cmd.entry is not None or cmd.current_entry is not None:
             raise AccuracyError("--entry and --current-entry name [[physics]] entries of --campaign; "
@@ -200,8 +201,6 @@ def _accuracy_renderers(cmd: AccuracyCommand, size) -> tuple[list, tuple[str, st
         return [(drr, drr)], ("line DRRs", "line DRRs"), None
     from dataclasses import replace
 
-    from sim.campaign.config import load_campaign
-    from sim.campaign.runner import SubjectContext
 
     campaign = load_campaign(cmd.campaign)
     campaign = replace(campaign, scene=replace(campaign.scene, size=tuple(size)))
@@ -236,7 +235,6 @@ def run_models(cmd: ModelsCommand) -> list[Path]:
     """Print the shipped models (``models/<name>/``, each checked against its card)."""
     import json
 
-    from learn.shipped import describe_model, describe_models, shipped_models
 
     if cmd.name is not None:
         print(json.dumps(describe_model(cmd.name), indent=2))

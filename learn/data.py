@@ -14,7 +14,8 @@ import torch
 from torch.utils.data import Dataset
 
 from learn.labels import LabelNormalizer, geodesic_label, sample_pairs
-from sim.errors import InputError
+from sim.core.errors import InputError
+from sim.core.seeds import KIND_EPOCH_PAIRS, rng_for
 
 
 class PairDatasetError(InputError):
@@ -64,7 +65,6 @@ class PairDataset(Dataset):
 
     def set_epoch(self, epoch: int) -> None:
         """Draw this epoch's pairs (deterministic for ``seed`` and ``epoch``)."""
-        from sim.seeds import KIND_EPOCH_PAIRS, rng_for
 
         rng = rng_for(self.seed, KIND_EPOCH_PAIRS, epoch)
         local = sample_pairs(len(self.indices), self.n_pairs, rng, groups=self.subjects)

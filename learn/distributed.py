@@ -25,7 +25,7 @@ from dataclasses import dataclass
 
 import torch
 
-from sim.errors import InputError
+from sim.core.errors import InputError
 
 __all__ = ["DistributedRun", "DistributedError", "launch", "under_torchrun"]
 

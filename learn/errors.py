@@ -3,7 +3,7 @@
 
 from __future__ import annotations
 
-from sim.errors import InputError
+from sim.core.errors import InputError
 
 __all__ = ["CheckpointError"]
 

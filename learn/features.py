@@ -13,7 +13,7 @@ not depend on the image it is paired with, so they can be computed once per imag
 stores them in ``<folder>/features.h5``; training then costs only the heads
 (``TrainConfig.cache_features``, :mod:`learn.train`).
 
-File ``features.h5`` (written atomically, :func:`sim.atomic.atomic_path`):
+File ``features.h5`` (written atomically, :func:`sim.core.atomic.atomic_path`):
 
 =====================  =============================  ==============================================
 dataset                shape, dtype                   meaning
@@ -75,7 +75,8 @@ from learn.model import (
     PoseUpdateNet,
     _tap_channels,
 )
-from sim.errors import InputError
+from sim.core.errors import InputError
+from sim.core.atomic import atomic_path
 
 __all__ = [
     "CACHE_FILE",
@@ -324,7 +325,6 @@ class FeatureCache:
     def _build(self, data, model: PoseUpdateNet, transform, physics: str, batch_size: int, log) -> None:
         import h5py
 
-        from sim.atomic import atomic_path
 
         for stale in self.path.parent.glob(f".{CACHE_FILE}.*.tmp*"):  # left by a killed build
             stale.unlink(missing_ok=True)

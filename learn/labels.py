@@ -29,8 +29,8 @@ from typing import Any
 import numpy as np
 import torch
 
-from sim.errors import InputError
-from sim.se3 import product_exp, product_log
+from sim.core.errors import InputError
+from sim.projection.se3 import product_exp, product_log
 
 __all__ = [
     "LearnLabelError",

@@ -18,7 +18,7 @@ residual down-sampling blocks whose skip path is average pooling, global average
 fully connected layers regressing ``g_i`` (6,) and a weight logit ``w_i``. The output is
 ``g = sum_i softmax(w)_i g_i``.
 
-``g`` is the geodesic gradient in the order and body frame of :func:`sim.se3.product_log`
+``g`` is the geodesic gradient in the order and body frame of :func:`sim.projection.se3.product_log`
 (rotation ``w`` first, then translation ``v``), in normalised units: the scale (for instance
 rad / r_scale and mm / t_scale) is the training data's, which the network does not know.
 
@@ -43,7 +43,7 @@ from torch import Tensor, nn
 
 from learn.densenet import densenet_features
 from learn.torch_file import read_plain_torch_file  # tensors and plain data only; one-line refusals
-from sim.errors import InputError
+from sim.core.errors import InputError
 
 __all__ = [
     "Backbone",
@@ -347,7 +347,7 @@ def _check_images(target: Tensor, current: Tensor) -> None:
 
 
 class PoseUpdateOutput(NamedTuple):
-    """The network's output, normalised units, order ``(w, v)`` as :func:`sim.se3.product_log`."""
+    """The network's output, normalised units, order ``(w, v)`` as :func:`sim.projection.se3.product_log`."""
 
     g: Tensor  #: (B, 6) weighted sum ``sum_i weights[:, i] g_levels[:, i]``
     g_levels: Tensor  #: (B, 3, 6) each level's estimate

@@ -39,12 +39,23 @@ import numpy as np
 import torch
 
 from learn.labels import LabelNormalizer, apply_update, geodesic_label
-from sim.errors import InputError
+from sim.core.errors import InputError
 from sim.randomize import DomainRandomization
 from sim.physics.display import TONES, apply_tone, quantile_curve
 from sim.prepare import field_box, i0_percentile, invert, log_correct, masked_fill, normalize, percentile_bounds
 from sim.prepare_batched import crop_resize
-from sim.seeds import KIND_BATCH, KIND_BATCH_NOISE  # batch k: (KIND_BATCH, k); its noise: (KIND_BATCH_NOISE, k, u[, 1])
+from sim.core.seeds import KIND_BATCH, KIND_BATCH_NOISE  # batch k: (KIND_BATCH, k); its noise: (KIND_BATCH_NOISE, k, u[, 1])
+from sim.core.seeds import rng_for
+from sim.distractors import add_to_density_integrals
+from sim.physics.materials import TISSUE_DECOMPOSITION
+from sim.physics.poly import Detector, Polychromatic
+from sim.physics.settings import PhysicsSettings
+from sim.physics.spectrum import filtered_tube_spectrum
+from sim.projection.geometry import pose_from_params
+from sim.projection.scene import load_scene
+from sim.randomize import ToolBank, apply_image, image_rng
+from sim.campaign.runner import SubjectContext
+from sim.projection.drr import DRRRenderer, RenderSettings
 
 
 class OnlinePairsError(InputError):
@@ -207,10 +218,10 @@ class RealisticTargets:
             be ``monte-carlo``: a transport per pair is far too slow for training; the kernel
             scatter stands in for it).
         seed: the randomization seed (pair ``i`` of batch ``k`` is index ``k * MAX_BATCH + i``).
-        geometry: the :class:`sim.geometry.CArmGeometry` of the images; scene: its C-arm scene.
+        geometry: the :class:`sim.projection.geometry.CArmGeometry` of the images; scene: its C-arm scene.
 
     ``image(L, index, gap_mm=None)``: density integrals ``(M, H, W)`` g/cm^2 of one pose over
-    :data:`sim.materials.TISSUE_DECOMPOSITION` -> ``(display (H, W) uint16, field (H, W) bool,
+    :data:`sim.physics.materials.TISSUE_DECOMPOSITION` -> ``(display (H, W) uint16, field (H, W) bool,
     draw)``: tools added where drawn (:class:`sim.randomize.ToolBank`), the drawn spectrum and
     detector (quantum noise, blur) applied, then the post-render stages
     (:func:`sim.randomize.apply_image`). spekpy runs once per kV (about 1 s each, 15 on the 5 kV
@@ -219,9 +230,6 @@ class RealisticTargets:
     """
 
     def __init__(self, randomization: DomainRandomization, seed: int, geometry, *, scene: str = "cios_fusion"):
-        from sim.materials import TISSUE_DECOMPOSITION
-        from sim.physics.settings import PhysicsSettings
-        from sim.randomize import ToolBank
 
         check_trainable(randomization)
         self.randomization = randomization
@@ -235,8 +243,6 @@ class RealisticTargets:
     def _model(self, physics):
         import copy
 
-        from sim.physics.poly import Detector, Polychromatic
-        from sim.physics.spectrum import filtered_tube_spectrum
 
         key = (physics.kvp, tuple(physics.filters))
         if key not in self._models:
@@ -250,8 +256,6 @@ class RealisticTargets:
         return model
 
     def image(self, L: np.ndarray, index: int, gap_mm: float | None = None):
-        from sim.distractors import add_to_density_integrals
-        from sim.randomize import apply_image, image_rng
 
         draw = self.randomization.draw(self.seed, index)
         physics = draw.physics_settings(self.base)
@@ -351,7 +355,6 @@ class OnlinePairs:
         self.realistic = None
         self._density: dict[int, object] = {}
         if randomization is not None:
-            from sim.scene import load_scene
 
             h, w = cfg.scene.size
             self.realistic = RealisticTargets(randomization, self.seed, load_scene(cfg.scene.name).geometry_at(h, w),
@@ -360,16 +363,13 @@ class OnlinePairs:
     def context(self, k: int):
         """The :class:`sim.campaign.runner.SubjectContext` of this split's subject ``k`` (cached)."""
         if k not in self._contexts:
-            from sim.campaign.runner import SubjectContext
 
             self._contexts[k] = SubjectContext(self.cfg, self.subjects[k])
         return self._contexts[k]
 
     def density_renderer(self, k: int):
-        """Density-integral renderer (:data:`sim.materials.TISSUE_DECOMPOSITION`) of subject ``k`` (cached)."""
+        """Density-integral renderer (:data:`sim.physics.materials.TISSUE_DECOMPOSITION`) of subject ``k`` (cached)."""
         if k not in self._density:
-            from sim.materials import TISSUE_DECOMPOSITION
-            from sim.drr import DRRRenderer, RenderSettings
 
             ctx = self.context(k)
             self._density[k] = DRRRenderer(ctx.volume, RenderSettings(scene=self.cfg.scene.name,
@@ -381,8 +381,6 @@ class OnlinePairs:
     def draw(self, k: int, n: int, *, near_flags: bool = False):
         """Batch ``k``'s draws: subject per pair ``(n,)``, ``T_A`` and ``T_B`` ``(n, 4, 4)`` (mm); with
         ``near_flags`` also which pairs are near pairs ``(n,)`` bool."""
-        from sim.seeds import rng_for
-        from sim.geometry import pose_from_params
 
         if n < 1:
             raise OnlinePairsError(f"batch size must be >= 1, got {n}")
@@ -392,7 +390,6 @@ class OnlinePairs:
         else:
             chosen = rng.choice(len(self.subjects), self.subjects_per_batch, replace=False)
             subject = chosen[rng.integers(0, len(chosen), n)]
-        from sim.scene import load_scene
 
         sod = load_scene(self.cfg.scene.name).geometry.sod_mm  # the renderers' too (geometry_at keeps it)
         T_a = pose_from_params(self.cfg.poses.sample(rng, n), sod)
@@ -407,7 +404,6 @@ class OnlinePairs:
     def batch(self, k: int, n: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """Render batch ``k`` of ``n`` pairs; see the class doc for the shapes."""
         subject, T_a, T_b = self.draw(k, n)
-        from sim.seeds import rng_for
 
         h, w = self.cfg.scene.size
         images = np.empty((2, n, h, w), np.float32)

@@ -15,6 +15,9 @@ import hashlib
 from typing import NamedTuple
 
 import numpy as np
+from sim.physics.display import TONES
+from learn.shipped import resolve_model
+from sim.physics.filters import parse_filters
 
 __all__ = ["NetworkPredictor", "Prediction"]
 
@@ -64,12 +67,11 @@ class NetworkPredictor:
     _targets = None
 
     def __init__(self, checkpoint):
-        from learn.checkpoint import Checkpoint, load_checkpoint
-        from learn.labels import LabelNormalizer
-        from learn.preprocess import build
+        from learn.checkpoint import Checkpoint, load_checkpoint  # loads torch: imported where first needed (start-up)
+        from learn.labels import LabelNormalizer  # loads torch: imported where first needed (start-up)
+        from learn.preprocess import build  # loads torch: imported where first needed (start-up)
 
         if not isinstance(checkpoint, Checkpoint):
-            from learn.shipped import resolve_model
 
             checkpoint = resolve_model(checkpoint)  # a file, or a shipped model's name
         ckpt = checkpoint if isinstance(checkpoint, Checkpoint) else load_checkpoint(checkpoint)
@@ -81,31 +83,30 @@ class NetworkPredictor:
         self.size = ckpt.image_size
         self.physics = ckpt.physics
         self.current_physics = ckpt.current_physics or ckpt.physics
-        from learn.online import current_field_problem
+        from learn.online import current_field_problem  # loads torch: imported where first needed (start-up)
 
         field = (ckpt.config or {}).get("current_field", "masked")
         if current_field_problem(field):
-            from learn.checkpoint import CheckpointError
+            from learn.checkpoint import CheckpointError  # loads torch: imported where first needed (start-up)
 
             raise CheckpointError(f"{ckpt.name}: config.current_field {current_field_problem(field)}")
         #: what the network sees of the current image outside the X-ray's field (``"masked"``:
         #: filled as the X-ray, ``"open"``: all of it), as it was trained (:data:`learn.online.CURRENT_FIELDS`)
         self.current_field = field
-        from sim.physics.display import TONES
 
         tone = (ckpt.config or {}).get("tone", "off")
         if tone not in TONES:
-            from learn.checkpoint import CheckpointError
+            from learn.checkpoint import CheckpointError  # loads torch: imported where first needed (start-up)
 
             raise CheckpointError(f"{ckpt.name}: config.tone must be one of {', '.join(TONES)}, got {tone!r}")
         #: whether the network was trained on targets toned onto line integrals (``train.tone``):
         #: registration then shows it the X-ray's toned version
         self.tone = tone
-        from learn.online import FRAMINGS
+        from learn.online import FRAMINGS  # loads torch: imported where first needed (start-up)
 
         framing = (ckpt.config or {}).get("framing", "field")
         if framing not in FRAMINGS:
-            from learn.checkpoint import CheckpointError
+            from learn.checkpoint import CheckpointError  # loads torch: imported where first needed (start-up)
 
             raise CheckpointError(f"{ckpt.name}: config.framing must be one of {', '.join(FRAMINGS)}, got {framing!r}")
         #: how the network's pairs were framed (``train.framing``): ``"field"`` (cropped to the
@@ -125,7 +126,6 @@ class NetworkPredictor:
         trained = ref.get("level", "line")
         differ = level != trained
         if not differ and level in ("poly", "full"):
-            from sim.physics.filters import parse_filters
 
             filters = parse_filters(ref.get("filters", ()))  # stored as "SYMBOL:MM" strings
             differ = (abs(float(ref.get("kvp", physics.kvp)) - physics.kvp) > 1e-9
@@ -147,7 +147,7 @@ class NetworkPredictor:
 
         fixed, drr = np.asarray(fixed), np.asarray(drr)
         if fixed.ndim != 3 or fixed.shape != drr.shape:
-            from learn.model import PoseInputError
+            from learn.model import PoseInputError  # loads torch: imported where first needed (start-up)
 
             raise PoseInputError(f"fixed and drr must be (N, H, W) of one shape, got {fixed.shape} and {drr.shape}")
         if len(fixed) == 0:

@@ -26,7 +26,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from sim.errors import InputError
+from sim.core.errors import InputError
 
 __all__ = [
     "LearnPreprocessError",

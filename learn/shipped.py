@@ -33,7 +33,8 @@ from pathlib import Path
 from typing import Any
 
 from learn.errors import CheckpointError
-from sim.atomic import read_toml, sha256_file
+from sim.core.atomic import read_toml, sha256_file
+from sim.core.atomic import write_toml
 
 __all__ = ["MODELS_DIR", "DEFAULT_MODEL", "CARD_SCHEMA", "export_model", "load_card", "check_card",
            "shipped_models", "resolve_model", "describe_models", "describe_model", "ModelCardError"]
@@ -157,7 +158,6 @@ def export_model(checkpoint: str | Path, folder: str | Path, *, name: str, summa
     card's path. ``training``, ``accuracy`` and (a model adapted to one CT) ``adaptation`` are
     the card's tables in :data:`CARD_SCHEMA` (checked before anything is written)."""
     from learn.checkpoint import load_checkpoint, save_checkpoint  # torch: only where weights are read or written
-    from sim.atomic import write_toml
 
     ckpt = load_checkpoint(checkpoint)
     model = {"name": name, "summary": summary, "file": WEIGHTS, "sha256": "", "backbone": ckpt.backbone,

@@ -40,8 +40,22 @@ import numpy as np
 import torch
 
 from learn.distributed import DistributedRun, unwrap
-from sim.atomic import folder_lock
-from sim.errors import InputError
+from sim.core.atomic import folder_lock
+from sim.core.errors import InputError
+from learn.checkpoint import (Checkpoint, CheckpointError, capture_rng, load_checkpoint, load_weights, remove_stale_temps, restore_rng, save_checkpoint)
+from learn.data import PairDataset
+from learn.features import CACHE_FILE, FeatureCache, FeatureCacheError, feature_bytes_per_image
+from learn.labels import LabelNormalizer, geodesic_label
+from learn.model import PoseUpdateNet, Weights, pose_update_net
+from learn.online import FRAMINGS, NearPairs, OnlinePairs, OnlinePairsError, check_trainable, current_field_problem
+from learn.preprocess import build
+from sim.campaign import open_dataset
+from sim.campaign.config import CampaignConfigError, load_campaign
+from sim.core.atomic import read_toml, save_figure, write_csv
+from sim.physics.display import TONES
+from sim.randomize import DomainRandomization, RandomizeError
+from learn.batched import BatchedPairs
+from sim.core.progress import Progress
 
 
 class TrainConfigError(InputError):
@@ -206,7 +220,6 @@ class TrainConfig:
 
     def near(self):
         """The :class:`learn.online.NearPairs` of an online run."""
-        from learn.online import NearPairs, OnlinePairsError
 
         try:
             return NearPairs(0.5 if self.near_fraction is None else self.near_fraction,
@@ -218,9 +231,7 @@ class TrainConfig:
         """The :class:`sim.randomize.DomainRandomization` of ``randomize`` (None without it)."""
         if self.randomize is None:
             return None
-        from sim.randomize import DomainRandomization, RandomizeError
 
-        from learn.online import OnlinePairsError, check_trainable
 
         try:
             randomization = DomainRandomization.from_table(self.randomize, "train.randomize")
@@ -271,11 +282,9 @@ class TrainConfig:
             if "random_convolution" in steps:
                 raise TrainConfigError("train.cache_features cannot be used with the random step "
                                        "'random_convolution' in train.preprocess (a new draw per pair)")
-        from learn.online import current_field_problem
 
         if current_field_problem(self.current_field):
             raise TrainConfigError(f"train.current_field {current_field_problem(self.current_field)}")
-        from sim.physics.display import TONES
 
         if self.tone not in TONES:
             raise TrainConfigError(f"train.tone must be one of {', '.join(TONES)}, got {self.tone!r}")
@@ -288,7 +297,6 @@ class TrainConfig:
             raise TrainConfigError(f"train.pairs must be one of {', '.join(PAIRS)}, got {self.pairs!r}")
         if self.pairs == "batched" and self.randomize is None:
             raise TrainConfigError("train.pairs = 'batched' needs train.randomize (it batches the realistic targets)")
-        from learn.online import FRAMINGS
 
         if self.framing not in FRAMINGS:
             raise TrainConfigError(f"train.framing must be one of {', '.join(FRAMINGS)}, got {self.framing!r}")
@@ -379,7 +387,6 @@ _FIELD_TYPES = typing.get_type_hints(TrainConfig)
 
 def load_train_config(path: str | os.PathLike) -> TrainConfig:
     """Read and validate a training config file."""
-    from sim.atomic import read_toml
 
     path = Path(path)
     data = read_toml(path, TrainConfigError, "training config")
@@ -441,7 +448,6 @@ def _config_changes(stored: dict, cfg: TrainConfig, *, ignore=("precision",)) ->
 
 def _save_checkpoint(path: Path, checkpoint) -> None:
     """Write the :class:`learn.checkpoint.Checkpoint` (a function of its own: the tests interrupt here)."""
-    from learn.checkpoint import save_checkpoint
 
     save_checkpoint(path, checkpoint)
 
@@ -449,7 +455,6 @@ def _save_checkpoint(path: Path, checkpoint) -> None:
 def _resume_checkpoint(path: Path, cfg: TrainConfig):
     """The checkpoint at ``path`` to resume ``cfg`` from; refused if unreadable
     (:class:`learn.checkpoint.CheckpointError`), without training state, or of another config."""
-    from learn.checkpoint import CheckpointError, load_checkpoint
 
     state = load_checkpoint(path)
     changes = _config_changes(state.config, cfg, ignore=RESUME_MAY_CHANGE)
@@ -471,7 +476,6 @@ def _init_checkpoint(cfg: TrainConfig):
 def _architecture_checkpoint(cfg: TrainConfig, path, where: str):
     """The checkpoint at ``path``, its backbone and head checked against ``cfg``'s; a refusal
     (:class:`TrainConfigError`) starts with ``where``."""
-    from learn.checkpoint import CheckpointError, load_checkpoint
 
     path = Path(path)
     try:
@@ -487,7 +491,6 @@ def _architecture_checkpoint(cfg: TrainConfig, path, where: str):
 
 def _init_weights(model, init) -> None:
     """Load the :func:`_init_checkpoint`'s weights into ``model``."""
-    from learn.checkpoint import CheckpointError, load_weights
 
     try:
         load_weights(model, init.model_state, source=f"checkpoint {init.path}")
@@ -596,8 +599,6 @@ def train(cfg: TrainConfig, *, resume: bool = False, log=print, device: str = "a
     device = run.start(resolve_device(device))
     if not run.main:
         log = _silent
-    from learn.checkpoint import CheckpointError, load_weights, remove_stale_temps, restore_rng
-    from learn.model import Weights, pose_update_net
 
     out = Path(cfg.out)
     ckpt_path = out / "checkpoint.pt"
@@ -663,7 +664,6 @@ def train(cfg: TrainConfig, *, resume: bool = False, log=print, device: str = "a
         model = run.wrap(model, device)  # DDP under torchrun (after the weights are in place)
         model.train()
         started = time.perf_counter()
-        from sim.progress import Progress
 
         bar = Progress(cfg.iterations, iteration, f"train {out.name}", "iterations", rate_unit="pairs/s",
                        rate_scale=cfg.batch_size, time_limit_s=stop_after_s) if run.main else None
@@ -729,7 +729,6 @@ def _loop(cfg, source, model, optimizer, scheduler, device, iteration, rows, log
     torchrun (``run``) each rank trains on its share of the batch; rank 0 validates, logs and
     writes the checkpoints. The log's ``elapsed_s`` is the run's training seconds (validations
     included, from ``elapsed_before`` on a resume)."""
-    from learn.checkpoint import Checkpoint, capture_rng
 
     last = {}
     start_iteration = iteration
@@ -802,9 +801,6 @@ class _CampaignSource:
     """Pairs of a campaign folder's stored images (:class:`learn.data.PairDataset`), epoch by epoch."""
 
     def __init__(self, cfg: TrainConfig):
-        from learn.data import PairDataset
-        from learn.preprocess import build
-        from sim.campaign import open_dataset
 
         self.cfg = cfg
         self.data = open_dataset(cfg.dataset)
@@ -864,7 +860,6 @@ class _CachedSource(_CampaignSource):
     DTYPE = "float16"
 
     def __init__(self, cfg: TrainConfig, model, *, rebuild: bool, log=print):
-        from learn.features import CACHE_FILE, FeatureCache, FeatureCacheError, feature_bytes_per_image
 
         super().__init__(cfg)
         splits = sorted({self.train_set.split, self.val_set.split})
@@ -889,7 +884,6 @@ class _CachedSource(_CampaignSource):
     def _batch(self, dataset, pairs: np.ndarray):
         """``pairs`` (B, 2) dataset indices (target, current) -> ``(*maps, label)``, labels as
         :class:`learn.data.PairDataset` computes them."""
-        from learn.labels import geodesic_label
 
         b = len(pairs)
         maps = self.cache.rows(np.concatenate([pairs[:, 0], pairs[:, 1]]))
@@ -915,9 +909,6 @@ class _OnlineSource:
     """Pairs rendered on the fly from a campaign file (:class:`learn.online.OnlinePairs`)."""
 
     def __init__(self, cfg: TrainConfig, device=None):
-        from learn.online import OnlinePairs, OnlinePairsError
-        from learn.preprocess import build
-        from sim.campaign.config import CampaignConfigError, load_campaign
 
         self.cfg = cfg
         try:
@@ -940,7 +931,6 @@ class _OnlineSource:
                   "randomization": cfg.randomization(), "current_field": cfg.current_field,
                   "tone": cfg.tone}
             if cfg.pairs == "batched":
-                from learn.batched import BatchedPairs
 
                 del kw["physics"], kw["current_physics"], kw["tone"]
                 kw.update(device=device or "cpu", tables=Path(cfg.out) / "tables", framing=cfg.framing)
@@ -996,7 +986,6 @@ class _OnlineSource:
 
 
 def _loss(output, label, cfg: TrainConfig):
-    from learn.model import PoseUpdateNet
 
     return PoseUpdateNet.loss(output, label, relative_eps=cfg.relative_eps if cfg.loss == "relative" else None)
 
@@ -1009,8 +998,6 @@ def validate_checkpoint(cfg: TrainConfig, checkpoint: str | os.PathLike, *, devi
     validation pairs are a function of its config: the same for any checkpoint); the checkpoint's
     backbone and head must be ``cfg``'s. Compares networks on one set of pairs (e.g. two
     randomizations' runs on each other's validation pairs: ``benchmarks/validate_checkpoints.py``)."""
-    from learn.checkpoint import load_weights
-    from learn.model import Weights, pose_update_net
 
     if not cfg.online:
         raise TrainConfigError("validate_checkpoint: the config must draw its pairs online (train.pairs)")
@@ -1031,7 +1018,6 @@ def validate_checkpoint(cfg: TrainConfig, checkpoint: str | os.PathLike, *, devi
 @torch.no_grad()
 def _validate(model, source, cfg: TrainConfig, device=None) -> dict:
     """Validation errors by group; no autograd graph (it kept every validation batch's)."""
-    from learn.labels import LabelNormalizer
 
     model.eval()
 
@@ -1063,7 +1049,6 @@ def _validate(model, source, cfg: TrainConfig, device=None) -> dict:
 def _write_log(path: Path, rows: list[dict]) -> None:
     """The log rows as CSV; columns: every key of any row (a group column appears once batched
     pairs log it; earlier rows leave it empty)."""
-    from sim.atomic import write_csv
 
     keys = list(dict.fromkeys(k for r in rows for k in r))
     write_csv(path, [{k: r.get(k, "") for k in keys} for r in rows])
@@ -1077,7 +1062,6 @@ def _plot(rows: list[dict], path: Path) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from sim.atomic import save_figure
 
     it = [int(r["iteration"]) for r in rows]
     fig, ax = plt.subplots(figsize=(6, 3.5))

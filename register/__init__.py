@@ -15,7 +15,7 @@ __all__ = ["register_xray", "XRayRegistration"]
 
 def __getattr__(name: str):
     if name in __all__:
-        from register import api
+        from register import api  # local: the name is one of this module's own
 
         return getattr(api, name)
     raise AttributeError(f"module 'register' has no attribute {name!r}")

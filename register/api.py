@@ -45,13 +45,19 @@ from register.xray.network_view import network_view
 from register.xray.prepare import (_fit_plan, confirm_polarity, confirm_polarity_by_pose, fit_box,
                                    polarity_needs_check, prepare_xray)
 from register.xray.preprocess import DEFAULT_STEPS, Pipeline, PreprocessError
-from sim.atomic import atomic_path, write_json
+from sim.core.atomic import atomic_path, write_json
 from sim.campaign.poses import PARAM_NAMES
-from sim.cliargs import check_memory
-from sim.ct_io import is_phantom_spec
-from sim.volume import CTInputError
-from sim.outputs import check_output_dir
-from sim.progress import StageClock
+from sim.core.cliargs import check_memory
+from sim.ct.io import is_phantom_spec
+from sim.ct.volume import CTInputError
+from sim.core.outputs import check_output_dir
+from sim.core.progress import StageClock
+from sim import load_ct
+from sim.ct.anatomy import find_center
+from sim.physics.imaging import PhysicsSettings
+from sim.physics.settings import LEVELS
+from sim.projection.drr import DRRRenderer, RenderSettings, check_in_view
+from sim.projection.geometry import pose_from_params
 
 __all__ = ["register_xray", "XRayRegistration", "parse_init", "REGISTER_RESTARTS", "REGISTER_SCATTER_PHOTONS",
            "OUTPUT_FILES", "SEARCH_MODES", "SEARCH_METHODS"]
@@ -202,7 +208,7 @@ class XRayRegistration:
 
     @property
     def geometry(self):
-        """:class:`sim.geometry.CArmGeometry` of the optimiser's image (the pose's projection)."""
+        """:class:`sim.projection.geometry.CArmGeometry` of the optimiser's image (the pose's projection)."""
         return self.prepared.geometry
 
     def summary(self) -> str:
@@ -249,7 +255,7 @@ class XRayRegistration:
         }
 
     def write(self, out: str | Path, *, trajectory_errors: list[str] | None = None) -> list[Path]:
-        """Write into the folder ``out`` (checked first: :func:`sim.outputs.check_output_dir`):
+        """Write into the folder ``out`` (checked first: :func:`sim.core.outputs.check_output_dir`):
         ``trajectory.npz``, ``trajectory.png`` and ``trajectory.gif`` (contextual methods: the
         iteration's DRRs beside the X-ray, then for contextual+cmaes the refined pose's;
         ``trajectory_errors``, one caption per frame, e.g. the error against a known truth),
@@ -257,7 +263,6 @@ class XRayRegistration:
         and the field outline over the X-ray at its full resolution), ``checkerboard.png``,
         ``convergence.png`` and ``result.json`` (:meth:`to_dict`), each atomically. Returns the paths.
         Its seconds (up to ``result.json``) go to ``timings["write"]``."""
-        from sim.drr import DRRRenderer, RenderSettings
 
         t0 = time.perf_counter()
         out = check_output_dir(out, OUTPUT_FILES)
@@ -301,8 +306,6 @@ class XRayRegistration:
 def _moving_physics(physics):
     """The :class:`PhysicsSettings` of the moving images: a level name gets the defaults of a
     registration (noise-free, :data:`REGISTER_SCATTER_PHOTONS`)."""
-    from sim.physics.imaging import PhysicsSettings
-    from sim.physics.settings import LEVELS
 
     if isinstance(physics, PhysicsSettings):
         return physics
@@ -322,16 +325,16 @@ def register_xray(ct, xray, *, method: str = "contextual+cmaes", model=None, ini
     """Register the X-ray ``xray`` to the CT ``ct``: its pose, as ``ctxreg register`` finds it.
 
     Args:
-        ct: a :class:`sim.volume.CTVolume` (:func:`sim.load_ct`) or what :func:`sim.load_ct` takes
+        ct: a :class:`sim.ct.volume.CTVolume` (:func:`sim.load_ct`) or what :func:`sim.load_ct` takes
             (a NIfTI file, a DICOM series folder, ``"phantom"``).
         xray: a file (DICOM: geometry from its tags where present; PNG / TIFF / JPEG / ``.npy``) or
             a :class:`register.xray.io.XRayImage`.
-        ct_cache: read a CT file through the CT cache (:mod:`sim.ct_cache`; ``cache`` of
+        ct_cache: read a CT file through the CT cache (:mod:`sim.ct.cache`; ``cache`` of
             :func:`sim.load_ct`): False (default), True (the default folder) or a folder.
         method: ``"cmaes"``, ``"contextual"`` or ``"contextual+cmaes"`` (:mod:`register.engines.methods`).
         model: the ``ctxreg train`` checkpoint (path or loaded predictor) of the contextual methods.
         init: the start pose: ``"ap"`` or six numbers (phi theta psi deg, tx ty tz mm).
-        center: ``(3,)`` anatomy centre c in LPS mm; None = :func:`sim.anatomy.find_center`'s (the
+        center: ``(3,)`` anatomy centre c in LPS mm; None = :func:`sim.ct.anatomy.find_center`'s (the
             label map's centroid, else that of the pelvis's bone pieces); result.json says which
             (``anatomy_center_how``).
         label_map: a label map for ``ct`` given as a path (with ``label_materials``: implants).
@@ -368,13 +371,9 @@ def register_xray(ct, xray, *, method: str = "contextual+cmaes", model=None, ini
             note: with remarks (a network trained on other physics). Both default to silence.
 
     Returns an :class:`XRayRegistration`; :meth:`XRayRegistration.write` writes the figures and
-    ``result.json``. Raises :class:`sim.errors.InputError` subclasses naming the bad input, before
+    ``result.json``. Raises :class:`sim.core.errors.InputError` subclasses naming the bad input, before
     the work where the input allows it (everything but the image's contents).
     """
-    from sim import load_ct
-    from sim.anatomy import find_center
-    from sim.geometry import pose_from_params
-    from sim.drr import check_in_view
 
     log = log or (lambda line: None)
     notes: list[str] = []
@@ -511,8 +510,6 @@ def register_xray(ct, xray, *, method: str = "contextual+cmaes", model=None, ini
 def _verdict(volume, center_lps, prepared, result) -> Verdict:
     """The verdict (:func:`register.verdict.judge_result`) on a registration's ``result``: three line
     DRRs (its pose and the depth probe's), at the optimiser's size."""
-    from sim.drr import DRRRenderer, RenderSettings  # Dr.Jit loads where a render is due, after the input checks
-
     g = prepared.geometry
     renderer = DRRRenderer(volume, RenderSettings(size=(g.height, g.width)), center_lps=center_lps, geometry=g)
     fld = prepared.step("field")
@@ -523,7 +520,7 @@ def _verdict(volume, center_lps, prepared, result) -> Verdict:
 
 def grid_bytes(box, shape, geometry) -> float:
     """The bytes of the largest allocation of a registration into ``box`` ``(H, W)`` of an X-ray of
-    ``shape`` ``(h, w)`` px and full ``geometry`` (:class:`sim.geometry.CArmGeometry`): the global
+    ``shape`` ``(h, w)`` px and full ``geometry`` (:class:`sim.projection.geometry.CArmGeometry`): the global
     search's grid of padded DRRs at 1/4 resolution (every grid pose at once, padded by the largest
     in-plane shift), :data:`GRID_BYTES_PER_PX` each. The polarity check scores on it even for
     ``method="cmaes"``. The field's crop is not known yet: the X-ray is taken whole."""
@@ -563,7 +560,6 @@ def _plain_score(volume, center_lps, prepared, pose) -> float:
     """The gradient NCC of the prepared X-ray (as decided, over its field) with the line DRR at
     ``pose`` ``(4, 4)``, at the optimiser's size: the score that confirms a polarity
     (:func:`register.xray.prepare.confirm_polarity_by_pose`)."""
-    from sim.drr import DRRRenderer, RenderSettings
 
     g = prepared.geometry
     drr = DRRRenderer(volume, RenderSettings(size=(g.height, g.width)), center_lps=center_lps, geometry=g).render(pose)

@@ -2,7 +2,7 @@
 
 Each command's defaults live in one dataclass (:mod:`sim.cli`, and later :mod:`register` and
 :mod:`learn`); the options and their grouped help are generated from it. Errors in the user's
-input (:class:`sim.errors.CtxregError`, or a path that is missing or not writable) print one
+input (:class:`sim.core.errors.CtxregError`, or a path that is missing or not writable) print one
 line and exit with status 2; set ``CTXREG_DEBUG=1`` for the traceback. Any other exception is a
 bug: it keeps its traceback.
 """
@@ -13,12 +13,13 @@ import argparse
 import os
 import sys
 
-from sim.cliargs import HelpFormatter, add_options, from_namespace
+from sim.core.cliargs import HelpFormatter, add_options, from_namespace
 from learn.commands import AccuracyCommand, AdaptCommand, ModelsCommand, TrainCommand
 from register.commands import EvaluateCommand, RegisterCommand, ServeCommand, StudyCommand
 from register.evaluation.demo import DemoCommand
 from register.verdict import EXIT_STATUS
 from sim.cli import RenderCommand, SimulateCommand
+from sim.core.errors import CtxregError, USER_OS_ERRORS
 
 COMMANDS = {
     "render": (RenderCommand, "render a DRR of a CT at one pose", "sim.cli:run_render"),
@@ -65,9 +66,8 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def _user_errors() -> tuple[type[BaseException], ...]:
-    """Exception types a user can act on (:mod:`sim.errors`): one line, no traceback. Anything
+    """Exception types a user can act on (:mod:`sim.core.errors`): one line, no traceback. Anything
     else is a bug and keeps its traceback."""
-    from sim.errors import USER_OS_ERRORS, CtxregError
 
     return (CtxregError, *USER_OS_ERRORS)
 
@@ -98,7 +98,7 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     for path in result if isinstance(result, list) else [result]:
         print(f"wrote {path}")
-    if getattr(result, "last_line", None):  # sim.outputs.Written: e.g. register's verdict, printed last
+    if getattr(result, "last_line", None):  # sim.core.outputs.Written: e.g. register's verdict, printed last
         print(result.last_line)
     return getattr(result, "exit_status", 0)
 

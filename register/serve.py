@@ -8,7 +8,7 @@ one JSON line per frame on stdout. What a service needs:
   for one look (:data:`SERVE_POLL_S`); a frame refused because it could not be read (a file still
   being copied) is taken again when it changes.
 * **Outputs appear whole or not at all.** A frame's outputs are written into a temporary folder
-  beside their place and renamed into it (:func:`sim.atomic.atomic_folder`); a killed process
+  beside their place and renamed into it (:func:`sim.core.atomic.atomic_folder`); a killed process
   leaves only a hidden temporary folder, which the next start removes. Each frame folder holds
   ``frame.json``: the X-ray's path and SHA-256.
 * **A restart continues.** Watching a folder, a frame whose file (path and content) already has
@@ -34,7 +34,7 @@ from pathlib import Path
 from typing import Callable, Iterator
 
 from register.engines.result import RegistrationError
-from sim.atomic import atomic_folder, folder_lock, remove_stale_temps, sha256_file, write_json
+from sim.core.atomic import atomic_folder, folder_lock, remove_stale_temps, sha256_file, write_json
 
 __all__ = ["SERVE_SUFFIXES", "SERVE_POLL_S", "FRAME_RECORD", "ServeError", "FolderWatch", "stdin_frames",
            "done_frames", "serve_frames", "ServeSummary"]

@@ -43,8 +43,8 @@ import numpy as np
 
 from register.engines.metrics import bind_metric, ncc
 from register.engines.result import RegistrationError
-from sim.geometry import pose_from_params
-from sim.se3 import rotation_error_deg
+from sim.projection.geometry import pose_from_params
+from sim.projection.se3 import rotation_error_deg
 
 __all__ = ["Verdict", "VerdictSettings", "gather_evidence", "judge", "judge_result", "pose_gap", "runner_up",
            "depth_probe_poses", "DEPTH_PROBE_MM", "EXIT_STATUS",

@@ -1,4 +1,4 @@
-"""Mitsuba scene files for C-arm geometries (``<name>.xml``); see :mod:`sim.scene`."""
+"""Mitsuba scene files for C-arm geometries (``<name>.xml``); see :mod:`sim.projection.scene`."""
 
 from pathlib import Path
 

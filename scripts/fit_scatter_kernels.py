@@ -43,12 +43,12 @@ def main(argv=None) -> int:
     sys.path.insert(0, str(REPO))
     import numpy as np
 
-    from sim.ct_io import load_ct
-    from sim.geometry import pose_from_params
+    from sim.ct.io import load_ct
+    from sim.projection.geometry import pose_from_params
     from sim.physics.imaging import PhysicsSettings, XRayImager
     from sim.physics.scatter_kernel import (ScatterKernelTable, data_tau_nodes, fit_maps, monte_carlo_maps,
                                             physics_record)
-    from sim.progress import Progress
+    from sim.core.progress import Progress
 
     volume = load_ct(args.ct)
     size = (args.size, args.size)

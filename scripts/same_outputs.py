@@ -74,7 +74,7 @@ def make(out: Path, tables: Path | None = None) -> None:
             cfg.update(dataset=str(ROOT / "campaigns" / "pelvis_vp.toml"), out=str(folder / "run"),
                        init_from=str(ROOT / "models" / "pelvis_line" / "model.pt"), pairs=pairs, batch_size=4,
                        iterations=3, val_pairs=4, val_every=3, checkpoint_every=3, subjects_per_batch=2)
-            from sim.atomic import toml_value
+            from sim.core.atomic import toml_value
 
             lines = ["[train]"] + [f"{k} = {toml_value(v)}" for k, v in cfg.items() if not isinstance(v, dict)]
             lines += ["[train.randomize]"] + [f"{k} = {toml_value(v)}" for k, v in cfg["randomize"].items()]

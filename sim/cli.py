@@ -13,11 +13,20 @@ from pathlib import Path
 
 import numpy as np
 
-from sim.cliargs import IMAGE_SIDE_PX, Range, opt
-from sim.errors import InputError
+from sim.core.cliargs import IMAGE_SIDE_PX, Range, opt
+from sim.core.errors import InputError
 from sim.physics.options import level_field, physics_option
-from sim.anatomy import find_center
-from sim.drr import QUANTITIES, RAY_MODELS, STEP_FRACTION, RenderSettings
+from sim.ct.anatomy import find_center
+from sim.projection.drr import QUANTITIES, RAY_MODELS, STEP_FRACTION, RenderSettings
+from sim.campaign.config import load_campaign
+from sim.campaign.runner import CampaignError, parse_shard, run_campaign
+from sim.core.atomic import atomic_path, write_json
+from sim.core.cliargs import refuse_unused, refuse_unused_label_map
+from sim.core.outputs import check_output_file
+from sim.core.scale import dask_client, parse_scheduler
+from sim.ct.io import load_ct_spec
+from sim.physics.options import check_level_options, label_materials, physics_settings
+from sim.render import render_view
 
 _DEFAULTS = RenderSettings()  # the renderer's defaults are the command line's
 
@@ -113,7 +122,7 @@ def load_pose_matrix(path: str) -> np.ndarray:
 
 def geometry_record(renderer, pose: np.ndarray, quantity: str, *, center_how: str = "given") -> dict:
     """The JSON sidecar: everything needed to reproduce or project into the image; ``center_how``:
-    how the anatomy centre was found (:meth:`sim.anatomy.Center.to_dict`)."""
+    how the anatomy centre was found (:meth:`sim.ct.anatomy.Center.to_dict`)."""
     g = renderer.geometry
     return {
         "ct": renderer.volume.source,
@@ -149,7 +158,6 @@ def write_image(path: str | Path, values: np.ndarray, record: dict, quantity: st
     """Write ``values`` (H, W) as .npy or .png and the JSON sidecar, each atomically."""
     from PIL import Image
 
-    from sim.atomic import atomic_path, write_json
 
     path = Path(path)
     if path.suffix == ".npy":
@@ -166,8 +174,6 @@ def write_image(path: str | Path, values: np.ndarray, record: dict, quantity: st
 def run_render(cmd: RenderCommand) -> Path | list[Path]:
     """Check every option and the output names, then load the CT, render (:func:`sim.render.render_view`:
     refuses a pose at which the CT is out of view) and write the image and its sidecar."""
-    from sim.outputs import check_output_file
-    from sim.render import render_view
 
     out = Path(cmd.out)
     if out.suffix not in (".npy", ".png"):
@@ -178,8 +184,6 @@ def run_render(cmd: RenderCommand) -> Path | list[Path]:
     extra = [] if cmd.physics == "line" else ["raw", *(("primary", "scatter") if cmd.primary else ())]
     check_output_file(out, beside=[out.with_suffix(".json"), *(out.with_name(f"{out.stem}_{n}.npy") for n in extra)])
     pose = load_pose_matrix(cmd.pose_matrix) if cmd.pose_matrix is not None else np.array(cmd.pose, np.float64)
-    from sim.ct_io import load_ct_spec
-    from sim.physics.options import label_materials, physics_settings
 
     volume = load_ct_spec(cmd.ct, label_map=cmd.label_map)
     line = cmd.physics == "line"
@@ -207,8 +211,6 @@ _LEVEL_BOUND = {"quantity": ("line",), "mu_water": ("line",), "step_fraction": (
 def _check_physics_options(cmd: RenderCommand) -> None:
     """Refuse options that this run would ignore (another physics level's, or the trilinear step
     with the Siddon ray model) instead of ignoring them silently."""
-    from sim.cliargs import refuse_unused, refuse_unused_label_map
-    from sim.physics.options import check_level_options
 
     check_level_options(cmd, extra=_LEVEL_BOUND)
     refuse_unused_label_map(cmd)
@@ -217,7 +219,6 @@ def _check_physics_options(cmd: RenderCommand) -> None:
 
 
 def _write_physics(cmd: RenderCommand, view, out: Path, center_how: str) -> list[Path]:
-    from sim.atomic import atomic_path
 
     record = {**geometry_record(view.renderer, view.pose, "line-integral", center_how=center_how),
               "quantity": "-log(I/I0)",
@@ -257,9 +258,6 @@ class SimulateCommand:
 
 
 def run_simulate(cmd: SimulateCommand) -> list[Path]:
-    from sim.campaign.config import load_campaign
-    from sim.campaign.runner import CampaignError, parse_shard, run_campaign
-    from sim.scale import dask_client, parse_scheduler
 
     scheduler = parse_scheduler(cmd.scheduler) if cmd.scheduler is not None else None
     if scheduler is not None and cmd.workers != 1:

@@ -32,7 +32,7 @@ are the tools' own: nothing in the CT places them.
 
 Chords (:class:`DistractorField`): the pixel-centre rays are made by the renderer's own code
 (the ``ctxreg_drr`` integrator's ray generation from the scene's Mitsuba sensor, placed by
-:func:`sim.geometry.extrinsic_lps_to_camera` for each pose), and the meshes are put in a Mitsuba
+:func:`sim.projection.geometry.extrinsic_lps_to_camera` for each pose), and the meshes are put in a Mitsuba
 scene, one per channel (material and density). Per ray a symbolic ``dr.while_loop`` calls
 ``scene.ray_intersect`` repeatedly: an entry (``d . n < 0`` for the outward face normal ``n``)
 subtracts its distance ``t``, an exit adds it, so the sum is the total length inside the closed
@@ -45,7 +45,7 @@ hit of that channel (``unpaired_rays`` counts such rays; zero in the tests).
 Attenuation:
 
 * ``line``: ``L += mu(E_line) * chord`` with ``mu`` from xraylib at :data:`LINE_ENERGY_KEV`
-  (60 keV, the energy of :data:`sim.materials.MU_WATER_60KEV_PER_MM`) at the tool's density
+  (60 keV, the energy of :data:`sim.physics.materials.MU_WATER_60KEV_PER_MM`) at the tool's density
   (:func:`add_to_line_integral`);
 * ``poly`` / ``full``: the tool's density line integral ``rho * chord / 10`` (g/cm^2) is added
   to the channel of its material, appended when the CT's decomposition lacks it
@@ -53,7 +53,7 @@ Attenuation:
   only: the tools attenuate the primary, they do not scatter.
 
 :class:`RendererWithDistractors` and :func:`imager_with_distractors` wrap a
-:class:`sim.drr.DRRRenderer` or a :class:`sim.physics.imaging.XRayImager` so that their
+:class:`sim.projection.drr.DRRRenderer` or a :class:`sim.physics.imaging.XRayImager` so that their
 ``render`` includes the tools; without tools the wrapped objects are untouched.
 
 Units: mm, g/cm^3, g/cm^2, 1/mm, keV.
@@ -68,8 +68,12 @@ from typing import Sequence
 
 import numpy as np
 
-from sim.errors import InputError
-from sim.materials import MATERIALS, mu_linear, nominal_density
+from sim.core.errors import InputError
+from sim.physics.materials import MATERIALS, mu_linear, nominal_density
+from sim.physics.poly import Polychromatic
+from sim.projection.drr import DRRRenderer, MAX_RAYS_PER_LAUNCH, camera_from_sensor
+from sim.projection.geometry import CArmGeometry, extrinsic_lps_to_camera
+from sim.projection.scene import DEFAULT_SCENE, load_mitsuba_scene, load_scene
 
 __all__ = [
     "DistractorError",
@@ -152,7 +156,7 @@ class ToolMesh:
 
     Attributes:
         kind: what it is (``"screw"``, ``"k_wire"``, ...).
-        material: a name of :data:`sim.materials.MATERIALS`.
+        material: a name of :data:`sim.physics.materials.MATERIALS`.
         density_g_cm3: its density.
         vertices: ``(N, 3)`` float64 mm.
         faces: ``(F, 3)`` int64 vertex indices, counter-clockwise seen from outside.
@@ -642,7 +646,7 @@ class DistractorField:
 
     Args:
         tools: :class:`Distractor` s (any number, any frames).
-        geometry: the :class:`sim.geometry.CArmGeometry` of the images (e.g. a renderer's
+        geometry: the :class:`sim.projection.geometry.CArmGeometry` of the images (e.g. a renderer's
             ``geometry``).
         center_lps: ``(3,)`` anatomy centre c (LPS mm) of the poses, as the renderer's.
         scene: the scene the renderer loaded (its Mitsuba sensor makes the rays).
@@ -653,8 +657,6 @@ class DistractorField:
     """
 
     def __init__(self, tools: Sequence[Distractor], geometry, center_lps, *, scene: str | None = None):
-        from sim.geometry import CArmGeometry
-        from sim.scene import DEFAULT_SCENE
 
         tools = tuple(tools)
         for t in tools:
@@ -687,8 +689,6 @@ class DistractorField:
             return
         import mitsuba as mi
 
-        from sim.drr import camera_from_sensor
-        from sim.scene import load_mitsuba_scene, load_scene
 
         self._sensor_scene = load_mitsuba_scene(load_scene(self.scene_name), self.geometry)
         self._sensor = self._sensor_scene.sensors()[0]
@@ -757,7 +757,6 @@ class DistractorField:
     def chords(self, poses) -> np.ndarray:
         """Path lengths (mm) inside the tools, per channel: ``(B, C, H, W)`` float32 for poses
         ``(4, 4)`` or ``(B, 4, 4)`` (volume poses T, as the renderer's; ``B = 1`` for one)."""
-        from sim.drr import MAX_RAYS_PER_LAUNCH, DRRRenderer
 
         poses = DRRRenderer._check_poses(poses)
         b, h, w = len(poses), self.geometry.height, self.geometry.width
@@ -775,7 +774,6 @@ class DistractorField:
         return out
 
     def _chords(self, poses: np.ndarray) -> tuple[np.ndarray, int]:
-        from sim.geometry import extrinsic_lps_to_camera
 
         b, h, w = len(poses), self.geometry.height, self.geometry.width
         out = np.zeros((b, len(self.channels), h, w), np.float32)
@@ -866,7 +864,7 @@ def add_to_density_integrals(L, names: Sequence[str], chords, channels) -> tuple
 
 
 class RendererWithDistractors:
-    """A :class:`sim.drr.DRRRenderer` whose images include tools in the field.
+    """A :class:`sim.projection.drr.DRRRenderer` whose images include tools in the field.
 
     ``render(poses)`` is the renderer's, plus the tools: ``line-integral`` adds
     ``mu * chord``, ``intensity`` multiplies by ``exp(-mu * chord)``, ``density`` adds
@@ -889,7 +887,7 @@ class RendererWithDistractors:
         return getattr(renderer, name)
 
     def render(self, poses) -> np.ndarray:
-        """As :meth:`sim.drr.DRRRenderer.render`, with the tools."""
+        """As :meth:`sim.projection.drr.DRRRenderer.render`, with the tools."""
         poses = self.renderer._check_poses(poses)
         img = self.renderer.render(poses)
         if not self.field.tools:
@@ -909,7 +907,6 @@ def imager_with_distractors(imager, tools: Sequence[Distractor]):
     tools: its density renderer becomes a :class:`RendererWithDistractors` and its
     polychromatic model gains the tools' materials; spectrum, detector, noise, flat field and
     scatter (which sees the CT only) are shared. With no tools the imager itself is returned."""
-    from sim.physics.poly import Polychromatic
 
     tools = tuple(tools)
     if not tools:

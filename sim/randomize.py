@@ -37,7 +37,7 @@ finished signal (as :mod:`sim.physics.display`).
 
 Drawing (:meth:`DomainRandomization.draw`): pair ``index`` under ``seed`` reads one uniform number
 per setting, in declaration order, from the stream ``(KIND_RANDOMIZE, index, 0)`` of
-:mod:`sim.seeds`, and turns it into the setting's value by its inverse distribution function.
+:mod:`sim.core.seeds`, and turns it into the setting's value by its inverse distribution function.
 So a draw depends on ``(seed, index)`` only (not on other draws or their order), and narrowing
 one setting's range changes no other setting's value. Every setting is drawn, also where its
 condition (:attr:`Randomized.when`) does not hold; :meth:`Draw.to_dict` records the active ones.
@@ -72,8 +72,15 @@ from typing import Any, Mapping
 
 import numpy as np
 
-from sim.errors import InputError
-from sim.seeds import KIND_RANDOMIZE, rng_for
+from sim.core.errors import InputError
+from sim.core.seeds import KIND_RANDOMIZE, rng_for
+from sim.core.atomic import read_toml
+from sim.physics.display import Collimator, DisplayChain
+from sim.physics.scatter_kernel import default_table
+from sim.physics.settings import PhysicsSettings, SETTINGS
+from sim.distractors import DistractorField, random_tools
+from sim.physics import PhysicsError
+from sim.projection.geometry import CArmGeometry
 
 __all__ = ["RandomizeError", "Randomized", "DECLARATION", "STAGES", "DISTRIBUTIONS", "DomainRandomization",
            "Draw", "ToolBank", "TOOL_BANK_SIZE", "apply_image", "sks_model", "sks_texture",
@@ -183,7 +190,6 @@ class Randomized:
     def _physics_setting(self):
         if self.physics is None:
             return None
-        from sim.physics.settings import SETTINGS
 
         return SETTINGS[self.physics]
 
@@ -213,7 +219,6 @@ class Randomized:
             raise RandomizeError(f"{where}: the range must lie in {self.limits_text()}, got {v:g}")
         s = self._physics_setting()
         if s is not None:
-            from sim.physics import PhysicsError
 
             value = [(_FILTER_ELEMENT[self.name], v)] if s.kind == "filters" else v
             try:
@@ -508,7 +513,7 @@ def _check_index(name: str, v) -> int:
 
 def image_rng(seed: int, index: int) -> np.random.Generator:
     """The post-render noise stream of pair ``index`` (``(KIND_RANDOMIZE, index, 1)`` of
-    :mod:`sim.seeds`): the ``rng`` to pass to :func:`apply_image`."""
+    :mod:`sim.core.seeds`): the ``rng`` to pass to :func:`apply_image`."""
     return rng_for(_check_index("seed", seed), KIND_RANDOMIZE, _check_index("index", index), 1)
 
 
@@ -561,7 +566,6 @@ class Draw:
         its anode angle, bins, detector, seed and Monte Carlo settings are kept) with the drawn
         tube, filtration, exposure, grid (ratio 0 without), detector blur, ``noise=True``, and level
         ``full`` where the scatter is ``monte-carlo``, else ``poly``."""
-        from sim.physics.settings import PhysicsSettings
 
         if not isinstance(base, PhysicsSettings):
             raise RandomizeError(f"physics_settings needs a PhysicsSettings, got {type(base).__name__}")
@@ -576,7 +580,6 @@ class Draw:
     def collimator(self, height: int, width: int):
         """The drawn :class:`sim.physics.display.Collimator`, or None for an open field. Refused
         (:class:`RandomizeError`) if its field holds no pixel of a ``height x width`` image."""
-        from sim.physics.display import Collimator
 
         shape = self["field"]
         if shape == "none":
@@ -601,7 +604,6 @@ class Draw:
     def display_chain(self):
         """The drawn :class:`sim.physics.display.DisplayChain` (``shutter`` ``black`` where the
         field is open: it has no outside)."""
-        from sim.physics.display import DisplayChain
 
         unsharp = bool(self["unsharp"])
         return DisplayChain(log=bool(self["log"]), polarity=self["polarity"],
@@ -687,7 +689,7 @@ class ToolBank:
 
     Args:
         seed: the randomization seed (integer >= 0).
-        geometry: the :class:`sim.geometry.CArmGeometry` of the images.
+        geometry: the :class:`sim.projection.geometry.CArmGeometry` of the images.
         scene: the C-arm scene whose sensor makes the rays.
     """
 
@@ -703,7 +705,6 @@ class ToolBank:
         if j >= TOOL_BANK_SIZE:
             raise RandomizeError(f"tool bank arrangement must be < {TOOL_BANK_SIZE}, got {j}")
         if j not in self._cache:
-            from sim.distractors import DistractorField, random_tools
 
             tools = random_tools(rng_for(self.seed, KIND_RANDOMIZE, j, 2), self.geometry)
             field = DistractorField(tools, self.geometry, np.zeros(3), scene=self.scene)
@@ -730,7 +731,6 @@ class ToolBank:
 def load_randomization(path: str | Path) -> DomainRandomization:
     """The :class:`DomainRandomization` of a TOML file's ``[randomize]`` table (the declaration
     where the file has none; other tables are left to their readers)."""
-    from sim.atomic import read_toml
 
     path = Path(path)
     data = read_toml(path, RandomizeError, "randomization config")
@@ -758,7 +758,6 @@ def sks_model(draw: Draw, table=None):
     ``sks``: the table's model (default :func:`sim.physics.scatter_kernel.default_table`) at the
     drawn kV and grid ratio (0 without a grid), its amplitudes times ``sks_amplitude`` and its
     widths times ``sks_width`` (:meth:`ScatterKernelTable.drawn`)."""
-    from sim.physics.scatter_kernel import default_table
 
     table = default_table() if table is None else table
     return table.drawn(float(draw["kvp"]), float(draw["grid_ratio"]) if draw["grid"] else 0.0,
@@ -785,7 +784,7 @@ def apply_image(raw_intensity: np.ndarray, i0: float, draw: Draw, rng: np.random
     ``scatter``) -> ``(image, field_mask)``: display integers ``(H, W)`` ``uint16`` in
     ``0 .. 2^bits - 1`` and the collimated field ``(H, W)`` bool (all True when open).
 
-    Where the draw's scatter is ``sks``: ``geometry`` (the :class:`sim.geometry.CArmGeometry` of
+    Where the draw's scatter is ``sks``: ``geometry`` (the :class:`sim.projection.geometry.CArmGeometry` of
     the image: the kernels are mm at the detector) is required; ``gap_mm`` the air gap of the
     target pose (anatomy centre to detector, mm; :func:`sim.physics.scatter_kernel.detector_gap_mm`;
     None: the model's reference gap); ``sks_table`` the :class:`ScatterKernelTable` (None: the
@@ -829,7 +828,6 @@ def apply_image(raw_intensity: np.ndarray, i0: float, draw: Draw, rng: np.random
     if mode == "kernel":
         raw = raw + float(draw["scatter_spr"]) * _kernel_scatter(raw, float(draw["scatter_sigma"]) * min(h, w))
     if mode == "sks":
-        from sim.geometry import CArmGeometry
 
         if not isinstance(geometry, CArmGeometry) or (geometry.height, geometry.width) != (h, w):
             raise RandomizeError(f"apply_image: the draw's scatter is sks: pass the image's geometry (a CArmGeometry "

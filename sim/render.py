@@ -4,12 +4,12 @@
 :func:`render`) takes a CT or a CT name, a pose given as six parameters or a 4 x 4 matrix, and any
 physics level; :func:`render_view` is the same with the renderer and the pose kept, for callers
 that record the geometry (``ctxreg render``). Both refuse a pose at which the CT is not in the
-view (:func:`sim.drr.check_in_view`) instead of returning an empty image. Line images come from
-the DRR renderer (:class:`sim.drr.DRRRenderer`), poly / full ones from
+view (:func:`sim.projection.drr.check_in_view`) instead of returning an empty image. Line images come from
+the DRR renderer (:class:`sim.projection.drr.DRRRenderer`), poly / full ones from
 :class:`sim.physics.imaging.XRayImager`.
 
-The DRR renderer itself (:class:`~sim.drr.DRRRenderer`, :class:`~sim.drr.RenderSettings`,
-:class:`~sim.drr.RenderError`, :func:`~sim.drr.check_in_view`, ...) lives in :mod:`sim.drr`.
+The DRR renderer itself (:class:`~sim.projection.drr.DRRRenderer`, :class:`~sim.projection.drr.RenderSettings`,
+:class:`~sim.projection.drr.RenderError`, :func:`~sim.projection.drr.check_in_view`, ...) lives in :mod:`sim.projection.drr`.
 """
 
 from __future__ import annotations
@@ -20,12 +20,13 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from sim.drr import DRRRenderer, RenderError, RenderSettings, check_in_view
-from sim.geometry import pose_from_params
+from sim.projection.drr import DRRRenderer, RenderError, RenderSettings, check_in_view
+from sim.projection.geometry import pose_from_params
 from sim.physics.imaging import XRayImager
 from sim.physics.settings import LEVELS, PhysicsSettings
-from sim.scene import DEFAULT_SCENE
-from sim.volume import CTVolume
+from sim.projection.scene import DEFAULT_SCENE
+from sim.ct.volume import CTVolume
+from sim.core.cliargs import IMAGE_SIDE_PX
 
 
 @dataclass
@@ -36,7 +37,7 @@ class View:
         image: ``(H, W)`` float32: the line integral (or ``intensity``) for line physics, else
             ``-log(I/I0)``.
         pose: ``(4, 4)`` the volume pose T.
-        renderer: the :class:`sim.drr.DRRRenderer` (its ``geometry``, ``center_lps``, ``settings``);
+        renderer: the :class:`sim.projection.drr.DRRRenderer` (its ``geometry``, ``center_lps``, ``settings``);
             for poly / full the one that rendered the material densities.
         images: every image of the level, ``(H, W)`` float32 each: ``{"image"}`` for line, the
             :class:`sim.physics.imaging.XRayImager` outputs (``raw``, ``log``, ``primary`` and
@@ -102,7 +103,7 @@ def render(ct, pose=(0.0, 0.0, 0.0, 0.0, 0.0, 0.0), *, size: tuple[int, int] = (
     """One X-ray image of a CT: ``(H, W)`` float32, ``H, W = size``.
 
     Args:
-        ct: a :class:`sim.volume.CTVolume` (:func:`sim.load_ct`), or what :func:`sim.load_ct`
+        ct: a :class:`sim.ct.volume.CTVolume` (:func:`sim.load_ct`), or what :func:`sim.load_ct`
             takes: a NIfTI file, a DICOM series folder, ``"phantom"`` / ``"phantom:SEED"``.
         pose: six parameters ``(phi, theta, psi, tx, ty, tz)`` in degrees and mm (all zero: the
             AP view; ``docs/conventions.md``) or a ``(4, 4)`` pose T.
@@ -122,10 +123,10 @@ def render(ct, pose=(0.0, 0.0, 0.0, 0.0, 0.0, 0.0), *, size: tuple[int, int] = (
             centroid (or the label map's).
         ray_model: ``"siddon"`` (exact voxel traversal) or ``"trilinear"`` (smoother on coarse CTs).
         step_fraction: the trilinear step as a fraction of the smallest voxel spacing
-            (:data:`sim.drr.STEP_FRACTION`; line physics only).
+            (:data:`sim.projection.drr.STEP_FRACTION`; line physics only).
         label_materials: ``{label: material}`` for poly / full (a CT loaded with a label map).
 
-    Raises :class:`sim.errors.InputError` subclasses, each naming the problem: a CT that cannot be
+    Raises :class:`sim.core.errors.InputError` subclasses, each naming the problem: a CT that cannot be
     read, a size or setting out of range, a pose at which the CT is not in the view.
 
     Example::
@@ -135,7 +136,6 @@ def render(ct, pose=(0.0, 0.0, 0.0, 0.0, 0.0, 0.0), *, size: tuple[int, int] = (
         >>> drr.shape, drr.dtype                                                           # doctest: +SKIP
         ((64, 64), dtype('float32'))
     """
-    from sim.cliargs import IMAGE_SIDE_PX
 
     volume = ct if isinstance(ct, CTVolume) else _load(ct)
     try:
@@ -150,7 +150,7 @@ def render(ct, pose=(0.0, 0.0, 0.0, 0.0, 0.0, 0.0), *, size: tuple[int, int] = (
 
 
 def _load(spec) -> CTVolume:
-    from sim.ct_io import load_ct_spec
+    from sim.ct.io import load_ct_spec  # loads SciPy: imported where first needed (start-up)
 
     return load_ct_spec(spec)
 

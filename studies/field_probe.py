@@ -48,8 +48,8 @@ def main(argv=None) -> int:
     from register.evaluation.study import frame_seed, load_study, study_frames
     from register.xray.io import load_xray
     from sim import load_ct
-    from sim.anatomy import anatomy_center
-    from sim.geometry import pose_from_params
+    from sim.ct.anatomy import anatomy_center
+    from sim.projection.geometry import pose_from_params
     from sim.physics.imaging import moving_renderer
 
     study = load_study(ROOT / "studies" / "domain_gap.toml")

@@ -42,7 +42,7 @@ def shared_file(relative: str) -> Path:
 
 @pytest.fixture(scope="session", autouse=True)
 def private_ct_cache(tmp_path_factory):
-    """The CT cache (sim.ct_cache) of the tests: a folder of their own, never the user's."""
+    """The CT cache (sim.ct.cache) of the tests: a folder of their own, never the user's."""
     import os
 
     before = os.environ.get("CTXREG_CT_CACHE")

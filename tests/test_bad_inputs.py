@@ -121,8 +121,8 @@ def inputs(tmp_path_factory) -> dict[str, str]:
 
     from learn.model import pose_update_net
     from register.xray.io import write_xray_dicom
-    from sim.phantom import make_pelvis_phantom
-    from sim.drr import DRRRenderer, RenderSettings
+    from sim.ct.phantom import make_pelvis_phantom
+    from sim.projection.drr import DRRRenderer, RenderSettings
 
     d = tmp_path_factory.mktemp("inputs")
     r = DRRRenderer(make_pelvis_phantom(0), RenderSettings(size=(64, 64)))

@@ -88,7 +88,7 @@ def test_a_bad_input_is_refused_before_the_work_naming_the_option(name, inputs29
 
     monkeypatch.setattr(sim.physics.imaging, "XRayImager", no_work)  # the demo's simulation
     if name not in READ_THE_CT:
-        monkeypatch.setattr("sim.ct_io.load_ct_spec", no_work)  # the demo's CT
+        monkeypatch.setattr("sim.ct.io.load_ct_spec", no_work)  # the demo's CT
         monkeypatch.setattr("sim.load_ct", no_work)  # register's CT
     assert register.evaluation.demo  # imported: its imports are made inside run_demo
     line, words = BAD[name]
@@ -103,9 +103,9 @@ def test_a_size_beyond_the_memory_is_refused_before_it_is_allocated(size, inputs
                                                                     monkeypatch):
     """register --size 4096 4096 on a 64 x 64 X-ray asked for 27 GiB in the polarity check."""
     import register.api
-    import sim.cliargs
+    import sim.core.cliargs
 
-    monkeypatch.setattr(sim.cliargs, "available_memory_bytes", lambda: 4 * 1024 ** 3)
+    monkeypatch.setattr(sim.core.cliargs, "available_memory_bytes", lambda: 4 * 1024 ** 3)
 
     def no_work(*args, **kwargs):
         raise AssertionError("prepared before the memory check")

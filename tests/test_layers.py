@@ -142,3 +142,24 @@ def test_the_graph_sees_every_kind_of_import_and_names_each_cycle(tmp_path):
     assert graph["sim.b"] == {"sim.sub.c"} and graph["sim.sub.c"] == {"sim.a", "sim.sub.d"}
     assert graph["sim.sub.d"] == set()
     assert cycles(graph) == [["sim.a", "sim.b", "sim.sub.c", "sim.a"], ["sim.e", "sim.f", "sim.e"]]
+
+
+# --------------------------------------------------------------------------------------------
+# sim/ by stage: its infrastructure the lowest layer, few flat modules
+# --------------------------------------------------------------------------------------------
+
+
+def test_sim_core_imports_nothing_of_the_project_but_itself():
+    """sim.core (errors, atomic writes, options, outputs, progress, seeds, Dask) is what every package
+    may import: it must not import them back."""
+    graph = import_graph(ROOT)
+    bad = {m: sorted(n for n in deps if not n.startswith("sim.core")) for m, deps in graph.items()
+           if m.startswith("sim.core")}
+    assert not any(bad.values()), bad
+
+
+def test_sim_keeps_its_stages_in_folders_and_few_flat_modules():
+    flat = sorted(p.name for p in (ROOT / "sim").glob("*.py"))
+    assert len(flat) <= 10, flat
+    assert {"core", "ct", "projection", "physics", "campaign"} <= {p.name for p in (ROOT / "sim").iterdir()
+                                                                  if (p / "__init__.py").is_file()}

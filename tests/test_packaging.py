@@ -86,7 +86,7 @@ def built(tmp_path_factory):
 
 def test_the_wheel_holds_every_package_and_data_file_of_the_source_tree(built):
     wheel, packages = built
-    assert {"sim", "sim/physics", "sim/campaign", "sim/integrators", "learn", "register",
+    assert {"sim", "sim/physics", "sim/campaign", "sim/projection/integrators", "learn", "register",
             "scenes"} <= set(packages)  # the derivation itself finds the known packages
     names = set(zipfile.ZipFile(wheel).namelist())
     missing = sorted(f"{pkg}/{f}" for pkg, files in packages.items() for f in files

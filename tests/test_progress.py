@@ -1,4 +1,4 @@
-"""The progress line of long commands (sim.progress.Progress): counts, rate, ETA, and where it goes."""
+"""The progress line of long commands (sim.core.progress.Progress): counts, rate, ETA, and where it goes."""
 
 from __future__ import annotations
 
@@ -6,12 +6,12 @@ import re
 
 import pytest
 
-from sim.progress import Progress, StageClock, process_seconds
+from sim.core.progress import Progress, StageClock, process_seconds
 
 
 def test_progress_line_counts_rate_and_eta(capsys, monkeypatch):
     clock = [100.0]
-    monkeypatch.setattr("sim.progress.time.monotonic", lambda: clock[0])
+    monkeypatch.setattr("sim.core.progress.time.monotonic", lambda: clock[0])
     bar = Progress(10, 2, "train x", "iterations", rate_unit="pairs/s", rate_scale=32)  # resumed at 2 of 10
     first = capsys.readouterr().err
     assert first.startswith("train x: 2/10 iterations ( 20.0 %)") and "ETA --" in first
@@ -41,7 +41,7 @@ def test_a_training_run_shows_its_progress_on_stderr(tmp_path, capsys):
 
 def test_the_stage_clock_sums_each_stage_in_the_order_they_ran(monkeypatch):
     now = [10.0]
-    monkeypatch.setattr("sim.progress.time.perf_counter", lambda: now[0])
+    monkeypatch.setattr("sim.core.progress.time.perf_counter", lambda: now[0])
     clock = StageClock()
     for stage, seconds in (("ct", 1.5), ("register", 2.0), ("ct", 0.25)):
         with clock(stage):
@@ -70,7 +70,7 @@ def test_process_seconds_counts_from_the_process_start():
 
     t0 = time.perf_counter()
     out = subprocess.run([sys.executable, "-c", "import time; time.sleep(0.5); "
-                          "from sim.progress import process_seconds; print(process_seconds())"],
+                          "from sim.core.progress import process_seconds; print(process_seconds())"],
                          capture_output=True, text=True, check=True)
     took = time.perf_counter() - t0
     assert 0.48 <= float(out.stdout) <= took + 0.02
@@ -79,13 +79,13 @@ def test_process_seconds_counts_from_the_process_start():
 def test_the_stage_clocks_example_runs():
     import doctest
 
-    import sim.progress
+    import sim.core.progress
 
-    assert doctest.testmod(sim.progress).failed == 0
+    assert doctest.testmod(sim.core.progress).failed == 0
 
 
 def test_a_time_limit_that_comes_first_gives_the_eta_and_share(capsys, monkeypatch):
-    import sim.progress as progress
+    import sim.core.progress as progress
 
     clock = [100.0]
     monkeypatch.setattr(progress.time, "monotonic", lambda: clock[0])

@@ -2,7 +2,7 @@
 pose, detector pixel indexing, and the senses of the three pose rotations.
 
 Run from anywhere: ``python docs/figures/make_conventions_figure.py``. The geometry drawn
-comes from :mod:`sim.geometry` (``R_AP``, ``pose_from_params``, ``CArmGeometry``), so the figure
+comes from :mod:`sim.projection.geometry` (``R_AP``, ``pose_from_params``, ``CArmGeometry``), so the figure
 follows the code.
 """
 
@@ -22,7 +22,7 @@ from mpl_toolkits.mplot3d.art3d import Poly3DCollection  # noqa: E402
 REPO = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(REPO))
 
-from sim.geometry import R_AP, CArmGeometry, pose_from_params  # noqa: E402
+from sim.projection.geometry import R_AP, CArmGeometry, pose_from_params  # noqa: E402
 
 OUT = Path(__file__).resolve().parent / "conventions.png"
 

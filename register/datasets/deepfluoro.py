@@ -58,10 +58,10 @@ import numpy as np
 
 from register.convert import PoseConversionError, deepfluoro_lps_extrinsic, from_deepfluoro, to_deepfluoro
 from register.xray.io import XRayImage
-from sim.atomic import atomic_path
-from sim.errors import InputError
-from sim.geometry import CArmGeometry, project_points, projection_matrix
-from sim.volume import CTVolume
+from sim.core.atomic import atomic_path
+from sim.core.errors import InputError
+from sim.projection.geometry import CArmGeometry, project_points, projection_matrix
+from sim.ct.volume import CTVolume
 
 __all__ = [
     "DeepFluoroError",
@@ -357,7 +357,7 @@ class DeepFluoroProjection:
 
     def truth(self, center_lps, *, sod_mm: float) -> tuple[np.ndarray, CArmGeometry]:
         """ctxreg's ground-truth pose ``T`` ``(4, 4)`` about ``center_lps`` ``(3,)`` LPS mm, and the
-        :class:`sim.geometry.CArmGeometry` of the ctxreg image (``sod_mm``: the isocentre distance
+        :class:`sim.projection.geometry.CArmGeometry` of the ctxreg image (``sod_mm``: the isocentre distance
         the pose parameters are written against; it changes no projection)."""
         try:
             return from_deepfluoro(self.extrinsic_lps, self.params.intrinsic, center_lps, height=self.params.rows,
@@ -417,12 +417,12 @@ class DeepFluoroSpecimen:
 
     Attributes:
         id: the group's name (e.g. ``17-1882``); number: 1-6 in DiffPose's and xvr's numbering, or None.
-        volume: :class:`sim.volume.CTVolume` (HU, LPS affine from the ITK group, ``labels`` = the
+        volume: :class:`sim.ct.volume.CTVolume` (HU, LPS affine from the ITK group, ``labels`` = the
             segmentation where the file has one on the CT's grid).
         labels_def: ``{label: name}`` from ``vol-seg/labels-def``.
         landmarks_lps: ``{name: (3,)}`` LPS mm.
         center_lps: ``(3,)`` the anatomy centre: the centroid of the labels named "*pelvis*" (the
-            hemipelves), else of the bone (:func:`sim.anatomy.anatomy_center`).
+            hemipelves), else of the bone (:func:`sim.ct.anatomy.anatomy_center`).
         center_from: what the centre is the centroid of, in words.
     """
 
@@ -507,8 +507,8 @@ class DeepFluoroFile:
     def specimen(self, key: str | int, *, ct: bool = True, log=None) -> DeepFluoroSpecimen:
         """The specimen ``key`` (name or number 1-6) with its CT, segmentation and landmarks read
         (``ct=False``: the landmarks and the frames' list only; ``volume`` and ``center_lps`` are None)."""
-        from sim.anatomy import anatomy_center, bone_mask, mask_centroid_lps
-        from sim.ct_io import ct_from_array
+        from sim.ct.anatomy import anatomy_center, bone_mask, mask_centroid_lps  # loads SciPy: imported where first needed (start-up)
+        from sim.ct.io import ct_from_array  # loads SciPy: imported where first needed (start-up)
 
         sid = self.resolve(key)
         r = self._r

@@ -29,11 +29,12 @@ import numpy as np
 from register.convert import to_deepfluoro
 from register.datasets.deepfluoro import (I0_RAW, LANDMARK_NAMES, LABEL_NAMES, DeepFluoroError, ProjectionData,
                                           SpecimenData, projection_params_for, write_deepfluoro)
-from sim.anatomy import anatomy_center, bone_mask
-from sim.geometry import CArmGeometry, pose_from_params
+from sim.ct.anatomy import anatomy_center, bone_mask
+from sim.projection.geometry import CArmGeometry, pose_from_params
 from sim.physics.display import Collimator
 from sim.physics.settings import PhysicsSettings
-from sim.volume import CTVolume
+from sim.ct.volume import CTVolume
+from sim.physics.imaging import XRayImager
 
 __all__ = ["SyntheticSettings", "synthesize_deepfluoro", "canonical_lps", "synthetic_landmarks", "hemipelvis_labels",
            "DEEPFLUORO_WORLD_FROM_CAMERA"]
@@ -157,7 +158,7 @@ def synthesize_deepfluoro(path: str | os.PathLike, volume: CTVolume, params: Seq
     Args:
         path: the HDF5 file to write (atomically).
         volume: the CT (axis-aligned; written with the identity direction, :func:`canonical_lps`).
-        params: ``(N, 6)`` ctxreg pose parameters (deg, mm; :func:`sim.geometry.pose_from_params` at
+        params: ``(N, 6)`` ctxreg pose parameters (deg, mm; :func:`sim.projection.geometry.pose_from_params` at
             ``settings.sod_mm``) about the bone centroid.
         specimen_id: the specimen group's name.
         settings: :class:`SyntheticSettings`.
@@ -165,7 +166,6 @@ def synthesize_deepfluoro(path: str | os.PathLike, volume: CTVolume, params: Seq
 
     Returns ``{"path", "center_lps" (3,), "poses" (N, 4, 4) ctxreg truth, "geometry", "landmarks_lps"}``.
     """
-    from sim.physics.imaging import XRayImager
 
     s = settings or SyntheticSettings()
     log = log or (lambda line: None)

@@ -24,8 +24,10 @@ import numpy as np
 
 from register.engines.metrics import bind_metric, downsample, get_metric
 from register.engines.result import RegistrationError, RegistrationResult
-from sim.errors import InputError
-from sim.geometry import pose_from_params
+from sim.core.errors import InputError
+from sim.projection.geometry import pose_from_params
+from sim.ct.anatomy import anatomy_center
+from sim.physics.imaging import moving_renderer
 
 
 #: The polish's optimisers (:attr:`CMAESSettings.polish_method`).
@@ -155,12 +157,12 @@ class CMAESRegistration:
     """Registers X-rays to one CT; renderers for every level are built once and reused.
 
     Args:
-        volume: the CT (:class:`sim.volume.CTVolume`).
+        volume: the CT (:class:`sim.ct.volume.CTVolume`).
         settings: :class:`CMAESSettings`.
         scene: C-arm scene name or path (the finest geometry is the scene's detector at
             ``settings.size``) — or pass ``geometry`` to use an X-ray's own geometry.
-        geometry: :class:`sim.geometry.CArmGeometry` at ``settings.size`` (overrides ``scene``).
-        center_lps: anatomy centre (LPS mm); None = :func:`sim.anatomy.anatomy_center`.
+        geometry: :class:`sim.projection.geometry.CArmGeometry` at ``settings.size`` (overrides ``scene``).
+        center_lps: anatomy centre (LPS mm); None = :func:`sim.ct.anatomy.anatomy_center`.
         physics: :class:`sim.physics.imaging.PhysicsSettings` of the moving images; None or level
             ``line`` = line-integral DRRs, ``poly`` / ``full`` = noise-free ``-log(I/I0)`` images
             (:func:`sim.physics.imaging.moving_renderer`).
@@ -170,8 +172,6 @@ class CMAESRegistration:
     def __init__(self, volume, settings: CMAESSettings | None = None, *, scene: str = "cios_fusion",
                  geometry=None, center_lps=None, ray_model: str = "siddon", physics=None,
                  label_materials: dict[int, str] | None = None):
-        from sim.anatomy import anatomy_center
-        from sim.physics.imaging import moving_renderer
 
         self.settings = s = settings or CMAESSettings()
         if center_lps is None:

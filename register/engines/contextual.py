@@ -23,8 +23,10 @@ import numpy as np
 
 from register.engines.metrics import gradient_ncc
 from register.engines.result import RegistrationError, RegistrationResult
-from sim.geometry import params_from_pose, pose_from_params
+from sim.projection.geometry import params_from_pose, pose_from_params
 from sim.prepare import masked_fill
+from sim.ct.anatomy import anatomy_center
+from sim.physics.imaging import moving_renderer
 
 __all__ = ["ContextualSettings", "ContextualRegistration", "Iteration", "checked_inputs"]
 
@@ -91,8 +93,6 @@ class ContextualRegistration:
     def __init__(self, volume, predictor, settings: ContextualSettings | None = None, *, size=(128, 128),
                  scene: str = "cios_fusion", geometry=None, center_lps=None, physics=None,
                  label_materials: dict[int, str] | None = None):
-        from sim.anatomy import anatomy_center
-        from sim.physics.imaging import moving_renderer
 
         self.settings = settings or ContextualSettings()
         self.predictor = predictor
@@ -106,7 +106,6 @@ class ContextualRegistration:
 
     def _view_renderer(self, geometry):
         """The moving-image renderer of a network view's detector (made once per geometry)."""
-        from sim.physics.imaging import moving_renderer
 
         key = _detector_key(geometry)
         if key not in self._view_renderers:

@@ -26,6 +26,7 @@ from register.engines.cmaes import CMAESRegistration, CMAESSettings
 from register.engines.contextual import ContextualRegistration, ContextualSettings
 from register.engines.pipeline import REFINE_SETTINGS, ContextualPipeline
 from register.engines.result import RegistrationError, RegistrationResult
+from learn.predict import NetworkPredictor
 
 __all__ = ["METHOD_NAMES", "RegistrationMethod", "check_method", "load_predictor", "build_method"]
 
@@ -61,7 +62,6 @@ def load_predictor(model):
     :func:`learn.shipped.resolve_model`) or an already loaded predictor (returned as it is)."""
     if callable(model):
         return model
-    from learn.predict import NetworkPredictor
 
     return NetworkPredictor(model)
 
@@ -101,7 +101,7 @@ def build_method(method: str, volume, *, center_lps, size: tuple[int, int], geom
         method: one of :data:`METHOD_NAMES`.
         volume: the CT; center_lps: ``(3,)`` its anatomy centre (LPS mm).
         size: ``(H, W)`` of the images the method registers (the X-ray after preparation).
-        geometry: the :class:`sim.geometry.CArmGeometry` of those images (an X-ray's own); None =
+        geometry: the :class:`sim.projection.geometry.CArmGeometry` of those images (an X-ray's own); None =
             the ``scene``'s detector at ``size``.
         model: a checkpoint path or a loaded predictor (:func:`load_predictor`) for the contextual methods.
         physics: :class:`sim.physics.imaging.PhysicsSettings` of the moving images (None = line DRRs);

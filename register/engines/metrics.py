@@ -39,7 +39,7 @@ from typing import Any
 import numpy as np
 from scipy import ndimage
 
-from sim.errors import InputError
+from sim.core.errors import InputError
 
 __all__ = [
     "METRICS",

@@ -13,7 +13,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from sim.campaign.poses import PARAM_NAMES
-from sim.errors import InputError
+from sim.core.errors import InputError
 
 __all__ = ["RegistrationError", "RegistrationResult"]
 

@@ -40,8 +40,10 @@ import numpy as np
 from register.engines.cmaes import CMAESRegistration, CMAESSettings
 from register.engines.metrics import downsample, get_metric, gradient_ncc, plain_equivalent
 from register.engines.result import RegistrationError, RegistrationResult
-from sim.errors import InputError
-from sim.geometry import CArmGeometry, pose_from_params
+from sim.core.errors import InputError
+from sim.projection.geometry import CArmGeometry, pose_from_params
+from sim.ct.anatomy import anatomy_center
+from sim.physics.imaging import moving_renderer
 
 __all__ = ["GlobalSearchSettings", "GlobalSearch", "masked_ncc_shifts", "describe_search"]
 
@@ -233,7 +235,7 @@ class GlobalSearch:
     Args:
         volume: the CT; settings: :class:`GlobalSearchSettings`.
         size: ``(H, W)`` of the X-rays it registers (divisible by ``settings.factor``).
-        scene / geometry: the C-arm (an X-ray's own :class:`sim.geometry.CArmGeometry` at ``size``
+        scene / geometry: the C-arm (an X-ray's own :class:`sim.projection.geometry.CArmGeometry` at ``size``
             overrides the scene's detector); center_lps: ``(3,)`` anatomy centre (LPS mm).
         physics / label_materials: the moving images' physics of the local search (as
             :class:`register.engines.cmaes.CMAESRegistration`); the grid renders line DRRs whatever they are.
@@ -242,7 +244,6 @@ class GlobalSearch:
     def __init__(self, volume, settings: GlobalSearchSettings | None = None, *, size=(128, 128),
                  scene: str = "cios_fusion", geometry=None, center_lps=None, physics=None,
                  label_materials: dict[int, str] | None = None):
-        from sim.anatomy import anatomy_center
 
         self.settings = s = settings or GlobalSearchSettings()
         size = (int(size[0]), int(size[1]))
@@ -285,7 +286,7 @@ class GlobalSearch:
         self._grid_extremes: dict = {}  # each image's best and worst grid score of the last grid (:meth:`_surfaces`)
 
     def built_for(self, geometry, physics=_ANY_PHYSICS) -> bool:
-        """Whether this search renders ``geometry``'s detector (:class:`sim.geometry.CArmGeometry`,
+        """Whether this search renders ``geometry``'s detector (:class:`sim.projection.geometry.CArmGeometry`,
         to 1e-9 relative: a detector resized to its own size may move its principal point by a
         rounding) and, where ``physics`` is given, its local search's moving images are of that
         physics (None: line DRRs), so that a caller may hand it on
@@ -306,7 +307,6 @@ class GlobalSearch:
 
     def _padded_renderer(self, volume, scene, g, pad):
         """A line-DRR renderer of ``g``'s detector grown by ``pad`` pixels on every side."""
-        from sim.physics.imaging import moving_renderer
 
         cx, cy = g.principal_point
         padded = CArmGeometry(g.sdd_mm, g.sod_mm, g.height + 2 * pad, g.width + 2 * pad, g.pixel_spacing_mm,

@@ -42,12 +42,13 @@ from register.evaluation.evaluate import START_MODES, start_params, verdict_rate
 from register.plots import overlay_png
 from register.xray.prepare import fit_to_size
 from register.xray.preprocess import DEFAULT_STEPS
-from sim.atomic import atomic_path, jsonable, sha256_file, write_csv, write_json
-from sim.outputs import check_output_dir
-from sim.geometry import params_from_pose, pose_from_params, project_points, projection_matrix
-from sim.progress import Progress
-from sim.scale import each_result
-from sim.seeds import KIND_EVALUATE_CASES, rng_for
+from sim.core.atomic import atomic_path, jsonable, sha256_file, write_csv, write_json
+from sim.core.outputs import check_output_dir
+from sim.projection.geometry import params_from_pose, pose_from_params, project_points, projection_matrix
+from sim.core.progress import Progress
+from sim.core.scale import each_result
+from sim.core.seeds import KIND_EVALUATE_CASES, rng_for
+from sim.projection.drr import DRRRenderer, RenderSettings
 
 __all__ = ["DeepFluoroSettings", "evaluate_deepfluoro", "frame_errors", "START_MODES", "DEEPFLUORO_FILES"]
 
@@ -195,7 +196,6 @@ def format_table(summary: dict) -> str:
 def _overlay(path: Path, frame: DeepFluoroProjection, specimen: DeepFluoroSpecimen, T: np.ndarray, geometry,
              side: int = 384) -> None:
     """The frame (as a log image, at most ``side`` px) with the line DRR's edges at ``T`` in red."""
-    from sim.drr import DRRRenderer, RenderSettings
 
     raw = frame.ctxreg_pixels().astype(np.float64)
     log_image = -np.log(np.clip(raw, max(float(raw.max()) * 1e-6, 1e-12), None))
@@ -321,7 +321,7 @@ def evaluate_deepfluoro(path, settings: DeepFluoroSettings, out, *, model=None, 
     (module docstring). ``model``: the contextual methods' network (a name, a checkpoint or a loaded
     predictor; None: the shipped default). After every frame the rows so far are kept in
     ``out/progress.json``; ``resume=True`` continues a run from there (same file, settings and model).
-    ``client``: a :class:`distributed.Client` (:func:`sim.scale.dask_client`) whose workers register
+    ``client``: a :class:`distributed.Client` (:func:`sim.core.scale.dask_client`) whose workers register
     the frames (each opens the file, which they must see, and loads the network once; ``model`` then a
     name or a path); the rows are kept in the plan's order. Returns ``{"rows", "summary", "table",
     "reprojection"}``."""

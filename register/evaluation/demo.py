@@ -36,10 +36,19 @@ import numpy as np
 from register.api import OUTPUT_FILES, register_xray
 from register.evaluation.errors import bone_points, pose_errors
 from register.evaluation.frames import FrameSimulator
-from sim.atomic import write_json
-from sim.cliargs import IMAGE_SIDE_PX, OptionError, Range, opt
-from sim.geometry import pose_from_params
-from sim.outputs import check_output_dir
+from sim.core.atomic import write_json
+from sim.core.cliargs import IMAGE_SIDE_PX, OptionError, Range, opt
+from sim.projection.geometry import pose_from_params
+from sim.core.outputs import check_output_dir
+from learn.shipped import resolve_model
+from sim.ct.anatomy import anatomy_center
+from sim.ct.io import load_ct_spec
+from sim.ct.phantom import write_phantom_nifti
+from sim.physics.display import Collimator, DisplayChain
+from sim.physics.imaging import PhysicsSettings, XRayImager
+from sim.projection.drr import check_in_view
+from sim.projection.scene import SceneError, load_scene
+from learn.adapt import adapt
 
 __all__ = ["DemoCommand", "run_demo", "DEMO_POSE", "DEMO_FILES", "default_ct"]
 
@@ -71,7 +80,6 @@ def _adapt_ct(cmd: "DemoCommand", out: Path) -> str:
     spec = cmd.ct or (str(VALIDATION_CT) if VALIDATION_CT.is_file() else f"phantom:{UNSEEN_PHANTOM_SEED}")
     if not spec.startswith("phantom"):
         return spec
-    from sim.phantom import write_phantom_nifti
 
     seed = int(spec.split(":", 1)[1]) if ":" in spec else 0
     path = out / f"phantom{seed}.nii.gz"
@@ -120,7 +128,6 @@ DEMO_MIN_SIDE_PX = 32
 def demo_geometry(cmd: DemoCommand):
     """The demo X-ray's detector (the scene's at ``--size``); a size off the detector's aspect is
     refused naming ``--size``."""
-    from sim.scene import SceneError, load_scene
 
     try:
         return load_scene().geometry_at(int(cmd.size[0]), int(cmd.size[1]))
@@ -189,12 +196,6 @@ class _Stages:
 
 def run_demo(cmd: DemoCommand) -> list[Path]:
     """Simulate, register, write and report (module doc)."""
-    from learn.shipped import resolve_model
-    from sim.anatomy import anatomy_center
-    from sim.ct_io import load_ct_spec
-    from sim.physics.display import Collimator, DisplayChain
-    from sim.physics.imaging import PhysicsSettings, XRayImager
-    from sim.drr import check_in_view
 
     out = check_output_dir(cmd.out, OUTPUT_FILES + DEMO_FILES)
     check_demo_options(cmd)  # --size and --pose, before the CT is loaded or anything simulated
@@ -227,7 +228,6 @@ def run_demo(cmd: DemoCommand) -> list[Path]:
     stages.done(f"similarity {outcome.similarity:.3f}")
     base_outcome = None
     if cmd.adapt is not None:  # the clinical flow: adapt the network to this CT, then register again
-        from learn.adapt import adapt
 
         folder = out / "adapted"
         again = (folder / "adapt.json").is_file()

@@ -8,9 +8,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from sim.anatomy import bone_mask
-from sim.geometry import CArmGeometry, project_points, projection_matrix
-from sim.se3 import rotation_error_deg, translation_error_mm
+from sim.ct.anatomy import bone_mask
+from sim.projection.geometry import CArmGeometry, project_points, projection_matrix
+from sim.projection.se3 import rotation_error_deg, translation_error_mm
 
 __all__ = ["pose_errors", "bone_points"]
 
@@ -24,7 +24,7 @@ def pose_errors(T_est: np.ndarray, T_true: np.ndarray, points_lps: np.ndarray, c
     * ``mtre_mm``: the mean 3-D distance between ``points_lps`` (``(N, 3)`` LPS mm, e.g.
       :func:`bone_points`) placed by the two poses (mm);
     * ``mpd_mm``: the mean distance between their projections on the detector, both through
-      ``geometry`` (a :class:`sim.geometry.CArmGeometry`: ``K [R | t - R c]`` of each pose), in mm
+      ``geometry`` (a :class:`sim.projection.geometry.CArmGeometry`: ``K [R | t - R c]`` of each pose), in mm
       at the detector plane (pixels x the pixel spacing); points without an image are left out.
 
     ``projection_est``: the estimate's own ``(3, 4)`` projection where a method reports one (None:

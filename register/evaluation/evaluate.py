@@ -29,15 +29,15 @@ import numpy as np
 from register.engines.methods import RegistrationMethod, build_method, load_predictor, needs_model
 from register.evaluation.errors import bone_points, pose_errors
 from register.verdict import judge_result
-from sim.atomic import atomic_path, save_figure, write_csv, write_json
+from sim.core.atomic import atomic_path, save_figure, write_csv, write_json
 from sim.campaign.poses import ORIGINAL_PROTOCOL
-from sim.cliargs import Range
-from sim.ct_io import load_ct_spec
-from sim.errors import InputError
-from sim.geometry import pose_from_params
-from sim.progress import Progress
-from sim.scale import each_result
-from sim.seeds import KIND_EVALUATE_CASES, rng_for
+from sim.core.cliargs import Range
+from sim.ct.io import load_ct_spec
+from sim.core.errors import InputError
+from sim.projection.geometry import pose_from_params
+from sim.core.progress import Progress
+from sim.core.scale import each_result
+from sim.core.seeds import KIND_EVALUATE_CASES, rng_for
 
 #: ``ap``: ctxreg's AP pose; ``pose``: ``init``; ``local``: the truth moved by a seeded random offset;
 #: ``truth``: the truth itself (a check: a method must stay there).
@@ -202,7 +202,7 @@ def violin_plot(rows: list[dict], path: Path) -> None:
 @dataclass(frozen=True)
 class MethodSpec:
     """What a Dask worker needs to build an evaluation's methods itself (built methods hold Dr.Jit
-    scenes, which do not pickle): the CT (:func:`sim.ct_io.load_ct_spec`'s spec and label map), its
+    scenes, which do not pickle): the CT (:func:`sim.ct.io.load_ct_spec`'s spec and label map), its
     anatomy centre ``(3,)`` LPS mm, the image size ``(H, W)`` px, the scene, the method names, the
     network (a checkpoint path or shipped model name; None: the default) and the moving images'
     physics (None: line DRRs)."""
@@ -237,7 +237,7 @@ def _worker_methods(spec: MethodSpec, settings: EvaluationSettings):
 def verdict_renderer(volume, center_lps, geometry):
     """The line DRR renderer of the verdict's evidence (:func:`register.verdict.judge_result`) on
     images of ``geometry``."""
-    from sim.drr import DRRRenderer, RenderSettings  # Dr.Jit loads with the first renderer, not at import
+    from sim.projection.drr import DRRRenderer, RenderSettings  # Dr.Jit loads with the first renderer, not at import
 
     return DRRRenderer(volume, RenderSettings(size=(geometry.height, geometry.width)), center_lps=center_lps,
                        geometry=geometry)
@@ -283,7 +283,7 @@ def evaluate(volume, methods: dict[str, RegistrationMethod], settings: Evaluatio
     after the last case (a run that fails leaves nothing). ``record`` (e.g. the targets' and the
     methods' physics) is stored in ``summary.json``.
 
-    ``client``: a :class:`distributed.Client` (:func:`sim.scale.dask_client`): the cases are
+    ``client``: a :class:`distributed.Client` (:func:`sim.core.scale.dask_client`): the cases are
     registered on its workers, each building the methods of ``spec`` once (``methods`` may then be
     empty); the targets are rendered here, so the images (and their noise) are the sequential run's,
     and the rows come back in the sequential order (only ``time_s`` differs)."""

@@ -21,6 +21,8 @@ from pathlib import Path
 import numpy as np
 
 from register.xray.io import write_xray_dicom
+from sim.distractors import implanted_tools
+from sim.distractors import imager_with_distractors
 
 __all__ = ["FrameSimulator"]
 
@@ -50,7 +52,6 @@ class FrameSimulator:
         """The :class:`sim.distractors.Distractor` s of the frame of ``seed`` (empty without ``tools``)."""
         if self.tools is None:
             return []
-        from sim.distractors import implanted_tools
 
         rng = np.random.default_rng([int(seed), _TOOLS_STREAM])
         return implanted_tools(rng, self.imager.renderer.center_lps, tools=self.tools)
@@ -60,7 +61,6 @@ class FrameSimulator:
         drawn from ``seed`` (and its tools, with ``tools``)."""
         imager = self.imager
         if self.tools is not None:
-            from sim.distractors import imager_with_distractors
 
             imager = imager_with_distractors(imager, self.implants(seed))
         return imager.render(pose, seed=seed)["raw"][0].astype(np.float64)

@@ -84,20 +84,24 @@ from register.evaluation.frames import FrameSimulator
 from register.xray.preprocess import PreprocessError
 from register.xray.field import FieldError
 from register.xray.intensity import IntensityError
-from sim.anatomy import anatomy_center
-from sim.atomic import (atomic_path, read_toml, save_figure, sha256_file, toml_text, write_csv, write_json,
+from sim.ct.anatomy import anatomy_center
+from sim.core.atomic import (atomic_path, read_toml, save_figure, sha256_file, toml_text, write_csv, write_json,
                         write_toml)
-from sim.cliargs import IMAGE_SIDE_PX
-from sim.ct_io import load_ct_spec
-from sim.errors import InputError
-from sim.geometry import pose_from_params
-from sim.outputs import check_output_dir
+from sim.core.cliargs import IMAGE_SIDE_PX
+from sim.ct.io import load_ct_spec
+from sim.core.errors import InputError
+from sim.projection.geometry import pose_from_params
+from sim.core.outputs import check_output_dir
 from sim.physics.display import Collimator, DisplayChain
 from sim.physics.imaging import LogImageRenderer, PhysicsSettings, XRayImager
-from sim.progress import Progress
-from sim.scale import each_result
-from sim.drr import DRRRenderer, RenderSettings
-from sim.scene import SceneError, load_scene
+from sim.core.progress import Progress
+from sim.core.scale import each_result
+from sim.projection.drr import DRRRenderer, RenderSettings
+from sim.projection.scene import SceneError, load_scene
+from learn.predict import NetworkPredictor
+from sim.campaign import DatasetError, load_campaign, open_dataset
+from sim.campaign.config import CampaignConfigError
+from learn.shipped import ModelCardError, resolve_model, shipped_models
 
 __all__ = ["StudyError", "Variant", "Target", "Study", "load_study", "run_domain_study", "format_study_table",
            "STUDY_FILES"]
@@ -181,8 +185,6 @@ def _check_training_inputs(table: dict, where: str, earlier: list[str]) -> None:
     file, read and checked with its CTs, or a campaign folder, opened), ``init_from`` (an
     existing file, or ``.../variants/<an earlier variant>/checkpoint.pt``: what the study trains
     first) and ``weights_path``."""
-    from sim.campaign import DatasetError, load_campaign, open_dataset
-    from sim.campaign.config import CampaignConfigError
 
     dataset = str(table["dataset"])
     try:
@@ -229,7 +231,7 @@ def _int(table: dict, key: str, default: int, lo: int, hi: int, where: str) -> i
 
 def load_study(path: str | Path) -> Study:
     """Read and check a study file; relative paths in it are relative to the file."""
-    from learn.train import TrainConfig
+    from learn.train import TrainConfig  # loads torch: imported where first needed (start-up)
 
     path = Path(path)
     data = read_toml(path, StudyError, "study file")
@@ -283,7 +285,6 @@ def load_study(path: str | Path) -> Study:
                              f"(a checkpoint to evaluate as it is), got {row!r}")
         name = _name(row.get("name"), f"{where}.name")
         if "model" in row:
-            from learn.shipped import ModelCardError, resolve_model, shipped_models
 
             model = row["model"]
             if isinstance(model, str) and model:
@@ -524,8 +525,8 @@ def _train_variant(variant: Variant, folder: Path, log, out: Path | None = None)
     it was made with the variant's settings (:data:`TRAINING_RECORD`, :func:`training_settings`);
     one made with other settings is moved to ``out/replaced/variants/`` and redone, the changed
     keys named. A ``model`` variant is its model."""
-    from learn.checkpoint import CheckpointError, load_checkpoint
-    from learn.train import load_train_config, train
+    from learn.checkpoint import CheckpointError, load_checkpoint  # loads torch: imported where first needed (start-up)
+    from learn.train import load_train_config, train  # loads torch: imported where first needed (start-up)
 
     if variant.model is not None:
         log(f"variant {variant.name}: the model {variant.model}, as it is")
@@ -546,7 +547,7 @@ def _train_variant(variant: Variant, folder: Path, log, out: Path | None = None)
             if old_digest != digest:
                 changes = _diff(old["settings"], settings) or ["(the recorded settings' digest)"]
         else:  # a training from before the record: its checkpoint's config is the record
-            from learn.train import TrainConfig, _config_changes
+            from learn.train import TrainConfig, _config_changes  # loads torch: imported where first needed (start-up)
 
             try:
                 state = load_checkpoint(ckpt)
@@ -695,7 +696,6 @@ def _dask_xray_case(study: Study, target: Target, model: str, settings: Evaluati
                     start, frames: str) -> list[dict]:
     """:func:`_xray_case` on a Dask worker: the CT, its centre and bone points, the target's frame
     simulator and the network built once per process."""
-    from learn.predict import NetworkPredictor
 
     key = (study.ct, target.name, repr(target), settings.max_points, settings.seed)
     if _WORKER_STUDY.get("key") != key:
@@ -754,9 +754,8 @@ def run_domain_study(study: Study, out: str | Path, *, log: Callable[[str], None
     evaluations they have finished (a summary on disk) and are not trained or evaluated, so
     processes with disjoint ``only`` can share one output folder. ``targets``: the same for target
     domains (the others' finished evaluations are kept, unfinished ones skipped). ``client``: a
-    :class:`distributed.Client` (:func:`sim.scale.dask_client`): each evaluation's cases run on its
+    :class:`distributed.Client` (:func:`sim.core.scale.dask_client`): each evaluation's cases run on its
     workers (the variants still train here, one after another)."""
-    from learn.predict import NetworkPredictor
 
     names = [v.name for v in study.variants]
     unknown = sorted(set(only or ()) - set(names))

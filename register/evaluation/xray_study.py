@@ -30,12 +30,12 @@ from register.api import OUTPUT_FILES, register_xray
 from register.evaluation.errors import bone_points, pose_errors
 from register.evaluation.evaluate import EvaluationSettings, sample_cases
 from register.evaluation.frames import FrameSimulator
-from sim.anatomy import anatomy_center
-from sim.atomic import jsonable
-from sim.ct_io import load_ct_spec
-from sim.errors import USER_OS_ERRORS, CtxregError
-from sim.geometry import pose_from_params
-from sim.outputs import check_output_dir
+from sim.ct.anatomy import anatomy_center
+from sim.core.atomic import jsonable
+from sim.ct.io import load_ct_spec
+from sim.core.errors import USER_OS_ERRORS, CtxregError
+from sim.projection.geometry import pose_from_params
+from sim.core.outputs import check_output_dir
 from sim.physics.display import Collimator, DisplayChain
 from sim.physics.imaging import PhysicsSettings, XRayImager
 

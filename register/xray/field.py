@@ -134,7 +134,7 @@ import numpy as np
 from scipy import ndimage
 
 from register.xray.io import XRayInputError
-from sim.atomic import jsonable
+from sim.core.atomic import jsonable
 
 __all__ = ["FieldError", "FieldSettings", "Field", "detect_field", "log_view", "LOG_VIEWS"]
 

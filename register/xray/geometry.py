@@ -42,7 +42,8 @@ from dataclasses import dataclass
 from typing import Any
 
 from register.xray.io import _ERMF, XRayImage, XRayInputError, _is_square, _positive
-from sim.geometry import CArmGeometry
+from sim.projection.geometry import CArmGeometry
+from sim.projection.scene import load_scene
 
 __all__ = ["GeometrySources", "resolve_geometry", "geometry_for"]
 
@@ -214,7 +215,6 @@ def resolve_geometry(
     sc = None
     scene_src = ""
     if scene is not None:
-        from sim.scene import load_scene
 
         sc = load_scene(scene).geometry
         scene_src = f"scene {os.fspath(scene)!r} (assumed)"

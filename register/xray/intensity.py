@@ -49,7 +49,7 @@ import numpy as np
 from scipy import ndimage
 
 from register.engines.metrics import ncc
-from sim.errors import InputError
+from sim.core.errors import InputError
 from sim.physics.display import TONE_LEVELS, TONES, apply_tone, quantile_curve
 
 __all__ = [

@@ -41,8 +41,8 @@ from typing import Any
 
 import numpy as np
 
-from sim.atomic import atomic_path
-from sim.errors import InputError
+from sim.core.atomic import atomic_path
+from sim.core.errors import InputError
 from sim.prepare import checked_image
 
 __all__ = [
@@ -57,7 +57,7 @@ __all__ = [
 
 #: How a stored X-ray is turned into the CT's view before registration (``--orient``), named as
 #: Pillow's transposes: ``(H, W)`` pixels -> the image as ctxreg's DRRs of the CT show the same
-#: view (:mod:`sim.geometry`'s detector, row 0 at the top and column 0 at the left as displayed).
+#: view (:mod:`sim.projection.geometry`'s detector, row 0 at the top and column 0 at the left as displayed).
 #: Vendors and viewers store frames mirrored or rotated: a frame registered in the wrong
 #: orientation finds a wrong (often mirrored) pose, and a mirrored view of a nearly symmetric
 #: anatomy such as the pelvis can score as well as the right one, so the orientation is the

@@ -30,7 +30,7 @@ __all__ = ["NetworkView", "network_view"]
 class NetworkView:
     """What the network sees of an X-ray. ``image`` ``(h, w)`` the preprocessed X-ray, ``mask``
     ``(h, w)`` bool its pixels shown to the network, ``geometry`` the
-    :class:`sim.geometry.CArmGeometry` of those pixels (the network's DRRs are rendered for it)."""
+    :class:`sim.projection.geometry.CArmGeometry` of those pixels (the network's DRRs are rendered for it)."""
 
     image: np.ndarray
     mask: np.ndarray

@@ -32,10 +32,13 @@ from register.xray.io import XRayImage, load_xray
 from register.xray.field import FieldSettings, detect_field
 from register.xray.preprocess import DEFAULT_STEPS, Field as FieldStep, Pipeline, PreprocessError, crop_box, cropped_geometry
 from sim.campaign.poses import ORIGINAL_PROTOCOL
-from sim.cliargs import IMAGE_SIDE_PX
-from sim.geometry import pose_from_params
+from sim.core.cliargs import IMAGE_SIDE_PX
+from sim.projection.geometry import pose_from_params
 from sim.prepare import invert, masked_fill, normalize, percentile_bounds
-from sim.seeds import KIND_POLARITY_POSES, rng_for
+from sim.core.seeds import KIND_POLARITY_POSES, rng_for
+from sim.physics.display import apply_tone
+from sim.projection.drr import DRRRenderer, RenderSettings
+from sim.ct.anatomy import anatomy_center
 
 __all__ = ["PreparedXRay", "prepare_xray", "confirm_polarity", "confirm_polarity_by_pose", "polarity_needs_check",
            "fit_to_size", "fit_box", "reference_drrs", "recorded_tone_curve", "toned_image",
@@ -49,7 +52,7 @@ REFERENCE_SIZE = 48
 def fit_box(size) -> tuple[int, int]:
     """``(H, W)`` of the box an image is fitted into: ``size`` is ``(H, W)``, or one number for a
     square box (the longer side). Raises :class:`register.xray.preprocess.PreprocessError` for sides
-    outside :data:`sim.cliargs.IMAGE_SIDE_PX`."""
+    outside :data:`sim.core.cliargs.IMAGE_SIDE_PX`."""
     try:
         box = (int(size), int(size)) if np.ndim(size) == 0 else tuple(int(v) for v in size)
     except (TypeError, ValueError):
@@ -116,7 +119,6 @@ def reference_drrs(volume, center_lps, geometry, init_params, *, poses: int = RE
     :func:`fit_to_size` samples the X-ray to ``longer`` px. Returns a
     :class:`register.xray.intensity.PolarityReference`.
     """
-    from sim.drr import DRRRenderer, RenderSettings
 
     _, _, _, small = _fit_plan((geometry.height, geometry.width), geometry, longer)
 
@@ -143,7 +145,7 @@ class PreparedXRay:
         image: ``(h, w)`` float64 at the optimiser's size: line-integral-like (bone bright),
             normalised over the valid pixels.
         mask: ``(h, w)`` bool valid pixels (the field minus exclusions), or None.
-        geometry: :class:`sim.geometry.CArmGeometry` of ``image`` (cropped and resampled).
+        geometry: :class:`sim.projection.geometry.CArmGeometry` of ``image`` (cropped and resampled).
         full_geometry: the geometry of the X-ray's own ``(H, W)`` pixels.
         full_image: ``(H, W)`` the preprocessed image at full resolution (outside the crop: the
             median of the valid pixels).
@@ -223,7 +225,6 @@ def prepare_xray(xray, *, volume=None, center_lps=None, init_params=None, scene:
     reference = None
     wants_tone = tone == "ct" and scale in ("auto", "display")
     if "intensity" in steps and volume is not None and (polarity == "auto" or wants_tone):
-        from sim.anatomy import anatomy_center
 
         center = anatomy_center(volume) if center_lps is None else center_lps
         reference = reference_drrs(volume, center, full_geometry, np.zeros(6) if init_params is None else init_params)
@@ -271,7 +272,6 @@ def toned_image(image: np.ndarray, mask: np.ndarray | None, curve) -> np.ndarray
     (:func:`register.xray.intensity.tone_curve`), normalised as :class:`register.xray.preprocess.Normalize`
     does (1st / 99th percentiles of the valid pixels to 0 / 1, clipped); outside the mask the
     valid median. None when ``curve`` is None."""
-    from sim.physics.display import apply_tone
 
     if curve is None:
         return None

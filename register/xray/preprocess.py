@@ -41,9 +41,9 @@ from scipy import ndimage
 from register.xray.field import FieldSettings, detect_field
 from register.xray.intensity import POLARITIES, SCALES, TONE_LEVELS, TONES, decide, tone_curve
 from sim import prepare
-from sim.atomic import jsonable
-from sim.errors import InputError
-from sim.geometry import CArmGeometry
+from sim.core.atomic import jsonable
+from sim.core.errors import InputError
+from sim.projection.geometry import CArmGeometry
 
 __all__ = [
     "PreprocessError",

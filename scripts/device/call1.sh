@@ -14,13 +14,13 @@ for f in $(timeout 40 find /usr /opt -xdev \( -name 'libLLVM*.so*' -o -name 'lib
     echo "LLVM C API in $f"; [ -z "$LLVM_OK" ] && LLVM_OK=$f
   else echo "no LLVM C API in $f"; fi
 done
-if ! python3 -c "import sim.llvm as l; print('sim.llvm finds', l.find())" && [ -n "$LLVM_OK" ]; then
+if ! python3 -c "import sim.projection.llvm as l; print('sim.projection.llvm finds', l.find())" && [ -n "$LLVM_OK" ]; then
   export DRJIT_LIBLLVM_PATH=$LLVM_OK; echo "DRJIT_LIBLLVM_PATH=$LLVM_OK"
 fi
 for v in cuda_ad_mono llvm_ad_mono; do
   timeout 120 python3 -c "
 import sim, mitsuba as mi, drjit as dr, pymeshlab, xraylib, spekpy, nibabel, pydicom
-from sim.backend import ensure_variant
+from sim.projection.backend import ensure_variant
 print('$v ->', ensure_variant('$v'), 'mitsuba', mi.__version__, 'drjit', dr.__version__, 'pymeshlab filters', len(pymeshlab.filter_list()))
 " 2>&1 | tail -4 | tee $OUT/import_$v.txt
 done

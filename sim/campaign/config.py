@@ -32,14 +32,15 @@ from typing import Any, Mapping, Sequence
 import numpy as np
 
 from sim.campaign.poses import ORIGINAL_PROTOCOL, PoseDistribution, PoseDistributionError
-from sim.errors import InputError
-from sim.materials import MU_WATER_60KEV_PER_MM
-from sim.drr import RAY_MODELS, STEP_FRACTION
+from sim.core.errors import InputError
+from sim.physics.materials import MU_WATER_60KEV_PER_MM
+from sim.projection.drr import RAY_MODELS, STEP_FRACTION
 from sim.physics import PhysicsError
 from sim.physics.settings import (FORMER_NAMES, LEVELS, SETTINGS, PhysicsSettings, campaign_settings,
                                   with_campaign_settings)
-from sim.scene import DEFAULT_SCENE, SceneError, load_scene
-from sim.seeds import KIND_SPLIT, rng_for
+from sim.projection.scene import DEFAULT_SCENE, SceneError, load_scene
+from sim.core.seeds import KIND_SPLIT, rng_for
+from sim.physics.materials import MaterialError, parse_label_materials
 
 #: Split names, in the order used everywhere (tie-breaks, listings).
 SPLIT_NAMES: tuple[str, ...] = ("train", "val", "test")
@@ -119,7 +120,7 @@ class PhysicsConfig:
             (``poly`` + Monte Carlo scatter, :mod:`sim.physics.scatter`).
         ray_model: ``"siddon"`` (exact voxel traversal) or ``"trilinear"``.
         step_fraction: trilinear step as a fraction of the smallest voxel spacing, in
-            :data:`sim.drr.STEP_FRACTION` ([0.05, 1]).
+            :data:`sim.projection.drr.STEP_FRACTION` ([0.05, 1]).
         mu_water_per_mm: attenuation of water in 1/mm (HU -> mu; line level).
         kvp, anode_angle_deg, filters, bins, mas, detector_mm, detector_mode, noise, blur_mm,
             electronic_noise, scatter_photons, scatter_voxel_mm, grid_ratio: the physics settings
@@ -188,7 +189,7 @@ class CTEntry:
             generalisation to such changes, not to new patients.
         label_materials: ``((label, material), ...)``: in the poly and full images, voxels of
             these labels (of ``label_map``, or the phantom's own labels) take this material
-            (:class:`sim.materials.LabelOverride`), e.g. ``((3, "titanium"),)`` for an
+            (:class:`sim.physics.materials.LabelOverride`), e.g. ``((3, "titanium"),)`` for an
             implant. Virtual patients carry the labels along with the anatomy.
     """
 
@@ -289,7 +290,7 @@ class CampaignConfig:
         shard_size: images per shard file.
         scene, physics, poses, split, cts, outputs: the tables of the file.
         virtual_patients: the ``[virtual_patients]`` table as given (validated by
-            ``sim.augment.VirtualPatientRanges.from_dict``); empty = default ranges.
+            ``sim.ct.patients.VirtualPatientRanges.from_dict``); empty = default ranges.
         source: the campaign file (absolute path) or a description of where the table came from.
     """
 
@@ -392,7 +393,7 @@ def assign_splits(n_cts: int, fractions: Mapping[str, float] | SplitConfig,
        from the split with the most freely assigned CTs among those holding more than one CT
        (receivers in order of decreasing fraction, then train, val, test).
     4. Which free CT goes to which split is a random permutation from
-       ``SeedSequence(entropy=seed, spawn_key=(3,))`` (:data:`sim.seeds.KIND_SPLIT`).
+       ``SeedSequence(entropy=seed, spawn_key=(3,))`` (:data:`sim.core.seeds.KIND_SPLIT`).
 
     For example 10 CTs at 0.8/0.1/0.1 give 8/1/1, and 3 CTs give 1/1/1.
 
@@ -797,7 +798,6 @@ class _Parser:
                 lm = self.table(t["label_materials"], lk, '{ 3 = "titanium" }')
                 if label_map is None and not phantom:
                     raise self.err(lk, "needs a label_map (the labels it refers to)")
-                from sim.materials import MaterialError, parse_label_materials
 
                 try:
                     parsed = parse_label_materials([f"{k}:{v}" for k, v in lm.items()])
@@ -840,10 +840,10 @@ class _Parser:
                            f"values must be numbers, strings, booleans, arrays or tables ({e})") from None
         if raw:
             try:
-                from sim.augment import VirtualPatientRanges
+                from sim.ct.patients import VirtualPatientRanges  # guarded: the ranges are checked where the module imports
             except ImportError as e:
                 raise self.err("virtual_patients",
-                               f"cannot check the ranges: sim.augment is not importable ({e})") from None
+                               f"cannot check the ranges: sim.ct.patients is not importable ({e})") from None
             self.keys(raw, [f.name for f in fields(VirtualPatientRanges)], "virtual_patients")
             try:
                 VirtualPatientRanges.from_dict(copy.deepcopy(raw))

@@ -11,7 +11,7 @@ Layout of a campaign folder::
 
 A shard is finished when both files exist and the checksum matches: a run killed at any
 moment leaves only finished shards and temporary files (``.NAME.PID@HOST-XXXXXXXX.tmp.h5``,
-:mod:`sim.atomic`), which ``--resume`` removes before it renders what is missing.
+:mod:`sim.core.atomic`), which ``--resume`` removes before it renders what is missing.
 
 The reader checks every shard's SHA-256 against the manifest before it uses the shard's data
 (once per shard file and process, :func:`verified_sha256`): a corrupt or truncated shard is a
@@ -49,8 +49,8 @@ from typing import Iterator
 
 import numpy as np
 
-from sim.atomic import atomic_path, remove_stale_temps, sha256_file, write_json
-from sim.errors import InputError
+from sim.core.atomic import atomic_path, remove_stale_temps, sha256_file, write_json
+from sim.core.errors import InputError
 
 FORMAT = "ctxreg-campaign"
 FORMAT_VERSION = 1

@@ -1,6 +1,6 @@
 """Pose distributions for simulation campaigns: one distribution per pose parameter.
 
-A pose is the 6 parameters of :func:`sim.geometry.pose_from_params`: ``phi, theta, psi`` in
+A pose is the 6 parameters of :func:`sim.projection.geometry.pose_from_params`: ``phi, theta, psi`` in
 degrees (rotations about the patient's S, L and P axes) and ``tx, ty, tz`` in mm (camera frame,
 ``tz`` relative to the source-to-isocentre distance). See ``docs/conventions.md``.
 
@@ -32,9 +32,10 @@ from typing import Any, Mapping
 
 import numpy as np
 
-from sim.errors import InputError
+from sim.core.errors import InputError
+from sim.core.atomic import atomic_path
 
-#: Pose parameter names, in the order of :func:`sim.geometry.pose_from_params`.
+#: Pose parameter names, in the order of :func:`sim.projection.geometry.pose_from_params`.
 PARAM_NAMES: tuple[str, ...] = ("phi", "theta", "psi", "tx", "ty", "tz")
 #: Unit of each parameter in :data:`PARAM_NAMES`.
 PARAM_UNITS: tuple[str, ...] = ("deg", "deg", "deg", "mm", "mm", "mm")
@@ -382,7 +383,7 @@ def pose_histogram(params: np.ndarray, dist: PoseDistribution, path: str | os.Pa
         params: ``(N, 6)`` sampled poses (degrees, mm), as from :meth:`PoseDistribution.sample`.
         dist: the distribution they were drawn from; its support is drawn as red lines
             (an unclipped normal: dashed lines at mean +- 3 std; fixed: one line at the value).
-        path: the PNG file, written atomically (:func:`sim.atomic.atomic_path`).
+        path: the PNG file, written atomically (:func:`sim.core.atomic.atomic_path`).
         bins: histogram bins per parameter.
         title: optional figure title.
 
@@ -402,7 +403,6 @@ def pose_histogram(params: np.ndarray, dist: PoseDistribution, path: str | os.Pa
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 
-    from sim.atomic import atomic_path
 
     fig = Figure(figsize=(12, 6.5), dpi=100, layout="constrained")
     FigureCanvasAgg(fig)

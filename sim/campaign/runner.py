@@ -2,7 +2,7 @@
 
 The work of a campaign is a list of units, one per shard file: subject (a CT or a virtual
 patient), shard index and image range. Every random draw is keyed by the campaign seed and the
-unit's indices (see :func:`sim.seeds.rng_for`), so a unit renders the same images whichever process
+unit's indices (see :func:`sim.core.seeds.rng_for`), so a unit renders the same images whichever process
 runs it, in whatever order, after whatever interruption.
 
 * ``workers > 1``: units run in spawned worker processes (Dr.Jit is not fork-safe), grouped by
@@ -39,11 +39,11 @@ from pathlib import Path
 
 import numpy as np
 
-from sim.atomic import remove_stale_temps, write_json
+from sim.core.atomic import remove_stale_temps, write_json
 from sim.campaign import dataset as ds
-from sim.errors import InputError
-from sim.scale import WorkerLost, each_result
-from sim.seeds import KIND_NOISE, KIND_POSES, KIND_VIRTUAL_PATIENT, rng_for  # the random streams
+from sim.core.errors import InputError
+from sim.core.scale import WorkerLost, each_result
+from sim.core.seeds import KIND_NOISE, KIND_POSES, KIND_VIRTUAL_PATIENT, rng_for  # the random streams
 
 #: A pixel is bone in ``bone_mask`` where the ray crosses at least this much bone (mm).
 BONE_MASK_MIN_PATH_MM = 1.0
@@ -116,15 +116,14 @@ def visible_poses(box_rel_mm: np.ndarray, params: np.ndarray, geometry) -> np.nd
     Args:
         box_rel_mm: ``(m, 3)`` points in LPS mm relative to the anatomy centre (``X - c``)
             whose convex hull holds the CT (its 8 corners minus the centre).
-        params: ``(n, 6)`` pose parameters (deg, mm), :func:`sim.geometry.pose_from_params`.
-        geometry: the :class:`sim.geometry.CArmGeometry` of the rendered images.
+        params: ``(n, 6)`` pose parameters (deg, mm), :func:`sim.projection.geometry.pose_from_params`.
+        geometry: the :class:`sim.projection.geometry.CArmGeometry` of the rendered images.
 
     A pose shows nothing when every point lies at or behind the source plane, or when the
     bounding rectangle of the projected points misses the image (by more than
     :data:`VIEW_MARGIN_PX`). Conservative: a box that straddles the source plane counts as
     visible, so a pose reported as showing nothing renders an all-zero image.
     """
-    from sim.geometry import pose_from_params
 
     K = geometry.intrinsics()
     lo_u, hi_u = -0.5 - VIEW_MARGIN_PX, geometry.width - 0.5 + VIEW_MARGIN_PX
@@ -155,7 +154,7 @@ def ct_box_from_header(path: str) -> np.ndarray | None:
     if path.startswith("phantom"):
         import inspect
 
-        from sim.phantom import make_pelvis_phantom
+        from sim.ct.phantom import make_pelvis_phantom  # loads SciPy: imported where first needed (start-up)
 
         sig = inspect.signature(make_pelvis_phantom).parameters
         spacing = float(sig["spacing_mm"].default)
@@ -169,7 +168,7 @@ def ct_box_from_header(path: str) -> np.ndarray | None:
         import nibabel as nib
         from nibabel.filebasedimages import ImageFileError
 
-        from sim.ct_io import RAS_TO_LPS
+        from sim.ct.io import RAS_TO_LPS  # with nibabel, only where a NIfTI header is read
 
         img = nib.load(path)
         shape = np.array(img.shape[:3], dtype=np.float64)
@@ -215,7 +214,6 @@ def check_view(cfg, subject_indices) -> None:
     Raises:
         CampaignError: naming the campaign file, the ``[[cts]]`` entry, the subject and the pose.
     """
-    from sim.scene import load_scene
 
     geometry = load_scene(cfg.scene.name).geometry_at(*cfg.scene.size)
     subjects = cfg.subjects()
@@ -238,8 +236,7 @@ def check_view(cfg, subject_indices) -> None:
 def check_out_path(out: Path) -> None:
     """Refuse an output path that cannot be a campaign folder, before any work (one line each):
     an existing file, a folder under a file, a folder that cannot be written
-    (:func:`sim.outputs.check_output_dir`), a file where the ``shards`` folder goes."""
-    from sim.outputs import check_output_dir
+    (:func:`sim.core.outputs.check_output_dir`), a file where the ``shards`` folder goes."""
 
     check_output_dir(out, (ds.MANIFEST, "pose_histogram.png"), flag="--out")
     shards = out / ds.SHARD_DIR
@@ -311,15 +308,15 @@ def subject_volume(cfg, subject):
     """A campaign subject's CT (a virtual patient's deformed copy where it is one), its anatomy
     centre (LPS mm) and its virtual-patient parameters (None for a CT itself), without renderers:
     ``(CTVolume, (3,) centre, VirtualPatientParams | None)``."""
-    from sim.anatomy import anatomy_center
-    from sim.ct_io import load_ct_spec
+    from sim.ct.anatomy import anatomy_center  # loads SciPy: imported where first needed (start-up)
+    from sim.ct.io import load_ct_spec  # loads SciPy: imported where first needed (start-up)
 
     entry = cfg.cts[subject.ct_index]
     volume = load_ct_spec(entry.path, label_map=entry.label_map)
     center = np.asarray(entry.center, float) if entry.center is not None else anatomy_center(volume)
     params = None
     if subject.vp_index is not None:
-        from sim.augment import VirtualPatientRanges, make_virtual_patient
+        from sim.ct.patients import VirtualPatientRanges, make_virtual_patient  # loads SciPy: imported where first needed (start-up)
 
         ranges = VirtualPatientRanges.from_dict(dict(cfg.virtual_patients))
         params = ranges.sample(rng_for(cfg.seed, KIND_VIRTUAL_PATIENT, subject.ct_index, subject.vp_index))
@@ -331,9 +328,7 @@ class SubjectContext:
     """A subject's volume, anatomy centre and renderers, built once per worker and subject."""
 
     def __init__(self, cfg, subject):
-        from sim.anatomy import bone_mask
-        from sim.drr import DRRRenderer, RenderSettings
-        from sim.volume import CTVolume
+        from sim.ct.anatomy import bone_mask  # loads SciPy: imported where first needed (start-up)
 
         entry = cfg.cts[subject.ct_index]
         volume, center, self.vp_params = subject_volume(cfg, subject)
@@ -344,7 +339,6 @@ class SubjectContext:
         self.renderers = {}
         for p in cfg.physics:
             if p.level in ("poly", "full"):
-                from sim.physics.imaging import LogImageRenderer
 
                 self.renderers[p.name] = LogImageRenderer(volume, p.settings(), scene=cfg.scene.name,
                                                           size=tuple(cfg.scene.size), ray_model=p.ray_model,
@@ -418,7 +412,6 @@ def _init_worker(cfg, parent_pid: int | None = None) -> None:
 def render_unit(cfg, unit: Unit, out: Path) -> dict:
     """Render one unit and write its shard; returns the manifest entry and subject metadata."""
     global _worker_ctx
-    from sim.geometry import pose_from_params, project_points
 
     key = (cfg.config_hash(), unit.subject)
     if _worker_ctx is None or _worker_ctx.key != key:
@@ -464,7 +457,14 @@ def _worker_unit(unit: Unit, out: str) -> dict:
 
 
 # ----------------------------------------------------------------------------- parent side
-from sim.progress import Progress  # noqa: E402  (one progress line for every long command)
+from sim.core.progress import Progress  # noqa: E402  (one progress line for every long command)
+from sim.campaign.poses import pose_histogram
+from sim.core.outputs import check_output_dir
+from sim.ct.volume import CTVolume
+from sim.projection.drr import DRRRenderer, RenderSettings
+from sim.projection.geometry import pose_from_params, project_points
+from sim.projection.scene import load_scene
+from sim.physics.imaging import LogImageRenderer
 
 
 def _base_manifest(cfg) -> dict:
@@ -485,7 +485,7 @@ def run_campaign(cfg, out: str | os.PathLike, *, workers: int = 1, resume: bool 
                  shard: tuple[int, int] | None = None, progress: bool = True, client=None) -> dict:
     """Run (or resume) a campaign into ``out``; returns the manifest written.
 
-    ``client``: a :class:`distributed.Client` (:func:`sim.scale.dask_client`) whose workers render
+    ``client``: a :class:`distributed.Client` (:func:`sim.core.scale.dask_client`) whose workers render
     the shards instead of ``workers`` local processes: the same units (:func:`render_unit`), seeds
     and bytes; a unit lost with its worker is retried by Dask.
 
@@ -692,7 +692,6 @@ def _pose_histogram(cfg, out: Path) -> None:
     """The histogram of every sampled pose, or of the first poses of every subject when the
     campaign has more than :data:`HISTOGRAM_POSES` (a subject's first ``m`` poses do not depend
     on how many it has)."""
-    from sim.campaign.poses import pose_histogram
 
     subjects = cfg.subjects()
     m = min(cfg.images_per_ct, max(1, HISTOGRAM_POSES // len(subjects)))

@@ -43,6 +43,9 @@ from typing import Sequence
 import torch
 
 from sim.physics import PhysicsError
+from sim.randomize import DECLARATION, Draw
+from sim.physics.scatter_kernel import default_table
+from sim.projection.geometry import CArmGeometry
 
 __all__ = ["FIELD_CODES", "draw_tensors", "field_masks", "gaussian_reflect", "kernel_superposition",
            "sks_scatter_batched", "masked_percentile", "apply_image_batched"]
@@ -101,7 +104,6 @@ def draw_tensors(draws: Sequence, *, device=None, dtype: torch.dtype = torch.flo
         The seven ``field_*`` geometry entries are float64 whatever ``dtype`` (the masks of
         :func:`field_masks` are then exactly the numpy ones); the device must support float64.
     """
-    from sim.randomize import DECLARATION, Draw
 
     try:
         draws = list(draws)
@@ -509,7 +511,7 @@ def apply_image_batched(raw: torch.Tensor, i0, p: dict[str, torch.Tensor], norma
             ``apply_image`` with ``image_rng(seed, index)``:
             ``image_rng(seed, index).standard_normal((H, W))``).
         geometry, gap_mm, scatter_normals, sks_table: for pairs whose scatter is ``sks``
-            (``apply_image``'s): the images' :class:`sim.geometry.CArmGeometry` (required then),
+            (``apply_image``'s): the images' :class:`sim.projection.geometry.CArmGeometry` (required then),
             the target poses' air gaps ``(B,)`` mm (None: the models' reference gap), ``(B, 2, H,
             W)`` standard normal numbers for the scatter's quantum noise and its texture (required
             then; ``apply_image``'s second and third draws of the pair's ``rng``), the
@@ -566,8 +568,6 @@ def apply_image_batched(raw: torch.Tensor, i0, p: dict[str, torch.Tensor], norma
         x = x.index_copy(0, kern, xk + col(f["scatter_spr"][kern]) * gaussian_reflect(xk, sigma))
     sks = torch.nonzero(q["scatter"] == 3).flatten()
     if sks.numel():
-        from sim.geometry import CArmGeometry
-        from sim.physics.scatter_kernel import default_table
 
         if not isinstance(geometry, CArmGeometry) or (geometry.height, geometry.width) != (h, w):
             raise PhysicsError(f"{where}: pairs with scatter sks need the images' geometry (a CArmGeometry of {h} x "

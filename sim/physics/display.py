@@ -38,7 +38,7 @@ from typing import Any, Mapping
 
 import numpy as np
 
-from sim.atomic import jsonable
+from sim.core.atomic import jsonable
 from sim.physics import PhysicsError
 
 SHAPES = ("none", "circle", "rectangle", "iris-blades", "polygon")

@@ -1,10 +1,10 @@
 """Realistic X-ray images of a CT: density line integrals once per pose, then spectrum, detector, noise.
 
-:class:`XRayImager` wraps a :class:`sim.drr.DRRRenderer` with ``quantity="density"`` over
-:data:`sim.materials.TISSUE_DECOMPOSITION`, and a :class:`sim.physics.poly.Polychromatic`
+:class:`XRayImager` wraps a :class:`sim.projection.drr.DRRRenderer` with ``quantity="density"`` over
+:data:`sim.physics.materials.TISSUE_DECOMPOSITION`, and a :class:`sim.physics.poly.Polychromatic`
 model. Physics levels (:data:`sim.physics.settings.LEVELS`):
 
-* ``line``: line integrals of mu at one effective energy (the plain DRR of :mod:`sim.drr`);
+* ``line``: line integrals of mu at one effective energy (the plain DRR of :mod:`sim.projection.drr`);
 * ``poly``: spectral polychromatic attenuation, energy-integrating CsI detector, and optionally
   quantum and electronic noise with detector blur;
 * ``full``: ``poly`` plus Monte Carlo scatter (:mod:`sim.physics.scatter`), added to the
@@ -26,19 +26,26 @@ import numpy as np
 
 from sim.physics import PhysicsError
 from sim.physics.settings import PhysicsSettings  # noqa: F401  (declared in settings; imported from here too)
-from sim.seeds import image_noise_rng, pose_seed
+from sim.core.seeds import image_noise_rng, pose_seed
+from sim.physics.materials import LabelOverride, TISSUE_DECOMPOSITION
+from sim.physics.poly import Detector, Polychromatic
+from sim.physics.scatter import upsample_cells
+from sim.physics.spectrum import tube_spectrum
+from sim.projection.drr import DRRRenderer, RenderSettings
+from sim.projection.geometry import extrinsic_lps_to_camera
+from sim.physics.scatter import MonteCarloScatter, ScatterSettings
 
 
 class XRayImager:
     """Realistic images of one CT at many poses (see the module doc).
 
     Args:
-        volume: :class:`sim.volume.CTVolume`.
+        volume: :class:`sim.ct.volume.CTVolume`.
         physics: :class:`PhysicsSettings`.
-        scene, size, ray_model: as :class:`sim.drr.RenderSettings`.
-        center_lps, geometry: as :class:`sim.drr.DRRRenderer`.
+        scene, size, ray_model: as :class:`sim.projection.drr.RenderSettings`.
+        center_lps, geometry: as :class:`sim.projection.drr.DRRRenderer`.
         label_materials: ``{label: material}``: the CT's label map overrides the HU-based
-            materials there (:class:`sim.materials.LabelOverride`), e.g. an implant
+            materials there (:class:`sim.physics.materials.LabelOverride`), e.g. an implant
             segmented as titanium.
         fixed_scatter_seed: draw every pose's Monte Carlo from the same seed (common random
             numbers), so that the image of a pose does not depend on its place in a batch and an
@@ -49,10 +56,6 @@ class XRayImager:
     def __init__(self, volume, physics: PhysicsSettings | None = None, *, scene: str = "cios_fusion",
                  size=None, ray_model: str = "siddon", center_lps=None, geometry=None,
                  label_materials: dict[int, str] | None = None, fixed_scatter_seed: bool = False):
-        from sim.materials import TISSUE_DECOMPOSITION, LabelOverride
-        from sim.physics.poly import Detector, Polychromatic
-        from sim.physics.spectrum import tube_spectrum
-        from sim.drr import DRRRenderer, RenderSettings
 
         self.physics = physics or PhysicsSettings()
         self.label_materials = dict(label_materials or {})
@@ -75,7 +78,6 @@ class XRayImager:
         self.scatter = None
         self.gain = 1.0
         if p.level == "full":
-            from sim.physics.scatter import MonteCarloScatter, ScatterSettings
 
             self.scatter = MonteCarloScatter(materials.partial_densities(volume.hu), volume.affine,
                                              TISSUE_DECOMPOSITION.names, self.spectrum, self.detector,
@@ -85,8 +87,6 @@ class XRayImager:
 
     def _scatter_images(self, poses: np.ndarray, seed: int) -> tuple[np.ndarray, np.ndarray]:
         """Expected scattered signal and interacting scattered photons, each ``(B, H, W)``."""
-        from sim.geometry import extrinsic_lps_to_camera
-        from sim.physics.scatter import upsample_cells
 
         g = self.geometry
         mc = self.scatter
@@ -135,7 +135,7 @@ class XRayImager:
 class LogImageRenderer:
     """An :class:`XRayImager` seen as a DRR renderer: ``render(poses, seed=None)`` returns the
     ``-log(I/I0)`` images ``(B, H, W)``; ``geometry``, ``center_lps`` and ``projection_matrix``
-    as :class:`sim.drr.DRRRenderer`. Used for realistic targets and campaign images."""
+    as :class:`sim.projection.drr.DRRRenderer`. Used for realistic targets and campaign images."""
 
     def __init__(self, volume, physics: PhysicsSettings | None = None, **kwargs):
         self.imager = XRayImager(volume, physics, **kwargs)
@@ -154,20 +154,19 @@ def moving_renderer(volume, physics: PhysicsSettings | None = None, *, scene: st
                     label_materials: dict[int, str] | None = None, coarsen: bool = False):
     """The renderer of a registration's moving images ("DRRs") at a physics level.
 
-    ``line`` (or ``physics=None``): a :class:`sim.drr.DRRRenderer` of line integrals of mu.
+    ``line`` (or ``physics=None``): a :class:`sim.projection.drr.DRRRenderer` of line integrals of mu.
     ``poly`` / ``full``: a :class:`LogImageRenderer` of ``-log(I/I0)`` with the settings'
     spectrum and detector, without noise (a moving image is an expected image: noise would
     only make the similarity noisy), and for ``full`` with the same Monte Carlo seed for every
     pose (``fixed_scatter_seed``), so the objective is deterministic. ``label_materials``
     needs ``poly`` or ``full``. Both renderers have ``render(poses (B, 4, 4) or (4, 4)) ->
     (B, H, W)``, ``geometry``, ``center_lps`` and ``projection_matrix``. ``coarsen``: line DRRs
-    from a CT averaged to the image's resolution (:attr:`sim.drr.RenderSettings.coarsen`); the
+    from a CT averaged to the image's resolution (:attr:`sim.projection.drr.RenderSettings.coarsen`); the
     physics levels always render the CT's own voxels.
     """
     from dataclasses import replace
 
     if physics is None or physics.level == "line":
-        from sim.drr import DRRRenderer, RenderSettings
 
         if label_materials:
             raise PhysicsError("label materials need physics poly or full (line DRRs use mu from HU)")

@@ -1,9 +1,9 @@
 """Photon interaction data for Monte Carlo transport, all from xraylib.
 
-Per material (:data:`sim.materials.MATERIALS`) and energy:
+Per material (:data:`sim.physics.materials.MATERIALS`) and energy:
 
 * mass attenuation of the three processes, photoelectric, Compton (incoherent) and Rayleigh
-  (coherent), ``(mu/rho)`` in cm^2/g (:func:`sim.materials.mass_attenuation`);
+  (coherent), ``(mu/rho)`` in cm^2/g (:func:`sim.physics.materials.mass_attenuation`);
 * the angular distributions of the two scattering processes, per gram and steradian
   (:func:`differential_cross_section`):
 
@@ -32,6 +32,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from sim.physics import PhysicsError
+from sim.physics.materials import CANCELLOUS_CORTICAL_MASS_FRACTION, KINDS, MATERIALS, _check_name, mass_attenuation
 
 SCATTER_KINDS = ("compton", "rayleigh")
 _X_MIN = 1e-3  # smallest momentum transfer (1/Angstrom) in xraylib's S and F tables
@@ -41,7 +42,6 @@ def _composition(name: str) -> list[tuple[int, float]]:
     """``[(Z, mass fraction), ...]`` of a material (the cancellous mixture expanded)."""
     import xraylib as xr
 
-    from sim.materials import CANCELLOUS_CORTICAL_MASS_FRACTION, MATERIALS
 
     spec = MATERIALS[name]
     if spec == "mixture":
@@ -63,7 +63,6 @@ def differential_cross_section(name: str, kind: str, energies_keV, theta_rad) ->
     import xraylib as xr
     import xraylib_np as xrn
 
-    from sim.materials import _check_name
 
     _check_name(name)
     if kind not in SCATTER_KINDS:
@@ -131,7 +130,6 @@ class InteractionTables:
 
     @classmethod
     def _build(cls, materials, e_max_keV, e_min_keV, energy_step_keV, angular_step_keV, n_theta, n_u):
-        from sim.materials import KINDS, mass_attenuation
 
         n_e = int(math.ceil((e_max_keV - e_min_keV) / energy_step_keV)) + 1
         energies = e_min_keV + energy_step_keV * np.arange(n_e)

@@ -15,8 +15,10 @@ import dataclasses
 from dataclasses import field
 from typing import Any
 
-from sim.cliargs import Range, opt
+from sim.core.cliargs import Range, opt
 from sim.physics.settings import LEVELS, SETTINGS, PhysicsSettings
+from sim.physics import PhysicsError
+from sim.physics.materials import parse_label_materials
 
 #: Command-line physics options that are not settings of :class:`PhysicsSettings`:
 #: name -> (default, help, opt() keywords, physics levels where it means something).
@@ -42,7 +44,7 @@ def physics_option(name: str, *, default: Any = dataclasses.MISSING, help: str |
 
     ``default`` replaces the setting's default (e.g. fewer Monte Carlo histories for the many
     DRRs of a registration); ``help`` replaces the help text. The levels where the option
-    applies are appended to the help; :mod:`sim.cliargs` adds the unit, the range (the
+    applies are appended to the help; :mod:`sim.core.cliargs` adds the unit, the range (the
     option's ``bounds``, which it also checks) and the default.
     """
     if name in SETTINGS and SETTINGS[name].cli:
@@ -52,7 +54,7 @@ def physics_option(name: str, *, default: Any = dataclasses.MISSING, help: str |
             d = tuple(s.text(d))  # as typed on the command line: "Al:2.5"
         text = help or s.help
         kwargs: dict[str, Any] = dict(unit=s.unit, metavar=s.metavar)
-        if s.low is not None or s.high is not None:  # shown in the help, checked by sim.cliargs
+        if s.low is not None or s.high is not None:  # shown in the help, checked by sim.core.cliargs
             kwargs["bounds"] = Range(s.low, s.high, s.low_open) if not s.high_open else None
         if s.kind == "choice":
             kwargs["choices"] = s.choices
@@ -83,7 +85,6 @@ def check_level_options(cmd, *, level_attr: str = "physics", extra: dict[str, tu
 
     ``extra`` adds a command's own level-bound options (name -> levels).
     """
-    from sim.physics import PhysicsError
 
     level = getattr(cmd, level_attr)
     defaults = {f.name: f.default for f in dataclasses.fields(cmd)}
@@ -113,7 +114,6 @@ def physics_settings(cmd, *, level_attr: str = "physics", **overrides) -> Physic
 
 def label_materials(cmd) -> dict[int, str] | None:
     """The command's ``--label-material`` items as ``{label: material}``, or None when none."""
-    from sim.materials import parse_label_materials
 
     items = getattr(cmd, "label_material", ())
     return parse_label_materials(items) if items else None

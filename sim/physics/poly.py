@@ -38,7 +38,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from sim.materials import mass_attenuation
+from sim.physics.materials import mass_attenuation
 from sim.physics import PhysicsError
 from sim.physics.settings import SETTINGS
 from sim.physics.spectrum import Spectrum
@@ -102,8 +102,8 @@ class Polychromatic:
     Args:
         spectrum: :class:`Spectrum`.
         detector: :class:`Detector`.
-        materials: names (:data:`sim.materials.MATERIALS`) of the density channels, in
-            the renderer's order (its :class:`sim.materials.MaterialDecomposition` names).
+        materials: names (:data:`sim.physics.materials.MATERIALS`) of the density channels, in
+            the renderer's order (its :class:`sim.physics.materials.MaterialDecomposition` names).
     """
 
     def __init__(self, spectrum: Spectrum, detector: Detector | None = None, materials=("soft_tissue",)):

@@ -57,7 +57,10 @@ import numpy as np
 
 from sim.physics import PhysicsError
 from sim.physics.settings import SETTINGS
-from sim.seeds import TAG_SCATTER_CHUNKS, tagged
+from sim.core.seeds import TAG_SCATTER_CHUNKS, tagged
+from sim.physics.interactions import InteractionTables, SCATTER_KINDS
+from sim.physics.poly import Detector
+from sim.projection.backend import ensure_variant
 
 _ME_C2_KEV = 510.99895
 
@@ -194,9 +197,6 @@ class MonteCarloScatter:
 
     def __init__(self, densities: np.ndarray, affine: np.ndarray, materials, spectrum, detector,
                  settings: ScatterSettings | None = None):
-        from sim.backend import ensure_variant
-        from sim.physics.interactions import InteractionTables
-        from sim.physics.poly import Detector
 
         ensure_variant()
         import drjit as dr
@@ -404,8 +404,8 @@ class MonteCarloScatter:
 
         Args:
             camera_to_lps: ``(4, 4)`` camera frame (source at the origin, detector plane
-                ``z = sdd``; :mod:`sim.geometry`) -> LPS mm.
-            geometry: :class:`sim.geometry.CArmGeometry` of the detector.
+                ``z = sdd``; :mod:`sim.projection.geometry`) -> LPS mm.
+            geometry: :class:`sim.projection.geometry.CArmGeometry` of the detector.
             photons_per_pixel: incident photons per pixel without an object (all energies).
             seed: random seed; photons: histories (default the settings').
 
@@ -433,7 +433,7 @@ class MonteCarloScatter:
 
         Args:
             cameras_to_lps: ``(B, 4, 4)`` camera frames -> LPS mm (as :meth:`run`).
-            geometry: :class:`sim.geometry.CArmGeometry`, the same detector for every pose.
+            geometry: :class:`sim.projection.geometry.CArmGeometry`, the same detector for every pose.
             photons_per_pixel: incident photons per pixel without an object (all energies).
             seeds: ``(B,)`` integer seeds, one per pose.
             photons: histories per pose (default the settings').
@@ -730,7 +730,6 @@ class MonteCarloScatter:
 
     def sample_angles(self, kind: str, material: str, energy_keV: float, n: int, seed: int = 0) -> np.ndarray:
         """``(n,)`` scattering angles (rad) drawn by the transport's own sampler (for tests)."""
-        from sim.physics.interactions import SCATTER_KINDS
 
         dr, mi = self._dr, self._mi
         if kind not in SCATTER_KINDS or material not in self.materials:
@@ -743,7 +742,6 @@ class MonteCarloScatter:
 
     def angular_pdf(self, kind: str, material: str, energy_keV: float, theta_rad: np.ndarray) -> np.ndarray:
         """The transport's per-steradian pdf at ``theta_rad`` ``(N,)`` (for tests)."""
-        from sim.physics.interactions import SCATTER_KINDS
 
         mi = self._mi
         th = np.asarray(theta_rad, dtype=np.float32)

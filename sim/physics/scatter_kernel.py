@@ -63,6 +63,11 @@ from typing import Any
 import numpy as np
 
 from sim.physics import PhysicsError
+from sim.core.atomic import write_json
+from sim.physics.imaging import XRayImager
+from sim.physics.materials import TISSUE_DECOMPOSITION
+from sim.physics.scatter import MonteCarloScatter, ScatterSettings, upsample_cells
+from sim.projection.geometry import CArmGeometry, extrinsic_lps_to_camera
 
 #: Version of :meth:`ScatterKernelModel.to_dict`.
 FORMAT_VERSION = 1
@@ -218,7 +223,7 @@ class ScatterKernelModel:
                 (dimensionless; :class:`sim.physics.imaging.XRayImager`'s ``log`` without
                 scatter and noise, i.e. ``-ln(primary / flat)``). Values below 0 (brighter than the
                 flat field) count as 0: no object.
-            geometry: :class:`sim.geometry.CArmGeometry` of the images (``H x W`` pixels of
+            geometry: :class:`sim.projection.geometry.CArmGeometry` of the images (``H x W`` pixels of
                 ``pixel_spacing_mm`` at the detector).
             flat_signal: ``I0``, the flat-field signal per pixel (signal units, with the grid in
                 place); the result is in the same units and scales linearly with it.
@@ -230,7 +235,6 @@ class ScatterKernelModel:
             float64 scatter signal per pixel, the shape of ``log_primary``, >= 0. The FFTs run
             in float32 (4x faster than float64 at these sizes): relative error ~1e-6.
         """
-        from sim.geometry import CArmGeometry
 
         if not isinstance(geometry, CArmGeometry):
             raise PhysicsError(f"geometry must be a CArmGeometry, got {type(geometry).__name__}")
@@ -403,7 +407,7 @@ def fit_maps(log_primary: np.ndarray, scatter_cells: np.ndarray, geometry, *, ce
         scatter_cells: ``(B, Hc, Wc)`` Monte Carlo scatter per pixel over each cell of
             ``cell_px`` pixels, divided by the flat-field signal ``I0`` (dimensionless;
             ``MonteCarloScatter.run_batch``'s ``scatter`` / flat).
-        geometry: :class:`sim.geometry.CArmGeometry` of the ``H x W`` images.
+        geometry: :class:`sim.projection.geometry.CArmGeometry` of the ``H x W`` images.
         cell_px: pixels per side of a tally cell (``Hc = ceil(H / cell_px)``).
         gap_mm: ``(B,)`` air gaps (mm, anatomy centre to detector plane; :func:`detector_gap_mm`)
             of the images: the kernels scale with the gap about their mean. None: no gap
@@ -429,7 +433,6 @@ def fit_maps(log_primary: np.ndarray, scatter_cells: np.ndarray, geometry, *, ce
     """
     from scipy.optimize import least_squares, nnls
 
-    from sim.geometry import CArmGeometry
 
     if not isinstance(geometry, CArmGeometry):
         raise PhysicsError(f"geometry must be a CArmGeometry, got {type(geometry).__name__}")
@@ -528,9 +531,6 @@ def monte_carlo_maps(imager, poses: np.ndarray, *, cell_px: int = 4, photons: in
     import time
     from dataclasses import replace as _replace
 
-    from sim.geometry import extrinsic_lps_to_camera
-    from sim.materials import TISSUE_DECOMPOSITION
-    from sim.physics.scatter import MonteCarloScatter, ScatterSettings, upsample_cells
 
     p = imager.physics
     g = imager.geometry
@@ -587,10 +587,10 @@ def fit_scatter_kernel(volume, physics, poses: np.ndarray, *, size=(64, 64), sce
     """Fit a model to the Monte Carlo scatter of ``volume`` at ``poses`` for ``physics``.
 
     Args:
-        volume: :class:`sim.volume.CTVolume`.
+        volume: :class:`sim.ct.volume.CTVolume`.
         physics: :class:`sim.physics.settings.PhysicsSettings` (spectrum, detector, grid,
             ``scatter_photons``, ``scatter_voxel_mm``; the level and noise do not matter).
-        poses: ``(B, 4, 4)`` fitting poses (volume poses of :mod:`sim.geometry`).
+        poses: ``(B, 4, 4)`` fitting poses (volume poses of :mod:`sim.projection.geometry`).
         size: ``(H, W)`` of the fitting images (low resolution: scatter is smooth).
         scene, center_lps: as :class:`sim.physics.imaging.XRayImager`.
         cell_px: Monte Carlo tally cell (pixels per side).
@@ -602,7 +602,6 @@ def fit_scatter_kernel(volume, physics, poses: np.ndarray, *, size=(64, 64), sce
     """
     from dataclasses import replace as _replace
 
-    from sim.physics.imaging import XRayImager
 
     if imager is None:
         imager = XRayImager(volume, _replace(physics, level="poly", noise=False), scene=scene, size=size,
@@ -814,7 +813,6 @@ class ScatterKernelTable:
 
     def save(self, path) -> None:
         """Write the table as JSON, atomically."""
-        from sim.atomic import write_json
 
         write_json(path, self.to_dict())
 

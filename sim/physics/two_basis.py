@@ -1,7 +1,7 @@
 """Two-basis polychromatic X-rays: realistic images at (nearly) line-DRR cost, batched in torch.
 
 The 9-channel renderer (:mod:`sim.physics.poly`) marches the CT once per pose and gathers one
-density line integral per material of :data:`sim.materials.TISSUE_DECOMPOSITION` plus the tool
+density line integral per material of :data:`sim.physics.materials.TISSUE_DECOMPOSITION` plus the tool
 materials: 9 values per ray step, about 10x a line DRR. Over the diagnostic energies every
 body material's mass attenuation is, to within a few per cent, a linear combination of two
 basis materials' (Alvarez and Macovski 1976): here **water** and **ICRP cortical bone**::
@@ -38,11 +38,16 @@ from pathlib import Path
 import numpy as np
 
 from sim.physics import PhysicsError
+from sim.core.atomic import atomic_path
+from sim.physics.materials import TISSUE_DECOMPOSITION, mass_attenuation
+from sim.physics.poly import Detector
+from sim.physics.settings import SETTINGS
+from sim.physics.spectrum import filtered_tube_spectrum
 
 __all__ = ["BASES", "TOOL_CHANNELS", "basis_coefficients", "basis_matrix", "basis_densities", "BasisDecomposition",
            "SpectralTable", "TorchImager"]
 
-#: The two basis materials (:data:`sim.materials.MATERIALS` names), in channel order.
+#: The two basis materials (:data:`sim.physics.materials.MATERIALS` names), in channel order.
 BASES: tuple[str, str] = ("water", "cortical_bone")
 #: Tool materials with their own channel in a :class:`SpectralTable` (metal and equipment of
 #: :mod:`sim.distractors`; a tool's chords are not part of the CT, so they need no basis fit).
@@ -55,7 +60,6 @@ def basis_coefficients(material: str, bases: tuple[str, str] = BASES) -> np.ndar
     """``(2,)`` coefficients ``(a, b)`` with ``(mu/rho)_material ~ a (mu/rho)_bases[0] + b
     (mu/rho)_bases[1]`` over :data:`FIT_ENERGIES_KEV`: least squares of the relative error
     (each energy's row divided by the material's own coefficient), dimensionless."""
-    from sim.materials import mass_attenuation
 
     e = FIT_ENERGIES_KEV
     target = mass_attenuation(material, e)
@@ -71,17 +75,16 @@ def basis_matrix(materials, bases: tuple[str, str] = BASES) -> np.ndarray:
 
 class BasisDecomposition:
     """A CT's voxels as two basis densities (g/cm^3), usable wherever a
-    :class:`sim.materials.MaterialDecomposition` is (``names``, ``partial_densities(hu)``): the
+    :class:`sim.physics.materials.MaterialDecomposition` is (``names``, ``partial_densities(hu)``): the
     Dr.Jit renderer's ``quantity="density"`` then gathers the two basis line integrals.
 
     Args:
         decomposition: the HU decomposition whose materials are projected on the bases (default
-            :data:`sim.materials.TISSUE_DECOMPOSITION`).
+            :data:`sim.physics.materials.TISSUE_DECOMPOSITION`).
         matrix: its ``(M, 2)`` :func:`basis_matrix` when already computed (default: computed).
     """
 
     def __init__(self, decomposition=None, *, matrix=None):
-        from sim.materials import TISSUE_DECOMPOSITION
 
         self.decomposition = decomposition or TISSUE_DECOMPOSITION
         # (M, 2); a stored one (SpectralTable.basis) spares xraylib where it is not installed
@@ -130,7 +133,7 @@ class SpectralTable:
         response: ``(C, E)`` mean signal per incident photon (keV for the integrating detector).
         interaction: ``(C, E)`` probability that a photon interacts in the CsI.
         detector: ``(thickness_mm, mode)`` of the detector.
-        basis: ``(M, 2)`` :func:`basis_matrix` of :data:`sim.materials.TISSUE_DECOMPOSITION`'s
+        basis: ``(M, 2)`` :func:`basis_matrix` of :data:`sim.physics.materials.TISSUE_DECOMPOSITION`'s
             materials (kept with the table: computing it needs xraylib).
     """
 
@@ -151,10 +154,6 @@ class SpectralTable:
     def build(cls, kvps, al_mm, cu_mm, *, bins: int | None = None, anode_angle_deg: float | None = None,
               detector=None) -> "SpectralTable":
         """Every combination of the given kV, Al mm and Cu mm (spekpy once per kV)."""
-        from sim.materials import mass_attenuation
-        from sim.physics.poly import Detector
-        from sim.physics.settings import SETTINGS
-        from sim.physics.spectrum import filtered_tube_spectrum
 
         bins = SETTINGS["bins"].default if bins is None else int(bins)
         angle = SETTINGS["anode_angle_deg"].default if anode_angle_deg is None else float(anode_angle_deg)
@@ -172,7 +171,6 @@ class SpectralTable:
                     att.append(np.stack([mass_attenuation(m, s.energies_keV) for m in cls.channels]))
                     resp.append(det.response(s.energies_keV))
                     inter.append(counting.response(s.energies_keV))
-        from sim.materials import TISSUE_DECOMPOSITION
 
         return cls(np.asarray(rows), np.asarray(energies), np.asarray(fluence), np.asarray(att), np.asarray(resp),
                    np.asarray(inter), (float(det.thickness_mm), str(det.mode)), angle, bins,
@@ -202,7 +200,6 @@ class SpectralTable:
 
     def save(self, path: str | Path) -> Path:
         """Write an ``.npz`` (plain arrays, no pickles) atomically."""
-        from sim.atomic import atomic_path
 
         path = Path(path)
         with atomic_path(path) as tmp:

@@ -28,7 +28,7 @@ split = "test"
 @pytest.fixture(scope="module")
 def campaign(tmp_path_factory):
     from sim.campaign import load_campaign, open_dataset, run_campaign
-    from sim.phantom import write_phantom_nifti
+    from sim.ct.phantom import write_phantom_nifti
 
     d = tmp_path_factory.mktemp("pairs")
     cts = []

@@ -12,8 +12,8 @@ import pytest
 
 from learn.adapt import ADAPT, AdaptError, adapt, adapted_ct_warning
 from learn.shipped import load_card
-from sim.ct_cache import ct_hash
-from sim.phantom import write_phantom_nifti
+from sim.ct.cache import ct_hash
+from sim.ct.phantom import write_phantom_nifti
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
@@ -89,8 +89,8 @@ def test_refusals(adapted, cts, tmp_path):
     with pytest.raises(AdaptError, match="not trained on randomized realistic pairs"):  # after the phantom's file
         adapt("phantom:2", tmp_path / "ph", minutes=MINUTES, base="pelvis_line", device="cpu", settings=TINY,
               log=lines.append)
-    from sim.ct_io import load_ct
-    from sim.phantom import make_pelvis_phantom
+    from sim.ct.io import load_ct
+    from sim.ct.phantom import make_pelvis_phantom
 
     np.testing.assert_allclose(load_ct(tmp_path / "ph" / "phantom_2.nii.gz").hu, make_pelvis_phantom(2).hu, atol=1e-3)
     assert any("the built-in phantom phantom:2 written to" in line for line in lines)

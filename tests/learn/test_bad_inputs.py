@@ -346,7 +346,7 @@ def test_adapt_refuses_in_one_line_before_any_training(tmp_path, capsys, args, w
     """``ctxreg adapt``: a missing or damaged CT, a bad time, base model, device or a resume of
     nothing: one line naming it, exit 2, nothing trained (no run folder)."""
     from register.cli import main
-    from sim.phantom import write_phantom_nifti
+    from sim.ct.phantom import write_phantom_nifti
 
     ct = tmp_path / "ct.nii.gz"
     write_phantom_nifti(ct, 0, spacing_mm=6.0)

@@ -209,8 +209,8 @@ def test_the_ap_pairs_are_the_batch_targets_with_the_current_image_at_ap(both, c
     parameters zero, as ``register.api.parse_init("ap")``), labels from that start."""
     from learn.labels import geodesic_label
     from register.api import parse_init
-    from sim.geometry import pose_from_params
-    from sim.scene import load_scene
+    from sim.projection.geometry import pose_from_params
+    from sim.projection.scene import load_scene
 
     _, _, batched = both
     k, n = 3, 5
@@ -226,7 +226,7 @@ def test_the_ap_pairs_are_the_batch_targets_with_the_current_image_at_ap(both, c
 
 
 def test_the_noise_of_a_pair_does_not_depend_on_its_batch():
-    from sim.seeds import pair_normals
+    from sim.core.seeds import pair_normals
 
     a = pair_normals(4, [7, 9, 11], 1, (5, 6))
     b = pair_normals(4, [11], 1, (5, 6))

@@ -206,7 +206,7 @@ def test_a_killed_write_leaves_no_temporary_file_for_good(tmp_path):
     save removes it (and the file itself is the last complete one)."""
     target = tmp_path / "checkpoint.pt"
     save_checkpoint(target, _checkpoint(iteration=1))
-    killed = ("import os, sys\nfrom sim.atomic import atomic_path\n"
+    killed = ("import os, sys\nfrom sim.core.atomic import atomic_path\n"
               "with atomic_path(sys.argv[1]) as tmp:\n    tmp.write_bytes(b'half a checkpoint')\n    os._exit(9)\n")
     r = subprocess.run([sys.executable, "-c", killed, str(target)], capture_output=True)
     assert r.returncode == 9, r.stderr

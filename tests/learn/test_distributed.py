@@ -29,7 +29,7 @@ TORCHRUN = REPO / ".venv" / "bin" / "torchrun"
 
 
 def _write_config(cfg, path: Path) -> Path:
-    from sim.atomic import toml_text
+    from sim.core.atomic import toml_text
 
     table = {k: (list(v) if isinstance(v, tuple) else v) for k, v in asdict(cfg).items() if v is not None}
     path.write_text(toml_text({"train": table}))

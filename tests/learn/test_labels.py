@@ -19,7 +19,7 @@ from learn.labels import (
     label_scale,
     sample_pairs,
 )
-from sim.se3 import product_exp, product_log, so3_exp
+from sim.projection.se3 import product_exp, product_log, so3_exp
 
 
 def _random_poses(gen: torch.Generator, shape: tuple[int, ...], dtype=torch.float64,

@@ -278,7 +278,7 @@ def test_a_second_run_into_one_folder_is_refused_at_once(campaign, tmp_path):
     """Two trainings (or adaptations) writing one checkpoint would corrupt it: while a run holds
     its folder, a second is refused in one line naming the holder, before any work."""
     from learn.train import train
-    from sim.atomic import FolderBusyError, folder_lock
+    from sim.core.atomic import FolderBusyError, folder_lock
 
     cfg = config(campaign, tmp_path / "busy", iterations=1)
     with folder_lock(tmp_path / "busy", "ctxreg train"):

@@ -9,7 +9,7 @@ import pytest
 
 import sim.cli
 from register import cli
-from sim.errors import InputError, SetupError
+from sim.core.errors import InputError, SetupError
 
 
 def test_every_command_is_listed_and_reaches_a_runner():

@@ -9,16 +9,16 @@ from register.engines.cmaes import CMAESRegistration, CMAESSettings
 from register.engines.result import RegistrationError
 from register.evaluation.errors import pose_errors
 from register.evaluation.evaluate import EvaluationError, EvaluationSettings, sample_cases, summarize
-from sim.geometry import pose_from_params, projection_matrix
-from sim.drr import DRRRenderer, RenderSettings
+from sim.projection.geometry import pose_from_params, projection_matrix
+from sim.projection.drr import DRRRenderer, RenderSettings
 
 SMALL = CMAESSettings(levels=(2, 1), size=(64, 64), popsize=12, generations=(25, 15), polish_evals=120)
 
 
 @pytest.fixture(scope="module")
 def phantom():
-    from sim.anatomy import anatomy_center
-    from sim.phantom import make_pelvis_phantom
+    from sim.ct.anatomy import anatomy_center
+    from sim.ct.phantom import make_pelvis_phantom
 
     vol = make_pelvis_phantom(0, spacing_mm=4.0)
     return vol, anatomy_center(vol)
@@ -32,7 +32,7 @@ def test_recovers_a_known_small_offset_on_the_phantom(phantom):
     start = truth + np.array([3.0, -3.0, 2.0, 5.0, 5.0, -10.0])
     result = engine.register(target, start)
     T = pose_from_params(truth, engine.geometry.sod_mm)
-    from sim.se3 import rotation_error_deg, translation_error_mm
+    from sim.projection.se3 import rotation_error_deg, translation_error_mm
 
     # same renderer for target and DRRs: the optimum is the truth; 0.5 deg / 2 mm leaves room for
     # the optimiser's tolerances at 64 x 64 pixels of 4.6 mm (3.2 mm at the isocentre)
@@ -241,7 +241,7 @@ def test_bad_settings_and_inputs_are_named(phantom):
 
 
 def test_pose_errors_against_hand_computed_values():
-    from sim.scene import load_scene
+    from sim.projection.scene import load_scene
 
     g = load_scene("cios_fusion").geometry_at(128, 128)
     c = np.array([1.0, -2.0, 3.0])
@@ -260,7 +260,7 @@ def test_pose_errors_against_hand_computed_values():
     z = (pts - c) @ T_true[2, :3] + T_true[2, 3]
     assert err["mpd_mm"] == pytest.approx(np.mean(5.0 * g.sdd_mm / z), rel=1e-6)
     # a rotation by 2 degrees about the anatomy centre: rotation error 2, translation error 0
-    from sim.se3 import so3_exp
+    from sim.projection.se3 import so3_exp
 
     T_rot = T_true.copy()
     T_rot[:3, :3] = T_true[:3, :3] @ so3_exp(np.array([0.0, 0.0, np.radians(2.0)]))

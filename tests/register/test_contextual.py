@@ -12,8 +12,8 @@ from register.engines.result import RegistrationError
 
 @pytest.fixture(scope="module")
 def phantom():
-    from sim.anatomy import anatomy_center
-    from sim.phantom import make_pelvis_phantom
+    from sim.ct.anatomy import anatomy_center
+    from sim.ct.phantom import make_pelvis_phantom
 
     vol = make_pelvis_phantom(0, spacing_mm=4.0)
     return vol, anatomy_center(vol)
@@ -45,8 +45,8 @@ def use_oracle(reg, truth_T) -> None:
 
 
 def test_oracle_iteration_reaches_the_truth_from_ap(phantom):
-    from sim.geometry import pose_from_params
-    from sim.se3 import rotation_error_deg, translation_error_mm
+    from sim.projection.geometry import pose_from_params
+    from sim.projection.se3 import rotation_error_deg, translation_error_mm
 
     vol, c = phantom
     truth = np.array([35.0, -15.0, 12.0, 60.0, -40.0, 50.0])
@@ -81,8 +81,8 @@ def test_a_lost_network_pose_goes_through_the_global_search(phantom):
 
     from register.engines.pipeline import NETWORK_DEPTH_RANGE_MM, REFINE_SETTINGS, ContextualPipeline
     from register.engines.search import GlobalSearchSettings, describe_search
-    from sim.geometry import pose_from_params
-    from sim.se3 import rotation_error_deg
+    from sim.projection.geometry import pose_from_params
+    from sim.projection.se3 import rotation_error_deg
 
     vol, c = phantom
     size = (64, 64)

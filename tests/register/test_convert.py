@@ -40,7 +40,7 @@ from register.convert import (
     to_deepfluoro,
     to_diffdrr,
 )
-from sim.geometry import CArmGeometry, pose_from_params, project_points, projection_matrix
+from sim.projection.geometry import CArmGeometry, pose_from_params, project_points, projection_matrix
 
 SOD = 700.0
 CENTER = np.array([12.0, -30.0, 45.0])  # anatomy centre, LPS mm

@@ -32,7 +32,7 @@ from register.datasets.deepfluoro import DeepFluoroError, DeepFluoroFile
 from register.datasets.deepfluoro_synthetic import (DEEPFLUORO_WORLD_FROM_CAMERA, SyntheticSettings, canonical_lps,
                                                     synthesize_deepfluoro)
 from register.engines.metrics import ncc
-from sim.volume import CTVolume
+from sim.ct.volume import CTVolume
 
 #: ctxreg pose parameters (deg, mm) of the synthetic frames: near AP, as a C-arm frame of the pelvis.
 PARAMS = [[0.0, 0.0, 0.0, 0.0, 0.0, 0.0], [10.0, 5.0, -5.0, 20.0, -10.0, 30.0], [-12.0, 3.0, 6.0, -15.0, 10.0, -25.0]]
@@ -133,7 +133,7 @@ def test_geometry_check_and_an_independent_projection_agree(small_file):
 
 def test_frames_reach_registration_in_the_cts_view(pelvis_file):
     """The DRR at the true pose matches the frame as handed to registration, not the stored one."""
-    from sim.drr import DRRRenderer, RenderSettings
+    from sim.projection.drr import DRRRenderer, RenderSettings
 
     path, _ = pelvis_file
     with DeepFluoroFile(path) as f:
@@ -262,7 +262,7 @@ def test_bad_files_are_one_line(small_file, tmp_path, capsys, case, expect):
 
 def test_reader_errors_are_input_errors(tmp_path):
     """The reader's refusals are user errors (one line on the command line), not tracebacks."""
-    from sim.errors import InputError
+    from sim.core.errors import InputError
 
     assert issubclass(DeepFluoroError, InputError)
     with pytest.raises(DeepFluoroError, match="file not found"):

@@ -103,7 +103,7 @@ def test_the_demo_shows_the_clinical_flow_with_adapt(tmp_path, capsys):
     from learn.shipped import load_card
     from register.cli import main
 
-    from sim.phantom import write_phantom_nifti
+    from sim.ct.phantom import write_phantom_nifti
 
     ct = tmp_path / "phantom5.nii.gz"
     write_phantom_nifti(ct, 5, spacing_mm=4.0)  # a coarse CT: its virtual patients build in a second

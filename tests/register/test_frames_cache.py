@@ -7,8 +7,8 @@ import numpy as np
 
 from register.evaluation.frames import FrameSimulator
 from register.xray.io import load_xray
-from sim.geometry import pose_from_params
-from sim.phantom import make_pelvis_phantom
+from sim.projection.geometry import pose_from_params
+from sim.ct.phantom import make_pelvis_phantom
 from sim.physics.display import DisplayChain
 from sim.physics.imaging import PhysicsSettings, XRayImager
 

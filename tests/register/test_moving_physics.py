@@ -20,8 +20,8 @@ SMALL = CMAESSettings(levels=(2, 1), size=(64, 64), popsize=12, generations=(25,
 
 @pytest.fixture(scope="module")
 def phantom():
-    from sim.anatomy import anatomy_center
-    from sim.phantom import make_pelvis_phantom
+    from sim.ct.anatomy import anatomy_center
+    from sim.ct.phantom import make_pelvis_phantom
 
     vol = make_pelvis_phantom(0, spacing_mm=4.0)
     return vol, anatomy_center(vol)
@@ -35,8 +35,8 @@ def run_cli(*args):
 def test_moving_renderer_levels(phantom):
     """line: the plain DRR renderer; poly: the imager's noise-free log image, whatever the noise
     setting given; label materials are refused for line DRRs."""
-    from sim.geometry import pose_from_params
-    from sim.drr import DRRRenderer
+    from sim.projection.geometry import pose_from_params
+    from sim.projection.drr import DRRRenderer
 
     vol, c = phantom
     assert isinstance(moving_renderer(vol, None, size=(32, 32), center_lps=c), DRRRenderer)
@@ -55,7 +55,7 @@ def test_moving_renderer_levels(phantom):
 def test_full_moving_images_use_common_random_numbers(phantom):
     """With a fixed scatter seed a pose's image does not depend on its place in the batch (so an
     optimiser sees a deterministic objective); a dataset's imager draws each pose apart."""
-    from sim.geometry import pose_from_params
+    from sim.projection.geometry import pose_from_params
 
     vol, c = phantom
     physics = PhysicsSettings(level="full", scatter_photons=20_000, noise=False)
@@ -71,8 +71,8 @@ def test_full_moving_images_use_common_random_numbers(phantom):
 def test_cmaes_with_poly_moving_images_recovers_a_noisy_poly_target(phantom):
     """A noisy 120 kVp image as the X-ray and noise-free poly moving images: the pose comes back
     as with line DRRs on line targets (tests/register/test_cmaes.py, same bounds and settings)."""
-    from sim.geometry import pose_from_params
-    from sim.se3 import rotation_error_deg, translation_error_mm
+    from sim.projection.geometry import pose_from_params
+    from sim.projection.se3 import rotation_error_deg, translation_error_mm
 
     vol, c = phantom
     truth = np.array([6.0, -4.0, 3.0, 8.0, -6.0, 15.0])
@@ -112,10 +112,10 @@ def test_a_checkpoint_reports_a_physics_mismatch(tmp_path):
 def poly_case(tmp_path_factory):
     """A phantom CT and a noisy 120 kVp image of it at a known pose, stored as a DICOM with geometry tags."""
     from register.xray.io import write_xray_dicom
-    from sim.ct_io import save_nifti
-    from sim.geometry import pose_from_params
-    from sim.anatomy import anatomy_center
-    from sim.phantom import make_pelvis_phantom
+    from sim.ct.io import save_nifti
+    from sim.projection.geometry import pose_from_params
+    from sim.ct.anatomy import anatomy_center
+    from sim.ct.phantom import make_pelvis_phantom
 
     d = tmp_path_factory.mktemp("polyreg")
     vol = make_pelvis_phantom(3, spacing_mm=3.0)

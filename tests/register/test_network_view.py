@@ -16,8 +16,8 @@ from register.xray.network_view import NetworkView, network_view
 
 @pytest.fixture(scope="module")
 def phantom():
-    from sim.anatomy import anatomy_center
-    from sim.phantom import make_pelvis_phantom
+    from sim.ct.anatomy import anatomy_center
+    from sim.ct.phantom import make_pelvis_phantom
 
     vol = make_pelvis_phantom(0, spacing_mm=4.0)
     return vol, anatomy_center(vol)
@@ -46,9 +46,9 @@ class _Oracle:
 
 
 def test_a_detector_framed_network_sees_the_whole_detector_and_converges(phantom):
-    from sim.geometry import pose_from_params
-    from sim.scene import load_scene
-    from sim.se3 import rotation_error_deg
+    from sim.projection.geometry import pose_from_params
+    from sim.projection.scene import load_scene
+    from sim.projection.se3 import rotation_error_deg
 
     vol, c = phantom
     full = load_scene("cios_fusion").geometry_at(32, 32)
@@ -69,9 +69,9 @@ def test_network_view_follows_the_predictors_framing(phantom, tmp_path):
     """``network_view`` fits the prepared X-ray's whole detector (and its field) into the network's
     size for a detector-framed predictor, and is None for a field-framed one."""
     from register.xray.prepare import prepare_xray
-    from sim.geometry import pose_from_params
+    from sim.projection.geometry import pose_from_params
     from sim.physics.display import Collimator
-    from sim.drr import DRRRenderer, RenderSettings
+    from sim.projection.drr import DRRRenderer, RenderSettings
 
     vol, c = phantom
     r = DRRRenderer(vol, RenderSettings(size=(96, 96)), center_lps=c)
@@ -101,8 +101,8 @@ def test_a_field_framed_network_sees_the_clipped_plateaus_but_not_the_text(phant
     from PIL import Image, ImageDraw
 
     from register.xray.prepare import prepare_xray
-    from sim.drr import DRRRenderer, RenderSettings
-    from sim.geometry import pose_from_params
+    from sim.projection.drr import DRRRenderer, RenderSettings
+    from sim.projection.geometry import pose_from_params
     from sim.physics.display import Collimator
 
     vol, c = phantom

@@ -16,7 +16,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from register.evaluation.errors import pose_errors
-from sim.geometry import CArmGeometry, pose_from_params
+from sim.projection.geometry import CArmGeometry, pose_from_params
 
 GEOMETRY = CArmGeometry(sdd_mm=1000.0, sod_mm=600.0, height=48, width=64, pixel_spacing_mm=0.8, cx=30.0, cy=22.5)
 CENTER = np.array([3.0, -7.0, 11.0])
@@ -27,7 +27,7 @@ def _points(n: int = 300, seed: int = 5) -> np.ndarray:
 
 
 def _independent(T_est, T_true, points, geometry, center) -> dict:
-    """The errors computed without sim.se3 / sim.geometry: scipy's rotation angle, a loop over the
+    """The errors computed without sim.projection.se3 / sim.projection.geometry: scipy's rotation angle, a loop over the
     points, a pinhole camera written out (u = f x / z + cx, f = SDD / spacing)."""
     rot = np.degrees(Rotation.from_matrix(T_est[:3, :3].T @ T_true[:3, :3]).magnitude())
     trans = float(np.sqrt(sum((T_est[i, 3] - T_true[i, 3]) ** 2 for i in range(3))))
@@ -75,7 +75,7 @@ def test_pose_errors_match_an_independent_computation(case):
 
 
 def test_the_older_call_is_the_same_arithmetic():
-    from sim.geometry import projection_matrix
+    from sim.projection.geometry import projection_matrix
 
     T_est = pose_from_params(np.array(CASES["140 deg away"][0]), GEOMETRY.sod_mm)
     T_true = pose_from_params(TRUE, GEOMETRY.sod_mm)
@@ -119,8 +119,8 @@ def test_a_study_scores_a_known_wrong_pose_right_for_every_target_kind(tmp_path,
     from register.evaluation import study as S
     from register.evaluation.errors import bone_points
     from register.evaluation.evaluate import EvaluationSettings, sample_cases
-    from sim.anatomy import anatomy_center
-    from sim.ct_io import load_ct_spec
+    from sim.ct.anatomy import anatomy_center
+    from sim.ct.io import load_ct_spec
 
     study = S.Study(ct="phantom:0", variants=(S.Variant("v", model="x.pt"),), cases=2, size=(32, 32),
                     methods=("contextual",), targets=())
@@ -128,7 +128,7 @@ def test_a_study_scores_a_known_wrong_pose_right_for_every_target_kind(tmp_path,
     center = anatomy_center(volume)
     settings = EvaluationSettings(cases=2, seed=0, size=(32, 32), start="ap")
     truths, _ = sample_cases(settings)
-    from sim.scene import load_scene
+    from sim.projection.scene import load_scene
 
     g = load_scene().geometry_at(32, 32)
     estimates = [pose_from_params(t + WRONG, g.sod_mm) for t in truths]
@@ -147,7 +147,7 @@ def test_a_study_scores_a_known_wrong_pose_right_for_every_target_kind(tmp_path,
                 pose = next(calls)
                 from types import SimpleNamespace
 
-                from sim.geometry import params_from_pose
+                from sim.projection.geometry import params_from_pose
 
                 return SimpleNamespace(pose=pose, params=params_from_pose(pose, g.sod_mm), renders=0,
                                        similarity=0.5, trajectory=None, search=None)

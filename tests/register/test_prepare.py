@@ -11,8 +11,8 @@ from scipy import ndimage
 
 from register.xray.prepare import fit_to_size
 from sim.prepare import masked_fill
-from sim.geometry import CArmGeometry, backproject_pixel
-from sim.drr import DRRRenderer, RenderSettings
+from sim.projection.geometry import CArmGeometry, backproject_pixel
+from sim.projection.drr import DRRRenderer, RenderSettings
 
 
 def _image(h=150, w=210, seed=0):
@@ -64,7 +64,7 @@ def test_contextual_iteration_ignores_what_lies_outside_the_mask():
     """The predictor, CMA-ES refinement and final similarity see nothing of the pixels outside
     the field: any values there give the same trajectory and result."""
     from register.engines.contextual import ContextualRegistration, ContextualSettings
-    from sim.phantom import make_pelvis_phantom
+    from sim.ct.phantom import make_pelvis_phantom
 
     vol = make_pelvis_phantom(3, spacing_mm=6.0)
     seen = []
@@ -148,8 +148,8 @@ def test_polarity_check_overturns_only_by_a_clear_margin(tone):
 
     from register.xray.prepare import POLARITY_FLIP_MARGIN, confirm_polarity, prepare_xray
     from register.xray.io import XRayImage
-    from sim.anatomy import anatomy_center
-    from sim.phantom import make_pelvis_phantom
+    from sim.ct.anatomy import anatomy_center
+    from sim.ct.phantom import make_pelvis_phantom
 
     vol = make_pelvis_phantom(0, spacing_mm=4.0)
     c = anatomy_center(vol)
@@ -188,8 +188,8 @@ def test_polarity_scores_of_an_inverse_are_swapped_and_a_tiny_image_is_left_alon
     from register.xray.prepare import confirm_polarity, prepare_xray
     from register.engines.search import GlobalSearch, GlobalSearchSettings
     from register.xray.io import XRayImage
-    from sim.anatomy import anatomy_center
-    from sim.phantom import make_pelvis_phantom
+    from sim.ct.anatomy import anatomy_center
+    from sim.ct.phantom import make_pelvis_phantom
 
     vol = make_pelvis_phantom(0, spacing_mm=4.0)
     c = anatomy_center(vol)
@@ -214,8 +214,8 @@ def test_polarity_check_and_search_render_the_grid_once_with_the_same_result():
     from register.xray.prepare import confirm_polarity, prepare_xray
     from register.engines.search import GlobalSearch, GlobalSearchSettings
     from register.xray.io import XRayImage
-    from sim.anatomy import anatomy_center
-    from sim.phantom import make_pelvis_phantom
+    from sim.ct.anatomy import anatomy_center
+    from sim.ct.phantom import make_pelvis_phantom
 
     vol = make_pelvis_phantom(0, spacing_mm=4.0)
     c = anatomy_center(vol)
@@ -277,8 +277,8 @@ def test_a_pose_confirms_a_polarity_only_above_the_threshold_and_never_a_decisiv
     from register.xray.io import XRayImage
     from register.xray.prepare import (POLARITY_CONFIRMED_ABOVE, confirm_polarity_by_pose, polarity_needs_check,
                                        prepare_xray)
-    from sim.anatomy import anatomy_center
-    from sim.phantom import make_pelvis_phantom
+    from sim.ct.anatomy import anatomy_center
+    from sim.ct.phantom import make_pelvis_phantom
 
     vol = make_pelvis_phantom(0, spacing_mm=4.0)
     c = anatomy_center(vol)

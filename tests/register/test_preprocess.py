@@ -25,7 +25,7 @@ from register.xray.preprocess import (
     crop_box,
     cropped_geometry,
 )
-from sim.geometry import CArmGeometry, backproject_pixel
+from sim.projection.geometry import CArmGeometry, backproject_pixel
 from tests.conftest import shared_file
 
 

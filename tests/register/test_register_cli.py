@@ -45,10 +45,10 @@ def _assert_recovered(out, truth) -> dict:
 def synthetic_case(tmp_path_factory):
     """A phantom CT (NIfTI) and its DRR at a known pose, stored as a DX DICOM with geometry tags."""
     from register.xray.io import write_xray_dicom
-    from sim.anatomy import anatomy_center
-    from sim.ct_io import save_nifti
-    from sim.phantom import make_pelvis_phantom
-    from sim.drr import DRRRenderer, RenderSettings
+    from sim.ct.anatomy import anatomy_center
+    from sim.ct.io import save_nifti
+    from sim.ct.phantom import make_pelvis_phantom
+    from sim.projection.drr import DRRRenderer, RenderSettings
 
     d = tmp_path_factory.mktemp("reg")
     vol = make_pelvis_phantom(3, spacing_mm=3.0)
@@ -200,7 +200,7 @@ def test_contextual_register_saves_a_consistent_trajectory(synthetic_case, tmp_p
 
     from learn.labels import apply_update
     from learn.model import pose_update_net
-    from sim.geometry import pose_from_params
+    from sim.projection.geometry import pose_from_params
 
     torch.manual_seed(0)
     ckpt = tmp_path / "tiny.pt"

@@ -12,8 +12,8 @@ from register.engines.search import GlobalSearch, GlobalSearchSettings, describe
 
 @pytest.fixture(scope="module")
 def phantom():
-    from sim.anatomy import anatomy_center
-    from sim.phantom import make_pelvis_phantom
+    from sim.ct.anatomy import anatomy_center
+    from sim.ct.phantom import make_pelvis_phantom
 
     vol = make_pelvis_phantom(0, spacing_mm=4.0)
     return vol, anatomy_center(vol)
@@ -70,7 +70,7 @@ def test_settings_are_checked():
 def test_the_grid_finds_the_in_plane_translation_of_a_grid_rotation(phantom):
     """A pose on the grid's rotations and depths with an arbitrary in-plane translation: the best grid
     pose is that rotation and depth, its translation within one search pixel (at the anatomy's depth)."""
-    from sim.geometry import pose_from_params
+    from sim.projection.geometry import pose_from_params
 
     vol, c = phantom
     s = GlobalSearchSettings(range_deg=(20.0, 10.0, 10.0), step_deg=10.0, depths=3, range_mm=40.0)
@@ -124,8 +124,8 @@ def test_the_local_searches_take_the_depth_box_given(phantom):
 
 
 def test_the_search_finds_a_far_pose_and_skips_the_grid_for_a_good_one(phantom):
-    from sim.geometry import pose_from_params
-    from sim.se3 import rotation_error_deg
+    from sim.projection.geometry import pose_from_params
+    from sim.projection.se3 import rotation_error_deg
 
     vol, c = phantom
     search = GlobalSearch(vol, GlobalSearchSettings(candidates=3), size=(64, 64), center_lps=c)

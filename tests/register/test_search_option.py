@@ -15,8 +15,8 @@ from register.engines.result import RegistrationError
 
 @pytest.fixture(scope="module")
 def phantom():
-    from sim.anatomy import anatomy_center
-    from sim.phantom import make_pelvis_phantom
+    from sim.ct.anatomy import anatomy_center
+    from sim.ct.phantom import make_pelvis_phantom
 
     vol = make_pelvis_phantom(0, spacing_mm=4.0)
     return vol, anatomy_center(vol)
@@ -25,7 +25,7 @@ def phantom():
 def xray_at(phantom, truth):
     """A 64 x 64 line DRR of the phantom at ``truth`` (deg, mm) as an X-ray with its geometry."""
     from register.xray.io import XRayImage
-    from sim.drr import DRRRenderer, RenderSettings
+    from sim.projection.drr import DRRRenderer, RenderSettings
 
     vol, c = phantom
     r = DRRRenderer(vol, RenderSettings(size=(64, 64)), center_lps=c)

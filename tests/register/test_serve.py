@@ -194,7 +194,7 @@ def test_kills_at_random_moments_leave_whole_folders_and_a_restart_registers_the
 def test_a_second_server_on_one_out_folder_is_refused_at_once(tmp_path):
     """Two servers writing frames into one --out would collide: while one holds the folder, a
     second is refused in one line naming the holder."""
-    from sim.atomic import FolderBusyError, folder_lock
+    from sim.core.atomic import FolderBusyError, folder_lock
 
     root = tmp_path / "out"
     with folder_lock(root, "ctxreg serve"):

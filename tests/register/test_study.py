@@ -91,7 +91,7 @@ def test_a_tiny_study_runs_end_to_end_and_resumes(tmp_path, capsys, monkeypatch)
     # a frame the registration refuses (its one-line input error) is a failed case, not a failed study
     import register.api
     from register.xray.field import FieldError
-    from sim.errors import InputError
+    from sim.core.errors import InputError
 
     def refuse(*args, **kwargs):
         raise FieldError("the valid pixels cover only 0.0 % of the image")

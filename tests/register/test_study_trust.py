@@ -77,7 +77,7 @@ class Fakes:
                 rows = [{"case": 0, "method": m, "rot_err_deg": 1.0, "trans_err_mm": 2.0, "mtre_mm": 3.0,
                          "mpd_mm": 1.5, "time_s": 0.1, "success": False} for m in study.methods]
                 summary = summarize(rows, EvaluationSettings(cases=1))
-                from sim.atomic import write_json
+                from sim.core.atomic import write_json
 
                 write_json(folder / "summary.json", {"summary": summary, **(stamp or {})})
                 return summary

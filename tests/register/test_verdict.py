@@ -10,7 +10,7 @@ from register.engines.result import RegistrationError, RegistrationResult
 from register.evaluation.evaluate import verdict_rates
 from register.verdict import (DISTINCT_DEG, DISTINCT_DEPTH_MM, DISTINCT_MM, EXIT_STATUS, depth_probe_poses, Verdict, VerdictSettings, gather_evidence, judge,
                               judge_result, pose_gap)
-from sim.geometry import params_from_pose, pose_from_params
+from sim.projection.geometry import params_from_pose, pose_from_params
 
 SOD = 700.0
 
@@ -157,10 +157,10 @@ def test_the_verdict_line_and_exit_statuses():
 
 
 def test_the_command_line_prints_the_last_line_and_exits_with_the_status(monkeypatch, capsys):
-    """register's verdict reaches the exit status through sim.outputs.Written (main's plumbing)."""
+    """register's verdict reaches the exit status through sim.core.outputs.Written (main's plumbing)."""
     import register.commands as commands
     from register import cli
-    from sim.outputs import Written
+    from sim.core.outputs import Written
 
     monkeypatch.setattr(commands, "run_register",
                         lambda cmd: Written(["a.png"], last_line="verdict: doubtful (x)", exit_status=3))

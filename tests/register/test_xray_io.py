@@ -19,7 +19,7 @@ from register.xray.io import (
     load_xray,
     write_xray_dicom,
 )
-from sim.scene import load_scene
+from sim.projection.scene import load_scene
 from tests.conftest import shared_file
 
 PAED = "xray/paediatric_ap_pelvis"

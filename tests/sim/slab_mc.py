@@ -51,7 +51,7 @@ def run_slab(*, thickness_mm: float, lateral_mm: float, z_entry_mm: float, sdd_m
     source emits toward uniform points of the detector. Returns the mean scatter signal per mm^2
     on the central ``central_mm`` square and on the whole detector, per emitted photon
     (signal units of ``detector.response``), and their relative standard errors."""
-    from sim.materials import mass_attenuation
+    from sim.physics.materials import mass_attenuation
 
     rng = np.random.default_rng(seed)
     e_grid = np.linspace(5.0, float(spectrum.edges_keV[-1]) + 1, 600)

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from sim.volume import CTVolume
+from sim.ct.volume import CTVolume
 
 
 def small_ct(seed: int, *, fractional: bool = False) -> CTVolume:

@@ -8,11 +8,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from sim.anatomy import (BONE_HU_THRESHOLD, AnatomyError, Center, anatomy_center, bone_mask, find_center,
+from sim.ct.anatomy import (BONE_HU_THRESHOLD, AnatomyError, Center, anatomy_center, bone_mask, find_center,
                          mask_centroid_lps, pelvis_mask, remember_center)
-from sim.ct_io import load_ct
-from sim.phantom import make_pelvis_phantom
-from sim.volume import CTVolume
+from sim.ct.io import load_ct
+from sim.ct.phantom import make_pelvis_phantom
+from sim.ct.volume import CTVolume
 from tests.conftest import shared_file
 
 

@@ -9,7 +9,7 @@ import pytest
 
 
 def test_written_file_has_umask_permissions_and_no_leftovers(tmp_path):
-    from sim.atomic import atomic_path
+    from sim.core.atomic import atomic_path
 
     old = os.umask(0o022)
     try:
@@ -23,7 +23,7 @@ def test_written_file_has_umask_permissions_and_no_leftovers(tmp_path):
 
 
 def test_a_failed_write_leaves_the_old_file_and_no_temporary(tmp_path):
-    from sim.atomic import atomic_path
+    from sim.core.atomic import atomic_path
 
     (tmp_path / "a.txt").write_text("old")
     with pytest.raises(RuntimeError):
@@ -40,7 +40,7 @@ def test_jsonable_turns_numpy_and_tuples_into_plain_json_and_refuses_objects():
     import numpy as np
     import pytest
 
-    from sim.atomic import jsonable
+    from sim.core.atomic import jsonable
 
     data = {1: (np.float32(0.5), np.int64(3), np.bool_(True)), "a": np.arange(4).reshape(2, 2), "n": None}
     out = jsonable(data)
@@ -62,7 +62,7 @@ def _dead_pid() -> int:
 
 
 def test_temporary_names_say_whose_they_are(tmp_path):
-    from sim.atomic import _host, atomic_path, temp_owner
+    from sim.core.atomic import _host, atomic_path, temp_owner
 
     with atomic_path(tmp_path / "manifest.part1-of-2.json") as tmp:
         assert tmp.name.startswith(f".manifest.part1-of-2.json.{os.getpid()}@{_host()}-")
@@ -74,7 +74,7 @@ def test_temporary_names_say_whose_they_are(tmp_path):
 
 
 def test_stale_temporaries_of_dead_writers_are_removed_and_no_others(tmp_path):
-    from sim.atomic import _host, remove_stale_temps
+    from sim.core.atomic import _host, remove_stale_temps
 
     dead, host = _dead_pid(), _host()
     files = {
@@ -103,11 +103,11 @@ def test_a_write_killed_midway_leaves_a_temporary_that_the_next_write_removes(tm
     import sys
     import time
 
-    from sim.atomic import atomic_path, temp_owner
+    from sim.core.atomic import atomic_path, temp_owner
 
     target = tmp_path / "data.json"
     target.write_text("old")
-    code = ("import sys, time; from sim.atomic import atomic_path\n"
+    code = ("import sys, time; from sim.core.atomic import atomic_path\n"
             "with atomic_path(sys.argv[1]) as tmp:\n"
             "    tmp.write_text('half'); print('writing', flush=True); time.sleep(60)\n")
     p = subprocess.Popen([sys.executable, "-c", code, str(target)], stdout=subprocess.PIPE, text=True)
@@ -127,7 +127,7 @@ def test_a_write_killed_midway_leaves_a_temporary_that_the_next_write_removes(tm
 def test_toml_text_round_trips_through_tomllib(tmp_path):
     import tomllib
 
-    from sim.atomic import toml_text, write_toml
+    from sim.core.atomic import toml_text, write_toml
 
     data = {"model": {"name": "pelvis line", "size": [64, 64], "ok": True, "lr": 1e-3, "n": 3,
                       "steps": ["normalize", {"name": "gaussian", "sigma_px": 1.5}], "quote": 'a "b"\\c'},

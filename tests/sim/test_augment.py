@@ -1,4 +1,4 @@
-"""Virtual patients (sim.augment) against independent truth.
+"""Virtual patients (sim.ct.patients) against independent truth.
 
 Truth used here: closed forms of the backward map on linear HU ramps (trilinear resampling of
 a linear function is exact), box extents and centroids under a known scaling, numerical
@@ -19,8 +19,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from sim.anatomy import anatomy_center, mask_centroid_lps
-from sim.augment import (
+from sim.ct.anatomy import anatomy_center, mask_centroid_lps
+from sim.ct.patients import (
     AIR_HU,
     MAX_DISPLACEMENT_GRADIENT,
     PARAM_LIMITS,
@@ -31,7 +31,7 @@ from sim.augment import (
     make_virtual_patient,
     perturb_hu,
 )
-from sim.volume import CTVolume
+from sim.ct.volume import CTVolume
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -424,9 +424,9 @@ def test_ranges_from_dict_validates_keys_and_values():
 
 # ----------------------------------------------------------------------------- real CT
 def test_virtual_patient_of_the_real_pelvis_ct_is_a_plausible_ct(pelvis_ct_path):
-    from sim.anatomy import bone_mask
-    from sim.ct_io import check_hu_plausible, load_ct
-    from sim.drr import DRRRenderer, RenderSettings
+    from sim.ct.anatomy import bone_mask
+    from sim.ct.io import check_hu_plausible, load_ct
+    from sim.projection.drr import DRRRenderer, RenderSettings
 
     ct = load_ct(pelvis_ct_path)
     centre = anatomy_center(ct)

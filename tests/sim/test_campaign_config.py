@@ -20,7 +20,7 @@ from sim.campaign.config import (
     parse_campaign,
 )
 from sim.campaign.poses import ORIGINAL_PROTOCOL
-from sim.materials import MU_WATER_60KEV_PER_MM
+from sim.physics.materials import MU_WATER_60KEV_PER_MM
 from tests.conftest import REPO
 
 CAMPAIGNS = REPO / "campaigns"
@@ -260,7 +260,7 @@ CHANGES = [
 @pytest.mark.parametrize("where, key, value", CHANGES, ids=[f"{w}.{k}" for w, k, _ in CHANGES])
 def test_hash_changes_when_any_value_changes(where, key, value, tmp_path, ct_files):
     if where == "virtual_patients":
-        pytest.importorskip("sim.augment", reason="sim.augment (virtual-patient ranges) is not written yet")
+        pytest.importorskip("sim.ct.patients", reason="sim.ct.patients (virtual-patient ranges) is not written yet")
     cfg = load_campaign(full_campaign(tmp_path, str(ct_files[0]), str(ct_files[1])))
     d = cfg.to_dict()
     changed = copy.deepcopy(d)
@@ -467,11 +467,11 @@ def test_check_files_off_reads_a_config_from_another_machine(tmp_path):
 
 
 def test_virtual_patient_ranges_are_validated_and_kept(tmp_path):
-    pytest.importorskip("sim.augment", reason="sim.augment (virtual-patient ranges) is not written yet")
+    pytest.importorskip("sim.ct.patients", reason="sim.ct.patients (virtual-patient ranges) is not written yet")
     ok = bad(tmp_path, rest="[virtual_patients]\nnoise_hu = [0.0, 5.0]\nscale = [0.95, 1.05]\n")
     cfg = load_campaign(ok)
     assert cfg.virtual_patients == {"noise_hu": [0.0, 5.0], "scale": [0.95, 1.05]}
-    from sim.augment import VirtualPatientRanges
+    from sim.ct.patients import VirtualPatientRanges
 
     assert VirtualPatientRanges.from_dict(cfg.virtual_patients).noise_hu == (0.0, 5.0)
     with pytest.raises(CampaignConfigError, match=r"virtual_patients\.noise_hz.*did you mean 'noise_hu'"):

@@ -60,7 +60,7 @@ projected_center = true
 @pytest.fixture(scope="module")
 def small_cts(tmp_path_factory):
     """Two phantoms at 4 mm as NIfTI (fast to load in every worker)."""
-    from sim.phantom import write_phantom_nifti
+    from sim.ct.phantom import write_phantom_nifti
 
     d = tmp_path_factory.mktemp("cts")
     paths = []
@@ -250,9 +250,9 @@ def test_poses_stay_in_their_ranges_and_the_histogram_is_written(reference):
 
 
 def test_reader_round_trip_against_a_direct_render(reference, small_cts):
-    from sim.ct_io import load_ct
-    from sim.geometry import pose_from_params, project_points
-    from sim.drr import DRRRenderer, RenderSettings
+    from sim.ct.io import load_ct
+    from sim.projection.geometry import pose_from_params, project_points
+    from sim.projection.drr import DRRRenderer, RenderSettings
 
     cfg, out, manifest = reference
     with ds.open_dataset(out) as data:
@@ -422,7 +422,7 @@ def test_each_shard_is_hashed_once_per_process(reference, tmp_path, monkeypatch)
 def test_resume_removes_stale_temporaries_and_re_renders_a_truncated_shard(reference, small_cts, tmp_path):
     import subprocess as sp
 
-    from sim.atomic import _host
+    from sim.core.atomic import _host
     from sim.campaign.runner import run_campaign
 
     _, ref_out, _ = reference
@@ -456,7 +456,7 @@ def test_resume_of_another_campaign_names_the_keys_that_changed(reference, small
 
 def test_an_output_path_that_cannot_be_a_folder_is_refused_before_any_work(reference, tmp_path):
     from sim.campaign.runner import run_campaign
-    from sim.errors import InputError
+    from sim.core.errors import InputError
 
     cfg, _, _ = reference
     a_file = tmp_path / "a_file"
@@ -514,11 +514,11 @@ def test_view_check_matches_the_renderer(small_cts):
     """visible_poses says 'nothing' exactly where a render is all zero (for these poses), and
     the header box equals the loaded CT's box."""
     from sim.campaign.runner import ct_box_from_header, visible_poses
-    from sim.ct_io import load_ct
-    from sim.geometry import pose_from_params
-    from sim.drr import DRRRenderer, RenderSettings
+    from sim.ct.io import load_ct
+    from sim.projection.geometry import pose_from_params
+    from sim.projection.drr import DRRRenderer, RenderSettings
 
-    from sim.phantom import make_pelvis_phantom
+    from sim.ct.phantom import make_pelvis_phantom
 
     np.testing.assert_allclose(ct_box_from_header("phantom:3"), make_pelvis_phantom(3).corners_lps(), atol=1e-9)
     assert ct_box_from_header("/data/ct_series_folder") is None  # DICOM: checked by the worker once loaded

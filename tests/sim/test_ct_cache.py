@@ -1,4 +1,4 @@
-"""The CT cache (sim/ct_cache.py): a cached CT is the CT, a changed CT is never served from an old
+"""The CT cache (sim/ct/cache.py): a cached CT is the CT, a changed CT is never served from an old
 entry, broken entries are rebuilt, the folder keeps its size limit."""
 
 from __future__ import annotations
@@ -9,11 +9,11 @@ import numpy as np
 import pytest
 
 import sim
-from sim import ct_cache
-from sim.anatomy import anatomy_center
-from sim.ct_cache import CTCacheError, ct_hash, evict, load_ct_cached
-from sim.ct_io import load_ct, save_nifti
-from sim.volume import CTInputError
+from sim.ct import cache as ct_cache
+from sim.ct.anatomy import anatomy_center
+from sim.ct.cache import CTCacheError, ct_hash, evict, load_ct_cached
+from sim.ct.io import load_ct, save_nifti
+from sim.ct.volume import CTInputError
 
 from tests.sim.small_ct import small_ct
 

@@ -13,8 +13,8 @@ import pytest
 from pydicom.dataset import Dataset, FileMetaDataset
 from pydicom.uid import CTImageStorage, ExplicitVRLittleEndian, generate_uid
 
-from sim.ct_io import RAS_TO_LPS, ct_from_array, load_ct, resample, save_nifti
-from sim.volume import CTInputError, CTVolume
+from sim.ct.io import RAS_TO_LPS, ct_from_array, load_ct, resample, save_nifti
+from sim.ct.volume import CTInputError, CTVolume
 from tests.conftest import shared_file
 
 # --------------------------------------------------------------------------------------------

@@ -1,8 +1,8 @@
 """Tools in the field (sim.distractors) against closed forms.
 
-Truth is independent of Mitsuba: rays from the pixel centres of sim.geometry (source at the
+Truth is independent of Mitsuba: rays from the pixel centres of sim.projection.geometry (source at the
 camera origin, placed in LPS by R^T and c), chords from analytic ray-cylinder and ray-slab
-intersections in NumPy float64, the screw's tip from sim.geometry.project_points, attenuation
+intersections in NumPy float64, the screw's tip from sim.projection.geometry.project_points, attenuation
 coefficients from xraylib called here.
 
 Faceting: a round part is the n-gon inscribed in its circle, which contains the circle of the
@@ -37,8 +37,8 @@ from sim.distractors import (
     table,
     topology,
 )
-from sim.errors import InputError
-from sim.geometry import CArmGeometry, pose_from_params, project_points, projection_matrix
+from sim.core.errors import InputError
+from sim.projection.geometry import CArmGeometry, pose_from_params, project_points, projection_matrix
 
 GEOM = CArmGeometry(sdd_mm=1000.0, sod_mm=600.0, height=40, width=48, pixel_spacing_mm=0.6)
 CENTER = np.array([5.0, -3.0, 10.0])
@@ -245,8 +245,8 @@ def test_line_and_density_attenuation_of_the_chords():
 
 def test_renderers_with_tools_add_them_and_without_tools_are_unchanged():
     from sim.physics.imaging import PhysicsSettings, XRayImager
-    from sim.drr import DRRRenderer, RenderSettings
-    from sim.volume import CTVolume
+    from sim.projection.drr import DRRRenderer, RenderSettings
+    from sim.ct.volume import CTVolume
 
     hu = np.zeros((12, 12, 12), np.float32)
     affine = np.diag([3.0, 3.0, 3.0, 1.0])
@@ -320,7 +320,7 @@ def test_implanted_tools_are_reproducible_in_their_box_and_move_with_the_patient
     spread; tools in the patient frame, so that their chords at a pose are those of the same
     meshes placed in the camera frame by that pose's extrinsic (the anatomy's own map)."""
     from sim.distractors import implanted_tools
-    from sim.geometry import extrinsic_lps_to_camera
+    from sim.projection.geometry import extrinsic_lps_to_camera
 
     geom = CArmGeometry(sdd_mm=1020.0, sod_mm=700.0, height=32, width=32, pixel_spacing_mm=9.3)
     center, spread = np.array([10.0, -20.0, 150.0]), np.array([80.0, 50.0, 70.0])

@@ -1,4 +1,4 @@
-"""The renderer's volumes (sim/drr.py): renderers of one CT share one upload with the same images;
+"""The renderer's volumes (sim/projection/drr.py): renderers of one CT share one upload with the same images;
 coarse levels keep the mass and the voxel centres, follow the pixel's footprint and keep the image
 within a stated tolerance."""
 
@@ -6,15 +6,15 @@ from __future__ import annotations
 
 import numpy as np
 
-from sim.volume import CTVolume
+from sim.ct.volume import CTVolume
 
 from tests.sim.small_ct import small_ct
 
 
 
 def test_renderers_of_one_ct_share_one_upload_and_render_the_same_images():
-    from sim.drr import DRRRenderer, RenderSettings, _UPLOADS
-    from sim.geometry import pose_from_params
+    from sim.projection.drr import DRRRenderer, RenderSettings, _UPLOADS
+    from sim.projection.geometry import pose_from_params
 
     ct = small_ct(2)
     a = DRRRenderer(ct, RenderSettings(size=(24, 24)))
@@ -28,14 +28,14 @@ def test_renderers_of_one_ct_share_one_upload_and_render_the_same_images():
     assert twin.integrator.volume is not a.integrator.volume
     pose = pose_from_params(np.array([10.0, -5.0, 3.0, 2.0, -1.0, 4.0]), a.geometry.sod_mm)
     np.testing.assert_array_equal(a.render(pose), twin.render(pose))
-    from sim.materials import MU_WATER_60KEV_PER_MM  # mu is linear in mu_water: the image scales with it
+    from sim.physics.materials import MU_WATER_60KEV_PER_MM  # mu is linear in mu_water: the image scales with it
 
     np.testing.assert_allclose(other_water.render(pose), a.render(pose) * (0.03 / MU_WATER_60KEV_PER_MM),
                                rtol=1e-5, atol=1e-6)
 
 
 def test_coarsened_keeps_the_mass_and_the_coarse_voxel_centres():
-    from sim.drr import coarse_affine, coarsened
+    from sim.projection.drr import coarse_affine, coarsened
 
     rng = np.random.default_rng(3)
     fine = rng.random((2, 7, 6, 5)).astype(np.float32)
@@ -55,9 +55,9 @@ def test_coarsening_follows_the_pixel_footprint_and_keeps_the_image():
     stays within 2 % (rel. L2; 1.2 % measured, most of it the phantom's uncorrelated 20 HU noise,
     which the coarse voxels average; the chest CT: 0.4 %) of its own voxels' image; a 3 mm CT at
     64 px is not coarsened."""
-    from sim.drr import DRRRenderer, RenderSettings, coarsening
-    from sim.geometry import pose_from_params
-    from sim.scene import load_scene
+    from sim.projection.drr import DRRRenderer, RenderSettings, coarsening
+    from sim.projection.geometry import pose_from_params
+    from sim.projection.scene import load_scene
 
     g64 = load_scene("cios_fusion").geometry_at(64, 64)
     footprint = g64.pixel_spacing_mm * g64.sod_mm / g64.sdd_mm

@@ -1,4 +1,4 @@
-"""Tests for sim.geometry against hand-computed pinhole projections, hand-written rotations and
+"""Tests for sim.projection.geometry against hand-computed pinhole projections, hand-written rotations and
 scipy's Euler angles (independent of the module's own rotation code).
 
 Tolerances: everything is float64 with O(10) flops on values up to ~1e3 (mm, px), so results
@@ -13,8 +13,8 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from sim import geometry as g
-from sim.geometry import CArmGeometry, GeometryError
+from sim.projection import geometry as g
+from sim.projection.geometry import CArmGeometry, GeometryError
 
 ATOL = 1e-9
 

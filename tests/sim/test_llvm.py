@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from sim import llvm
+from sim.projection import llvm
 
 
 def test_version_is_read_from_versioned_names(tmp_path):
@@ -57,7 +57,7 @@ def _only_under(root, glob_fn):
 def test_the_running_dr_jit_uses_llvm_16_or_newer():
     import drjit as dr
 
-    from sim.backend import ensure_variant
+    from sim.projection.backend import ensure_variant
 
     if ensure_variant().startswith("llvm"):
         assert dr.detail.llvm_version()[0] >= llvm.MIN_LLVM_MAJOR

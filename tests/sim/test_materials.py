@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from sim.errors import InputError
-from sim.materials import MU_WATER_60KEV_PER_MM, MaterialDecomposition, MaterialError, mu_from_hu
+from sim.core.errors import InputError
+from sim.physics.materials import MU_WATER_60KEV_PER_MM, MaterialDecomposition, MaterialError, mu_from_hu
 
 
 def test_default_mu_water_is_xraylib_water_at_60_kev():
@@ -55,7 +55,7 @@ def test_bad_decompositions_are_rejected():
 
 
 def test_one_materials_module_without_dr_jit_or_the_physics_package():
-    """The HU decomposition and the materials' cross sections live in sim.materials (sim.physics
+    """The HU decomposition and the materials' cross sections live in sim.physics.materials (sim.physics
     imports it, not the reverse); importing it loads neither Dr.Jit/Mitsuba nor sim.physics."""
     import importlib.util
     import subprocess
@@ -64,7 +64,7 @@ def test_one_materials_module_without_dr_jit_or_the_physics_package():
     from tests.conftest import REPO
 
     assert importlib.util.find_spec("sim.physics.materials") is None
-    code = ("import sys, sim.materials as m; m.TISSUE_DECOMPOSITION.partial_densities(m.np.zeros(3)); "
+    code = ("import sys, sim.physics.materials as m; m.TISSUE_DECOMPOSITION.partial_densities(m.np.zeros(3)); "
             "print(sorted(k for k in sys.modules if k.split('.')[0] in ('drjit', 'mitsuba') "
             "or k.startswith('sim.physics')))")
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=REPO, timeout=120)
@@ -72,7 +72,7 @@ def test_one_materials_module_without_dr_jit_or_the_physics_package():
 
 
 def test_material_names_and_label_materials_are_refused_with_what_is_allowed():
-    from sim.materials import LabelOverride, mass_attenuation, parse_label_materials
+    from sim.physics.materials import LabelOverride, mass_attenuation, parse_label_materials
 
     with pytest.raises(MaterialError, match="unknown material 'steel'; known: air, lung"):
         mass_attenuation("steel", 60.0)
@@ -91,7 +91,7 @@ def test_fractions_and_partial_densities_equal_the_hat_function_definition():
     ends, times the density. Exact equality: the same float64 operations per value."""
     import numpy as np
 
-    from sim.materials import MaterialDecomposition
+    from sim.physics.materials import MaterialDecomposition
 
     m = MaterialDecomposition()
     hu = np.concatenate([np.linspace(-3000.0, 6000.0, 9002), [-1000.0, 0.0, 3071.0, 3.5]]).reshape(3, -1)

@@ -1,4 +1,4 @@
-"""Tests for sim.phantom, the built-in digital pelvis phantom.
+"""Tests for sim.ct.phantom, the built-in digital pelvis phantom.
 
 Truth used here is independent of the rasterisation code: closed-form sphere-cap volumes,
 the shape parameters and landmarks the phantom is built from (checked against what the voxels
@@ -21,7 +21,7 @@ import numpy as np
 import pytest
 from scipy import ndimage
 
-from sim.phantom import (
+from sim.ct.phantom import (
     LABEL_NAMES,
     PelvisShape,
     PhantomInputError,
@@ -29,7 +29,7 @@ from sim.phantom import (
     pelvis_landmarks,
     write_phantom_nifti,
 )
-from sim.volume import CTVolume
+from sim.ct.volume import CTVolume
 
 MU_WATER = 0.02  # 1/mm, only to turn HU into an attenuation for the projection checks
 

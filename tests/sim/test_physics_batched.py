@@ -224,7 +224,7 @@ def test_apply_image_batched_on_cuda_equals_cpu():
 
 def _sks_geometry(h: int, w: int):
     """A C-arm geometry of ``h x w`` pixels of 6 mm (a 64-px image of a 384 mm detector)."""
-    from sim.geometry import CArmGeometry
+    from sim.projection.geometry import CArmGeometry
 
     return CArmGeometry(sdd_mm=1020.0, sod_mm=620.0, height=h, width=w, pixel_spacing_mm=6.0)
 

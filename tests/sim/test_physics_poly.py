@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import xraylib as xr
 
-from sim.materials import TISSUE_DECOMPOSITION, MaterialError, mass_attenuation, mu_linear
+from sim.physics.materials import TISSUE_DECOMPOSITION, MaterialError, mass_attenuation, mu_linear
 from sim.physics import PhysicsError
 from sim.physics.poly import Detector, Polychromatic, compton_mean_energy_fraction
 from sim.physics.filters import parse_filters
@@ -26,9 +26,9 @@ def test_monochromatic_signal_is_beer_lambert_with_xraylib_on_a_box():
     """A soft-tissue box in air, rendered as density line integrals: at 60 keV the signal ratio
     equals exp(-mu chord) with mu from xraylib called here, within 0.5 % (the chord of the
     voxelised box is exact for rays through faces away from edges; air adds < 0.01 %)."""
-    from sim.geometry import pose_from_params
-    from sim.drr import DRRRenderer, RenderSettings
-    from sim.volume import CTVolume
+    from sim.projection.geometry import pose_from_params
+    from sim.projection.drr import DRRRenderer, RenderSettings
+    from sim.ct.volume import CTVolume
 
     hu = np.full((40, 30, 24), -1000.0, np.float32)
     hu[8:32, 6:24, 5:19] = 40.0  # exactly the soft-tissue anchor: fraction 1 of soft tissue
@@ -169,14 +169,14 @@ def test_imager_log_image_tracks_the_line_integral_and_noise_is_reproducible():
     """On the phantom, the noise-free poly log image follows the independently rendered 60 keV
     line-integral DRR (correlation > 0.99, values within 10 %: the 120 kVp beam's effective
     energy is near 60 keV), and noise is reproducible for a seed and differs between seeds."""
-    from sim.phantom import make_pelvis_phantom
+    from sim.ct.phantom import make_pelvis_phantom
     from sim.physics.imaging import PhysicsSettings, XRayImager
-    from sim.drr import DRRRenderer, RenderSettings
+    from sim.projection.drr import DRRRenderer, RenderSettings
 
     vol = make_pelvis_phantom(0, spacing_mm=4.0)
     imager = XRayImager(vol, PhysicsSettings(noise=False), size=(32, 32))
     line = DRRRenderer(vol, RenderSettings(size=(32, 32)), center_lps=imager.renderer.center_lps)
-    from sim.geometry import pose_from_params
+    from sim.projection.geometry import pose_from_params
 
     pose = pose_from_params(np.array([10.0, 5.0, 0.0, 0.0, 0.0, 0.0]), imager.geometry.sod_mm)
     out = imager.render(pose)
@@ -291,7 +291,7 @@ def test_evaluate_with_poly_targets_registers_through_the_domain_gap(tmp_path):
 def test_a_label_map_overrides_the_materials():
     """A labelled 'implant' in soft tissue: as titanium it gets titanium's nominal density and
     attenuates like Beer-Lambert with xraylib's titanium mu; unlabelled voxels are unchanged."""
-    from sim.materials import LabelOverride, nominal_density
+    from sim.physics.materials import LabelOverride, nominal_density
 
     hu = np.full((4, 4, 4), 40.0, np.float32)
     labels = np.zeros((4, 4, 4), np.int16)
@@ -314,9 +314,9 @@ def test_a_label_map_overrides_the_materials():
 
 
 def test_imager_uses_the_label_override_of_a_ct():
-    from sim.phantom import make_pelvis_phantom
+    from sim.ct.phantom import make_pelvis_phantom
     from sim.physics.imaging import PhysicsSettings, XRayImager
-    from sim.volume import CTVolume
+    from sim.ct.volume import CTVolume
 
     vol = make_pelvis_phantom(0, spacing_mm=5.0)
     labels = np.zeros(vol.hu.shape, np.int16)
@@ -325,7 +325,7 @@ def test_imager_uses_the_label_override_of_a_ct():
     lab = CTVolume(vol.hu, vol.affine, source="phantom+implant", labels=labels)
     base = XRayImager(lab, PhysicsSettings(noise=False), size=(32, 32))
     implant = XRayImager(lab, PhysicsSettings(noise=False), size=(32, 32), label_materials={9: "titanium"})
-    from sim.geometry import pose_from_params
+    from sim.projection.geometry import pose_from_params
 
     pose = pose_from_params(np.zeros(6), base.geometry.sod_mm)
     a, b = base.render(pose)["log"][0], implant.render(pose)["log"][0]

@@ -13,7 +13,7 @@ import tomllib
 import numpy as np
 import pytest
 
-from sim.errors import InputError
+from sim.core.errors import InputError
 from sim.physics.display import Collimator, DisplayChain
 from sim.physics.settings import SETTINGS, PhysicsSettings
 from sim.randomize import (DECLARATION, DomainRandomization, Draw, RandomizeError, apply_image, doc_table_rows,
@@ -414,7 +414,7 @@ def test_the_docs_table_is_the_declaration():
 
 
 def test_the_tool_bank_is_reproducible_and_picks_by_the_draw():
-    from sim.geometry import CArmGeometry
+    from sim.projection.geometry import CArmGeometry
     from sim.randomize import TOOL_BANK_SIZE, ToolBank
 
     geom = CArmGeometry(sdd_mm=1020.0, sod_mm=700.0, height=24, width=24, pixel_spacing_mm=12.0)

@@ -7,11 +7,11 @@ import numpy as np
 import pytest
 import torch
 
-from sim.geometry import pose_from_params
-from sim.raymarch import DrJitVolumes, RaymarchError, TorchVolumes, volumes_for
-from sim.scene import load_scene
-from sim.seeds import pair_normals
-from sim.volume import CTVolume
+from sim.projection.geometry import pose_from_params
+from sim.projection.raymarch import DrJitVolumes, RaymarchError, TorchVolumes, volumes_for
+from sim.projection.scene import load_scene
+from sim.core.seeds import pair_normals
+from sim.ct.volume import CTVolume
 from tests.sim.test_render import box_chords, clear_of_edges, rays_lps
 
 
@@ -53,9 +53,9 @@ def test_torch_marcher_integrates_a_box_to_its_chord_lengths():
 
 @pytest.fixture(scope="module")
 def pelvis(pelvis_ct_path):
-    from sim.anatomy import anatomy_center
-    from sim.ct_io import load_ct_spec
-    from sim.materials import mu_from_hu
+    from sim.ct.anatomy import anatomy_center
+    from sim.ct.io import load_ct_spec
+    from sim.physics.materials import mu_from_hu
 
     v = load_ct_spec(str(pelvis_ct_path))
     return mu_from_hu(v.hu)[None], v.affine, anatomy_center(v)
@@ -67,7 +67,7 @@ def test_torch_marcher_agrees_with_the_siddon_renderer_on_the_pelvis_ct(pelvis):
     image (measured 0.35 %) and 99 % of the pixels agree within 3 % of the image's maximum. Single
     pixels differ more where rays run along the CT's cut faces (Siddon counts the outer voxels
     whole; trilinear sampling fades them over half a voxel): at most 20 % of the maximum."""
-    from sim.drr import DRRRenderer, RenderSettings
+    from sim.projection.drr import DRRRenderer, RenderSettings
 
     mu, affine, center = pelvis
     g = load_scene("cios_fusion").geometry_at(64, 64)
@@ -76,7 +76,7 @@ def test_torch_marcher_agrees_with_the_siddon_renderer_on_the_pelvis_ct(pelvis):
     poses = pose_from_params(params, g.sod_mm)
     ref = DRRRenderer(CTVolume(np.zeros(mu.shape[1:], np.float32) + 0, affine), RenderSettings(size=(64, 64)),
                       center_lps=center)
-    ref.integrator.set_volume(mu, ref.volume.spacing_mm, memory_order=__import__("sim.drr").drr.memory_order(affine))
+    ref.integrator.set_volume(mu, ref.volume.spacing_mm, memory_order=__import__("sim.projection.drr").drr.memory_order(affine))
     want = ref.render(poses)
     got = TorchVolumes([mu], [affine], [center], g).line_integrals(np.zeros(16, int), poses)[:, 0].numpy()
     err = np.abs(got - want)

@@ -1,7 +1,7 @@
 """The DRR renderer against closed forms: ray-box and ray-ellipsoid chords, projected beads.
 
 Truth here is independent of the renderer: chords come from analytic ray-box / ray-quadric
-intersections in NumPy (float64), bead positions from K [R | t - R c] X (sim.geometry).
+intersections in NumPy (float64), bead positions from K [R | t - R c] X (sim.projection.geometry).
 """
 
 from __future__ import annotations
@@ -9,10 +9,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from sim.geometry import pose_from_params, project_points
-from sim.materials import MU_WATER_60KEV_PER_MM, MaterialDecomposition
-from sim.drr import DRRRenderer, RenderError, RenderSettings
-from sim.volume import CTVolume
+from sim.projection.geometry import pose_from_params, project_points
+from sim.physics.materials import MU_WATER_60KEV_PER_MM, MaterialDecomposition
+from sim.projection.drr import DRRRenderer, RenderError, RenderSettings
+from sim.ct.volume import CTVolume
 
 MU = MU_WATER_60KEV_PER_MM
 POSES = np.array([
@@ -226,7 +226,7 @@ def test_trilinear_equals_independent_integration_of_the_interpolant():
     """The trilinear kernel against scipy's trilinear interpolation, summed at 0.01 mm steps."""
     from scipy.ndimage import map_coordinates
 
-    from sim.materials import mu_from_hu
+    from sim.physics.materials import mu_from_hu
 
     rng = np.random.default_rng(3)
     n, spacing = (20, 16, 12), (3.0, 2.0, 4.0)
@@ -377,7 +377,7 @@ def test_density_channels_are_a_partition_of_the_density_line_integral(box):
 
 @pytest.mark.slow
 def test_siddon_and_trilinear_agree_within_one_percent_on_real_ct(pelvis_ct_path):
-    from sim.ct_io import load_ct
+    from sim.ct.io import load_ct
 
     vol = load_ct(pelvis_ct_path)
     out = {}
@@ -409,7 +409,7 @@ def test_plugin_renders_through_plain_mitsuba_api(box):
     import mitsuba as mi
 
     from scenes import SCENE_DIR
-    from sim.scene import load_scene, sensor_values
+    from sim.projection.scene import load_scene, sensor_values
 
     vol, *_ = box
     r = DRRRenderer(vol, RenderSettings(size=(40, 40)), center_lps=[0, 0, 0])
@@ -418,7 +418,7 @@ def test_plugin_renders_through_plain_mitsuba_api(box):
     scene = mi.load_file(str(SCENE_DIR / "cios_fusion.xml"), **{k: str(v) for k, v in values.items()})
     integrator = scene.integrator()
     assert "ctxreg_drr" in str(type(integrator)).lower() or "DRRIntegrator" in str(integrator)
-    from sim.materials import mu_from_hu
+    from sim.physics.materials import mu_from_hu
 
     integrator.set_volume(mu_from_hu(vol.hu)[None], vol.spacing_mm)
     params = mi.traverse(scene)
@@ -452,7 +452,7 @@ def test_render_function_is_the_renderer_at_one_pose(box):
 
 
 def test_step_fraction_has_a_lower_bound():
-    from sim.drr import STEP_FRACTION
+    from sim.projection.drr import STEP_FRACTION
 
     assert RenderSettings(step_fraction=STEP_FRACTION.lo).step_fraction == 0.05
     for bad in (0.049, 1e-9, 0.0, 1.5, float("nan")):
@@ -464,7 +464,7 @@ def test_check_in_view_agrees_with_dense_ray_box_chords(box):
     """The view check (a 33 x 33 ray grid and the box corners) against 161 x 161 analytic rays
     spanning the detector: a pose whose rays all miss the CT's box is refused; one whose rays hit
     it for more than 1 % is accepted (in between, a sliver, either verdict is right)."""
-    from sim.drr import check_in_view
+    from sim.projection.drr import check_in_view
 
     vol, *_ = box
     r = DRRRenderer(vol, RenderSettings(size=(16, 16)), center_lps=[0, 0, 0])
@@ -531,11 +531,11 @@ def test_fixed16_storage_is_float32_within_half_a_code_along_each_ray(box, ray_m
 
 
 def test_fixed16_storage_is_refused_where_it_does_not_apply(box):
-    from sim.backend import ensure_variant
+    from sim.projection.backend import ensure_variant
 
     ensure_variant()
-    from sim.integrators import drr as integrator
-    from sim.drr import STORAGES
+    from sim.projection.integrators import drr as integrator
+    from sim.projection.drr import STORAGES
 
     assert integrator.STORAGES == STORAGES  # the settings' choices are the integrator's
     vol, *_ = box

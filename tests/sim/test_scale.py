@@ -1,4 +1,4 @@
-"""Campaigns on a Dask cluster (sim.scale, ``ctxreg simulate --scheduler``): the same bytes as a local
+"""Campaigns on a Dask cluster (sim.core.scale, ``ctxreg simulate --scheduler``): the same bytes as a local
 run, a worker killed mid-shard retried with no loss and no duplicate, and the refusals before any
 work (a malformed value, an unreachable scheduler, --workers beside --scheduler)."""
 
@@ -13,7 +13,7 @@ from pathlib import Path
 import pytest
 
 from sim.campaign import dataset as ds
-from sim.scale import SchedulerError, parse_scheduler
+from sim.core.scale import SchedulerError, parse_scheduler
 # the campaign tests' phantoms and their single-process run: the truth here too
 from tests.sim.test_campaign_run import checksums, reference, run_cli, small_cts, write_campaign  # noqa: F401
 

@@ -8,7 +8,7 @@ import math
 import numpy as np
 import pytest
 
-from sim.geometry import CArmGeometry
+from sim.projection.geometry import CArmGeometry
 from sim.physics import PhysicsError
 from sim.physics.poly import Detector, Polychromatic
 from sim.physics.scatter import MonteCarloScatter, ScatterSettings, block_average
@@ -205,8 +205,8 @@ def test_full_physics_images_add_scatter_before_noise():
     seed other noise and Monte Carlo; without noise raw = primary + scatter; with noise the
     image mean stays primary + scatter (2 %: Poisson means over 4096 pixels) and its variance
     grows by the scatter's photons; scatter lowers the log image's contrast."""
-    from sim.geometry import pose_from_params
-    from sim.phantom import make_pelvis_phantom
+    from sim.projection.geometry import pose_from_params
+    from sim.ct.phantom import make_pelvis_phantom
     from sim.physics.imaging import PhysicsSettings, XRayImager
 
     vol = make_pelvis_phantom(0)
@@ -300,8 +300,8 @@ def test_automatic_smoothing_brings_an_estimate_closer_to_the_expected_scatter()
     (measured 1.6-1.8x over three seeds: 15-22 % -> 9-12 %; unsmoothed it would be 1x; the study's
     frames at 10^6 histories: 11.6 % -> 4.4 %, benchmarks/scatter_denoise.py), and its error is
     under 15 % of the mean scatter."""
-    from sim.geometry import extrinsic_lps_to_camera, pose_from_params
-    from sim.phantom import make_pelvis_phantom
+    from sim.projection.geometry import extrinsic_lps_to_camera, pose_from_params
+    from sim.ct.phantom import make_pelvis_phantom
     from sim.physics.imaging import PhysicsSettings, XRayImager
     from sim.physics.scatter import upsample_cells
 

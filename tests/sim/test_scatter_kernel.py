@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 from scipy.special import ndtr
 
-from sim.geometry import CArmGeometry, pose_from_params
+from sim.projection.geometry import CArmGeometry, pose_from_params
 from sim.physics import PhysicsError
 from sim.physics.scatter_kernel import (ScatterKernelModel, cell_means, fit_maps, interpolate_kvp, monte_carlo_maps,
                                         physics_record)
@@ -33,7 +33,7 @@ def _poses(seed: int, n: int, sod_mm: float) -> np.ndarray:
 
 @pytest.fixture(scope="module")
 def phantom():
-    from sim.phantom import make_pelvis_phantom
+    from sim.ct.phantom import make_pelvis_phantom
 
     return make_pelvis_phantom(0, spacing_mm=6.0)
 

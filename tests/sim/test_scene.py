@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from scenes import SCENE_DIR, available
-from sim.scene import SceneError, load_mitsuba_scene, load_scene, sensor_values
+from sim.projection.scene import SceneError, load_mitsuba_scene, load_scene, sensor_values
 
 
 def test_cios_fusion_geometry_is_as_documented():

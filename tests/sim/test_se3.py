@@ -1,4 +1,4 @@
-"""Tests for sim.se3 against independent truth: scipy's matrix exponential and rotation
+"""Tests for sim.projection.se3 against independent truth: scipy's matrix exponential and rotation
 vectors, closed-form rotations, round trips, and central finite differences.
 
 Tolerances: float64 results are compared at 1e-10 (rad, or relative for mm values ~100): the
@@ -21,7 +21,7 @@ import scipy.linalg
 import torch
 from scipy.spatial.transform import Rotation
 
-from sim import se3
+from sim.projection import se3
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -427,9 +427,9 @@ def test_non_finite_and_mixed_inputs_raise():
 def test_numpy_use_does_not_import_torch():
     code = (
         "import sys, numpy as np\n"
-        "from sim import se3\n"
+        "from sim.projection import se3\n"
         "T = se3.se3_exp(np.ones((2, 6)))\n"
         "se3.geodesic_distance(T, se3.se3_inverse(T)); se3.se3_log(T)\n"
-        "assert 'torch' not in sys.modules, 'sim.se3 imported torch'\n"
+        "assert 'torch' not in sys.modules, 'sim.projection.se3 imported torch'\n"
     )
     subprocess.run([sys.executable, "-c", code], cwd=REPO, check=True, timeout=60)

@@ -1,4 +1,4 @@
-"""Every random stream is named in sim/seeds.py and equals, bit for bit, the literal construction
+"""Every random stream is named in sim/core/seeds.py and equals, bit for bit, the literal construction
 it replaced (so datasets, virtual patients, phantoms and training pairs stay the same)."""
 
 from __future__ import annotations
@@ -8,7 +8,7 @@ import ast
 import numpy as np
 import pytest
 
-from sim import seeds
+from sim.core import seeds
 from tests.conftest import REPO
 
 
@@ -33,8 +33,8 @@ KEYED = {
     "KIND_BATCH": (40, (9,)),                   # learn/online.py
     "KIND_BATCH_NOISE": (41, (9, 2, 1)),        # learn/online.py
     "KIND_RANDOMIZE": (50, (9, 0)),             # sim/randomize.py: (50, index, 0 settings / 1 noise)
-    "KIND_VP_FIELD": (0, ()),                   # sim/augment.py: _STREAM_FIELD = 0
-    "KIND_VP_NOISE": (1, ()),                   # sim/augment.py: _STREAM_NOISE = 1
+    "KIND_VP_FIELD": (0, ()),                   # sim/ct/patients.py: _STREAM_FIELD = 0
+    "KIND_VP_NOISE": (1, ()),                   # sim/ct/patients.py: _STREAM_NOISE = 1
 }
 TAGS = {"TAG_PELVIS_SHAPE": 0x5E1F15, "TAG_PHANTOM_TEXTURE": 0x7E47, "TAG_SCATTER_CHUNKS": 0x5CA7}
 
@@ -95,18 +95,18 @@ def test_the_users_take_their_streams_from_sim_seeds():
 
 
 #: Files that still build their SeedSequence themselves (owned elsewhere; their kinds are named
-#: in sim/seeds.py already and can switch to it).
+#: in sim/core/seeds.py already and can switch to it).
 NOT_YET: set[str] = set()
 
 
 def test_no_other_module_builds_a_keyed_or_tagged_stream():
-    """No ``SeedSequence(...)`` call and no stream tag outside sim/seeds.py (docstrings may cite them)."""
+    """No ``SeedSequence(...)`` call and no stream tag outside sim/core/seeds.py (docstrings may cite them)."""
     tags = set(TAGS.values())
     offenders = []
     for pkg in ("sim", "learn", "register"):
         for path in sorted((REPO / pkg).rglob("*.py")):
             rel = path.relative_to(REPO).as_posix()
-            if rel == "sim/seeds.py" or rel in NOT_YET:
+            if rel == "sim/core/seeds.py" or rel in NOT_YET:
                 continue
             for node in ast.walk(ast.parse(path.read_text())):
                 called = isinstance(node, ast.Call) and getattr(node.func, "attr", getattr(node.func, "id", None))

@@ -11,8 +11,8 @@ import dataclasses
 import pytest
 
 from sim.campaign.config import PhysicsConfig, parse_campaign
-from sim.cliargs import OptionError, Range, add_options, from_namespace
-from sim.errors import InputError
+from sim.core.cliargs import OptionError, Range, add_options, from_namespace
+from sim.core.errors import InputError
 from sim.physics import PhysicsError
 from sim.physics.settings import FORMER_NAMES, SETTINGS, PhysicsSettings, campaign_settings, campaign_table_rows
 from tests.conftest import REPO

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import torch
 
-from sim.materials import TISSUE_DECOMPOSITION, mass_attenuation
+from sim.physics.materials import TISSUE_DECOMPOSITION, mass_attenuation
 from sim.physics import PhysicsError
 from sim.physics.poly import Detector, Polychromatic
 from sim.physics.spectrum import filtered_tube_spectrum
@@ -33,11 +33,11 @@ def test_the_bases_are_their_own_fit_and_body_materials_fit_within_three_percent
 
 
 def _pelvis_views(pelvis_ct_path, n=6):
-    from sim.anatomy import anatomy_center
-    from sim.ct_io import load_ct_spec
-    from sim.geometry import pose_from_params
-    from sim.drr import DRRRenderer, RenderSettings
-    from sim.scene import load_scene
+    from sim.ct.anatomy import anatomy_center
+    from sim.ct.io import load_ct_spec
+    from sim.projection.geometry import pose_from_params
+    from sim.projection.drr import DRRRenderer, RenderSettings
+    from sim.projection.scene import load_scene
 
     v = load_ct_spec(str(pelvis_ct_path))
     c = anatomy_center(v)

@@ -30,7 +30,7 @@ from typing import Any
 
 import numpy as np
 
-from sim.errors import InputError
+from sim.core.errors import InputError
 
 __all__ = [
     "DEFAULT_MM_PER_RAD",
@@ -69,7 +69,7 @@ Array = Any  # numpy.ndarray or torch.Tensor
 
 
 class SE3InputError(InputError):
-    """An input to :mod:`sim.se3` cannot be used; the message names the input and the problem."""
+    """An input to :mod:`sim.projection.se3` cannot be used; the message names the input and the problem."""
 
 
 class SE3ShapeError(SE3InputError):

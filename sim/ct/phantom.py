@@ -1,6 +1,6 @@
 """Built-in digital adult pelvis phantom: a seeded generator of anatomically plausible pelvis CTs.
 
-:func:`make_pelvis_phantom` returns a :class:`~sim.volume.CTVolume` in Hounsfield units with a
+:func:`make_pelvis_phantom` returns a :class:`~sim.ct.volume.CTVolume` in Hounsfield units with a
 label map. It is ctxreg's default CT (the demo renders it, tests use it) and a source of
 "virtual patients": :meth:`PelvisShape.sample` draws every shape parameter within its adult
 range from a seed, so ``make_pelvis_phantom(seed)`` is a different, reproducible patient per
@@ -65,9 +65,10 @@ import numpy as np
 from scipy.ndimage import distance_transform_edt
 from scipy.spatial import cKDTree
 
-from sim.errors import InputError
-from sim.seeds import TAG_PELVIS_SHAPE, TAG_PHANTOM_TEXTURE, tagged_rng
-from sim.volume import CTVolume
+from sim.core.errors import InputError
+from sim.core.seeds import TAG_PELVIS_SHAPE, TAG_PHANTOM_TEXTURE, tagged_rng
+from sim.ct.volume import CTVolume
+from sim.core.atomic import atomic_path
 
 __all__ = [
     "LABEL_NAMES",
@@ -1248,7 +1249,6 @@ def write_phantom_nifti(path: str | os.PathLike, seed: int | None = 0, *,
     the label map (uint8) the same way. Returns the volume."""
     import nibabel as nib
 
-    from sim.atomic import atomic_path
 
     for name, p in (("path", path), ("labels_path", labels_path)):
         if p is None:

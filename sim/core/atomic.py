@@ -22,7 +22,7 @@ import tempfile
 from pathlib import Path
 from typing import Iterator
 
-from sim.errors import InputError
+from sim.core.errors import InputError
 
 #: ``.NAME.PID@HOST-RANDOM.tmp...``: the target's name, the writer's PID and host.
 _TEMP_NAME = re.compile(r"^\.(?P<name>.+)\.(?P<pid>\d+)@(?P<host>[A-Za-z0-9_-]*)-[a-z0-9_]+\.tmp")

@@ -37,7 +37,7 @@ from functools import lru_cache
 
 import numpy as np
 
-from sim.errors import InputError
+from sim.core.errors import InputError
 
 
 class MaterialError(InputError):

@@ -6,7 +6,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from sim.errors import InputError
+from sim.core.errors import InputError
 
 #: HU values outside this range are not plausible for a CT (air is -1000, dense metal about
 #: +3000 to +4000 on a 12-bit scale, extended-range scanners reach +30000). Loaders reject

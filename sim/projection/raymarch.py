@@ -1,6 +1,6 @@
 """Line integrals of many CT volumes at many poses in one torch call (CPU or CUDA).
 
-The Dr.Jit renderer (:mod:`sim.drr`) is the reference and registration's renderer; this is
+The Dr.Jit renderer (:mod:`sim.projection.drr`) is the reference and registration's renderer; this is
 its batched twin for training pairs, where thousands of images per second of several subjects
 must come from the device that trains the network. :class:`TorchVolumes` holds the channels of
 several subjects (e.g. ``mu`` and the two basis densities of :mod:`sim.physics.two_basis`) on one
@@ -9,7 +9,7 @@ device, stacked along the first voxel axis with empty slabs between them, so one
 
 On a CPU, ``grid_sample`` over a 3-D volume is about 80x slower than the Dr.Jit renderer's compiled
 Siddon kernel, so :func:`volumes_for` gives :class:`DrJitVolumes` there (the same interface over
-:class:`sim.drr.DRRRenderer`) and :class:`TorchVolumes` on a GPU.
+:class:`sim.projection.drr.DRRRenderer`) and :class:`TorchVolumes` on a GPU.
 
 Rays (``docs/conventions.md``): the source is the camera origin, pixel ``(i, j)``'s centre is
 ``((j - cx) s, (i - cy) s, SDD)``; a camera point ``X`` is the patient point
@@ -29,7 +29,10 @@ import math
 
 import numpy as np
 
-from sim.errors import InputError
+from sim.core.errors import InputError
+from sim.ct.volume import CTVolume
+from sim.projection.geometry import CArmGeometry
+from sim.projection.drr import DRRRenderer, RenderSettings
 
 __all__ = ["RaymarchError", "TorchVolumes", "DrJitVolumes", "volumes_for"]
 
@@ -51,7 +54,7 @@ class TorchVolumes:
             path: 1/mm for ``mu``, g/cm^3 for densities; the result multiplies by the path in mm).
         affines: one ``(4, 4)`` voxel-index-to-LPS-mm affine per subject.
         centers: one ``(3,)`` anatomy centre (LPS mm) per subject.
-        geometry: the :class:`sim.geometry.CArmGeometry` of the images.
+        geometry: the :class:`sim.projection.geometry.CArmGeometry` of the images.
         device: torch device; dtype: torch dtype of the volumes and samples (default float32).
         step_fraction: the sampling step as a fraction of the smallest voxel spacing, in
             [0.05, 1] (default 0.5).
@@ -70,7 +73,6 @@ class TorchVolumes:
                  scene: str = "cios_fusion"):
         import torch
 
-        from sim.geometry import CArmGeometry
 
         if not isinstance(geometry, CArmGeometry):
             raise RaymarchError(f"geometry must be a CArmGeometry, got {type(geometry).__name__}")
@@ -212,7 +214,7 @@ class _Channels:
 
 
 class DrJitVolumes:
-    """:class:`TorchVolumes`'s interface on the Dr.Jit renderer (:class:`sim.drr.DRRRenderer`,
+    """:class:`TorchVolumes`'s interface on the Dr.Jit renderer (:class:`sim.projection.drr.DRRRenderer`,
     exact Siddon traversal, many poses per kernel launch): the fast path on a CPU, where
     ``grid_sample`` over 3-D volumes is about 80x slower than Dr.Jit's compiled kernel. Same
     arguments (``step_fraction`` unused: Siddon has no step) and results, returned as torch
@@ -224,7 +226,6 @@ class DrJitVolumes:
                  step_fraction: float = 0.5):
         import torch
 
-        from sim.volume import CTVolume
 
         if not (len(channels) == len(affines) == len(centers) >= 1):
             raise RaymarchError(f"one affine and one centre per volume: got {len(channels)} volumes, "
@@ -251,7 +252,6 @@ class DrJitVolumes:
     def _renderer(self, u: int, chans: tuple[int, ...]):
         key = (u, chans)
         if key not in self._renderers:
-            from sim.drr import DRRRenderer, RenderSettings
 
             h, w = self.geometry.height, self.geometry.width
             # the density quantity divides by 10 (g/cm^3 mm -> g/cm^2): channels go in x 10 so the

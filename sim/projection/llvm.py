@@ -23,7 +23,7 @@ import re
 from dataclasses import dataclass
 from pathlib import Path
 
-from sim.errors import SetupError
+from sim.core.errors import SetupError
 
 MIN_LLVM_MAJOR = 16
 ENV_VAR = "DRJIT_LIBLLVM_PATH"

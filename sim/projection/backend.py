@@ -9,8 +9,8 @@ from __future__ import annotations
 
 import os
 
-from sim import llvm
-from sim.errors import SetupError
+from sim.projection import llvm
+from sim.core.errors import SetupError
 
 DEFAULT_CPU_VARIANT = "llvm_ad_mono"
 DEFAULT_GPU_VARIANT = "cuda_ad_mono"
@@ -77,7 +77,7 @@ def ensure_variant(variant: str | None = None) -> str:
                     + llvm.INSTALL_HINT
                 )
     if not _registered:
-        from sim.integrators import drr  # noqa: F401  (registers 'ctxreg_drr')
+        from sim.projection.integrators import drr  # noqa: F401  (registers 'ctxreg_drr')
 
         drr.register()
         _registered = True

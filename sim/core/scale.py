@@ -14,7 +14,7 @@ nothing that was complete, its half-written temporary file is removed at the end
 
 Example::
 
-    from sim.scale import dask_client, parse_scheduler
+    from sim.core.scale import dask_client, parse_scheduler
 
     with dask_client(parse_scheduler("local:2")) as client:
         run_campaign(cfg, "out/run", client=client)
@@ -30,7 +30,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Iterator
 
-from sim.errors import InputError
+from sim.core.errors import InputError
 
 __all__ = ["SchedulerError", "WorkerLost", "Scheduler", "parse_scheduler", "dask_client", "worker_count", "each_result",
            "CONNECT_TIMEOUT_S", "MAX_LOCAL_WORKERS"]

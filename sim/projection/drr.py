@@ -1,11 +1,11 @@
 """The DRR renderer: digitally reconstructed radiographs of a CT at many C-arm poses, batched.
 
-:class:`DRRRenderer` loads a C-arm scene (:mod:`sim.scene`) into Mitsuba, uploads the CT once
-to the ``ctxreg_drr`` integrator (:mod:`sim.integrators.drr`) and renders any number of poses,
+:class:`DRRRenderer` loads a C-arm scene (:mod:`sim.projection.scene`) into Mitsuba, uploads the CT once
+to the ``ctxreg_drr`` integrator (:mod:`sim.projection.integrators.drr`) and renders any number of poses,
 one batch per kernel launch; later calls reuse the uploaded volume and the compiled kernel.
 
 Poses follow ``docs/conventions.md``: ``T = (R, t)`` with ``X_cam = R (X_lps - c) + t`` for the
-anatomy centre ``c`` (LPS mm); :func:`sim.geometry.pose_from_params` builds ``T`` from
+anatomy centre ``c`` (LPS mm); :func:`sim.projection.geometry.pose_from_params` builds ``T`` from
 (phi, theta, psi) degrees and (tx, ty, tz) mm.
 
 Quantities (``quantity=``):
@@ -13,7 +13,7 @@ Quantities (``quantity=``):
 ``line-integral``  the line integral of mu (dimensionless), mu = mu_water (1 + HU/1000) >= 0.
 ``intensity``      ``i0 * exp(-line integral)``.
 ``density``        per-material density line integrals in g/cm^2, shape ``(B, M, H, W)``, for the
-                   materials of a :class:`sim.materials.MaterialDecomposition`.
+                   materials of a :class:`sim.physics.materials.MaterialDecomposition`.
 
 :func:`check_in_view` refuses a pose at which the CT is not in the view. One image of a CT at any
 physics level, the renderer chosen for it, is :mod:`sim.render`.
@@ -26,16 +26,16 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from sim.errors import InputError
-from sim.geometry import CArmGeometry, extrinsic_lps_to_camera, pose_from_params, projection_matrix
-from sim.materials import MU_WATER_60KEV_PER_MM, MaterialDecomposition, mu_from_hu
-from sim.scene import DEFAULT_SCENE, CArmScene, load_mitsuba_scene, load_scene
-from sim.cliargs import Range
-from sim.volume import CTVolume
+from sim.core.errors import InputError
+from sim.projection.geometry import CArmGeometry, extrinsic_lps_to_camera, pose_from_params, projection_matrix
+from sim.physics.materials import MU_WATER_60KEV_PER_MM, MaterialDecomposition, mu_from_hu
+from sim.projection.scene import DEFAULT_SCENE, CArmScene, load_mitsuba_scene, load_scene
+from sim.core.cliargs import Range
+from sim.ct.volume import CTVolume
 
 QUANTITIES = ("line-integral", "intensity", "density")
 RAY_MODELS = ("siddon", "trilinear")
-#: The volume's storage in the integrator (:mod:`sim.integrators.drr`): ``fixed16`` packs the two
+#: The volume's storage in the integrator (:mod:`sim.projection.integrators.drr`): ``fixed16`` packs the two
 #: materials of a two-material density render into one 16+16-bit word per voxel.
 STORAGES = ("float32", "fixed16")
 
@@ -79,7 +79,7 @@ class RenderSettings:
         i0: unattenuated intensity for ``intensity``.
         storage: ``"float32"`` (default) or ``"fixed16"``: two materials of a ``density`` render
             as 16-bit fixed point in one word, one gather per voxel step for both (about 1.8x
-            faster; each voxel within half a code of its value, :mod:`sim.integrators.drr`).
+            faster; each voxel within half a code of its value, :mod:`sim.projection.integrators.drr`).
         coarsen: render from a coarser copy of the CT where its voxels are finer than the image
             resolves (:func:`coarsening`): each axis is averaged over 2, 4, ... voxels while its
             spacing stays at most half the pixel's footprint at the isocentre (pixel pitch x SOD
@@ -136,7 +136,7 @@ def memory_order(affine: np.ndarray) -> tuple[int, int, int]:
     return (slowest, middle, fastest)
 
 
-#: Each CT's uploaded volumes (:class:`sim.integrators.drr.StoredVolume`), by what they hold:
+#: Each CT's uploaded volumes (:class:`sim.projection.integrators.drr.StoredVolume`), by what they hold:
 #: every renderer of one :class:`CTVolume` in a process shares one upload per quantity and storage
 #: (a registration builds several renderers; a 512 x 512 x 133 CT takes about 1 s to upload).
 #: Dropped with the CTVolume. A CTVolume's arrays are not to be changed in place once rendered.
@@ -147,7 +147,7 @@ def shared_upload(volume: CTVolume, what: tuple, storage: str, channels, factors
     """The volume of ``volume`` holding ``what`` (``("mu", mu_water_per_mm)`` or ``("density",
     materials)``) in ``storage``, averaged over ``factors`` voxels per axis (:func:`coarsened`),
     uploaded once per process: ``channels()`` gives the full ``(C, I, J, K)`` array on the first call."""
-    from sim.integrators.drr import store_volume
+    from sim.projection.integrators.drr import store_volume  # loads Dr.Jit, Mitsuba, SciPy: imported where first needed (start-up)
 
     factors = tuple(int(f) for f in factors)
     key = (what, storage, factors)
@@ -211,7 +211,7 @@ class DRRRenderer:
     Args:
         volume: the CT.
         settings: :class:`RenderSettings`.
-        center_lps: ``(3,)`` anatomy centre c in LPS mm; None = :func:`sim.anatomy.anatomy_center`.
+        center_lps: ``(3,)`` anatomy centre c in LPS mm; None = :func:`sim.ct.anatomy.anatomy_center`.
         materials: the decomposition for ``quantity="density"`` (default
             :class:`MaterialDecomposition()`).
         geometry: a :class:`CArmGeometry` to use instead of the scene's (e.g. an X-ray's own
@@ -235,7 +235,7 @@ class DRRRenderer:
             rows, cols = self.settings.size if self.settings.size is not None else (None, None)
             self.geometry = self.scene_info.geometry_at(rows, cols)
         if center_lps is None:
-            from sim.anatomy import anatomy_center
+            from sim.ct.anatomy import anatomy_center  # loads SciPy: imported where first needed (start-up)
 
             center_lps = anatomy_center(volume)
         center = np.asarray(center_lps, dtype=np.float64).reshape(-1)

@@ -3,7 +3,7 @@
 Reading a clinical CT is slow where its use is not: a 512 x 512 x 133 ``.nii.gz`` takes about 2.8 s
 to decompress and check and 1.2 s more for its anatomy centre (the bone's largest component) on
 a 2-core CPU, while a registration needs well under that once the CT is in memory. The cache keeps
-what :func:`sim.ct_io.load_ct` returns, with the anatomy centre, in one ``.npz`` file per CT:
+what :func:`sim.ct.io.load_ct` returns, with the anatomy centre, in one ``.npz`` file per CT:
 
 * **Key**: the CT's content hash (BLAKE2b, 160 bits) over the file's bytes, or over every file
   of a DICOM folder (relative name, size and bytes, in sorted order), plus the cache format. A
@@ -12,7 +12,7 @@ what :func:`sim.ct_io.load_ct` returns, with the anatomy centre, in one ``.npz``
 * **Entry**: ``<key>.npz`` (uncompressed; no pickled objects): ``hu`` (int16 where every value
   is a whole number in int16's range, else float32), ``affine`` ``(4, 4)`` LPS mm, ``center``
   ``(3,)`` LPS mm (NaN where the CT has no bone to centre on) and ``meta`` (JSON text: format,
-  key, source path, shape, how the centre was found). Written atomically (:func:`sim.atomic.atomic_path`); an entry that
+  key, source path, shape, how the centre was found). Written atomically (:func:`sim.core.atomic.atomic_path`); an entry that
   cannot be read or does not match its key is removed and rebuilt, with a line to ``log``. A
   folder that cannot be written (a full disk, a read-only home) costs the cache, not the CT: a
   line to ``log``, and the CT as read from its file.
@@ -44,11 +44,11 @@ from typing import Callable
 
 import numpy as np
 
-from sim.anatomy import AnatomyError, find_center, remember_center
-from sim.atomic import atomic_path
-from sim.ct_io import load_ct
-from sim.errors import InputError
-from sim.volume import CTVolume
+from sim.ct.anatomy import AnatomyError, find_center, remember_center
+from sim.core.atomic import atomic_path
+from sim.ct.io import load_ct
+from sim.core.errors import InputError
+from sim.ct.volume import CTVolume
 
 #: Bump when an entry's contents or meaning change: old entries then miss.
 CACHE_FORMAT = 2  # 2: the centre of the pelvis's bone pieces and how it was found (meta 'center_how')
@@ -104,15 +104,15 @@ def ct_hash(path: str | os.PathLike) -> str:
 
 def load_ct_cached(path: str | os.PathLike, *, cache_dir: str | os.PathLike | None = None,
                    log: Callable[[str], None] | None = None) -> CTVolume:
-    """:func:`sim.ct_io.load_ct` of ``path`` through the cache (module doc); the anatomy centre
-    comes with it (:func:`sim.anatomy.anatomy_center` then answers without computing).
+    """:func:`sim.ct.io.load_ct` of ``path`` through the cache (module doc); the anatomy centre
+    comes with it (:func:`sim.ct.anatomy.anatomy_center` then answers without computing).
 
     Args:
         path: a NIfTI file or a DICOM series folder.
         cache_dir: the cache folder (default :func:`default_cache_dir`).
         log: called with a line where an entry is written or rebuilt (default: silence).
 
-    Raises :class:`sim.volume.CTInputError` as :func:`load_ct` does (a missing or bad CT), and
+    Raises :class:`sim.ct.volume.CTInputError` as :func:`load_ct` does (a missing or bad CT), and
     :class:`CTCacheError` when ``cache_dir`` is a file or the size limit is not a number; a folder
     that cannot be written only loses the cache (a line to ``log``).
     """

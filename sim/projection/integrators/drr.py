@@ -41,7 +41,7 @@ name               type      default     meaning
 ``step_fraction``  float     0.5         trilinear step / smallest voxel spacing, in (0, 1]
 =================  ========  ==========  ================================================
 
-The volume and poses are not XML properties: :class:`sim.drr.DRRRenderer` sets them with
+The volume and poses are not XML properties: :class:`sim.projection.drr.DRRRenderer` sets them with
 :meth:`DRRIntegrator.set_volume` and :meth:`DRRIntegrator.set_world_to_index`; they are also
 exposed to ``mi.traverse`` as ``volume`` (flat, read-only shape) and ``world_to_index``.
 """
@@ -107,7 +107,7 @@ class DRRIntegrator(mi.SamplingIntegrator):
             memory_order: the index axes from slowest to fastest in memory. Neighbouring rays
                 of a SIMD packet lie along the detector rows; storing the volume axis that runs
                 along the rows contiguously lets one packet's gathers share cache lines (see
-                :meth:`sim.drr.DRRRenderer` for the choice). Only the strides change.
+                :meth:`sim.projection.drr.DRRRenderer` for the choice). Only the strides change.
             storage: ``"float32"`` or ``"fixed16"`` (``C = 2`` only; module doc).
         """
         stored = store_volume(data, spacing_mm, memory_order, storage)

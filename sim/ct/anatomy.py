@@ -28,8 +28,8 @@ from typing import Sequence
 import numpy as np
 from scipy import ndimage
 
-from sim.errors import InputError
-from sim.volume import CTVolume
+from sim.core.errors import InputError
+from sim.ct.volume import CTVolume
 
 #: HU above which a voxel counts as bone. Cancellous bone is about 200-400 HU and cortical bone
 #: above 1000 HU, while soft tissue stays below about 100 HU, so 200 HU keeps the trabecular
@@ -144,7 +144,7 @@ def bone_mask(volume: CTVolume, threshold_hu: float = BONE_HU_THRESHOLD) -> np.n
 
 def remember_center(volume: CTVolume, center_lps, how: str = "bone: stored with the CT") -> None:
     """Record ``volume``'s default anatomy centre ``(3,)`` LPS mm (no label map), computed earlier
-    (the CT cache, :mod:`sim.ct_cache`) with ``how`` (``"<method>: <detail>"``, as
+    (the CT cache, :mod:`sim.ct.cache`) with ``how`` (``"<method>: <detail>"``, as
     :meth:`Center.to_dict` writes it): :func:`find_center` then returns it at once."""
     c = np.asarray(center_lps, dtype=np.float64).reshape(-1)
     if c.shape != (3,) or not np.all(np.isfinite(c)):
@@ -369,7 +369,7 @@ def find_center(volume: CTVolume, *, center=None, label_map: np.ndarray | None =
 
     Example::
 
-        >>> from sim.phantom import make_pelvis_phantom
+        >>> from sim.ct.phantom import make_pelvis_phantom
         >>> ct = make_pelvis_phantom(0, spacing_mm=4.0)
         >>> find_center(ct).method                          # the phantom carries its labels
         'labels'

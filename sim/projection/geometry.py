@@ -21,8 +21,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from sim import se3
-from sim.errors import InputError
+from sim.projection import se3
+from sim.core.errors import InputError
 
 __all__ = [
     "GeometryError",

@@ -35,8 +35,8 @@ name                                   kind  entropy                     purpose
                                                                          settings ``(index, 0)``, its post-render noise
                                                                          ``(index, 1)``, tool bank arrangement ``(j, 2)``
                                                                          -- sim.randomize
-:data:`KIND_VP_FIELD`                  0     a virtual patient's seed    its deformation field ``()`` -- sim.augment
-:data:`KIND_VP_NOISE`                  1     a virtual patient's seed    its added CT noise ``()`` -- sim.augment
+:data:`KIND_VP_FIELD`                  0     a virtual patient's seed    its deformation field ``()`` -- sim.ct.patients
+:data:`KIND_VP_NOISE`                  1     a virtual patient's seed    its added CT noise ``()`` -- sim.ct.patients
 =====================================  ====  ==========================  ================================================
 
 The last two are keyed by a virtual patient's own seed (drawn from its
@@ -48,8 +48,8 @@ Tagged streams and plain seeds:
 =================================  ===========================================  ==========================================
 name                               construction                                 purpose -- user
 =================================  ===========================================  ==========================================
-:data:`TAG_PELVIS_SHAPE`           ``SeedSequence([seed, 0x5E1F15])``           the phantom's random shape -- sim.phantom
-:data:`TAG_PHANTOM_TEXTURE`        ``SeedSequence([seed, 0x7E47])``             the phantom's texture -- sim.phantom
+:data:`TAG_PELVIS_SHAPE`           ``SeedSequence([seed, 0x5E1F15])``           the phantom's random shape -- sim.ct.phantom
+:data:`TAG_PHANTOM_TEXTURE`        ``SeedSequence([seed, 0x7E47])``             the phantom's texture -- sim.ct.phantom
 :data:`TAG_SCATTER_CHUNKS`         ``SeedSequence([pose seed, 0x5CA7])``        ``.spawn(n)``: one child per chunk of
                                                                                 Monte Carlo histories -- sim.physics.scatter
 :func:`pose_seed`                  ``SeedSequence([seed, b]).generate_state``   Monte Carlo seed of pose ``b`` of a batch
@@ -98,9 +98,9 @@ KIND_VP_FIELD = 0
 KIND_VP_NOISE = 1
 
 # -- tagged streams: SeedSequence([seed, TAG]) ---------------------------------------------------
-#: The phantom's random shape (:meth:`sim.phantom.PelvisShape.sample`).
+#: The phantom's random shape (:meth:`sim.ct.phantom.PelvisShape.sample`).
 TAG_PELVIS_SHAPE = 0x5E1F15
-#: The phantom's texture (:func:`sim.phantom.make_pelvis_phantom`).
+#: The phantom's texture (:func:`sim.ct.phantom.make_pelvis_phantom`).
 TAG_PHANTOM_TEXTURE = 0x7E47
 #: The chunks of a pose's Monte Carlo histories (:class:`sim.physics.scatter.MonteCarloScatter`).
 TAG_SCATTER_CHUNKS = 0x5CA7

@@ -5,11 +5,11 @@ A command calls :func:`check_output_file` (one file, e.g. ``ctxreg render --out 
 it loads or computes anything, so a run that would fail only at its last step (an output name
 that is an existing folder, a folder name that is an existing file, a parent that is a file or
 that cannot be written) fails at once with one line naming the option and the path, and leaves
-nothing behind. The checks create nothing: the writers (:mod:`sim.atomic`) make the folders.
+nothing behind. The checks create nothing: the writers (:mod:`sim.core.atomic`) make the folders.
 
 Example::
 
-    >>> from sim.outputs import check_output_dir
+    >>> from sim.core.outputs import check_output_dir
     >>> check_output_dir("out/reg", ("result.json", "overlay.png"))  # doctest: +SKIP
     PosixPath('out/reg')
 """
@@ -20,7 +20,7 @@ import os
 from pathlib import Path
 from typing import Iterable
 
-from sim.errors import InputError
+from sim.core.errors import InputError
 
 __all__ = ["OutputError", "Written", "check_output_file", "check_output_dir"]
 

@@ -15,8 +15,9 @@ import xml.etree.ElementTree as ET
 from dataclasses import dataclass
 from pathlib import Path
 
-from sim.errors import InputError
-from sim.geometry import CArmGeometry
+from sim.core.errors import InputError
+from sim.projection.geometry import CArmGeometry
+from sim.projection.backend import ensure_variant
 
 DEFAULT_SCENE = "cios_fusion"
 
@@ -126,7 +127,6 @@ def load_mitsuba_scene(scene: CArmScene, geometry: CArmGeometry, *, ray_model: s
     """Load the scene file into Mitsuba for a geometry (render size) and ray model."""
     import mitsuba as mi
 
-    from sim.backend import ensure_variant
 
     ensure_variant()
     values = sensor_values(geometry)

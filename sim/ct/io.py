@@ -1,4 +1,4 @@
-"""CT input and output: NIfTI files and DICOM series to :class:`sim.volume.CTVolume` (HU, LPS mm).
+"""CT input and output: NIfTI files and DICOM series to :class:`sim.ct.volume.CTVolume` (HU, LPS mm).
 
 Conventions (the same for every source):
 
@@ -17,7 +17,7 @@ HU plausibility (:func:`check_hu_plausible`): a CT must look like Hounsfield uni
 normalised (0..1) or otherwise rescaled image. The test is robust to outliers (metal, noise)
 because it uses the 1st and 99th percentiles ``p1``, ``p99``:
 
-* ``p1`` and ``p99`` both lie inside :data:`sim.volume.PLAUSIBLE_HU_RANGE`, and
+* ``p1`` and ``p99`` both lie inside :data:`sim.ct.volume.PLAUSIBLE_HU_RANGE`, and
 * ``p99 - p1 >= 100`` HU (every CT of a body holds at least fat or air and soft tissue or bone,
   hundreds of HU apart; a 0..1 or mu-valued image spans far less).
 
@@ -40,8 +40,9 @@ from typing import Sequence
 import numpy as np
 from scipy import ndimage
 
-from sim.atomic import atomic_path
-from sim.volume import PLAUSIBLE_HU_RANGE, CTInputError, CTVolume
+from sim.core.atomic import atomic_path
+from sim.ct.volume import PLAUSIBLE_HU_RANGE, CTInputError, CTVolume
+from sim.ct.phantom import make_pelvis_phantom
 
 #: RAS <-> LPS: flip x and y (its own inverse).
 RAS_TO_LPS = np.diag([-1.0, -1.0, 1.0, 1.0])
@@ -84,12 +85,11 @@ def is_phantom_spec(spec) -> bool:
 def load_ct_spec(spec: str | os.PathLike, *, label_map: str | os.PathLike | None = None) -> CTVolume:
     """A CT named as on the command line or in campaign files: a path, or ``phantom[:SEED]``.
 
-    ``phantom`` / ``phantom:SEED`` is the built-in pelvis phantom (:mod:`sim.phantom`, seed 0 by
+    ``phantom`` / ``phantom:SEED`` is the built-in pelvis phantom (:mod:`sim.ct.phantom`, seed 0 by
     default); anything else goes to :func:`load_ct`.
     """
     text = str(spec)
     if is_phantom_spec(text):
-        from sim.phantom import make_pelvis_phantom
 
         seed_text = text.partition(":")[2] or "0"
         try:

@@ -21,7 +21,7 @@ import math
 import typing
 from typing import Any
 
-from sim.errors import InputError
+from sim.core.errors import InputError
 
 
 class OptionError(InputError):

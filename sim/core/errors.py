@@ -11,7 +11,7 @@ keeps its traceback.
 
 Example::
 
-    >>> from sim.errors import InputError
+    >>> from sim.core.errors import InputError
     >>> class RenderError(InputError):
     ...     '''Bad render settings; the message names the setting.'''
     >>> issubclass(RenderError, ValueError)

@@ -12,7 +12,7 @@ Geometry (units mm; frame LPS, see ``docs/conventions.md``)
 
         phi(x) = c + S^-1 (x + u(x) - c)
 
-    with ``c`` the scaling centre (default :func:`sim.anatomy.anatomy_center`), ``S =
+    with ``c`` the scaling centre (default :func:`sim.ct.anatomy.anatomy_center`), ``S =
     diag(scale)`` along LPS x, y, z and ``u`` the random displacement field (mm) on the output
     grid (:func:`displacement_field`). So the new anatomy is the input scaled by ``S`` about
     ``c`` and then deformed by approximately ``-u``. Scaling and deformation are one map and
@@ -43,7 +43,7 @@ Hounsfield units (applied after resampling, in this order)
     1. A smooth, strictly increasing transfer curve ``f(HU)`` (:func:`perturb_hu`): soft
        tissue in the plateau :data:`SOFT_TISSUE_HU` = [-200, 100] HU (fat, water, muscle,
        organs) becomes ``offset + scale * HU``; bone above ``t =``
-       :data:`sim.anatomy.BONE_HU_THRESHOLD` (200 HU) + 100 HU becomes ``t + bone_scale (HU
+       :data:`sim.ct.anatomy.BONE_HU_THRESHOLD` (200 HU) + 100 HU becomes ``t + bone_scale (HU
        - t)``; air and lung below -300 HU are unchanged. Between them the changes fade with
        C1 smoothsteps over 100 HU ([-300, -200], [100, 200] and, for bone, [200, 300] HU),
        so no iso-HU contour appears. Within the parameter limits (:data:`PARAM_LIMITS`) the
@@ -88,10 +88,10 @@ from typing import Any, Mapping
 import numpy as np
 from scipy import ndimage
 
-from sim.anatomy import BONE_HU_THRESHOLD, anatomy_center
-from sim.errors import InputError
-from sim.seeds import KIND_VP_FIELD, KIND_VP_NOISE, rng_for
-from sim.volume import CTVolume
+from sim.ct.anatomy import BONE_HU_THRESHOLD, anatomy_center
+from sim.core.errors import InputError
+from sim.core.seeds import KIND_VP_FIELD, KIND_VP_NOISE, rng_for
+from sim.ct.volume import CTVolume
 
 __all__ = [
     "AIR_HU",
@@ -119,7 +119,7 @@ MAX_DISPLACEMENT_GRADIENT = 0.5
 SOFT_TISSUE_HU = (-200.0, 100.0)
 #: Width (HU) of the smoothsteps that fade the soft-tissue change in and out of the plateau.
 SOFT_TISSUE_TAPER_HU = 100.0
-#: Width (HU) of the smoothstep above :data:`sim.anatomy.BONE_HU_THRESHOLD` over which the bone
+#: Width (HU) of the smoothstep above :data:`sim.ct.anatomy.BONE_HU_THRESHOLD` over which the bone
 #: scaling fades in.
 BONE_RAMP_HU = 100.0
 
