@@ -66,7 +66,7 @@ INDEX_BASE = 1 << 40
 #: a 65 kV frame's Monte Carlo scatter (128 x 128, 10^6 histories) deviates from an 8 px Gaussian
 #: of itself by 7-10 % (mean 8.4 % over 4 frames), with the power spectrum of this texture at sigma
 #: 0.03 (3.8 px) and strength 0.12 (whose own such deviation is 8-9 %): benchmarks/scatter_structure.py,
-#: docs/training.md "The frames' Monte Carlo structure".
+#: docs/journal/training.md "The frames' Monte Carlo structure".
 FRAME_TEXTURE = (0.12, 0.03)
 
 #: The rows, in order (module doc).

@@ -8,7 +8,7 @@ import pytest
 
 from tests.conftest import REPO
 
-DOCS = sorted((REPO / "docs").glob("*.md"))
+DOCS = sorted((REPO / "docs").rglob("*.md"))
 
 
 def test_the_readme_is_at_most_150_lines_with_the_two_set_up_commands():

@@ -56,7 +56,7 @@ REFINE_SETTINGS = CMAESSettings(levels=(2,), sigma_deg=3.0, sigma_mm=8.0, range_
 #: The refinement's half-width in depth ``tz`` (mm) around the network's own pose, where no global
 #: search ran (``search="off"``): three times the in-plane box, as the network's depth, read from the
 #: magnification alone, is off by 20-75 mm where its in-plane translation is off by 0-13 mm
-#: (docs/results.md, "The refinement's box in depth"), and the 30 mm box left such starts on its
+#: (docs/journal/results.md, "The refinement's box in depth"), and the 30 mm box left such starts on its
 #: edge. Its first step stays the translations' 8 mm (CMA-ES lengthens it where the way is long;
 #: three times that step sent one of 50 line DRRs into another basin). After a search its starts'
 #: depths are searched already (the grid spans +-75 mm), and the narrower box stays: the wide one let
