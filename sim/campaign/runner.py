@@ -44,6 +44,14 @@ from sim.campaign import dataset as ds
 from sim.core.errors import InputError
 from sim.core.scale import WorkerLost, each_result
 from sim.core.seeds import KIND_NOISE, KIND_POSES, KIND_VIRTUAL_PATIENT, rng_for  # the random streams
+from sim.core.progress import Progress
+from sim.campaign.poses import pose_histogram
+from sim.core.outputs import check_output_dir
+from sim.ct.volume import CTVolume
+from sim.projection.drr import DRRRenderer, RenderSettings
+from sim.projection.geometry import pose_from_params, project_points
+from sim.projection.scene import load_scene
+from sim.physics.imaging import LogImageRenderer
 
 #: A pixel is bone in ``bone_mask`` where the ray crosses at least this much bone (mm).
 BONE_MASK_MIN_PATH_MM = 1.0
@@ -457,14 +465,6 @@ def _worker_unit(unit: Unit, out: str) -> dict:
 
 
 # ----------------------------------------------------------------------------- parent side
-from sim.core.progress import Progress  # noqa: E402  (one progress line for every long command)
-from sim.campaign.poses import pose_histogram
-from sim.core.outputs import check_output_dir
-from sim.ct.volume import CTVolume
-from sim.projection.drr import DRRRenderer, RenderSettings
-from sim.projection.geometry import pose_from_params, project_points
-from sim.projection.scene import load_scene
-from sim.physics.imaging import LogImageRenderer
 
 
 def _base_manifest(cfg) -> dict:

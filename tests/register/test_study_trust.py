@@ -86,6 +86,7 @@ class Fakes:
         monkeypatch.setattr(learn.train, "train", train)
         monkeypatch.setattr(learn.checkpoint, "load_checkpoint", load_checkpoint)
         monkeypatch.setattr(learn.predict, "NetworkPredictor", lambda ckpt: object())
+        monkeypatch.setattr(S, "NetworkPredictor", lambda ckpt: object())  # as the study imported it
         monkeypatch.setattr(S, "_evaluate_drr", evaluate("drr"))
         monkeypatch.setattr(S, "_evaluate_xray", evaluate("xray"))
         monkeypatch.setattr(S, "_plot", lambda *a: None)

@@ -596,11 +596,11 @@ def test_the_workers_option_declares_the_runner_limit():
 
 
 def test_the_pose_histogram_of_a_huge_campaign_draws_the_first_poses_of_each_subject(reference, monkeypatch):
-    from sim.campaign import poses, runner
+    from sim.campaign import runner
 
     cfg, _, _ = reference
     seen = {}
-    monkeypatch.setattr(poses, "pose_histogram", lambda params, dist, path: seen.setdefault("params", params))
+    monkeypatch.setattr(runner, "pose_histogram", lambda params, dist, path: seen.setdefault("params", params))
     runner._pose_histogram(cfg, Path("unused"))  # small: every pose
     np.testing.assert_array_equal(seen.pop("params"),
                                   np.concatenate([runner.subject_poses(cfg, s.index) for s in cfg.subjects()]))

@@ -67,7 +67,7 @@ def test_torch_marcher_agrees_with_the_siddon_renderer_on_the_pelvis_ct(pelvis):
     image (measured 0.35 %) and 99 % of the pixels agree within 3 % of the image's maximum. Single
     pixels differ more where rays run along the CT's cut faces (Siddon counts the outer voxels
     whole; trilinear sampling fades them over half a voxel): at most 20 % of the maximum."""
-    from sim.projection.drr import DRRRenderer, RenderSettings
+    from sim.projection.drr import DRRRenderer, RenderSettings, memory_order
 
     mu, affine, center = pelvis
     g = load_scene("cios_fusion").geometry_at(64, 64)
@@ -76,7 +76,7 @@ def test_torch_marcher_agrees_with_the_siddon_renderer_on_the_pelvis_ct(pelvis):
     poses = pose_from_params(params, g.sod_mm)
     ref = DRRRenderer(CTVolume(np.zeros(mu.shape[1:], np.float32) + 0, affine), RenderSettings(size=(64, 64)),
                       center_lps=center)
-    ref.integrator.set_volume(mu, ref.volume.spacing_mm, memory_order=__import__("sim.projection.drr").drr.memory_order(affine))
+    ref.integrator.set_volume(mu, ref.volume.spacing_mm, memory_order=memory_order(affine))
     want = ref.render(poses)
     got = TorchVolumes([mu], [affine], [center], g).line_integrals(np.zeros(16, int), poses)[:, 0].numpy()
     err = np.abs(got - want)
