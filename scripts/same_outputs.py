@@ -171,8 +171,9 @@ def _compare_file(a: Path, b: Path) -> list[str]:
         diffs = []
         _same(data, _load(b), "", diffs)
         return diffs
-    if a.suffix in (".log", ".txt", ".gif", ".md"):  # logs and tables carry rates and times (the numbers are
-        # in the JSON and CSV beside them); the GIF its frame times
+    if a.suffix in (".log", ".txt", ".gif", ".md") or a.name == ".ctxreg.lock":  # logs and tables carry rates
+        # and times (the numbers are in the JSON and CSV beside them); the GIF its frame times; a run's lock
+        # file its process and host
         return []
     return [] if a.read_bytes() == b.read_bytes() else ["bytes differ"]
 
