@@ -9,7 +9,13 @@ the current :class:`register.verdict.VerdictSettings` (or the calibrated ones wi
 ``--calibrate``) and the runner-up found again from the search's record by the current rule of
 distinct poses, so a change of thresholds or of that rule needs no registration again.
 
-The calibration data (docs/results.md, "Whether to trust a registration")::
+The rows of docs/results.md's tables are committed, compacted, in ``benchmarks/verdict_rows/``
+(``calib.jsonl``, ``heldout.jsonl``, ``unmatched.jsonl``)::
+
+    .venv/bin/python benchmarks/verdict.py benchmarks/verdict_rows/calib.jsonl --calibrate
+    .venv/bin/python benchmarks/verdict.py benchmarks/verdict_rows/heldout.jsonl benchmarks/verdict_rows/unmatched.jsonl
+
+They were made so (docs/results.md, "Whether to trust a registration")::
 
     B=".venv/bin/python benchmarks/search.py --cases 10 --methods network always"
     $B --study studies/domain_gap.toml --target fluoro-65kV --out runs/verdict/frames --rows runs/verdict/calib.jsonl

@@ -1,0 +1,33 @@
+"""The shipped verdict thresholds are the calibration's choice on the committed rows of known truth
+(benchmarks/verdict_rows/), and the held-out rates docs/results.md gives are those rows' rates."""
+
+from __future__ import annotations
+
+import sys
+
+import pytest
+
+from register.verdict import VerdictSettings
+from tests.conftest import REPO
+
+sys.path.insert(0, str(REPO / "benchmarks"))
+import verdict as bench  # noqa: E402  (benchmarks/verdict.py, not a package)
+
+ROWS = REPO / "benchmarks" / "verdict_rows"
+
+
+def test_the_shipped_thresholds_are_the_calibrations_choice():
+    rows = bench.load_rows([ROWS / "calib.jsonl"])
+    assert len(rows) == 120
+    chosen, rates = bench.calibrate(rows)
+    assert chosen == VerdictSettings()
+    assert rates["false_accepts"] == 0 and rates["accepted"] == pytest.approx(72 / 93)
+
+
+def test_the_held_out_rates_are_the_documented_ones():
+    rows = bench.load_rows([ROWS / "heldout.jsonl", ROWS / "unmatched.jsonl"])
+    r = bench.rates(rows, VerdictSettings())
+    assert (r["within"], r["off"], r["false_accepts"]) == (106, 54, 3)
+    assert r["accepted"] == pytest.approx(88 / 106)
+    unmatched = [x for x in rows if x["mtre_mm"] is None]
+    assert len(unmatched) == 20 and bench.rates(unmatched, VerdictSettings())["registered"] == 0
