@@ -153,7 +153,6 @@ def accuracy_figure(errors: dict[str, dict[str, tuple[np.ndarray, np.ndarray]]],
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-
     kinds = list(errors)
     fig, axes = plt.subplots(len(kinds), 2, figsize=(10, 3.2 * len(kinds)), squeeze=False)
     for row, kind in enumerate(kinds):

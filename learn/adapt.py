@@ -337,7 +337,6 @@ def _plot_curve(curve: list[list[float]], path: Path, ct_name: str, base: str) -
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-
     c = np.asarray(curve, float)
     fig, ax = plt.subplots(1, 2, figsize=(9, 3.4))
     for a, col, unit in ((ax[0], 2, "rotation error (deg)"), (ax[1], 3, "translation error (mm)")):

@@ -154,7 +154,6 @@ class BatchedPairs(OnlinePairs):
 
     # -- built on first use --------------------------------------------------------------------
     def _build(self):
-
         table = self._table()
         basis = BasisDecomposition(matrix=table.basis)
         channels, affines, centers = [], [], []
@@ -170,7 +169,6 @@ class BatchedPairs(OnlinePairs):
         self._tools = self._tool_bank().to(self.device)
 
     def _table(self):
-
         if self.tables is None:
             return SpectralTable.for_randomization(self.randomization)
         path = self.tables / "pair_tables.npz"
@@ -182,7 +180,6 @@ class BatchedPairs(OnlinePairs):
         return table
 
     def _tool_bank(self) -> torch.Tensor:
-
         h, w = self.geometry.height, self.geometry.width
         path = None
         if self.tables is not None:
@@ -200,7 +197,6 @@ class BatchedPairs(OnlinePairs):
                 return tool_looks(arrangements)
         arrangements = tool_arrangements(ToolBank(self.seed, self.geometry, scene=self.cfg.scene.name), TOOL_CHANNELS)
         if path is not None:
-
             path.parent.mkdir(parents=True, exist_ok=True)
             with atomic_path(path) as tmp:
                 with open(tmp, "wb") as f:

@@ -6,15 +6,10 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from sim.core.cliargs import Range, opt
-from learn.adapt import ADAPT_FILES, adapt
-from learn.predict import NetworkPredictor
 from learn.shipped import describe_model, describe_models, shipped_models
-from sim.campaign.config import load_campaign
-from sim.campaign.runner import SubjectContext
 from sim.core.atomic import atomic_path, write_json
 from sim.core.outputs import check_output_dir
 from sim.core.seeds import KIND_ACCURACY_PAIRS, rng_for
-from sim.projection.drr import DRRRenderer, RenderSettings
 
 
 @dataclass(frozen=True)
@@ -47,7 +42,6 @@ ACCURACY_FILES = ("accuracy.md", "accuracy.json", "accuracy.png")
 
 def run_train(cmd: TrainCommand) -> list[Path]:
     from learn.train import load_train_config, train  # loads torch: imported where first needed (start-up)
-
 
     from learn.train import resolve_device  # loads torch: imported where first needed (start-up)
 
@@ -99,6 +93,7 @@ class AdaptCommand:
 
 
 def run_adapt(cmd: AdaptCommand) -> list[Path]:
+    from learn.adapt import ADAPT_FILES, adapt  # off the CLI's start-up: building the parser imports every command's module
 
     out = check_output_dir(cmd.out, ADAPT_FILES)
     adapt(cmd.ct, out, minutes=cmd.minutes, base=cmd.from_model, device=cmd.device, resume=cmd.resume)
@@ -141,7 +136,7 @@ def run_accuracy(cmd: AccuracyCommand) -> list[Path]:
 
     from learn.accuracy import (AccuracyError, accuracy_figure, finite_or_none, format_accuracy_table, merge_errors,  # loads torch: imported where first needed (start-up)
                                 prediction_errors, sample_eval_pairs, summarize_errors)
-
+    from learn.predict import NetworkPredictor  # off the CLI's start-up: building the parser imports every command's module
 
     out = check_output_dir(cmd.out, ACCURACY_FILES)
     if (cmd.ct is None) == (cmd.campaign is None):
@@ -188,6 +183,9 @@ def _accuracy_renderers(cmd: AccuracyCommand, size) -> tuple[list, tuple[str, st
     """Per subject ``(target renderer, current renderer)``; the two images' physics names; the
     current images' :class:`~sim.physics.imaging.PhysicsSettings` (None for line DRRs)."""
     from learn.accuracy import AccuracyError  # loads torch: imported where first needed (start-up)
+    from sim.campaign.config import load_campaign  # off the CLI's start-up: building the parser imports every command's module
+    from sim.campaign.runner import SubjectContext  # off the CLI's start-up: building the parser imports every command's module
+    from sim.projection.drr import DRRRenderer, RenderSettings  # off the CLI's start-up: building the parser imports every command's module
 
     if cmd.ct is not None:
         from sim.ct.anatomy import anatomy_center  # loads SciPy: imported where first needed (start-up)
@@ -200,7 +198,6 @@ def _accuracy_renderers(cmd: AccuracyCommand, size) -> tuple[list, tuple[str, st
         drr = DRRRenderer(volume, RenderSettings(size=tuple(size)), center_lps=anatomy_center(volume))
         return [(drr, drr)], ("line DRRs", "line DRRs"), None
     from dataclasses import replace
-
 
     campaign = load_campaign(cmd.campaign)
     campaign = replace(campaign, scene=replace(campaign.scene, size=tuple(size)))
@@ -234,7 +231,6 @@ class ModelsCommand:
 def run_models(cmd: ModelsCommand) -> list[Path]:
     """Print the shipped models (``models/<name>/``, each checked against its card)."""
     import json
-
 
     if cmd.name is not None:
         print(json.dumps(describe_model(cmd.name), indent=2))

@@ -325,7 +325,6 @@ class FeatureCache:
     def _build(self, data, model: PoseUpdateNet, transform, physics: str, batch_size: int, log) -> None:
         import h5py
 
-
         for stale in self.path.parent.glob(f".{CACHE_FILE}.*.tmp*"):  # left by a killed build
             stale.unlink(missing_ok=True)
         indices = np.unique(np.concatenate([np.asarray(data.indices(s), dtype=np.int64) for s in self.splits]))

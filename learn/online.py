@@ -230,7 +230,6 @@ class RealisticTargets:
     """
 
     def __init__(self, randomization: DomainRandomization, seed: int, geometry, *, scene: str = "cios_fusion"):
-
         check_trainable(randomization)
         self.randomization = randomization
         self.seed = int(seed)
@@ -242,7 +241,6 @@ class RealisticTargets:
 
     def _model(self, physics):
         import copy
-
 
         key = (physics.kvp, tuple(physics.filters))
         if key not in self._models:
@@ -256,7 +254,6 @@ class RealisticTargets:
         return model
 
     def image(self, L: np.ndarray, index: int, gap_mm: float | None = None):
-
         draw = self.randomization.draw(self.seed, index)
         physics = draw.physics_settings(self.base)
         m = len(self.names) - len(TOOL_MATERIALS)
@@ -355,7 +352,6 @@ class OnlinePairs:
         self.realistic = None
         self._density: dict[int, object] = {}
         if randomization is not None:
-
             h, w = cfg.scene.size
             self.realistic = RealisticTargets(randomization, self.seed, load_scene(cfg.scene.name).geometry_at(h, w),
                                               scene=cfg.scene.name)
@@ -363,14 +359,12 @@ class OnlinePairs:
     def context(self, k: int):
         """The :class:`sim.campaign.runner.SubjectContext` of this split's subject ``k`` (cached)."""
         if k not in self._contexts:
-
             self._contexts[k] = SubjectContext(self.cfg, self.subjects[k])
         return self._contexts[k]
 
     def density_renderer(self, k: int):
         """Density-integral renderer (:data:`sim.physics.materials.TISSUE_DECOMPOSITION`) of subject ``k`` (cached)."""
         if k not in self._density:
-
             ctx = self.context(k)
             self._density[k] = DRRRenderer(ctx.volume, RenderSettings(scene=self.cfg.scene.name,
                                                                       size=tuple(self.cfg.scene.size),

@@ -72,7 +72,6 @@ class NetworkPredictor:
         from learn.preprocess import build  # loads torch: imported where first needed (start-up)
 
         if not isinstance(checkpoint, Checkpoint):
-
             checkpoint = resolve_model(checkpoint)  # a file, or a shipped model's name
         ckpt = checkpoint if isinstance(checkpoint, Checkpoint) else load_checkpoint(checkpoint)
         self.checkpoint = ckpt
@@ -126,7 +125,6 @@ class NetworkPredictor:
         trained = ref.get("level", "line")
         differ = level != trained
         if not differ and level in ("poly", "full"):
-
             filters = parse_filters(ref.get("filters", ()))  # stored as "SYMBOL:MM" strings
             differ = (abs(float(ref.get("kvp", physics.kvp)) - physics.kvp) > 1e-9
                       or filters != tuple((s, float(t)) for s, t in physics.filters))

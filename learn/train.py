@@ -232,7 +232,6 @@ class TrainConfig:
         if self.randomize is None:
             return None
 
-
         try:
             randomization = DomainRandomization.from_table(self.randomize, "train.randomize")
             check_trainable(randomization)
@@ -801,7 +800,6 @@ class _CampaignSource:
     """Pairs of a campaign folder's stored images (:class:`learn.data.PairDataset`), epoch by epoch."""
 
     def __init__(self, cfg: TrainConfig):
-
         self.cfg = cfg
         self.data = open_dataset(cfg.dataset)
         transform = build(list(cfg.preprocess))
@@ -860,7 +858,6 @@ class _CachedSource(_CampaignSource):
     DTYPE = "float16"
 
     def __init__(self, cfg: TrainConfig, model, *, rebuild: bool, log=print):
-
         super().__init__(cfg)
         splits = sorted({self.train_set.split, self.val_set.split})
         n = sum(len(self.data.indices(s)) for s in splits)
@@ -909,7 +906,6 @@ class _OnlineSource:
     """Pairs rendered on the fly from a campaign file (:class:`learn.online.OnlinePairs`)."""
 
     def __init__(self, cfg: TrainConfig, device=None):
-
         self.cfg = cfg
         try:
             campaign = load_campaign(cfg.dataset)
@@ -931,7 +927,6 @@ class _OnlineSource:
                   "randomization": cfg.randomization(), "current_field": cfg.current_field,
                   "tone": cfg.tone}
             if cfg.pairs == "batched":
-
                 del kw["physics"], kw["current_physics"], kw["tone"]
                 kw.update(device=device or "cpu", tables=Path(cfg.out) / "tables", framing=cfg.framing)
                 self.train = BatchedPairs(campaign, "train", seed=cfg.seed, subjects_per_batch=cfg.subjects_per_batch,
@@ -986,7 +981,6 @@ class _OnlineSource:
 
 
 def _loss(output, label, cfg: TrainConfig):
-
     return PoseUpdateNet.loss(output, label, relative_eps=cfg.relative_eps if cfg.loss == "relative" else None)
 
 
@@ -1061,7 +1055,6 @@ def _plot(rows: list[dict], path: Path) -> None:
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-
 
     it = [int(r["iteration"]) for r in rows]
     fig, ax = plt.subplots(figsize=(6, 3.5))

@@ -35,7 +35,6 @@ from sim.core.progress import process_seconds
 from sim.core.scale import dask_client, parse_scheduler
 from sim.physics.options import (check_level_options, label_materials, level_field, physics_option,
                                  physics_settings)
-from register.evaluation.deepfluoro import DEEPFLUORO_FILES, DeepFluoroSettings, evaluate_deepfluoro
 from sim import load_ct
 from sim.core.errors import CtxregError, USER_OS_ERRORS
 from sim.ct.anatomy import anatomy_center
@@ -202,6 +201,7 @@ _SIMULATED_ONLY = ("ct", "label_map", "center", "cases", "target_ray_model", "ta
 
 def _run_deepfluoro(cmd: EvaluateCommand, methods: tuple[str, ...], scheduler=None) -> list[Path]:
     """``ctxreg evaluate --deepfluoro FILE``: :func:`register.evaluation.deepfluoro.evaluate_deepfluoro`."""
+    from register.evaluation.deepfluoro import DEEPFLUORO_FILES, DeepFluoroSettings, evaluate_deepfluoro  # off the CLI's start-up: building the parser imports every command's module
 
     refuse_unused(cmd, _SIMULATED_ONLY, applies=False,
                   why="the simulated protocol's; --deepfluoro takes the CT, the frames and the truth from the file")

@@ -18,15 +18,12 @@ from sim.core.errors import InputError
 from sim.physics.options import level_field, physics_option
 from sim.ct.anatomy import find_center
 from sim.projection.drr import QUANTITIES, RAY_MODELS, STEP_FRACTION, RenderSettings
-from sim.campaign.config import load_campaign
-from sim.campaign.runner import CampaignError, parse_shard, run_campaign
 from sim.core.atomic import atomic_path, write_json
 from sim.core.cliargs import refuse_unused, refuse_unused_label_map
 from sim.core.outputs import check_output_file
 from sim.core.scale import dask_client, parse_scheduler
 from sim.ct.io import load_ct_spec
 from sim.physics.options import check_level_options, label_materials, physics_settings
-from sim.render import render_view
 
 _DEFAULTS = RenderSettings()  # the renderer's defaults are the command line's
 
@@ -158,7 +155,6 @@ def write_image(path: str | Path, values: np.ndarray, record: dict, quantity: st
     """Write ``values`` (H, W) as .npy or .png and the JSON sidecar, each atomically."""
     from PIL import Image
 
-
     path = Path(path)
     if path.suffix == ".npy":
         with atomic_path(path) as tmp:
@@ -174,6 +170,7 @@ def write_image(path: str | Path, values: np.ndarray, record: dict, quantity: st
 def run_render(cmd: RenderCommand) -> Path | list[Path]:
     """Check every option and the output names, then load the CT, render (:func:`sim.render.render_view`:
     refuses a pose at which the CT is out of view) and write the image and its sidecar."""
+    from sim.render import render_view  # off the CLI's start-up: building the parser imports every command's module
 
     out = Path(cmd.out)
     if out.suffix not in (".npy", ".png"):
@@ -219,7 +216,6 @@ def _check_physics_options(cmd: RenderCommand) -> None:
 
 
 def _write_physics(cmd: RenderCommand, view, out: Path, center_how: str) -> list[Path]:
-
     record = {**geometry_record(view.renderer, view.pose, "line-integral", center_how=center_how),
               "quantity": "-log(I/I0)",
               "units": "-log(I / I0), dimensionless", "physics": view.physics}
@@ -258,6 +254,8 @@ class SimulateCommand:
 
 
 def run_simulate(cmd: SimulateCommand) -> list[Path]:
+    from sim.campaign.config import load_campaign  # off the CLI's start-up: building the parser imports every command's module
+    from sim.campaign.runner import CampaignError, parse_shard, run_campaign  # off the CLI's start-up: building the parser imports every command's module
 
     scheduler = parse_scheduler(cmd.scheduler) if cmd.scheduler is not None else None
     if scheduler is not None and cmd.workers != 1:

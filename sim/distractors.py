@@ -657,7 +657,6 @@ class DistractorField:
     """
 
     def __init__(self, tools: Sequence[Distractor], geometry, center_lps, *, scene: str | None = None):
-
         tools = tuple(tools)
         for t in tools:
             if not isinstance(t, Distractor):
@@ -688,7 +687,6 @@ class DistractorField:
         if self._scenes is not None:
             return
         import mitsuba as mi
-
 
         self._sensor_scene = load_mitsuba_scene(load_scene(self.scene_name), self.geometry)
         self._sensor = self._sensor_scene.sensors()[0]
@@ -774,7 +772,6 @@ class DistractorField:
         return out
 
     def _chords(self, poses: np.ndarray) -> tuple[np.ndarray, int]:
-
         b, h, w = len(poses), self.geometry.height, self.geometry.width
         out = np.zeros((b, len(self.channels), h, w), np.float32)
         rays = {}

@@ -219,7 +219,6 @@ class Randomized:
             raise RandomizeError(f"{where}: the range must lie in {self.limits_text()}, got {v:g}")
         s = self._physics_setting()
         if s is not None:
-
             value = [(_FILTER_ELEMENT[self.name], v)] if s.kind == "filters" else v
             try:
                 s.check(value, where=f"{where} (physics setting {s.name})")
@@ -705,7 +704,6 @@ class ToolBank:
         if j >= TOOL_BANK_SIZE:
             raise RandomizeError(f"tool bank arrangement must be < {TOOL_BANK_SIZE}, got {j}")
         if j not in self._cache:
-
             tools = random_tools(rng_for(self.seed, KIND_RANDOMIZE, j, 2), self.geometry)
             field = DistractorField(tools, self.geometry, np.zeros(3), scene=self.scene)
             self._cache[j] = (field.chords(np.eye(4))[0], field.channels)
@@ -828,7 +826,6 @@ def apply_image(raw_intensity: np.ndarray, i0: float, draw: Draw, rng: np.random
     if mode == "kernel":
         raw = raw + float(draw["scatter_spr"]) * _kernel_scatter(raw, float(draw["scatter_sigma"]) * min(h, w))
     if mode == "sks":
-
         if not isinstance(geometry, CArmGeometry) or (geometry.height, geometry.width) != (h, w):
             raise RandomizeError(f"apply_image: the draw's scatter is sks: pass the image's geometry (a CArmGeometry "
                                  f"of {h} x {w} px), got {geometry!r}")

@@ -43,7 +43,6 @@ from sim.core.outputs import check_output_dir
 from learn.shipped import resolve_model
 from sim.ct.anatomy import anatomy_center
 from sim.ct.io import load_ct_spec
-from sim.ct.phantom import write_phantom_nifti
 from sim.physics.display import Collimator, DisplayChain
 from sim.physics.imaging import PhysicsSettings, XRayImager
 from sim.projection.drr import check_in_view
@@ -85,6 +84,8 @@ def _adapt_ct(cmd: "DemoCommand", out: Path) -> str:
     path = out / f"phantom{seed}.nii.gz"
     if not path.is_file():
         out.mkdir(parents=True, exist_ok=True)
+        from sim.ct.phantom import write_phantom_nifti  # SciPy's spatial and linalg: only for the phantom, off start-up
+
         write_phantom_nifti(path, seed)
     return str(path)
 

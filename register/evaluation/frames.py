@@ -61,7 +61,6 @@ class FrameSimulator:
         drawn from ``seed`` (and its tools, with ``tools``)."""
         imager = self.imager
         if self.tools is not None:
-
             imager = imager_with_distractors(imager, self.implants(seed))
         return imager.render(pose, seed=seed)["raw"][0].astype(np.float64)
 

@@ -285,7 +285,6 @@ def load_study(path: str | Path) -> Study:
                              f"(a checkpoint to evaluate as it is), got {row!r}")
         name = _name(row.get("name"), f"{where}.name")
         if "model" in row:
-
             model = row["model"]
             if isinstance(model, str) and model:
                 try:  # a shipped model's name, a model folder or its model.pt: the card checked

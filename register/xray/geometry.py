@@ -215,7 +215,6 @@ def resolve_geometry(
     sc = None
     scene_src = ""
     if scene is not None:
-
         sc = load_scene(scene).geometry
         scene_src = f"scene {os.fspath(scene)!r} (assumed)"
     meta = xray.meta if isinstance(xray.meta, dict) else {}

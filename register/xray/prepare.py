@@ -225,7 +225,6 @@ def prepare_xray(xray, *, volume=None, center_lps=None, init_params=None, scene:
     reference = None
     wants_tone = tone == "ct" and scale in ("auto", "display")
     if "intensity" in steps and volume is not None and (polarity == "auto" or wants_tone):
-
         center = anatomy_center(volume) if center_lps is None else center_lps
         reference = reference_drrs(volume, center, full_geometry, np.zeros(6) if init_params is None else init_params)
     tags = xray.meta.get("intensity_tags")

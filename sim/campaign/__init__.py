@@ -7,11 +7,11 @@
 
 from sim.campaign.config import load_campaign
 from sim.campaign.dataset import CampaignDataset, DatasetError, open_dataset
-from sim.campaign.runner import run_campaign as run
 
 
 def run_campaign(*args, **kwargs):
     """See :func:`sim.campaign.runner.run_campaign` (imported on use: it pulls in the renderer)."""
+    from sim.campaign.runner import run_campaign as run  # imported on use: the renderer and the process pool
 
     return run(*args, **kwargs)
 

@@ -403,7 +403,6 @@ def pose_histogram(params: np.ndarray, dist: PoseDistribution, path: str | os.Pa
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 
-
     fig = Figure(figsize=(12, 6.5), dpi=100, layout="constrained")
     FigureCanvasAgg(fig)
     axes = fig.subplots(2, 3)

@@ -347,7 +347,6 @@ class SubjectContext:
         self.renderers = {}
         for p in cfg.physics:
             if p.level in ("poly", "full"):
-
                 self.renderers[p.name] = LogImageRenderer(volume, p.settings(), scene=cfg.scene.name,
                                                           size=tuple(cfg.scene.size), ray_model=p.ray_model,
                                                           center_lps=center,

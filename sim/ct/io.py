@@ -42,7 +42,6 @@ from scipy import ndimage
 
 from sim.core.atomic import atomic_path
 from sim.ct.volume import PLAUSIBLE_HU_RANGE, CTInputError, CTVolume
-from sim.ct.phantom import make_pelvis_phantom
 
 #: RAS <-> LPS: flip x and y (its own inverse).
 RAS_TO_LPS = np.diag([-1.0, -1.0, 1.0, 1.0])
@@ -90,7 +89,6 @@ def load_ct_spec(spec: str | os.PathLike, *, label_map: str | os.PathLike | None
     """
     text = str(spec)
     if is_phantom_spec(text):
-
         seed_text = text.partition(":")[2] or "0"
         try:
             seed = int(seed_text)
@@ -99,6 +97,8 @@ def load_ct_spec(spec: str | os.PathLike, *, label_map: str | os.PathLike | None
         if label_map is not None:
             raise CTInputError(f"{text!r}: a label map cannot be combined with the built-in phantom "
                                "(it has its own labels)")
+        from sim.ct.phantom import make_pelvis_phantom  # SciPy's spatial and linalg: only for the phantom, off start-up
+
         return make_pelvis_phantom(seed)
     return load_ct(spec, label_map=label_map)
 

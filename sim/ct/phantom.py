@@ -376,7 +376,6 @@ def _plate(points: Vec, half_thickness: Vec) -> _Prim:
     tree = cKDTree(points, leafsize=32)
     rad_ext = np.append(rad, 0.0).astype(np.float32)
 
-
     def sdf(X, Y, Z):
         x, y, z = X.ravel(), Y.ravel(), Z.ravel()
         shape = (len(x), len(y), len(z))
@@ -1248,7 +1247,6 @@ def write_phantom_nifti(path: str | os.PathLike, seed: int | None = 0, *,
     (temporary file beside the target, then ``os.replace``). ``labels_path`` optionally writes
     the label map (uint8) the same way. Returns the volume."""
     import nibabel as nib
-
 
     for name, p in (("path", path), ("labels_path", labels_path)):
         if p is None:

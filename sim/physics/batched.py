@@ -568,7 +568,6 @@ def apply_image_batched(raw: torch.Tensor, i0, p: dict[str, torch.Tensor], norma
         x = x.index_copy(0, kern, xk + col(f["scatter_spr"][kern]) * gaussian_reflect(xk, sigma))
     sks = torch.nonzero(q["scatter"] == 3).flatten()
     if sks.numel():
-
         if not isinstance(geometry, CArmGeometry) or (geometry.height, geometry.width) != (h, w):
             raise PhysicsError(f"{where}: pairs with scatter sks need the images' geometry (a CArmGeometry of {h} x "
                                f"{w} px), got {geometry!r}")

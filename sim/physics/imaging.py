@@ -78,7 +78,6 @@ class XRayImager:
         self.scatter = None
         self.gain = 1.0
         if p.level == "full":
-
             self.scatter = MonteCarloScatter(materials.partial_densities(volume.hu), volume.affine,
                                              TISSUE_DECOMPOSITION.names, self.spectrum, self.detector,
                                              ScatterSettings.of(p))
@@ -167,7 +166,6 @@ def moving_renderer(volume, physics: PhysicsSettings | None = None, *, scene: st
     from dataclasses import replace
 
     if physics is None or physics.level == "line":
-
         if label_materials:
             raise PhysicsError("label materials need physics poly or full (line DRRs use mu from HU)")
         return DRRRenderer(volume, RenderSettings(scene=scene, size=size, ray_model=ray_model, coarsen=coarsen),

@@ -42,7 +42,6 @@ def _composition(name: str) -> list[tuple[int, float]]:
     """``[(Z, mass fraction), ...]`` of a material (the cancellous mixture expanded)."""
     import xraylib as xr
 
-
     spec = MATERIALS[name]
     if spec == "mixture":
         w = CANCELLOUS_CORTICAL_MASS_FRACTION
@@ -62,7 +61,6 @@ def differential_cross_section(name: str, kind: str, energies_keV, theta_rad) ->
     ``"rayleigh"``, on the grid ``energies_keV`` ``(E,)`` x ``theta_rad`` ``(T,)`` -> ``(E, T)``."""
     import xraylib as xr
     import xraylib_np as xrn
-
 
     _check_name(name)
     if kind not in SCATTER_KINDS:
@@ -130,7 +128,6 @@ class InteractionTables:
 
     @classmethod
     def _build(cls, materials, e_max_keV, e_min_keV, energy_step_keV, angular_step_keV, n_theta, n_u):
-
         n_e = int(math.ceil((e_max_keV - e_min_keV) / energy_step_keV)) + 1
         energies = e_min_keV + energy_step_keV * np.arange(n_e)
         mu = np.stack([np.stack([mass_attenuation(m, energies, k) for m in materials]) for k in KINDS[1:]])

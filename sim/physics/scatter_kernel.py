@@ -433,7 +433,6 @@ def fit_maps(log_primary: np.ndarray, scatter_cells: np.ndarray, geometry, *, ce
     """
     from scipy.optimize import least_squares, nnls
 
-
     if not isinstance(geometry, CArmGeometry):
         raise PhysicsError(f"geometry must be a CArmGeometry, got {type(geometry).__name__}")
     if isinstance(cell_px, bool) or not isinstance(cell_px, (int, np.integer)) or cell_px < 1:
@@ -531,7 +530,6 @@ def monte_carlo_maps(imager, poses: np.ndarray, *, cell_px: int = 4, photons: in
     import time
     from dataclasses import replace as _replace
 
-
     p = imager.physics
     g = imager.geometry
     poses = imager.renderer._check_poses(poses)
@@ -601,7 +599,6 @@ def fit_scatter_kernel(volume, physics, poses: np.ndarray, *, size=(64, 64), sce
             ``physics``).
     """
     from dataclasses import replace as _replace
-
 
     if imager is None:
         imager = XRayImager(volume, _replace(physics, level="poly", noise=False), scene=scene, size=size,

@@ -85,7 +85,6 @@ class BasisDecomposition:
     """
 
     def __init__(self, decomposition=None, *, matrix=None):
-
         self.decomposition = decomposition or TISSUE_DECOMPOSITION
         # (M, 2); a stored one (SpectralTable.basis) spares xraylib where it is not installed
         self.matrix = basis_matrix(self.decomposition.names) if matrix is None else np.asarray(matrix, np.float64)

@@ -73,7 +73,6 @@ class TorchVolumes:
                  scene: str = "cios_fusion"):
         import torch
 
-
         if not isinstance(geometry, CArmGeometry):
             raise RaymarchError(f"geometry must be a CArmGeometry, got {type(geometry).__name__}")
         if not (isinstance(step_fraction, (int, float)) and 0.05 <= step_fraction <= 1.0):
@@ -226,7 +225,6 @@ class DrJitVolumes:
                  step_fraction: float = 0.5):
         import torch
 
-
         if not (len(channels) == len(affines) == len(centers) >= 1):
             raise RaymarchError(f"one affine and one centre per volume: got {len(channels)} volumes, "
                                 f"{len(affines)} affines, {len(centers)} centres")
@@ -252,7 +250,6 @@ class DrJitVolumes:
     def _renderer(self, u: int, chans: tuple[int, ...]):
         key = (u, chans)
         if key not in self._renderers:
-
             h, w = self.geometry.height, self.geometry.width
             # the density quantity divides by 10 (g/cm^3 mm -> g/cm^2): channels go in x 10 so the
             # result is the plain integral (channel unit x mm), as TorchVolumes returns it

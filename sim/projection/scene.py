@@ -127,7 +127,6 @@ def load_mitsuba_scene(scene: CArmScene, geometry: CArmGeometry, *, ray_model: s
     """Load the scene file into Mitsuba for a geometry (render size) and ray model."""
     import mitsuba as mi
 
-
     ensure_variant()
     values = sensor_values(geometry)
     try:
