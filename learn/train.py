@@ -90,8 +90,10 @@ class TrainConfig:
         dataset: campaign folder (written by ``ctxreg simulate``), or a campaign ``.toml`` file to
             render pairs on the fly (:class:`learn.online.OnlinePairs`).
         out: output folder for checkpoints and logs.
-        backbone: "tiny", "small", "medium", "densenet121" or "densenet161" (:class:`learn.model.Backbone`).
-        weights: "none" or "imagenet_local" (needs ``weights_path``).
+        backbone: "tiny", "small", "small-gn", "medium", "densenet121", "densenet161" or
+            "efficientnet-lite0" (:class:`learn.model.Backbone`).
+        weights: "none" or "imagenet_local" (needs ``weights_path``, except for
+            "efficientnet-lite0", whose ImageNet weights the set-up installs).
         weights_path: local torchvision DenseNet checkpoint (no download is possible).
         freeze_backbone: train the heads only.
         physics: campaign physics name of the images (default: the campaign's first); with
@@ -262,8 +264,9 @@ class TrainConfig:
             raise TrainConfigError(f"train.lr_warmup must be in [0, 0.5] (a share of the run), got {self.lr_warmup}")
         if self.weights not in ("none", "imagenet_local"):
             raise TrainConfigError(f"train.weights must be 'none' or 'imagenet_local', got {self.weights!r}")
-        if self.weights == "imagenet_local" and not self.weights_path:
-            raise TrainConfigError("train.weights = 'imagenet_local' needs train.weights_path")
+        if self.weights == "imagenet_local" and not self.weights_path and self.backbone != "efficientnet-lite0":
+            raise TrainConfigError("train.weights = 'imagenet_local' needs train.weights_path (only "
+                                   "efficientnet-lite0's come with the set-up)")
         if self.loss not in ("mse", "relative"):
             raise TrainConfigError(f"train.loss must be 'mse' or 'relative', got {self.loss!r}")
         if not (self.relative_eps > 0 and math.isfinite(self.relative_eps)):
