@@ -53,7 +53,7 @@ from sim.physics.materials import mu_from_hu
 from sim.physics.settings import SETTINGS
 from sim.physics.two_basis import BasisDecomposition, SpectralTable, TOOL_CHANNELS, TorchImager
 from sim.projection.geometry import pose_from_params
-from sim.projection.raymarch import volumes_for
+from sim.projection.raymarch import TorchVolumes, volumes_for
 from sim.projection.scene import load_scene
 from sim.randomize import TOOL_BANK_SIZE, ToolBank
 from sim.core.atomic import atomic_path
@@ -165,6 +165,7 @@ class BatchedPairs(OnlinePairs):
             centers.append(center)
         self._volumes = volumes_for(self.device, channels, affines, centers, self.geometry,
                                     step_fraction=self.step_fraction, scene=self.cfg.scene.name)
+        self._subject_arrays = ([c[:1] for c in channels], affines, centers)  # mu, for image_volumes
         self._imager = TorchImager(table, self.device)
         self._tools = self._tool_bank().to(self.device)
 
@@ -210,6 +211,19 @@ class BatchedPairs(OnlinePairs):
             raise OnlinePairsError("cache_tables needs a tables folder (BatchedPairs(..., tables=FOLDER))")
         self._table()
         self._tool_bank()
+
+    def image_volumes(self, size: int, *, step_fraction: float = 1.0) -> TorchVolumes:
+        """The subjects' ``mu`` (1/mm) as a :class:`sim.projection.raymarch.TorchVolumes` of
+        ``size x size`` px line DRRs (the scene's detector binned to that size): the trilinear
+        march, differentiable in the poses, on this source's device (the CPU too, where the pairs
+        themselves come from Dr.Jit), for a loss on the image at a predicted pose
+        (:class:`learn.image_term.ImageTerm`). Subject ``i`` is :attr:`subjects` ``[i]``."""
+        if not (isinstance(size, int) and size >= 8):
+            raise OnlinePairsError(f"image_volumes: size must be an integer >= 8 px, got {size!r}")
+        self.prepare()
+        mu, affines, centers = self._subject_arrays
+        geometry = load_scene(self.cfg.scene.name).geometry_at(size, size)
+        return TorchVolumes(mu, affines, centers, geometry, device=self.device, step_fraction=step_fraction)
 
     def prepare(self):
         """Build the subjects' volumes, the spectral table and the tool bank now (else on the first batch)."""

@@ -45,6 +45,7 @@ from sim.core.errors import InputError
 from learn.checkpoint import (Checkpoint, CheckpointError, capture_rng, load_checkpoint, load_weights, remove_stale_temps, restore_rng, save_checkpoint)
 from learn.data import PairDataset
 from learn.features import CACHE_FILE, FeatureCache, FeatureCacheError, feature_bytes_per_image
+from learn.image_term import ImageTerm
 from learn.labels import LabelNormalizer, geodesic_label
 from learn.model import PoseUpdateNet, Weights, pose_update_net
 from learn.online import FRAMINGS, NearPairs, OnlinePairs, OnlinePairsError, check_trainable, current_field_problem
@@ -176,6 +177,15 @@ class TrainConfig:
             computes it natively, fp32 elsewhere (:func:`step_precision`; the log names the
             choice); ``bf16`` on a CPU without it trains, with a warning. A run may resume with
             another precision (:data:`RESUME_MAY_CHANGE`).
+        image_weight: the weight of an image-space term added to the loss (0, the default: none;
+            xvr's choice): ``1 - NCC`` of the line DRRs at the network's predicted target pose and
+            at the true one (:class:`learn.image_term.ImageTerm`), on the first ``image_pairs``
+            pairs of each batch, rendered ``image_size x image_size`` px by the trilinear march
+            (differentiable in the pose; on a CPU it costs about what the pairs' rendering does).
+            Needs batched pairs of a campaign file; one process (not under torchrun). The log's
+            ``train_image`` column is the term's value.
+        image_pairs: pairs per batch in the image term (default 16).
+        image_size: the image term's DRR side, px (default 32).
     """
 
     dataset: str
@@ -214,6 +224,9 @@ class TrainConfig:
     pairs: str = "per-pair"
     framing: str = "field"
     precision: str = "fp32"
+    image_weight: float = 0.0
+    image_pairs: int = 16
+    image_size: int = 32
 
     @property
     def online(self) -> bool:
@@ -269,6 +282,17 @@ class TrainConfig:
                                    "efficientnet-lite0's come with the set-up)")
         if self.loss not in ("mse", "relative"):
             raise TrainConfigError(f"train.loss must be 'mse' or 'relative', got {self.loss!r}")
+        if not (math.isfinite(self.image_weight) and self.image_weight >= 0):
+            raise TrainConfigError(f"train.image_weight must be a finite number >= 0, got {self.image_weight}")
+        if self.image_weight > 0:
+            if self.pairs != "batched" or not self.online:
+                raise TrainConfigError("train.image_weight needs batched pairs of a campaign file (train.pairs = "
+                                       "'batched', train.dataset a .toml): the term renders the pairs' subjects")
+            if not 1 <= int(self.image_pairs) <= int(self.batch_size):
+                raise TrainConfigError(f"train.image_pairs must be in [1, batch_size = {self.batch_size}], "
+                                       f"got {self.image_pairs}")
+            if not 8 <= int(self.image_size) <= 256:
+                raise TrainConfigError(f"train.image_size must be in [8, 256] px, got {self.image_size}")
         if not (self.relative_eps > 0 and math.isfinite(self.relative_eps)):
             raise TrainConfigError(f"train.relative_eps must be positive, got {self.relative_eps}")
         if int(self.head_channels) < 1:
@@ -598,6 +622,9 @@ def train(cfg: TrainConfig, *, resume: bool = False, log=print, device: str = "a
     if run.active and cfg.cache_features:
         raise TrainConfigError("train.cache_features: not with torchrun (the cached heads' forward would bypass DDP's "
                                "gradient averaging); train in one process or without the cache")
+    if run.active and cfg.image_weight > 0:
+        raise TrainConfigError("train.image_weight: not with torchrun (the term is taken on the first pairs of the "
+                               "whole batch); train in one process")
     device = run.start(resolve_device(device))
     if not run.main:
         log = _silent
@@ -742,6 +769,10 @@ def _loop(cfg, source, model, optimizer, scheduler, device, iteration, rows, log
         with torch.autocast(device.type, dtype=torch.bfloat16, enabled=bf16):
             output = source.forward(model, inputs)
         loss = _loss(type(output)(*(t.float() for t in output)), label, cfg)  # the loss in float32
+        image = None
+        if cfg.image_weight > 0:
+            image = source.image_term(iteration, output.g[:cfg.image_pairs].float())
+            loss = loss + cfg.image_weight * image
         optimizer.zero_grad()
         loss.backward()
         if cfg.lr_schedule == "cosine":  # the share of the run done: of its seconds under a time limit
@@ -763,6 +794,8 @@ def _loop(cfg, source, model, optimizer, scheduler, device, iteration, rows, log
         if bar is not None:
             bar.update(1)
         last = {"iteration": iteration, "train_loss": float(loss.item()), "lr": step_rate}
+        if image is not None:
+            last["train_image"] = float(image.item())
         interrupted = run.any(signalled.is_set())  # every rank stops at the same iteration
         stopping = interrupted or run.any(stop_after_s is not None and time.perf_counter() - started >= stop_after_s)
         if not run.main:
@@ -776,6 +809,7 @@ def _loop(cfg, source, model, optimizer, scheduler, device, iteration, rows, log
             last["elapsed_s"] = round(elapsed_before + time.perf_counter() - started, 2)
             rows.append({k: last.get(k, "") for k in ("iteration", "train_loss", "val_loss", "val_rot_err_deg",
                                                     "val_trans_err_mm", "lr", "elapsed_s")}
+                        | ({"train_image": last["train_image"]} if "train_image" in last else {})
                         | {k: v for k, v in last.items() if k.startswith(("val_rot_", "val_trans_"))
                            and k not in ("val_rot_err_deg", "val_trans_err_mm")})
             _write_log(log_path, rows)
@@ -942,6 +976,7 @@ class _OnlineSource:
         except OnlinePairsError as e:
             raise TrainConfigError(f"train.dataset {cfg.dataset}: {e}") from None
         self._val = self._val_ap = None
+        self._image_term = None
         self.size = tuple(campaign.scene.size)  # (H, W) pixels
         self.physics = target.to_dict()  # the physics entries of the target and current images
         if cfg.randomize is not None:  # each target draws its own: the record is the randomization
@@ -953,6 +988,15 @@ class _OnlineSource:
 
     def train_batch(self, iteration: int):
         return self.train.batch(iteration, self.cfg.batch_size)
+
+    def image_term(self, iteration: int, y: torch.Tensor) -> torch.Tensor:
+        """The image-space term (``train.image_weight``) of the first ``len(y)`` pairs of batch
+        ``iteration``, given the network's normalised outputs ``y`` ``(K, 6)`` for them."""
+        if self._image_term is None:
+            self._image_term = ImageTerm(self.train.image_volumes(self.cfg.image_size), self.train.normalizer)
+        subject, t_a, t_b = self.train.draw(iteration, self.cfg.batch_size)
+        k = len(y)
+        return self._image_term(subject[:k], t_a[:k], t_b[:k], y)
 
     def val_batches(self):
         if self._val is None:  # fixed validation pairs, rendered once

@@ -124,10 +124,16 @@ class TorchVolumes:
 
     def line_integrals(self, subject, poses, channels=None):
         """See the class doc. ``subject`` ``(B,)`` integers, ``poses`` ``(B, 4, 4)`` (numpy or torch);
-        ``channels``: the channel indices to integrate (default all) -> ``(B, len(channels), H, W)``."""
+        ``channels``: the channel indices to integrate (default all) -> ``(B, len(channels), H, W)``.
+
+        Differentiable in the poses: a torch ``poses`` that requires grad gives images whose
+        gradient flows back to it (through the sample positions of the trilinear march and the
+        rays' clipping to the box), e.g. for a loss on the image at a predicted pose
+        (:mod:`learn.image_term`)."""
         import torch
         import torch.nn.functional as F
 
+        pose_t = poses if isinstance(poses, torch.Tensor) and poses.requires_grad else None
         subject, poses = _checked(subject, poses, self.n_subjects)
         b = len(subject)
         h, w = self.geometry.height, self.geometry.width
@@ -137,13 +143,22 @@ class TorchVolumes:
         if b == 0:
             return torch.zeros((0, nc, h, w), dtype=self.dtype, device=self.device)
         # index(lambda) = lambda * (M p) + e per ray, M = A^-1 R^T, e = A^-1 (c - R^T t) (+ offset in i)
-        rot_t = np.swapaxes(poses[:, :3, :3], 1, 2)
-        inv = self.index_from_lps[subject]  # (B, 4, 4)
-        m = inv[:, :3, :3] @ rot_t  # (B, 3, 3)
-        e = np.einsum("bij,bj->bi", inv[:, :3, :3], self.centers[subject] - np.einsum("bij,bj->bi", rot_t,
-                                                                                     poses[:, :3, 3])) + inv[:, :3, 3]
-        m_t = torch.as_tensor(m, dtype=torch.float64, device=self.device)
-        e_t = torch.as_tensor(e, dtype=torch.float64, device=self.device)
+        if pose_t is None:
+            rot_t = np.swapaxes(poses[:, :3, :3], 1, 2)
+            inv = self.index_from_lps[subject]  # (B, 4, 4)
+            m = inv[:, :3, :3] @ rot_t  # (B, 3, 3)
+            e = np.einsum("bij,bj->bi", inv[:, :3, :3], self.centers[subject] - np.einsum("bij,bj->bi", rot_t,
+                                                                                         poses[:, :3, 3])) + inv[:, :3, 3]
+            m_t = torch.as_tensor(m, dtype=torch.float64, device=self.device)
+            e_t = torch.as_tensor(e, dtype=torch.float64, device=self.device)
+        else:  # the same in torch, so the gradient reaches the poses
+            pose_t = pose_t.to(device=self.device, dtype=torch.float64)
+            rot_t = pose_t[:, :3, :3].transpose(1, 2)
+            inv = torch.as_tensor(self.index_from_lps[subject], dtype=torch.float64, device=self.device)
+            centers = torch.as_tensor(self.centers[subject], dtype=torch.float64, device=self.device)
+            m_t = inv[:, :3, :3] @ rot_t
+            e_t = torch.einsum("bij,bj->bi", inv[:, :3, :3],
+                               centers - torch.einsum("bij,bj->bi", rot_t, pose_t[:, :3, 3])) + inv[:, :3, 3]
         d = torch.einsum("bij,pj->bpi", m_t, self._pixels)  # (B, P, 3) index units per unit lambda
         # slab clipping to [-0.5, n - 0.5] of each subject's own box
         hi = torch.as_tensor(self.shapes[subject] - 0.5, dtype=torch.float64, device=self.device)[:, None, :]
@@ -158,11 +173,12 @@ class TorchVolumes:
         chord = span * ray_mm[None, :]
         n_s = self.samples_per_ray
         frac = (torch.arange(n_s, dtype=torch.float64, device=self.device) + 0.5) / n_s  # (S,)
-        e_t = e_t.clone()
-        e_t[:, 0] += torch.as_tensor(self.offsets[subject], dtype=torch.float64, device=self.device)
+        offset = torch.zeros_like(e_t)
+        offset[:, 0] = torch.as_tensor(self.offsets[subject], dtype=torch.float64, device=self.device)
+        e_t = e_t + offset
         # normalised grid coordinates (align_corners=True): x -> k, y -> j, z -> i (stacked)
         scale = torch.as_tensor(2.0 / (self.size_ijk - 1.0), dtype=torch.float64, device=self.device)
-        out = torch.empty((b, nc, h * w), dtype=self.dtype, device=self.device)
+        out = []
         d, e_t, scale = d.to(self.dtype), e_t.to(self.dtype), scale.to(self.dtype)
         p = h * w
         per_chunk = max(1, CHUNK_SAMPLES // (p * n_s))
@@ -176,15 +192,15 @@ class TorchVolumes:
             v = F.grid_sample(volume, g.reshape(1, nb * p, n_s, 1, 3), mode="bilinear", padding_mode="zeros",
                               align_corners=True)  # (1, C, nb * P, S, 1)
             v = v[0, :, :, :, 0].sum(dim=2).reshape(nc, nb, p).permute(1, 0, 2)
-            out[sl] = v * (chord[sl] / n_s).to(self.dtype)[:, None, :]
-        return out.reshape(b, nc, h, w)
+            out.append(v * (chord[sl] / n_s).to(self.dtype)[:, None, :])
+        return torch.cat(out).reshape(b, nc, h, w)
 
 
 def _checked(subject, poses, n_subjects: int) -> tuple[np.ndarray, np.ndarray]:
     """``subject`` ``(B,)`` int64 and ``poses`` ``(B, 4, 4)`` float64 as numpy (from numpy or torch),
     refused in one line when their shapes or the subject indices do not fit."""
     subject = np.asarray(subject.cpu() if hasattr(subject, "cpu") else subject).astype(np.int64).ravel()
-    poses = np.asarray(poses.cpu() if hasattr(poses, "cpu") else poses, dtype=np.float64)
+    poses = np.asarray(poses.detach().cpu() if hasattr(poses, "cpu") else poses, dtype=np.float64)
     if poses.ndim != 3 or poses.shape[1:] != (4, 4) or len(poses) != len(subject):
         raise RaymarchError(f"poses must be (B, 4, 4) with B = {len(subject)} subjects, got {poses.shape}")
     if len(subject) and (subject.min() < 0 or subject.max() >= n_subjects):

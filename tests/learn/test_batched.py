@@ -340,3 +340,48 @@ def test_validate_checkpoint_gives_the_logged_validation(tmp_path):
     other = tr.TrainConfig(**{**cfg.__dict__, "backbone": "small"})
     with pytest.raises(tr.TrainConfigError, match="backbone"):
         tr.validate_checkpoint(other, tmp_path / "a" / "checkpoint.pt")
+
+
+def test_the_image_term_adds_its_weighted_value_to_the_loss(tmp_path):
+    """A batched run with ``image_weight``: the logged training loss of the first step is the
+    geodesic loss of the same batch plus the weight times the logged image term (in [0, 2]), the
+    term recomputed from the initial network equals the logged one, and the steps differ from a
+    run without it. Refusals name the key."""
+    import learn.train as tr
+    from learn.checkpoint import load_checkpoint
+    from learn.model import pose_update_net
+
+    def cfg(out, weight):
+        return tr.TrainConfig(dataset=str(ROOT / "campaigns" / "smoke.toml"), out=str(out), backbone="tiny",
+                              batch_size=4, iterations=1, lr=1e-3, val_pairs=4, val_every=1, checkpoint_every=1,
+                              seed=5, loss="relative", pairs="batched", randomize=dict(TABLE),
+                              image_weight=weight, image_pairs=3, image_size=16)
+
+    tr.train(cfg(tmp_path / "a", 0.5), log=lambda *_: None, device="cpu")
+    tr.train(cfg(tmp_path / "b", 0.0), log=lambda *_: None, device="cpu")
+    row_a = list(csv.DictReader(open(tmp_path / "a" / "log.csv")))[0]
+    row_b = list(csv.DictReader(open(tmp_path / "b" / "log.csv")))[0]
+    image = float(row_a["train_image"])
+    assert 0 < image <= 2
+    assert "train_image" not in row_b
+    # the same seed: the same initial network and batch, so the geodesic part is run b's loss
+    assert float(row_a["train_loss"]) == pytest.approx(float(row_b["train_loss"]) + 0.5 * image, rel=1e-5)
+    torch.manual_seed(5)
+    model = pose_update_net(backbone="tiny")
+    source = tr._OnlineSource(cfg(tmp_path / "c", 0.5))
+    target, current, _ = source.train_batch(0)
+    model.train()
+    with torch.no_grad():
+        y = model(target, current).g[:3]
+    assert float(source.image_term(0, y)) == pytest.approx(image, rel=1e-4)
+    a = load_checkpoint(tmp_path / "a" / "checkpoint.pt").model_state
+    b = load_checkpoint(tmp_path / "b" / "checkpoint.pt").model_state
+    assert not all(torch.equal(a[k], b[k]) for k in a if a[k].is_floating_point())
+
+    base = dict(dataset=str(ROOT / "campaigns" / "smoke.toml"), out=str(tmp_path))
+    with pytest.raises(tr.TrainConfigError, match="train.image_weight needs batched pairs"):
+        tr.TrainConfig(**base, image_weight=0.5)
+    with pytest.raises(tr.TrainConfigError, match="train.image_pairs must be in"):
+        tr.TrainConfig(**base, pairs="batched", randomize=dict(TABLE), batch_size=4, image_weight=0.5, image_pairs=5)
+    with pytest.raises(tr.TrainConfigError, match="train.image_weight must be a finite number"):
+        tr.TrainConfig(**base, image_weight=float("nan"))
