@@ -59,7 +59,7 @@ from sim.physics.settings import LEVELS
 from sim.projection.drr import DRRRenderer, RenderSettings, check_in_view
 from sim.projection.geometry import pose_from_params
 
-__all__ = ["register_xray", "XRayRegistration", "parse_init", "REGISTER_RESTARTS", "REGISTER_SCATTER_PHOTONS",
+__all__ = ["register_xray", "RegistrationRequest", "XRayRegistration", "parse_init", "REGISTER_RESTARTS", "REGISTER_SCATTER_PHOTONS",
            "OUTPUT_FILES", "SEARCH_MODES", "SEARCH_METHODS"]
 
 #: Monte Carlo histories per moving image with physics full: a registration renders thousands
@@ -314,14 +314,144 @@ def _moving_physics(physics):
     return PhysicsSettings(level=physics, noise=False, scatter_photons=REGISTER_SCATTER_PHOTONS)
 
 
-def register_xray(ct, xray, *, method: str = "contextual+cmaes", model=None, init="ap", center=None, label_map=None,
-                  scene: str = "cios_fusion", sdd_mm: float | None = None, sod_mm: float | None = None,
-                  pixel_spacing_mm: float | None = None, size=(128, 128), physics="line",
-                  label_materials: dict[int, str] | None = None, preprocess=None, intensity: str = "auto",
-                  polarity: str = "auto", tone: str = "ct", orient: str = "none", restarts: int | None = None,
-                  search: str = "auto", ct_cache=False, log: Callable[[str], None] | None = None,
-                  note: Callable[[str], None] | None = None
-                  ) -> XRayRegistration:
+@dataclass(frozen=True)
+class RegistrationRequest:
+    """What a user asks of a registration: every option of :func:`register_xray` (and of
+    ``ctxreg register``), checked as it is made, before any file is read. One request registers
+    any number of X-rays (``ctxreg serve`` makes one per case).
+
+    Attributes: ``method``, ``model``, ``init``, ``center``, ``label_map``, ``scene``, ``sdd_mm``,
+    ``sod_mm``, ``pixel_spacing_mm``, ``size``, ``physics``, ``label_materials``, ``preprocess``,
+    ``intensity``, ``polarity``, ``tone``, ``orient``, ``restarts``, ``search``, ``ct_cache``:
+    as :func:`register_xray`'s arguments. Derived: ``start`` ``(6,)`` the start pose (deg, mm),
+    ``steps`` the preprocessing step names, ``box`` ``(H, W)`` the optimiser's image box (px),
+    ``moving`` the moving images' :class:`sim.physics.imaging.PhysicsSettings`, ``cmaes_restarts``.
+
+    :meth:`run` takes an X-ray through the stages, in order, each timed under its name
+    (:attr:`XRayRegistration.timings`): ``xray`` (:func:`_read_xray`), the checks that need the
+    X-ray but no CT load (:func:`_check_before_loading`), ``model`` (:func:`_load_network`), ``ct``
+    (:func:`_load_anatomy`), ``prepare`` (:func:`_prepare`), ``search_setup`` and
+    ``engine_setup`` (:func:`_build_engine`), ``register`` and ``polarity``
+    (:class:`_PolarityCheckedRun`), ``verdict`` (:func:`_verdict`).
+
+    Example::
+
+        >>> request = RegistrationRequest(method="cmaes", restarts=0, size=(64, 64))
+        >>> request.box, request.start.tolist()
+        ((64, 64), [0.0, 0.0, 0.0, 0.0, 0.0, 0.0])
+        >>> RegistrationRequest(search="sometimes")
+        Traceback (most recent call last):
+        ...
+        register.engines.result.RegistrationError: --search sometimes: choose one of auto, off, always
+    """
+
+    method: str = "contextual+cmaes"
+    model: Any = None
+    init: Any = "ap"
+    center: Any = None
+    label_map: Any = None
+    scene: str = "cios_fusion"
+    sdd_mm: float | None = None
+    sod_mm: float | None = None
+    pixel_spacing_mm: float | None = None
+    size: Any = (128, 128)
+    physics: Any = "line"
+    label_materials: dict[int, str] | None = None
+    preprocess: Any = None
+    intensity: str = "auto"
+    polarity: str = "auto"
+    tone: str = "ct"
+    orient: str = "none"
+    restarts: int | None = None
+    search: str = "auto"
+    ct_cache: Any = False
+    start: np.ndarray = field(init=False, repr=False)
+    steps: tuple[str, ...] = field(init=False, repr=False)
+    box: tuple[int, int] = field(init=False, repr=False)
+    moving: PhysicsSettings = field(init=False, repr=False)
+    cmaes_restarts: int = field(init=False, repr=False)
+
+    def __post_init__(self) -> None:
+        derived = object.__setattr__
+        derived(self, "start", parse_init(self.init))
+        check_method(self.method, self.model)
+        check_orientation(self.orient)
+        if self.restarts is not None and self.method not in RESTART_METHODS:
+            raise RegistrationError(f"--restarts: meaningful with --method {' or '.join(RESTART_METHODS)} only; this "
+                                    f"run is --method {self.method}")
+        if self.search not in SEARCH_MODES:
+            raise RegistrationError(f"--search {self.search}: choose one of {', '.join(SEARCH_MODES)}")
+        if self.search != "auto" and self.method not in SEARCH_METHODS:
+            raise RegistrationError(f"--search {self.search}: meaningful with --method {' or '.join(SEARCH_METHODS)} "
+                                    f"only (the other methods have no global search); this run is --method "
+                                    f"{self.method}")
+        derived(self, "cmaes_restarts", REGISTER_RESTARTS if self.restarts is None else self.restarts)
+        steps = tuple(str(n).strip().lower() for n in (DEFAULT_STEPS if self.preprocess is None else self.preprocess))
+        Pipeline.from_names(list(steps), {"intensity": {"scale": self.intensity, "polarity": self.polarity,
+                                                        "tone": self.tone}})  # the choices, checked
+        if "intensity" not in steps and (self.intensity, self.polarity, self.tone) != ("auto", "auto", "ct"):
+            raise RegistrationError("--intensity / --polarity / --tone: meaningful with the 'intensity' preprocessing "
+                                    f"step only; this run's steps are {' '.join(steps) or 'none'}")
+        derived(self, "steps", steps)
+        box = fit_box(self.size)
+        if min(box) < REGISTER_MIN_SIDE_PX:
+            raise RegistrationError(f"--size {box[0]} {box[1]}: the registration needs at least {REGISTER_MIN_SIDE_PX} "
+                                    f"px per side (its coarsest level works at 1/4 and must keep a field there); give "
+                                    f"e.g. --size 128 128")
+        derived(self, "box", box)
+        derived(self, "moving", _moving_physics(self.physics))
+
+    @property
+    def searches(self) -> bool:
+        """Whether the method's global search is built (contextual+cmaes, ``search`` not ``"off"``)."""
+        return self.method in SEARCH_METHODS and self.search != "off"
+
+    def run(self, ct, xray, *, log: Callable[[str], None] | None = None,
+            note: Callable[[str], None] | None = None) -> XRayRegistration:
+        """Register ``xray`` to ``ct`` (as :func:`register_xray` takes them) through the stages
+        (class doc); ``log`` and ``note`` as there."""
+        log = log or (lambda line: None)
+        notes: list[str] = []
+
+        def remark(text: str) -> None:
+            notes.append(text)
+            if note is not None:
+                note(text)
+
+        clock = StageClock()
+        # the X-ray and its geometry (a quick read: its refusals come first, before the network and
+        # its torch load), the memory the size asks for; a CT that is not there; then the network
+        # and the CT, the view at the start
+        with clock("xray"):
+            xr, pixel_spacing_mm = _read_xray(self, xray, log)
+        full_geometry = _check_before_loading(self, xr, ct, pixel_spacing_mm)
+        with clock("model"):
+            predictor = _load_network(self, ct, log)
+        with clock("ct"):
+            volume, found = _load_anatomy(self, ct, log)
+        log(f"anatomy centre {found.describe()}")
+        c = found.lps_mm
+        check_in_view(volume, full_geometry, pose_from_params(self.start, full_geometry.sod_mm), c,
+                      what="the start pose (--init, with the anatomy centre --center)")
+        with clock("prepare"):
+            prepared = _prepare(self, xr, volume, c, pixel_spacing_mm)
+        engine, grid = _build_engine(self, prepared, volume, c, predictor, clock, remark, log)
+        result, prepared = _PolarityCheckedRun(self, volume, c, predictor, engine, grid, clock).register(prepared)
+        line = _polarity_line(prepared)
+        if line is not None:
+            log(line)
+        ran = result.search is not None and bool(result.search.get("grid_poses"))
+        with clock("verdict"):
+            verdict = _verdict(volume, c, prepared, result)
+        return XRayRegistration(method=self.method, result=result, prepared=prepared, volume=volume, center_lps=c,
+                                init_params=self.start, physics=self.moving, label_materials=self.label_materials,
+                                notes=notes, search_mode=self.search if self.method in SEARCH_METHODS else None,
+                                search_ran=ran, timings=clock.seconds,
+                                center_how=found.to_dict()["anatomy_center_how"], verdict=verdict)
+
+
+def register_xray(ct, xray, *, log: Callable[[str], None] | None = None, note: Callable[[str], None] | None = None,
+                  **options) -> XRayRegistration:
     """Register the X-ray ``xray`` to the CT ``ct``: its pose, as ``ctxreg register`` finds it.
 
     Args:
@@ -370,141 +500,156 @@ def register_xray(ct, xray, *, method: str = "contextual+cmaes", model=None, ini
         log: called with each line a user should check (geometry sources, field, intensity);
             note: with remarks (a network trained on other physics). Both default to silence.
 
+    The options (every argument but ``ct``, ``xray``, ``log`` and ``note``) make a
+    :class:`RegistrationRequest`; this is ``RegistrationRequest(**options).run(ct, xray, log=log, note=note)``.
+
     Returns an :class:`XRayRegistration`; :meth:`XRayRegistration.write` writes the figures and
     ``result.json``. Raises :class:`sim.core.errors.InputError` subclasses naming the bad input, before
     the work where the input allows it (everything but the image's contents).
     """
+    return RegistrationRequest(**options).run(ct, xray, log=log, note=note)
 
-    log = log or (lambda line: None)
-    notes: list[str] = []
 
-    def remark(text: str) -> None:
-        notes.append(text)
-        if note is not None:
-            note(text)
+# -- the stages of RegistrationRequest.run, in order ---------------------------------------------
 
-    # -- the inputs that need no file: checked before any work
-    x0 = parse_init(init)
-    check_method(method, model)
-    check_orientation(orient)
-    if restarts is not None and method not in RESTART_METHODS:
-        raise RegistrationError(f"--restarts: meaningful with --method {' or '.join(RESTART_METHODS)} only; this run "
-                                f"is --method {method}")
-    if search not in SEARCH_MODES:
-        raise RegistrationError(f"--search {search}: choose one of {', '.join(SEARCH_MODES)}")
-    if search != "auto" and method not in SEARCH_METHODS:
-        raise RegistrationError(f"--search {search}: meaningful with --method {' or '.join(SEARCH_METHODS)} only (the "
-                                f"other methods have no global search); this run is --method {method}")
-    restarts = REGISTER_RESTARTS if restarts is None else restarts
-    steps = [str(n).strip().lower() for n in (DEFAULT_STEPS if preprocess is None else preprocess)]
-    Pipeline.from_names(steps, {"intensity": {"scale": intensity, "polarity": polarity, "tone": tone}})  # choices
-    if "intensity" not in steps and (intensity, polarity, tone) != ("auto", "auto", "ct"):
-        raise RegistrationError("--intensity / --polarity / --tone: meaningful with the 'intensity' preprocessing step only; "
-                                f"this run's steps are {' '.join(steps) or 'none'}")
-    box = fit_box(size)
-    if min(box) < REGISTER_MIN_SIDE_PX:
-        raise RegistrationError(f"--size {box[0]} {box[1]}: the registration needs at least {REGISTER_MIN_SIDE_PX} px "
-                                f"per side (its coarsest level works at 1/4 and must keep a field there); give e.g. "
-                                f"--size 128 128")
-    moving = _moving_physics(physics)
-    clock = StageClock()
-    # -- the X-ray and its geometry (a quick read: its refusals come first, before the network and
-    # its torch load), the memory the size asks for; a CT that is not there; then the network
-    # and the CT, the view at the start
-    with clock("xray"):
-        xr = (xray if isinstance(xray, XRayImage) else load_xray(xray)).reoriented(orient)
-        if max(xr.shape) > MAX_XRAY_SIDE_PX:  # a huge frame: binned at once, not prepared at full size
-            factor = math.ceil(max(xr.shape) / MAX_XRAY_SIDE_PX)
-            was = xr.shape
-            xr = xr.binned(factor)
-            if pixel_spacing_mm is not None:
-                pixel_spacing_mm = float(pixel_spacing_mm) * factor  # --pixel-spacing is the file's pixels'
-            log(f"{xr.source}: {was[0]} x {was[1]} px binned {factor} x {factor} to {xr.shape[0]} x {xr.shape[1]} px "
-                f"(frames over {MAX_XRAY_SIDE_PX} px per side are binned before the preparation)")
-    if not xr.attenuation_bright and not {"intensity", "log", "invert"} & set(steps):
+
+def _read_xray(request: RegistrationRequest, xray, log) -> tuple[XRayImage, float | None]:
+    """The X-ray read and turned into the CT's view; a frame over :data:`MAX_XRAY_SIDE_PX` binned
+    at once. Returns it and the pixel pitch option (mm), scaled where binned (``--pixel-spacing``
+    is the file's pixels')."""
+    xr = (xray if isinstance(xray, XRayImage) else load_xray(xray)).reoriented(request.orient)
+    pixel_spacing_mm = request.pixel_spacing_mm
+    if max(xr.shape) > MAX_XRAY_SIDE_PX:  # a huge frame: binned at once, not prepared at full size
+        factor = math.ceil(max(xr.shape) / MAX_XRAY_SIDE_PX)
+        was = xr.shape
+        xr = xr.binned(factor)
+        if pixel_spacing_mm is not None:
+            pixel_spacing_mm = float(pixel_spacing_mm) * factor
+        log(f"{xr.source}: {was[0]} x {was[1]} px binned {factor} x {factor} to {xr.shape[0]} x {xr.shape[1]} px "
+            f"(frames over {MAX_XRAY_SIDE_PX} px per side are binned before the preparation)")
+    return xr, pixel_spacing_mm
+
+
+def _check_before_loading(request: RegistrationRequest, xr: XRayImage, ct, pixel_spacing_mm):
+    """What the X-ray decides before the network and the CT load: raw detector data needs a step
+    that turns it; its geometry (:func:`register.xray.geometry.resolve_geometry`, returned: the
+    full :class:`sim.projection.geometry.CArmGeometry`); the memory the size asks for; a CT path
+    that is not there."""
+    if not xr.attenuation_bright and not {"intensity", "log", "invert"} & set(request.steps):
         raise RegistrationError(f"{xr.source}: raw detector data (bone dark): add 'intensity' or 'log' to --preprocess")
-    full_geometry, _ = resolve_geometry(xr, scene, sdd_mm=sdd_mm, sod_mm=sod_mm, pixel_spacing_mm=pixel_spacing_mm)
-    check_registration_memory(box, (xr.pixels.shape[0], xr.pixels.shape[1]), full_geometry)
+    full_geometry, _ = resolve_geometry(xr, request.scene, sdd_mm=request.sdd_mm, sod_mm=request.sod_mm,
+                                        pixel_spacing_mm=pixel_spacing_mm)
+    check_registration_memory(request.box, (xr.pixels.shape[0], xr.pixels.shape[1]), full_geometry)
     if isinstance(ct, (str, os.PathLike)) and not is_phantom_spec(str(ct)) and not Path(ct).exists():
         raise CTInputError(f"{ct}: file or folder not found")  # before the network's load
-    with clock("model"):
-        predictor = load_predictor(model) if needs_model(method) else None
-    if predictor is not None and isinstance(model, (str, os.PathLike)) and isinstance(ct, (str, os.PathLike)):
-        warning = adapted_ct_warning(model, ct)  # a model adapted to another patient's CT
+    return full_geometry
+
+
+def _load_network(request: RegistrationRequest, ct, log):
+    """The method's network (None for CMA-ES alone), and a warning where it was adapted to another
+    patient's CT."""
+    predictor = load_predictor(request.model) if needs_model(request.method) else None
+    if predictor is not None and isinstance(request.model, (str, os.PathLike)) and isinstance(ct, (str, os.PathLike)):
+        warning = adapted_ct_warning(request.model, ct)
         if warning is not None:
             log(warning)
-    with clock("ct"):
-        volume = load_ct(ct, label_map=label_map, cache=ct_cache, log=log)
-        found = find_center(volume, center=center)
-        c = found.lps_mm
-    log(f"anatomy centre {found.describe()}")
-    check_in_view(volume, full_geometry, pose_from_params(x0, full_geometry.sod_mm), c,
-                  what="the start pose (--init, with the anatomy centre --center)")
-    # -- the work
-    with clock("prepare"):
-        prepared = prepare_xray(xr, volume=volume, center_lps=c, init_params=x0, scene=scene, steps=steps,
-                                scale=intensity, polarity=polarity, tone=tone, size=box, sdd_mm=sdd_mm,
-                                sod_mm=sod_mm, pixel_spacing_mm=pixel_spacing_mm)
+    return predictor
+
+
+def _load_anatomy(request: RegistrationRequest, ct, log):
+    """The CT (read, or as given) and its anatomy centre (:func:`sim.ct.anatomy.find_center`)."""
+    volume = load_ct(ct, label_map=request.label_map, cache=request.ct_cache, log=log)
+    return volume, find_center(volume, center=request.center)
+
+
+def _prepare(request: RegistrationRequest, xr: XRayImage, volume, center_lps, pixel_spacing_mm):
+    """The X-ray made ready (:func:`register.xray.prepare.prepare_xray`), its field checked at the
+    registration's coarsest level."""
+    prepared = prepare_xray(xr, volume=volume, center_lps=center_lps, init_params=request.start, scene=request.scene,
+                            steps=list(request.steps), scale=request.intensity, polarity=request.polarity,
+                            tone=request.tone, size=request.box, sdd_mm=request.sdd_mm, sod_mm=request.sod_mm,
+                            pixel_spacing_mm=pixel_spacing_mm)
+    _check_coarse_field(prepared, request.box, need=MIN_COARSE_FIELD_PX if request.searches else 1)
+    return prepared
+
+
+def _build_engine(request: RegistrationRequest, prepared, volume, center_lps, predictor, clock, remark, log):
+    """The global search (where the method has one and it is not off) and the method's engine
+    (:func:`register.engines.methods.build_method`); the input lines logged between them."""
     geometry = prepared.geometry
-    _check_coarse_field(prepared, box, need=MIN_COARSE_FIELD_PX if method in SEARCH_METHODS and search != "off" else 1)
     grid = None  # contextual+cmaes's global search, built once: the polarity check scores on its grid
-    if method in SEARCH_METHODS and search != "off":
+    if request.searches:
         with clock("search_setup"):
-            grid = GlobalSearch(volume, GlobalSearchSettings(always_grid=search == "always"),
-                                size=(geometry.height, geometry.width), scene=scene, geometry=geometry,
-                                center_lps=c, physics=moving, label_materials=label_materials)
+            grid = GlobalSearch(volume, GlobalSearchSettings(always_grid=request.search == "always"),
+                                size=(geometry.height, geometry.width), scene=request.scene, geometry=geometry,
+                                center_lps=center_lps, physics=request.moving,
+                                label_materials=request.label_materials)
     log(prepared.sources.line())
     for line in _input_lines(prepared):
         log(line)
     with clock("engine_setup"):
-        engine = build_method(method, volume, center_lps=c, size=(geometry.height, geometry.width),
-                              geometry=geometry, scene=scene, model=predictor, physics=moving,
-                              label_materials=label_materials, restarts=restarts if method == "cmaes" else 0,
+        engine = build_method(request.method, volume, center_lps=center_lps, size=(geometry.height, geometry.width),
+                              geometry=geometry, scene=request.scene, model=predictor, physics=request.moving,
+                              label_materials=request.label_materials,
+                              restarts=request.cmaes_restarts if request.method == "cmaes" else 0,
                               keep_drrs=True, note=remark, search=grid)
-    # The decided polarity is checked against the CT (unless an option or a decisive tag set it):
-    # - where the global search is about to run its grid, on that grid (its DRRs then serve the
-    #   search; the search stops where the image is to be inverted, and starts again on the inverse);
-    # - else after the registration: a registered pose that matches the X-ray as decided confirms it
-    #   (no grid at all), or a grid of its own around the start decides, and where it inverts the
-    #   image the registration runs again on the inverse.
-    def register_prepared(**hook):
-        view = network_view(predictor, prepared) if predictor is not None else None  # what the network sees
-        return engine.register(prepared.image, x0, mask=prepared.mask, toned=prepared.toned, network_view=view,
-                               **hook)
+    return engine, grid
 
-    def grid_check() -> bool:  # GlobalSearch.register's before_grid: True stops it (to be inverted)
-        nonlocal prepared
-        with clock("polarity"):
-            prepared = confirm_polarity(prepared, volume, c, x0, physics=moving, label_materials=label_materials,
-                                        search=grid)
-        return bool(prepared.step("polarity_check")["inverted"])
 
-    pending = polarity_needs_check(prepared)
-    with clock("register"):
-        result = register_prepared(**({"before_grid": grid_check} if pending and grid is not None else {}))
-        if result is None:  # the grid's check inverted the image: the registration of the inverse
-            result = register_prepared()
-    if pending and prepared.step("polarity_check") is None:
-        with clock("polarity"):
-            checked = confirm_polarity_by_pose(prepared, _plain_score(volume, c, prepared, result.pose), result.params)
-            if checked is None:
-                checked = confirm_polarity(prepared, volume, c, x0, physics=moving, label_materials=label_materials,
-                                           search=grid)
-        prepared = checked
-        if prepared.step("polarity_check")["inverted"]:
-            with clock("register"):
-                result = register_prepared()
-    line = _polarity_line(prepared)
-    if line is not None:
-        log(line)
-    ran = result.search is not None and bool(result.search.get("grid_poses"))
-    with clock("verdict"):
-        verdict = _verdict(volume, c, prepared, result)
-    return XRayRegistration(method=method, result=result, prepared=prepared, volume=volume, center_lps=c,
-                            init_params=x0, physics=moving, label_materials=label_materials, notes=notes,
-                            search_mode=search if method in SEARCH_METHODS else None, search_ran=ran,
-                            timings=clock.seconds, center_how=found.to_dict()["anatomy_center_how"],
-                            verdict=verdict)
+class _PolarityCheckedRun:
+    """The registration with the decided polarity checked against the CT (unless an option or a
+    decisive tag set it):
+
+    - where the global search is about to run its grid, on that grid (its DRRs then serve the
+      search; the search stops where the image is to be inverted, and starts again on the inverse);
+    - else after the registration: a registered pose that matches the X-ray as decided confirms it
+      (no grid at all), or a grid of its own around the start decides, and where it inverts the
+      image the registration runs again on the inverse.
+
+    :meth:`register` returns the result and the X-ray as finally prepared."""
+
+    def __init__(self, request: RegistrationRequest, volume, center_lps, predictor, engine, grid, clock) -> None:
+        self.request, self.volume, self.center_lps = request, volume, center_lps
+        self.predictor, self.engine, self.grid, self.clock = predictor, engine, grid, clock
+        self.prepared = None
+
+    def _once(self, **hook):
+        """One registration of the X-ray as prepared now (``before_grid``: the search's hook)."""
+        prepared = self.prepared
+        view = network_view(self.predictor, prepared) if self.predictor is not None else None  # the network's input
+        return self.engine.register(prepared.image, self.request.start, mask=prepared.mask, toned=prepared.toned,
+                                    network_view=view, **hook)
+
+    def _check(self):
+        """The check against the CT on a grid of poses around the start (the search's, where built)."""
+        r = self.request
+        return confirm_polarity(self.prepared, self.volume, self.center_lps, r.start, physics=r.moving,
+                                label_materials=r.label_materials, search=self.grid)
+
+    def _grid_check(self) -> bool:
+        """GlobalSearch.register's ``before_grid``: check on the grid; True stops it (to be inverted)."""
+        with self.clock("polarity"):
+            self.prepared = self._check()
+        return bool(self.prepared.step("polarity_check")["inverted"])
+
+    def register(self, prepared):
+        self.prepared = prepared
+        pending = polarity_needs_check(prepared)
+        with self.clock("register"):
+            result = self._once(**({"before_grid": self._grid_check} if pending and self.grid is not None else {}))
+            if result is None:  # the grid's check inverted the image: the registration of the inverse
+                result = self._once()
+        if pending and self.prepared.step("polarity_check") is None:
+            with self.clock("polarity"):
+                score = _plain_score(self.volume, self.center_lps, self.prepared, result.pose)
+                checked = confirm_polarity_by_pose(self.prepared, score, result.params)
+                if checked is None:
+                    checked = self._check()
+            self.prepared = checked
+            if self.prepared.step("polarity_check")["inverted"]:
+                with self.clock("register"):
+                    result = self._once()
+        return result, self.prepared
 
 
 def _verdict(volume, center_lps, prepared, result) -> Verdict:

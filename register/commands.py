@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from register.api import (OUTPUT_FILES, REGISTER_RESTARTS, REGISTER_SCATTER_PHOTONS, RESTART_METHODS, SEARCH_METHODS,
-                          SEARCH_MODES, parse_init, register_xray)
+                          SEARCH_MODES, RegistrationRequest, parse_init, register_xray)
 from register.engines.cmaes import CMAESSettings
 from register.engines.result import RegistrationError
 from register.engines.methods import METHOD_NAMES, build_method, load_predictor, needs_model
@@ -410,7 +410,9 @@ def run_serve(cmd: ServeCommand) -> list[Path]:
     print(f"ctxreg serve: {volume.source} and the {cmd.method} method ready; frames from "
           f"{'stdin' if source is None else source}", file=sys.stderr, flush=True)
     watch = None if source is None else FolderWatch(source)
-    summary = serve_frames(lambda path: register_xray(volume, path, model=model, **keywords),
+    note = keywords.pop("note")
+    request = RegistrationRequest(model=model, **keywords)  # the options checked once, for every frame
+    summary = serve_frames(lambda path: request.run(volume, path, note=note),
                            stdin_frames() if watch is None else watch, root, watch=watch, limit=cmd.frames,
                            errors=(CtxregError, *USER_OS_ERRORS), verbose=cmd.verbose)
     if summary.registered + summary.skipped == 0:
