@@ -138,6 +138,7 @@ def _train_config(out: Path, base_path: Path, base, settings: AdaptSettings):
     return TrainConfig(
         dataset=str(out / "campaign.toml"), out=str(out / "run"), init_from=str(base_path),
         backbone=base.backbone, head_channels=int(base.head_channels), preprocess=tuple(base.preprocess),
+        freeze_backbone=bool(config.get("freeze_backbone", False)),  # a frozen (ImageNet) backbone stays frozen
         pairs="batched", randomize=physics["randomize"], current_field=config.get("current_field", "masked"),
         framing=config.get("framing", "field"), batch_size=settings.batch_size, iterations=_OPEN_ENDED,
         lr=settings.lr, lr_step=_OPEN_ENDED, lr_decay=1.0, lr_schedule=settings.lr_schedule,

@@ -109,3 +109,18 @@ def test_a_model_adapted_to_another_ct_is_named_in_a_warning(adapted, cts):
     assert adapted_ct_warning(out / "model.pt", cts[1]) == line  # the weights file names the folder too
     assert adapted_ct_warning("pelvis_xray", cts[1]) is None  # a shipped model: adapted to no CT
     assert adapted_ct_warning(None, cts[1]) is None
+
+
+def test_a_frozen_base_backbone_stays_frozen_in_the_adaptation(tmp_path):
+    """A base trained with a frozen (ImageNet) backbone adapts its heads only: its config's
+    ``freeze_backbone`` carries into the adaptation's training config; a trained one's stays trainable."""
+    from types import SimpleNamespace
+
+    from learn.adapt import _train_config
+
+    randomized = {"level": "randomized", "randomize": {"kvp": [60.0, 130.0], "scatter": ["none", "sks"]}}
+    for frozen in (True, False):
+        fake = SimpleNamespace(physics=randomized, config={"freeze_backbone": frozen}, backbone="efficientnet-lite0",
+                               head_channels=64, preprocess=("normalize",))
+        cfg = _train_config(tmp_path, tmp_path / "base.pt", fake, ADAPT)
+        assert cfg.freeze_backbone is frozen
