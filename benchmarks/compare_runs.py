@@ -10,7 +10,8 @@ gives, at every check the runs share, the rotation / translation error (deg / mm
 predictions) of each group (``all``; ``far``, ``near``, ``log``, ``linear``, ``field``, ``open``
 pairs; ``ap``: the same targets from registration's AP start), then each run's training seconds
 and pairs per second (``elapsed_s``; validations included). ``--plot`` draws rotation and
-translation error against pairs for the first two groups.
+translation error against pairs for the first two groups; ``--baseline GROUP=ROT/TRANS`` draws a
+group's error of predicting no motion (deg / mm) as a dashed line, the level a run must leave.
 """
 from __future__ import annotations
 
@@ -46,10 +47,22 @@ def main(argv=None) -> int:
     ap.add_argument("--batch-size", type=int, default=64, help="pairs per iteration of every run (default 64)")
     ap.add_argument("--groups", nargs="+", default=["all", "far", "near", "ap"], help="validation groups")
     ap.add_argument("--plot", type=Path, help="write the curves of the first two groups to this PNG")
+    ap.add_argument("--baseline", nargs="+", default=[], metavar="GROUP=ROT/TRANS",
+                    help="a group's error of predicting no motion (deg / mm), drawn dashed on the plot")
     a = ap.parse_args(argv)
     if a.batch_size < 1:
         print("compare_runs: --batch-size must be >= 1", file=sys.stderr)
         return 2
+    baseline = {}
+    for spec in a.baseline:
+        group, _, values = spec.partition("=")
+        try:
+            baseline[group] = tuple(float(v) for v in values.split("/"))
+        except ValueError:
+            baseline[group] = ()
+        if len(baseline[group]) != 2:
+            print(f"compare_runs: --baseline {spec}: give GROUP=ROT/TRANS, e.g. all=44.8/110.2", file=sys.stderr)
+            return 2
     runs = [_read(spec) for spec in a.runs]
     shared = sorted(set.intersection(*({int(r["iteration"]) for r in rows} for _, rows in runs)))
     by_iter = [{int(r["iteration"]): r for r in rows} for _, rows in runs]
@@ -88,6 +101,8 @@ def main(argv=None) -> int:
                 for name, rows in runs:
                     pts = [(int(r["iteration"]) * a.batch_size / 1e3, float(r[col])) for r in rows if r.get(col)]
                     ax.plot(*zip(*pts), marker="o", ms=3, label=name)
+                if g in baseline:
+                    ax.axhline(baseline[g][j], color="grey", ls="--", lw=1, label="no motion predicted")
                 ax.set_xlabel("pairs seen (thousands)")
                 ax.set_ylabel(unit)
                 ax.set_title(f"validation, {g} pairs" if g != "ap" else "validation, from AP")
