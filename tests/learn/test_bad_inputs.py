@@ -58,6 +58,7 @@ TYPE_CASES = [
     ("pairs", "1", "a string, got the integer 1"),
     ("framing", "true", "a string, got true (a boolean)"),
     ("precision", "16", "a string, got the integer 16"),
+    ("cosine_over", "1", "a string, got the integer 1"),
     ("image_weight", '"0.5"', "a finite number, got the string '0.5'"),
     ("image_pairs", "16.0", "an integer, got the number 16.0"),
     ("image_size", "true", "an integer, got true (a boolean)"),

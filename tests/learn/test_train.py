@@ -86,6 +86,21 @@ def test_under_a_time_limit_the_cosine_runs_over_the_seconds(campaign, tmp_path,
     assert rates[-1] < 0.05e-3
 
 
+def test_cosine_over_iterations_keeps_one_schedule_under_a_time_limit(campaign, tmp_path):
+    """cosine_over = "iterations": a run trained in time-limited calls (a GPU's) keeps the schedule of
+    its iterations: the same rates, step for step, as the run without a limit."""
+    import learn.train as tr
+
+    kw = dict(iterations=8, val_every=1, checkpoint_every=4, lr=1e-3, lr_schedule="cosine", lr_warmup=0.25)
+    tr.train(config(campaign, tmp_path / "a", **kw), log=lambda *_: None)
+    tr.train(config(campaign, tmp_path / "b", cosine_over="iterations", **kw), stop_after_s=3600.0,
+             log=lambda *_: None)
+    rates = [[float(r["lr"]) for r in csv.DictReader(open(tmp_path / x / "log.csv"))] for x in "ab"]
+    assert rates[0] == rates[1] and len(rates[0]) == 8
+    with pytest.raises(tr.TrainConfigError, match="cosine_over must be one of 'auto', 'iterations'"):
+        config(campaign, tmp_path, cosine_over="seconds")
+
+
 def test_refusals_name_the_key(campaign, tmp_path):
     from learn.train import TrainConfigError, load_train_config, train
 
