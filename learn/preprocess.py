@@ -1,6 +1,7 @@
 """Composable, recorded preprocessing of network input images (PyTorch).
 
-Every step is a small :class:`torch.nn.Module` taking and returning a float tensor
+Every step is a :class:`TensorStep`: the project's one step protocol (:class:`sim.prepare.Step`,
+which registration's steps follow too) as a small :class:`torch.nn.Module` taking and returning a float tensor
 ``(B, 1, H, W)`` (``B`` images, one channel, ``H`` rows, ``W`` columns, indexed ``[row, col]``).
 ``(B, C, H, W)`` with ``C > 1`` is also accepted: every step then works on each image and channel
 independently (``Sobel(mode="xy")`` returns ``2 C`` channels). Each step has ``to_dict()``, a
@@ -20,17 +21,18 @@ from __future__ import annotations
 import hashlib
 import math
 import numbers
-from typing import Any, Iterable, Sequence
+from typing import Any, ClassVar, Iterable, Sequence
 
 import numpy as np
 import torch
 import torch.nn.functional as F
 
 from sim.core.errors import InputError
+from sim.prepare import Step  # the one step protocol, which TensorStep is
 
 __all__ = [
     "LearnPreprocessError",
-    "Step",
+    "TensorStep",
     "LogCorrect",
     "Normalize",
     "Median",
@@ -83,19 +85,24 @@ def _positive(value: Any, name: str, *, allow_zero: bool = False) -> float:
     return float(value)
 
 
-class Step(torch.nn.Module):
-    """Base of the preprocessing steps: checks the input shape, records its parameters."""
+class TensorStep(Step, torch.nn.Module):
+    """Base of training's preprocessing steps: a :class:`sim.prepare.Step` that is a torch module.
 
-    name: str = "step"
+    ``forward(x)`` (the module's call, a transform of ``(B, C, H, W)`` batches) checks the input and
+    applies the step; :meth:`apply` is the step protocol's form of it: the mask passes through
+    unchanged (these steps work on every pixel) and nothing is measured."""
+
+    name: ClassVar[str] = "step"
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:  # noqa: D401
         return self._apply(_check_images(x))
 
+    def apply(self, image: torch.Tensor, mask):
+        """``(image (B, C, H, W), mask) -> (forward(image), mask, {})``: :class:`sim.prepare.Step`."""
+        return self.forward(image), mask, {}
+
     def _apply(self, x: torch.Tensor) -> torch.Tensor:  # pragma: no cover - abstract
         raise NotImplementedError
-
-    def params(self) -> dict[str, Any]:
-        return {}
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-serialisable record ``{"name": ..., **parameters}``; ``build([d])`` rebuilds it."""
@@ -105,7 +112,7 @@ class Step(torch.nn.Module):
         return ", ".join(f"{k}={v!r}" for k, v in self.params().items())
 
 
-class LogCorrect(Step):
+class LogCorrect(TensorStep):
     """``-log(I / I0)``: intensity images -> line integrals (unit-free), per image and channel.
 
     ``input_kind="intensity"`` (default) expects ``I > 0``; ``I0`` is the image's
@@ -146,7 +153,7 @@ class LogCorrect(Step):
         return (-torch.log(ratio)).reshape(b, c, h, w)
 
 
-class Normalize(Step):
+class Normalize(TensorStep):
     """Per-image (and channel) intensity normalisation.
 
     ``mode="minmax"`` (the original method): ``[min, max] -> [-1, 1]`` linearly (a constant image
@@ -178,7 +185,7 @@ class Normalize(Step):
         return torch.where(std > 0, (x - mean) / safe, torch.zeros_like(x))
 
 
-class Median(Step):
+class Median(TensorStep):
     """Median filter over a ``size x size`` pixel window (odd ``size``), replicate padding.
 
     Implemented with ``torch.nn.functional.unfold``: memory ``size^2`` times the image.
@@ -205,7 +212,7 @@ class Median(Step):
         return patches.median(dim=1).values.reshape(b, c, h, w)
 
 
-class Sobel(Step):
+class Sobel(TensorStep):
     """Sobel image gradient, replicate padding, normalised to intensity per pixel.
 
     The kernels are divided by 8, so a ramp ``I = a col + b row`` gives exactly ``d/dcol = a``
@@ -246,7 +253,7 @@ def gaussian_kernel_1d(sigma_px: float, dtype=torch.float64, device=None) -> tor
     return (g / g.sum()).to(dtype=dtype, device=device)
 
 
-class Gaussian(Step):
+class Gaussian(TensorStep):
     """Separable Gaussian blur, ``sigma_px`` in pixels (0: identity).
 
     Kernel radius ``ceil(3 sigma_px)`` px, sampled and normalised to sum 1 (so constants are
@@ -275,7 +282,7 @@ class Gaussian(Step):
         return y.reshape(b, c, h, w)
 
 
-class LocalContrast(Step):
+class LocalContrast(TensorStep):
     """Local contrast normalisation: ``(x - m) / sqrt(v + eps^2)`` with ``m`` and ``v`` the
     Gaussian-weighted local mean and variance (window ``sigma_px`` pixels; Pinto et al. 2008,
     the "LCN" of the original work's proposed remedies).
@@ -307,7 +314,7 @@ class LocalContrast(Step):
         return (x - m) / torch.sqrt(v + eps * eps + _EPS)
 
 
-class RandomConvolution(Step):
+class RandomConvolution(TensorStep):
     """Random convolutions (Xu et al., ICLR 2021), a training-time appearance randomisation.
 
     Per call (one draw for the whole batch): with probability ``p`` pick a kernel size ``k`` from
@@ -372,7 +379,7 @@ class RandomConvolution(Step):
         return torch.where(span > 0, out, x)
 
 
-class HistogramMatch(Step):
+class HistogramMatch(TensorStep):
     """Match each image's intensity histogram to a reference image's (quantile mapping).
 
     A pixel of mid-rank ``r`` among the image's ``N`` pixels (ties share their mean rank) gets
@@ -437,11 +444,11 @@ class HistogramMatch(Step):
 class Compose(torch.nn.Module):
     """Apply ``steps`` in order; ``record()`` is the JSON-serialisable list of their records."""
 
-    def __init__(self, steps: Iterable[Step]) -> None:
+    def __init__(self, steps: Iterable[TensorStep]) -> None:
         super().__init__()
         steps = list(steps)
         for k, s in enumerate(steps):
-            if not isinstance(s, Step):
+            if not isinstance(s, TensorStep):
                 raise LearnPreprocessError(
                     f"steps[{k}]: expected a learn.preprocess step, got {type(s).__name__}"
                 )
@@ -462,13 +469,13 @@ class Compose(torch.nn.Module):
 
 
 #: Registry of step names for :func:`build`.
-STEPS: dict[str, type[Step]] = {
+STEPS: dict[str, type[TensorStep]] = {
     cls.name: cls
     for cls in (LogCorrect, Normalize, Median, Sobel, Gaussian, LocalContrast, RandomConvolution, HistogramMatch)
 }
 
 
-def build(names_or_dicts: Iterable[str | dict[str, Any] | Step]) -> Compose:
+def build(names_or_dicts: Iterable[str | dict[str, Any] | TensorStep]) -> Compose:
     """A :class:`Compose` from step names (defaults), records ``{"name": ..., **params}`` or steps.
 
     Valid names: ``log_correct``, ``normalize``, ``median``, ``sobel``, ``gaussian``,
@@ -477,9 +484,9 @@ def build(names_or_dicts: Iterable[str | dict[str, Any] | Step]) -> Compose:
     """
     if isinstance(names_or_dicts, (str, dict)):
         names_or_dicts = [names_or_dicts]
-    steps: list[Step] = []
+    steps: list[TensorStep] = []
     for k, item in enumerate(names_or_dicts):
-        if isinstance(item, Step):
+        if isinstance(item, TensorStep):
             steps.append(item)
             continue
         if isinstance(item, str):

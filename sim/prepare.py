@@ -15,6 +15,10 @@ one step over the *field* (the valid pixels, a ``(H, W)`` bool ``mask``; ``None`
   to 0 / 1, clipped to ``[0, 1]``;
 * :func:`masked_fill`: the pixels outside the field set to the mean over it.
 
+:class:`Step` is the one protocol of every preprocessing step of the project: registration's
+(:mod:`register.xray.preprocess`: one ``(H, W)`` NumPy image and its field) and training's
+(:mod:`learn.preprocess`: ``(B, C, H, W)`` torch batches, the domain-gap study's steps among them).
+
 Callers decide what a degenerate input means (registration raises, training substitutes), so the
 functions return the measured values (extremes, percentiles) and leave that to them. The batched
 torch twins (and the resampling of a field's crop) are :mod:`sim.prepare_batched`. The operations
@@ -24,10 +28,57 @@ shared them: results are bit-identical.
 
 from __future__ import annotations
 
+import dataclasses
+from typing import Any, ClassVar
+
 import numpy as np
 
-__all__ = ["checked_image", "field_values", "invert", "i0_percentile", "log_correct", "field_box", "percentile_bounds",
+from sim.core.atomic import jsonable
+
+__all__ = ["Step", "checked_image", "field_values", "invert", "i0_percentile", "log_correct", "field_box", "percentile_bounds",
            "normalize", "masked_fill"]
+
+
+class Step:
+    """A preprocessing step: a ``name`` (class attribute, the key a list of names builds it by) and
+    parameters, applied to an image and its field.
+
+    ``apply(image, mask) -> (image, mask, measured)``: ``image`` an ``(H, W)`` NumPy array
+    (registration's steps) or a ``(B, C, H, W)`` torch tensor (training's); ``mask`` the valid
+    pixels, bool, of the image's layout, or None (every pixel); ``measured`` a dict of what the
+    step found (the chosen ``I0``, the percentiles, the crop box), ``{}`` where it finds nothing.
+    ``params()`` is the step's parameters, JSON-serialisable (a dataclass step's fields by
+    default), and ``to_dict()`` its record ``{"name": ..., **params()}``, from which the step's
+    package builds it again. Subclasses: :class:`register.xray.preprocess.Field` ... (NumPy, frozen
+    dataclasses), :class:`learn.preprocess.TensorStep` (torch modules).
+
+    Example::
+
+        >>> @dataclasses.dataclass(frozen=True)
+        ... class Scale(Step):
+        ...     name: ClassVar[str] = "scale"
+        ...     factor: float = 2.0
+        ...     def apply(self, image, mask):
+        ...         return image * self.factor, mask, {}
+        >>> Scale(3.0).to_dict()
+        {'name': 'scale', 'factor': 3.0}
+        >>> Scale().apply(np.ones((2, 2)), None)[0].tolist()
+        [[2.0, 2.0], [2.0, 2.0]]
+    """
+
+    name: ClassVar[str] = ""
+
+    def params(self) -> dict[str, Any]:
+        """The step's parameters, JSON-serialisable: a dataclass step's fields, else none."""
+        return jsonable(dataclasses.asdict(self)) if dataclasses.is_dataclass(self) else {}
+
+    def to_dict(self) -> dict[str, Any]:
+        """The step's record ``{"name": ..., **params()}``."""
+        return {"name": self.name, **self.params()}
+
+    def apply(self, image, mask):
+        """``(image, mask) -> (image, mask, measured)`` (class doc)."""
+        raise NotImplementedError
 
 
 def checked_image(image, name: str, error: type[Exception]) -> np.ndarray:

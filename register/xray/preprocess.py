@@ -25,6 +25,8 @@ Steps (names for :meth:`Pipeline.from_names` in brackets), in the order of :data
   :func:`crop_box` / :func:`cropped_geometry` turn the record into the detector geometry of the
   cropped image (principal point ``cx - col0``, ``cy - row0``).
 
+Every step is a :class:`sim.prepare.Step` (the project's one step protocol) and a frozen
+dataclass: ``apply(image (H, W) float64, mask (H, W) bool | None) -> (image, mask, measured)``.
 Percentiles and statistics use the valid (mask) pixels only. Images leave the pipeline as float32.
 """
 
@@ -41,6 +43,7 @@ from scipy import ndimage
 from register.xray.field import FieldSettings, detect_field
 from register.xray.intensity import POLARITIES, SCALES, TONE_LEVELS, TONES, decide, tone_curve
 from sim import prepare
+from sim.prepare import Step  # the one step protocol: here ``apply(image (H, W) float64, mask (H, W) bool | None)``
 from sim.core.atomic import jsonable
 from sim.core.errors import InputError
 from sim.projection.geometry import CArmGeometry
@@ -79,22 +82,6 @@ def _num(value: object, name: str, *, lo: float | None = None, hi: float | None 
     if hi is not None and v > hi:
         raise PreprocessError(f"{name}: must be <= {hi:g}, got {v:g}")
     return v
-
-
-class Step:
-    """Base of the preprocessing steps: frozen dataclasses with a class-level ``name``.
-
-    ``apply(image (H, W) float64, mask (H, W) bool | None) -> (image, mask, measured: dict)``.
-    """
-
-    name: ClassVar[str] = ""
-
-    def params(self) -> dict[str, Any]:
-        """The step's parameters as a JSON-serialisable dict."""
-        return _jsonable(dataclasses.asdict(self))  # type: ignore[call-overload]
-
-    def apply(self, image: np.ndarray, mask: np.ndarray | None) -> tuple[np.ndarray, np.ndarray | None, dict]:
-        raise NotImplementedError
 
 
 @dataclass(frozen=True)
