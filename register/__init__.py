@@ -5,12 +5,16 @@ The public API (README "Python API")::
     from register import register_xray
     result = register_xray(ct, "xray.dcm", method="cmaes")   # or method="contextual+cmaes", model="..."
 
+    from register import RegistrationRequest                 # one request, many X-rays of a case
+    request = RegistrationRequest(method="contextual+cmaes", model="pelvis_xray")
+    results = [request.run(ct, f) for f in ("frame1.dcm", "frame2.dcm")]
+
 :func:`register.api.register_xray` does what ``ctxreg register`` does and returns an
 :class:`register.api.XRayRegistration` (pose, similarity, the prepared X-ray, ``write(out)``).
 It is imported on first use, so ``import register`` stays cheap.
 """
 
-__all__ = ["register_xray", "XRayRegistration"]
+__all__ = ["register_xray", "RegistrationRequest", "XRayRegistration"]
 
 
 def __getattr__(name: str):
