@@ -19,7 +19,7 @@ its pose distribution, near pairs, :mod:`sim.randomize`'s settings drawn per pai
    quantum noise), electronic noise and display chain
    (:func:`sim.physics.batched.apply_image_batched`);
 4. made ready as registration makes a user's X-ray ready
-   (:func:`learn.prepare_batched.prepare_like_registration_batched`).
+   (:func:`learn.online.prepare_like_registration`, batched).
 
 ``ideal`` draws take the line DRR of the target pose as their target, collimated as drawn; they
 skip stages 1-3's realistic work (basis march, signal, noise, display), the rest of the batch
@@ -43,9 +43,8 @@ import numpy as np
 import torch
 
 from learn.labels import LabelNormalizer, geodesic_label
-from learn.online import MAX_BATCH, NearPairs, OnlinePairs, OnlinePairsError, check_trainable
-from learn.online import FRAMINGS
-from learn.prepare_batched import prepare_like_registration_batched
+from learn.online import FRAMINGS, MAX_BATCH, NearPairs, OnlinePairs, OnlinePairsError, check_trainable
+from learn.online import prepare_like_registration
 from sim.campaign.runner import subject_volume
 from sim.core.seeds import pair_normals
 from sim.physics.batched import apply_image_batched, draw_tensors, field_masks, gaussian_reflect
@@ -370,10 +369,9 @@ class BatchedPairs(OnlinePairs):
         the transform and the labels of ``t_a`` from ``t_b``: the returns of :meth:`batch`."""
 
         n = len(display)
-        target, cur = prepare_like_registration_batched(display, field, current, log_display=log_display,
-                                                        bone_dark=bone_dark,
-                                                        mask_current=self.current_field == "masked",
-                                                        crop=self.framing == "field")
+        target, cur = prepare_like_registration(display, field, current, log_display=log_display, bone_dark=bone_dark,
+                                                mask_current=self.current_field == "masked",
+                                                crop=self.framing == "field")
         x = torch.cat([target, cur])[:, None].to(torch.float32)
         if self.transform is not None:
             x = self.transform(x)

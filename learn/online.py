@@ -42,8 +42,7 @@ from learn.labels import LabelNormalizer, apply_update, geodesic_label
 from sim.core.errors import InputError
 from sim.randomize import DomainRandomization
 from sim.physics.display import TONES, apply_tone, quantile_curve
-from sim.prepare import field_box, i0_percentile, invert, log_correct, masked_fill, normalize, percentile_bounds
-from sim.prepare_batched import crop_resize
+from sim.prepare import crop_to_field, i0_percentile, invert, log_correct, masked_fill, normalize, percentile_bounds
 from sim.core.seeds import KIND_BATCH, KIND_BATCH_NOISE  # batch k: (KIND_BATCH, k); its noise: (KIND_BATCH_NOISE, k, u[, 1])
 from sim.core.seeds import rng_for
 from sim.distractors import add_to_density_integrals
@@ -133,69 +132,138 @@ def current_field_problem(value) -> str | None:
     return None if value in CURRENT_FIELDS else f"must be one of {', '.join(CURRENT_FIELDS)}, got {value!r}"
 
 
-def prepare_like_registration(display: np.ndarray, field: np.ndarray, current: np.ndarray, *, log_display: bool,
-                              bone_dark: bool, raw_intensity: bool = False, low_pct: float = 1.0,
-                              high_pct: float = 99.0, i0_pct: float = 99.5, mask_current: bool = True,
-                              tone: bool = False) -> tuple[np.ndarray, np.ndarray]:
-    """A displayed X-ray and the pair's current image as the network meets them in registration.
+def _check_prepare_inputs(display, field, current, bone_dark, low_pct, high_pct, crop) -> tuple[float, float]:
+    """:func:`prepare_like_registration`'s checks (:class:`OnlinePairsError`); the percentiles as floats."""
+    where = "prepare_like_registration"
+    batch = isinstance(display, torch.Tensor)
+    want = "(B, H, W) tensor" if batch else "(H, W) array"
+    for name, t in (("display", display), ("current", current)):
+        kind = isinstance(t, torch.Tensor) if batch else isinstance(t, np.ndarray)
+        ok = kind and t.ndim == (3 if batch else 2) and t.dtype != (torch.bool if batch else np.bool_) and (
+            not t.is_complex() if batch else t.dtype.kind in "uif")
+        if not ok:
+            shape = tuple(t.shape) if hasattr(t, "shape") else type(t).__name__
+            raise OnlinePairsError(f"{where}: {name} must be a real {want} (as display), got {shape}")
+    if current.shape != display.shape:
+        raise OnlinePairsError(f"{where}: current must have display's shape {tuple(display.shape)}, "
+                               f"got {tuple(current.shape)}")
+    fkind = isinstance(field, torch.Tensor) if batch else isinstance(field, np.ndarray)
+    if not fkind or field.dtype != (torch.bool if batch else np.bool_) or field.shape != display.shape:
+        got = f"{field.dtype} {tuple(field.shape)}" if hasattr(field, "shape") else type(field).__name__
+        raise OnlinePairsError(f"{where}: field must be a bool {'tensor' if batch else 'array'} of display's shape "
+                               f"{tuple(display.shape)}, got {got}")
+    if batch and not isinstance(bone_dark, bool):
+        b = display.shape[0]
+        if not isinstance(bone_dark, torch.Tensor) or bone_dark.dtype != torch.bool or bone_dark.shape != (b,):
+            got = f"{bone_dark.dtype} {tuple(bone_dark.shape)}" if isinstance(bone_dark, torch.Tensor) else type(bone_dark).__name__
+            raise OnlinePairsError(f"{where}: bone_dark must be a bool or a ({b},) bool tensor, got {got}")
+    elif not batch and not isinstance(bone_dark, (bool, np.bool_)):
+        raise OnlinePairsError(f"{where}: bone_dark must be a bool, got {bone_dark!r}")
+    if not isinstance(crop, bool):
+        raise OnlinePairsError(f"{where}: crop must be a bool, got {crop!r}")
+    try:
+        lo_q, hi_q = float(low_pct), float(high_pct)
+    except (TypeError, ValueError):
+        raise OnlinePairsError(f"{where}: low_pct and high_pct must be percentiles (%), got {low_pct!r}, "
+                               f"{high_pct!r}") from None
+    if not 0.0 <= lo_q < hi_q <= 100.0:
+        raise OnlinePairsError(f"{where}: low_pct and high_pct must satisfy 0 <= low < high <= 100 (%), got "
+                               f"{lo_q:g}, {hi_q:g}")
+    holds = field.any(-1).any(-1)
+    if not bool(holds.all()):
+        if batch:
+            empty = torch.nonzero(~holds).flatten().tolist()[:10]
+            raise OnlinePairsError(f"{where}: the fields of pairs {empty} hold no pixel")
+        raise OnlinePairsError(f"{where}: the field holds no pixel")
+    return lo_q, hi_q
 
-    ``display`` ``(H, W)`` (the display chain's integers), ``field`` ``(H, W)`` bool (the
-    collimated field), ``current`` ``(H, W)`` (the moving image, line integrals), ``log_display``
-    and ``bone_dark`` (the display chain's log and polarity) -> ``(target, current)`` float32
-    ``(H, W)``. The steps are those of ``register.xray.prepare.prepare_xray`` and
-    ``register.engines.contextual`` with registration's decisions taken from the truth (the field, log or
-    linear, the polarity):
+
+def prepare_like_registration(display, field, current, *, log_display, bone_dark, raw_intensity: bool = False,
+                              low_pct: float = 1.0, high_pct: float = 99.0, i0_pct: float = 99.5,
+                              mask_current: bool = True, tone: bool = False, crop: bool = True):
+    """Displayed X-rays and the pairs' current images as the network meets them in registration.
+
+    One pair in NumPy, or a batch of pairs in torch on the device of its inputs (each pair with its
+    own field, log / linear and polarity, no Python loop over pairs): the steps are
+    :mod:`sim.prepare`'s, written once for both.
+
+    Args:
+        display: ``(H, W)`` NumPy or ``(B, H, W)`` torch, the display chain's integers (any real
+            dtype: :func:`sim.randomize.apply_image`'s or
+            :func:`sim.physics.batched.apply_image_batched`'s image).
+        field: bool of ``display``'s shape and kind, the collimated field (each pair's holding a pixel).
+        current: the moving images (line integrals), ``display``'s shape and kind.
+        log_display: the display chain's log (a bool, or ``(B,)`` bool for a batch), kept for the
+            record and for ``raw_intensity``.
+        bone_dark: the display shows bone dark (a bool, or ``(B,)`` bool for a batch).
+        raw_intensity, tone: one NumPy pair only (below).
+        low_pct, high_pct: the normalisation percentiles (%) over the field, ``0 <= low < high <= 100``.
+        mask_current: fill the current images' pixels outside the field with their mean over it
+            too (``current_field = "masked"``), as the targets'.
+        crop: step 2 (crop to the field's box and resample, as registration does); False keeps the
+            whole detector, the field masked (``train.framing = "detector"``): the image scale and
+            CoordConv coordinates then stay the detector's whatever the field.
+
+    Returns:
+        ``(target, current)`` float32, ``display``'s shape and kind (a batch on its device).
+
+    The steps are those of ``register.xray.prepare.prepare_xray`` and ``register.engines.contextual``
+    with registration's decisions taken from the truth (the field, log or linear, the polarity):
 
     1. bone bright: a display shown bone dark is inverted (``max + min - x`` over the field), log
        or linear alike. Registration's intensity step decides the same for display-processed
        frames: it inverts a bone-dark frame and does not log-correct a windowed linear display
        (measured on 12-bit DICOM frames of the pelvis, 110 kV, gamma 1.2: steps ``[]`` for
-       linear bone-bright, ``["invert"]`` for linear bone-dark). ``log_display`` is kept for the
-       record and for callers that log-correct raw intensity (``raw_intensity=True``:
+       linear bone-bright, ``["invert"]`` for linear bone-dark). A NumPy pair with
+       ``raw_intensity=True`` and a linear display is transmitted intensity instead:
        ``-ln(max(x, 1e-6 I0) / I0)`` with ``I0`` the ``i0_pct`` percentile over the field, as
-       ``register.xray.preprocess.LogCorrect``; the steps are :mod:`sim.prepare`'s, which registration calls too);
-    2. both images cropped to the field's bounding box and resampled to ``(H, W)`` (registration
-       crops the X-ray to its field and renders the moving images for the cropped detector; the
-       predictor resamples both to the network's size);
+       ``register.xray.preprocess.LogCorrect``;
+    2. both images cropped to the field's bounding box and resampled to the image's size
+       (:func:`sim.prepare.crop_to_field`; registration crops the X-ray to its field and renders
+       the moving images for the cropped detector; the predictor resamples both to the network's size);
     3. the target normalised: the ``low_pct`` / ``high_pct`` percentiles over the field to 0 / 1,
-       clipped (``register.xray.preprocess.Normalize``);
+       clipped (``register.xray.preprocess.Normalize``; all 0 where they are equal);
     4. the target's pixels outside the field set to the mean over the field
        (:func:`sim.prepare.masked_fill`), and the current image's too unless ``mask_current`` is
        False (a network trained with ``current_field = "open"`` sees the whole current image:
        the anatomy around the target's field, :data:`CURRENT_FIELDS`).
 
-    With ``tone`` (``train.tone = "ct"``), between steps 1 and 2 a target that registration would
-    read as a display image (everything but ``raw_intensity``) is mapped by rank onto the current
-    image's line integrals inside the field (:func:`sim.physics.display.apply_tone`), as
-    registration makes the toned version of a display image on the CT's DRRs around its start
-    pose (``register.xray.intensity.tone_curve``; a network trained so is shown that version): the
-    current image plays the reference, a view of the same CT at another pose.
+    With ``tone`` (``train.tone = "ct"``, a NumPy pair), between steps 1 and 2 a target that
+    registration would read as a display image (everything but ``raw_intensity``) is mapped by
+    rank onto the current image's line integrals inside the field
+    (:func:`sim.physics.display.apply_tone`), as registration makes the toned version of a display
+    image on the CT's DRRs around its start pose (``register.xray.intensity.tone_curve``; a network
+    trained so is shown that version): the current image plays the reference, a view of the same
+    CT at another pose. A batch refuses ``raw_intensity`` and ``tone``: a raw-intensity target is
+    not a display image, and the tone maps each pair by rank (a per-pair sort and interpolation).
+
+    A NumPy pair runs in float64; a batch in float64 where ``display`` or ``current`` is float64,
+    else in float32. A cropped image is resampled in float32 (as ``F.interpolate``).
     """
-    h, w = display.shape
-    x = np.asarray(display, np.float64)
-    m = np.asarray(field, bool)
-    if not m.any():
-        raise OnlinePairsError("prepare_like_registration: the field holds no pixel")
+    batch = isinstance(display, torch.Tensor)
+    lo_q, hi_q = _check_prepare_inputs(display, field, current, bone_dark, low_pct, high_pct, crop)
+    if batch:
+        if raw_intensity or tone:
+            raise OnlinePairsError("prepare_like_registration: a batch takes display images without the CT tone "
+                                   "(raw_intensity=False, tone=False); prepare such pairs one at a time in NumPy")
+        work = torch.float64 if torch.float64 in (display.dtype, current.dtype) else torch.float32
+        x, cur, m = display.to(work), current.to(device=display.device, dtype=work), field.to(display.device)
+    else:
+        x, cur, m = np.asarray(display, np.float64), current, field
     if raw_intensity and not log_display:  # transmitted intensity (bone dark): log-correct, bone bright
         if not bone_dark:
             x = invert(x, m)[0]
         i0 = i0_percentile(x, m, i0_pct)
         x = log_correct(x, i0 if i0 > 0 else 1.0)
-    elif bone_dark:
-        x = invert(x, m)[0]
+    else:
+        x = invert(x, m, bone_dark)[0]
     if tone and not raw_intensity:
         x = apply_tone(x, m, quantile_curve(np.asarray(current, np.float64)[m]))
-    box = field_box(m)
-    x = crop_resize(x, box, (h, w), "bilinear")
-    cur = crop_resize(current, box, (h, w), "bilinear")
-    m = crop_resize(m.astype(np.float32), box, (h, w), "nearest") > 0.5
-    if not m.any():
-        m = np.ones((h, w), bool)
-    lo, hi = percentile_bounds(x, m, low_pct, high_pct)
-    x = masked_fill(normalize(x, lo, hi) if hi > lo else np.zeros_like(x), m)
+    x, cur, m = crop_to_field((x, cur), m, crop=crop)
+    x = masked_fill(normalize(x, *percentile_bounds(x, m, lo_q, hi_q)), m)
     if mask_current:
         cur = masked_fill(cur, m)
-    return x.astype(np.float32), cur.astype(np.float32)
+    return (x.to(torch.float32), cur.to(torch.float32)) if batch else (x.astype(np.float32), cur.astype(np.float32))
 
 
 def check_trainable(randomization) -> None:

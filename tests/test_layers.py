@@ -163,3 +163,45 @@ def test_sim_keeps_its_stages_in_folders_and_few_flat_modules():
     assert len(flat) <= 10, flat
     assert {"core", "ct", "projection", "physics", "campaign"} <= {p.name for p in (ROOT / "sim").iterdir()
                                                                   if (p / "__init__.py").is_file()}
+
+
+# --------------------------------------------------------------------------------------------
+# Imports at the top: a project module imported inside a function says why on its line
+# --------------------------------------------------------------------------------------------
+
+
+def _late_project_imports(path: Path) -> list[tuple[int, str, bool]]:
+    """``(line, module, says why)`` of every import of a project module inside a function of
+    ``path``: it says why where a ``#`` comment stands on the statement's first or last line."""
+    text = path.read_text()
+    lines = text.splitlines()
+    found = []
+    for fn in ast.walk(ast.parse(text, filename=str(path))):
+        if not isinstance(fn, (ast.FunctionDef, ast.AsyncFunctionDef)):
+            continue
+        for node in ast.walk(fn):
+            if isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
+                names = [node.module]
+            elif isinstance(node, ast.Import):
+                names = [a.name for a in node.names]
+            else:
+                continue
+            for name in names:
+                if name.split(".")[0] in PACKAGES:
+                    why = "#" in lines[node.lineno - 1] or "#" in lines[node.end_lineno - 1]
+                    found.append((node.lineno, name, why))
+    return sorted(set(found))
+
+
+def test_every_late_import_of_a_project_module_says_why():
+    files = [p for package in PACKAGES for p in sorted((ROOT / package).rglob("*.py"))]
+    bad = [f"{p.relative_to(ROOT)}:{line} imports {name} inside a function without a comment saying why"
+           for p in files for line, name, why in _late_project_imports(p) if not why]
+    assert not bad, "\n".join(bad)
+
+
+def test_the_late_import_scan_sees_a_silent_one_and_a_commented_one(tmp_path):
+    f = tmp_path / "m.py"
+    f.write_text("import sim.core\n\n\ndef f():\n    import numpy\n    from learn.model import x\n"
+                 "    from register.cli import (main,  # loads torch\n                              run)\n")
+    assert _late_project_imports(f) == [(6, "learn.model", False), (7, "register.cli", True)]

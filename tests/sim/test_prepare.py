@@ -1,4 +1,4 @@
-"""sim.prepare (NumPy) and sim.prepare_batched (torch) against closed forms, and against each other."""
+"""sim.prepare's steps, on a NumPy image and on a torch batch, against closed forms and against each other."""
 
 from __future__ import annotations
 
@@ -8,8 +8,7 @@ import torch
 import torch.nn.functional as F
 
 from sim import prepare
-from sim.prepare_batched import (crop_resize, crop_resize_batched, field_box_batched, gather2d, invert_batched,
-                                 masked_fill_batched, nearest_source, normalize_batched, resize_boxes)
+from sim.prepare import crop_to_field, gather2d, nearest_source, resize_boxes
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
@@ -85,13 +84,33 @@ def test_masked_fill_puts_the_field_mean_outside():
     np.testing.assert_array_equal(prepare.masked_fill(image, np.zeros_like(mask)), 0.0)
 
 
-def test_crop_resize_of_the_whole_image_is_the_image_and_a_box_is_interpolate():
+def test_crop_to_field_of_the_whole_image_is_the_image_and_a_box_is_interpolate():
     image, _ = _case(4, (16, 12))
-    np.testing.assert_array_equal(crop_resize(image, (0, 16, 0, 12), (16, 12), "bilinear"), image)
-    got = crop_resize(image, (2, 10, 3, 9), (16, 12), "nearest")
+    whole = np.ones((16, 12), bool)
+    same, same_m = crop_to_field((image.astype(np.float32),), whole)
+    assert same.dtype == np.float64 and same_m is whole
+    np.testing.assert_array_equal(same, image.astype(np.float32))
+    field = np.zeros((16, 12), bool)
+    field[2:10, 3:9] = True
+    field[5, 5] = False  # a hole, resampled by nearest
+    got, got_m = crop_to_field((image,), field)
+    assert prepare.field_box(field) == (2, 10, 3, 9)
+    crop = torch.from_numpy(image[2:10, 3:9].astype(np.float32))[None, None]
+    ref = F.interpolate(crop, size=(16, 12), mode="bilinear", align_corners=False)[0, 0].double().numpy()
     assert got.dtype == np.float64 and got.shape == (16, 12)
-    # nearest upsampling by 2 repeats each pixel of the crop
-    np.testing.assert_array_equal(got, np.repeat(np.repeat(image[2:10, 3:9].astype(np.float32), 2, 0), 2, 1))
+    np.testing.assert_array_equal(got, ref)
+    # nearest upsampling by 2 repeats each pixel of the field's crop
+    np.testing.assert_array_equal(got_m, np.repeat(np.repeat(field[2:10, 3:9], 2, 0), 2, 1))
+    kept, kept_m = crop_to_field((image,), field, crop=False)
+    np.testing.assert_array_equal(kept, image) and np.testing.assert_array_equal(kept_m, field)
+
+
+def test_a_flat_image_normalizes_to_0():
+    flat = prepare.normalize(np.full((3, 4), 2.0), 2.0, 2.0)
+    assert flat.dtype == np.float64 and not flat.any()
+    flat_t = prepare.normalize(torch.ones(2, 4, 4, dtype=torch.float64), *prepare.percentile_bounds(
+        torch.ones(2, 4, 4, dtype=torch.float64), torch.ones(2, 4, 4, dtype=torch.bool), 1.0, 99.0))
+    assert torch.equal(flat_t, torch.zeros(2, 4, 4, dtype=torch.float64))  # equal percentiles: 0
 
 
 def _batch(seed: int, b=5, h=19, w=27):
@@ -102,37 +121,42 @@ def _batch(seed: int, b=5, h=19, w=27):
     return x, m
 
 
-def test_batched_twins_equal_the_numpy_steps():
+def test_a_batch_gets_each_image_s_numpy_steps():
     x, m = _batch(5)
     xt, mt = torch.from_numpy(x), torch.from_numpy(m)
     which = torch.tensor([True, False, True, True, False])
-    inv = invert_batched(xt, mt, which).numpy()
+    inv, lo, hi = prepare.invert(xt, mt, which)
     for i in range(len(x)):
-        np.testing.assert_array_equal(inv[i], prepare.invert(x[i], m[i])[0] if which[i] else x[i])
-    boxes = torch.stack(field_box_batched(mt), 1).numpy()
+        ref, ref_lo, ref_hi = prepare.invert(x[i], m[i], bool(which[i]))
+        np.testing.assert_array_equal(inv[i].numpy(), ref)
+        assert (float(lo[i]), float(hi[i])) == (ref_lo, ref_hi)
+    boxes = torch.stack(prepare.field_box(mt), 1).numpy()
     assert [tuple(b) for b in boxes] == [prepare.field_box(m[i]) for i in range(len(m))]
-    norm = normalize_batched(xt, mt, 2.0, 90.0).numpy()
-    fill = masked_fill_batched(xt, mt).numpy()
+    margin = torch.stack(prepare.field_box(mt, 4), 1).numpy()
+    assert [tuple(b) for b in margin] == [prepare.field_box(m[i], 4) for i in range(len(m))]
+    norm = prepare.normalize(xt, *prepare.percentile_bounds(xt, mt, 2.0, 90.0)).numpy()
+    fill = prepare.masked_fill(xt, mt).numpy()
     for i in range(len(x)):
         lo, hi = prepare.percentile_bounds(x[i], m[i], 2.0, 90.0)
         np.testing.assert_allclose(norm[i], prepare.normalize(x[i], lo, hi), atol=1e-12)
         np.testing.assert_allclose(fill[i], prepare.masked_fill(x[i], m[i]), atol=1e-12)
-    flat = normalize_batched(torch.ones(2, 4, 4, dtype=torch.float64), torch.ones(2, 4, 4, dtype=torch.bool), 1.0, 99.0)
-    assert torch.equal(flat, torch.zeros(2, 4, 4, dtype=torch.float64))  # equal percentiles: 0
+    empty = mt.clone()
+    empty[1] = False
+    assert torch.equal(prepare.masked_fill(xt, empty)[1], torch.zeros_like(xt[1]))  # as NumPy: an empty field fills 0
 
 
-def test_crop_resize_batched_equals_crop_resize_per_pair():
+def test_crop_to_field_of_a_batch_equals_each_image_s():
     x, m = _batch(6)
     m[0] = True  # a box that is the whole image: left as it is
     xt, mt = torch.from_numpy(x), torch.from_numpy(m)
-    got, got_m = crop_resize_batched((xt,), mt, field_box_batched(mt))
-    h, w = m.shape[1:]
+    got, got_m = crop_to_field((xt,), mt)
+    assert got.dtype == torch.float64
     for i in range(len(x)):
-        box = prepare.field_box(m[i])
-        np.testing.assert_allclose(got[i].numpy(), crop_resize(x[i], box, (h, w), "bilinear"), atol=1e-5)
-        ref_m = crop_resize(m[i].astype(np.float32), box, (h, w), "nearest") > 0.5
+        ref, ref_m = crop_to_field((x[i],), m[i])
+        np.testing.assert_allclose(got[i].numpy(), ref, atol=1e-5)
         np.testing.assert_array_equal(got_m[i].numpy(), ref_m)
-    same, same_m = crop_resize_batched((xt,), mt, field_box_batched(mt), crop=False)
+    np.testing.assert_array_equal(got[0].numpy(), x[0])
+    same, same_m = crop_to_field((xt,), mt, crop=False)
     assert torch.equal(same, xt) and torch.equal(same_m, mt)
 
 

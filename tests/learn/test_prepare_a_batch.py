@@ -1,9 +1,9 @@
-"""The batched preparation of realistic targets (learn/prepare_batched.py) equals
-learn.online.prepare_like_registration (raw_intensity=False, tone=False).
+"""learn.online.prepare_like_registration of a torch batch equals its NumPy preparation of each
+pair (raw_intensity=False, tone=False): the steps of sim/prepare.py, written once for both.
 
 Tolerance: targets (in [0, 1]) and currents (here in [0, 3]) within 1e-4 absolute (measured:
-~3e-7 and ~7e-7). The numpy function resamples a cropped pair with F.interpolate in float32;
-the batched one gathers with F.interpolate's own float32 source indices and weights, so the
+~3e-7 and ~7e-7). A NumPy pair's crop is resampled with F.interpolate in float32;
+a batch gathers with F.interpolate's own float32 source indices and weights, so the
 two differ by float32 rounding of the interpolation sums only, and the resampled field is the
 same (the percentiles and means are over the same pixels). The resample itself is tested in
 tests/sim/test_prepare.py.
@@ -16,7 +16,6 @@ import pytest
 import torch
 
 from learn.online import OnlinePairsError, prepare_like_registration
-from learn.prepare_batched import prepare_like_registration_batched
 from sim.physics.batched import apply_image_batched, draw_tensors, field_masks
 from sim.randomize import DomainRandomization, image_rng
 
@@ -27,7 +26,7 @@ pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 def _check(display, field, current, log_display, bone_dark, mask_current, dtype):
-    target, cur = prepare_like_registration_batched(
+    target, cur = prepare_like_registration(
         torch.from_numpy(np.asarray(display, np.float64)).to(dtype), torch.from_numpy(field),
         torch.from_numpy(current).to(dtype), log_display=torch.from_numpy(log_display),
         bone_dark=torch.from_numpy(bone_dark), mask_current=mask_current)
@@ -41,7 +40,7 @@ def _check(display, field, current, log_display, bone_dark, mask_current, dtype)
 
 
 @pytest.mark.parametrize("size", [(64, 64), (48, 80)], ids=["64x64", "48x80"])
-def test_prepare_batched_equals_numpy_on_random_pairs(size):
+def test_a_batch_equals_each_pair_on_random_pairs(size):
     h, w = size
     n = 56
     dr = DomainRandomization()
@@ -61,7 +60,7 @@ def test_prepare_batched_equals_numpy_on_random_pairs(size):
             _check(display, field, current, log_display, bone_dark, mask_current, dtype)
 
 
-def test_prepare_batched_equals_numpy_after_apply_image_batched():
+def test_a_batch_equals_each_pair_after_apply_image_batched():
     """End to end: displays of the batched post-render stages, polarity and log from the draws."""
     h, w, n = 64, 64, 50
     dr = DomainRandomization.from_table({"scatter": ["none", "kernel"]})
@@ -76,26 +75,33 @@ def test_prepare_batched_equals_numpy_after_apply_image_batched():
     _check(display.numpy(), field.numpy(), line, p["log"].numpy(), bone_dark, True, torch.float64)
 
 
-def test_prepare_batched_refuses_bad_inputs():
+def test_a_batch_with_bad_inputs_is_refused():
     d, c = torch.zeros(2, 8, 8), torch.zeros(2, 8, 8)
     m = torch.ones(2, 8, 8, dtype=torch.bool)
     kw = dict(log_display=True, bone_dark=False, mask_current=True)
     empty = m.clone()
     empty[1] = False
     with pytest.raises(OnlinePairsError, match=r"pairs \[1\] hold no pixel"):
-        prepare_like_registration_batched(d, empty, c, **kw)
+        prepare_like_registration(d, empty, c, **kw)
     with pytest.raises(OnlinePairsError, match="field must be a bool"):
-        prepare_like_registration_batched(d, m.float(), c, **kw)
+        prepare_like_registration(d, m.float(), c, **kw)
     with pytest.raises(OnlinePairsError, match="current must have"):
-        prepare_like_registration_batched(d, m, c[:, :4], **kw)
+        prepare_like_registration(d, m, c[:, :4], **kw)
     with pytest.raises(OnlinePairsError, match="bone_dark"):
-        prepare_like_registration_batched(d, m, c, **{**kw, "bone_dark": torch.zeros(3, dtype=torch.bool)})
+        prepare_like_registration(d, m, c, **{**kw, "bone_dark": torch.zeros(3, dtype=torch.bool)})
     with pytest.raises(OnlinePairsError, match="low < high"):
-        prepare_like_registration_batched(d, m, c, low_pct=50.0, high_pct=50.0, **kw)
+        prepare_like_registration(d, m, c, low_pct=50.0, high_pct=50.0, **kw)
+    for option in ("raw_intensity", "tone"):
+        with pytest.raises(OnlinePairsError, match="a batch takes display images"):
+            prepare_like_registration(d, m, c, **{**kw, option: True})
+    with pytest.raises(OnlinePairsError, match="display must be a real"):
+        prepare_like_registration(d[0], m, c, **kw)  # a NumPy-shaped tensor
+    with pytest.raises(OnlinePairsError, match="current must be a real"):
+        prepare_like_registration(d, m, c.numpy(), **kw)  # a batch and an array mixed
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device")
-def test_prepare_batched_on_cuda_equals_cpu():
+def test_a_batch_on_cuda_equals_cpu():
     h, w, n = 48, 80, 64
     field = field_masks(draw_tensors([DomainRandomization().draw(2, i) for i in range(n)]), h, w)
     field = field[field.flatten(1).any(1)]
@@ -104,9 +110,9 @@ def test_prepare_batched_on_cuda_equals_cpu():
     current = torch.from_numpy(rng.random((len(field), h, w)).astype(np.float32))
     flags = dict(log_display=torch.from_numpy(rng.random(len(field)) < 0.5),
                  bone_dark=torch.from_numpy(rng.random(len(field)) < 0.5), mask_current=True)
-    cpu = prepare_like_registration_batched(display, field, current, **flags)
-    gpu = prepare_like_registration_batched(display.cuda(), field.cuda(), current.cuda(),
-                                            **{k: v.cuda() if isinstance(v, torch.Tensor) else v
-                                               for k, v in flags.items()})
+    cpu = prepare_like_registration(display, field, current, **flags)
+    gpu = prepare_like_registration(display.cuda(), field.cuda(), current.cuda(),
+                                    **{k: v.cuda() if isinstance(v, torch.Tensor) else v
+                                       for k, v in flags.items()})
     for a, b in zip(cpu, gpu):
         assert b.is_cuda and (a - b.cpu()).abs().max() <= TOL
