@@ -13,11 +13,11 @@ its pose distribution, near pairs, :mod:`sim.randomize`'s settings drawn per pai
 2. the targets' polychromatic signal from the two basis line integrals and the tools' density
    integrals (:class:`sim.physics.two_basis.TorchImager`: the drawn spectrum, filtration,
    exposure and bone factor), the quantum noise of its variance in one normal draw, the
-   detector's blur (:func:`sim.physics.batched.gaussian_reflect`);
+   detector's blur (:func:`sim.physics.chain.gaussian_reflect`);
 3. collimator, scatter (the Gaussian ``kernel`` or the fitted scatter-kernel superposition
    ``sks`` of :mod:`sim.physics.scatter_kernel` at the pair's kV, grid and air gap, with its
    quantum noise), electronic noise and display chain
-   (:func:`sim.physics.batched.apply_image_batched`);
+   (:func:`sim.physics.chain.apply_chain`, the imaging chain every realistic image goes through);
 4. made ready as registration makes a user's X-ray ready
    (:func:`learn.online.prepare_like_registration`, batched).
 
@@ -47,14 +47,14 @@ from learn.online import FRAMINGS, MAX_BATCH, NearPairs, OnlinePairs, OnlinePair
 from learn.online import prepare_like_registration
 from sim.campaign.runner import subject_volume
 from sim.core.seeds import pair_normals
-from sim.physics.batched import apply_image_batched, draw_tensors, field_masks, gaussian_reflect
+from sim.physics.chain import apply_chain, field_masks, gaussian_reflect
 from sim.physics.materials import mu_from_hu
 from sim.physics.settings import SETTINGS
 from sim.physics.two_basis import BasisDecomposition, SpectralTable, TOOL_CHANNELS, TorchImager
 from sim.projection.geometry import pose_from_params
 from sim.projection.raymarch import TorchVolumes, volumes_for
 from sim.projection.scene import load_scene
-from sim.randomize import TOOL_BANK_SIZE, ToolBank
+from sim.randomize import TOOL_BANK_SIZE, ToolBank, draw_tensors
 from sim.core.atomic import atomic_path
 from sim.physics.scatter_kernel import detector_gap_mm
 
@@ -275,7 +275,7 @@ class BatchedPairs(OnlinePairs):
             scatter_normals = pair_normals(self.seed, index, NOISE_STREAM_SCATTER, (2, h, w), device=self.device,
                                            dtype=raw.dtype)
             gaps = detector_gap_mm(poses, g)
-        return apply_image_batched(raw, flat, p, normals, geometry=g, gap_mm=gaps, scatter_normals=scatter_normals)
+        return apply_chain(raw, flat, p, normals, geometry=g, gap_mm=gaps, scatter_normals=scatter_normals)
 
     def batch(self, k: int, n: int):
         if n > MAX_BATCH:

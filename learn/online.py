@@ -155,7 +155,8 @@ def _check_prepare_inputs(display, field, current, bone_dark, low_pct, high_pct,
     if batch and not isinstance(bone_dark, bool):
         b = display.shape[0]
         if not isinstance(bone_dark, torch.Tensor) or bone_dark.dtype != torch.bool or bone_dark.shape != (b,):
-            got = f"{bone_dark.dtype} {tuple(bone_dark.shape)}" if isinstance(bone_dark, torch.Tensor) else type(bone_dark).__name__
+            got = (f"{bone_dark.dtype} {tuple(bone_dark.shape)}" if isinstance(bone_dark, torch.Tensor)
+                   else type(bone_dark).__name__)
             raise OnlinePairsError(f"{where}: bone_dark must be a bool or a ({b},) bool tensor, got {got}")
     elif not batch and not isinstance(bone_dark, (bool, np.bool_)):
         raise OnlinePairsError(f"{where}: bone_dark must be a bool, got {bone_dark!r}")
@@ -190,7 +191,7 @@ def prepare_like_registration(display, field, current, *, log_display, bone_dark
     Args:
         display: ``(H, W)`` NumPy or ``(B, H, W)`` torch, the display chain's integers (any real
             dtype: :func:`sim.randomize.apply_image`'s or
-            :func:`sim.physics.batched.apply_image_batched`'s image).
+            :func:`sim.physics.chain.apply_chain`'s image).
         field: bool of ``display``'s shape and kind, the collimated field (each pair's holding a pixel).
         current: the moving images (line integrals), ``display``'s shape and kind.
         log_display: the display chain's log (a bool, or ``(B,)`` bool for a batch), kept for the

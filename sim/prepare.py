@@ -26,7 +26,7 @@ The steps:
 * :func:`masked_fill`: the pixels outside the field set to the mean over it.
 
 Two operations have one implementation per kind, behind the step that uses them: the percentiles
-(``np.percentile``; :func:`sim.physics.batched.masked_percentile`, which computes them as NumPy
+(``np.percentile``; :func:`sim.physics.chain.masked_percentile`, which computes them as NumPy
 does) and the box resampling (``F.interpolate`` on the crop; for a batch of different boxes, one
 gather with ``F.interpolate``'s own source indices and weights, equal to it up to float32 rounding,
 the field exactly). The field mean is NumPy's pairwise sum for an image and torch's sum for a batch.
@@ -334,7 +334,7 @@ def percentile_bounds(image: Array, mask, low_pct: float, high_pct: float) -> tu
     """``(low, high)``: the ``low_pct`` and ``high_pct`` percentiles (%) of the field (``np.percentile``,
     linear): NumPy scalars for a NumPy image, ``(B,)`` tensors for a batch."""
     if _is_torch(image):
-        from sim.physics.batched import masked_percentile  # loads torch: only reached with a tensor
+        from sim.physics.chain import masked_percentile  # loads torch: only reached with a tensor
 
         lohi = masked_percentile(image, mask, [low_pct, high_pct])
         return lohi[:, 0], lohi[:, 1]

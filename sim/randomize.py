@@ -83,7 +83,7 @@ from sim.physics import PhysicsError
 from sim.projection.geometry import CArmGeometry
 
 __all__ = ["RandomizeError", "Randomized", "DECLARATION", "STAGES", "DISTRIBUTIONS", "DomainRandomization",
-           "Draw", "ToolBank", "TOOL_BANK_SIZE", "apply_image", "sks_model", "sks_texture",
+           "Draw", "ToolBank", "TOOL_BANK_SIZE", "apply_image", "draw_tensors", "sks_model", "sks_texture",
            "image_rng", "load_randomization",
            "doc_table_rows"]
 
@@ -738,19 +738,6 @@ def load_randomization(path: str | Path) -> DomainRandomization:
         raise RandomizeError(f"{path}: {e}") from None
 
 
-def _kernel_scatter(x: np.ndarray, sigma_px: float) -> np.ndarray:
-    """Gaussian of ``x`` (``(H, W)``, sigma in px) with mirrored edges (edge pixels repeated:
-    scipy's ``reflect`` mode), numpy only: the circular convolution of the ``(2H, 2W)`` mirror
-    extension, which is periodic, with the Gaussian's transfer function. Any sigma at the cost
-    of one FFT of twice the image (a 1024 x 1024 image: about 0.3 s)."""
-    xp = np.concatenate([x, x[::-1]], axis=0)
-    xp = np.concatenate([xp, xp[:, ::-1]], axis=1)
-    fy = np.fft.fftfreq(xp.shape[0])[:, None]
-    fx = np.fft.rfftfreq(xp.shape[1])[None, :]
-    transfer = np.exp(-2.0 * math.pi**2 * sigma_px**2 * (fx * fx + fy * fy))
-    return np.fft.irfft2(np.fft.rfft2(xp) * transfer, s=xp.shape)[:x.shape[0], :x.shape[1]]
-
-
 def sks_model(draw: Draw, table=None):
     """The :class:`sim.physics.scatter_kernel.ScatterKernelModel` of a draw whose scatter is
     ``sks``: the table's model (default :func:`sim.physics.scatter_kernel.default_table`) at the
@@ -763,13 +750,14 @@ def sks_model(draw: Draw, table=None):
 
 
 def sks_texture(normals: np.ndarray, strength: float, sigma_px: float) -> np.ndarray:
-    """The smooth random factor on the ``sks`` scatter: ``max(0, 1 + strength * n)`` with ``n``
-    the standard normal numbers ``normals`` ``(H, W)`` blurred by a Gaussian of ``sigma_px``
-    (mirrored edges, :func:`_kernel_scatter`) and scaled back to unit standard deviation
-    (``x 2 sqrt(pi) sigma``, white noise's under a 2-D Gaussian; exact away from the edges for
-    sigma >= 1 px)."""
-    n = _kernel_scatter(np.asarray(normals, np.float64), sigma_px) * (2.0 * math.sqrt(math.pi) * sigma_px)
-    return np.maximum(1.0 + strength * n, 0.0)
+    """The smooth random factor on the ``sks`` scatter of one image (NumPy ``(H, W)`` in and out,
+    float64): :func:`sim.physics.chain.sks_texture`, which the chain applies."""
+    import torch  # slow to import: only the chain's callers need it
+
+    from sim.physics.chain import sks_texture as chain_texture  # loads torch (above)
+
+    n = torch.from_numpy(np.asarray(normals, np.float64))[None]
+    return chain_texture(n, float(strength), float(sigma_px))[0].numpy()
 
 
 def apply_image(raw_intensity: np.ndarray, i0: float, draw: Draw, rng: np.random.Generator, *,
@@ -790,7 +778,11 @@ def apply_image(raw_intensity: np.ndarray, i0: float, draw: Draw, rng: np.random
     collimated signal (``sks_open``: of the signal before collimation, ``S`` then collimated as
     the signal is), times its texture (:func:`sks_texture` of a third normal draw of ``rng``), is
     added with its quantum noise (``sqrt(S e)`` times the second normal draw of ``rng``, ``e`` the
-    model's signal per scattered photon), after the electronic noise's draw."""
+    model's signal per scattered photon), after the electronic noise's draw.
+
+    The stages are the imaging chain's (:func:`sim.physics.chain.apply_chain`, this image a batch of
+    one in float64, its field :meth:`Draw.collimator`'s mask); the Monte Carlo's scatter, the
+    render's, is added before (times ``scatter_scale - 1``: the render holds it once)."""
     raw = np.asarray(raw_intensity)
     if raw.ndim != 2 or not np.issubdtype(raw.dtype, np.number) or np.iscomplexobj(raw) or raw.size == 0:
         raise RandomizeError(f"apply_image needs a real (H, W) raw signal, got shape {raw.shape} dtype {raw.dtype}")
@@ -818,31 +810,122 @@ def apply_image(raw_intensity: np.ndarray, i0: float, draw: Draw, rng: np.random
         raise RandomizeError(f"apply_image: a scatter image was given but the draw's scatter is {mode!r} (render "
                              f"with draw.physics_settings(...), which is level poly there)")
     h, w = raw.shape
+    if mode == "sks" and (not isinstance(geometry, CArmGeometry) or (geometry.height, geometry.width) != (h, w)):
+        raise RandomizeError(f"apply_image: the draw's scatter is sks: pass the image's geometry (a CArmGeometry "
+                             f"of {h} x {w} px), got {geometry!r}")
+    import torch  # slow to import: only the chain's callers need it
+
+    from sim.physics.chain import apply_chain  # loads torch (above); the chain is below this module
+
     col = draw.collimator(h, w)
-    field_mask = np.ones((h, w), bool) if col is None else col.mask(h, w)
-    open_raw = raw
-    if col is not None:
-        raw = col.apply(raw)
-    if mode == "kernel":
-        raw = raw + float(draw["scatter_spr"]) * _kernel_scatter(raw, float(draw["scatter_sigma"]) * min(h, w))
-    if mode == "sks":
-        if not isinstance(geometry, CArmGeometry) or (geometry.height, geometry.width) != (h, w):
-            raise RandomizeError(f"apply_image: the draw's scatter is sks: pass the image's geometry (a CArmGeometry "
-                                 f"of {h} x {w} px), got {geometry!r}")
-        model = sks_model(draw, sks_table)
-        source = open_raw if draw["sks_open"] else raw
-        tau = -np.log(np.maximum(source, 1e-12 * float(i0)) / float(i0))
-        sc = model.predict(tau, geometry, flat_signal=float(i0), gap_mm=gap_mm)
-        if draw["sks_open"] and col is not None:  # the open exposure's scatter, collimated as the signal
-            sc = col.apply(sc)
-    raw = raw + rng.normal(0.0, float(draw["electronic_noise_fraction"]) * float(i0), raw.shape)
-    if mode == "sks":
-        quantum = rng.standard_normal(raw.shape)
-        sc = sc * sks_texture(rng.standard_normal(raw.shape), float(draw["sks_texture"]),
-                              float(draw["sks_texture_sigma"]) * min(h, w))
-        raw = raw + sc + np.sqrt(sc * model.signal_per_photon) * quantum
-    image = draw.display_chain().apply(raw, float(i0), None if col is None else field_mask)
-    return image, field_mask
+    field = np.ones((h, w), bool) if col is None else col.mask(h, w)
+    p = draw_tensors([draw], dtype=torch.float64)
+    if mode == "monte-carlo":  # its scatter is in raw now: the chain adds none
+        p["scatter"] = torch.zeros(1, dtype=torch.int64)
+    normals = rng.standard_normal((h, w))  # the draws' order: electronic noise, then the sks scatter's two
+    scatter_normals = torch.from_numpy(rng.standard_normal((2, h, w)))[None] if mode == "sks" else None
+    image, _ = apply_chain(torch.from_numpy(raw)[None], float(i0), p, torch.from_numpy(normals)[None],
+                           field=torch.from_numpy(field)[None], geometry=geometry,
+                           gap_mm=None if gap_mm is None else [float(gap_mm)], scatter_normals=scatter_normals,
+                           sks_table=sks_table)
+    return image[0].numpy().astype(np.uint16), field
+
+
+# --------------------------------------------------------------------------------------------
+# draws -> the chain's settings
+# --------------------------------------------------------------------------------------------
+
+
+def draw_tensors(draws, *, device=None, dtype=None) -> dict:
+    """The drawn settings of a batch as tensors, one ``(B,)`` tensor per entry.
+
+    Args:
+        draws: ``B`` :class:`sim.randomize.Draw` (``DomainRandomization.draw``), one per pair.
+        device: where the tensors live (None: torch's default device).
+        dtype: the floating torch dtype of the numeric settings (None: float32).
+
+    Returns:
+        ``{name: (B,) tensor}`` with, for every declared setting (:data:`sim.randomize.DECLARATION`)
+        under its own name and in its own unit:
+
+        * ``uniform`` / ``log-uniform`` settings: the value, ``dtype``;
+        * ``bernoulli`` settings: bool;
+        * ``choice`` settings: int64 codes, the index of the value in the setting's declared
+          ``choices`` (e.g. ``scatter``: 0 ``none``, 1 ``kernel``, 2 ``monte-carlo``; ``bits``:
+          0 for 8, 1 for 10, 2 for 12, 3 for 16); a choice among numbers (``cu_mm``, ``bits``)
+          also gets ``<name>_value``, the value itself, ``dtype``;
+
+        and the derived entries
+
+        * ``field_code`` int64: the field's shape, an index into
+          :data:`sim.physics.chain.FIELD_CODES` (0 none,
+          1 circle, 2 rectangle, 3 iris-blades, as :meth:`sim.randomize.Draw.collimator`);
+        * ``field_cx``, ``field_cy``: the field centre, fractions of the width and height
+          (``0.5 + field_offset_x``, ``0.5 + field_offset_y``);
+        * ``field_r``: the circle radius, a fraction of the shorter side (circle, iris-blades);
+        * ``field_half_u``, ``field_half_v``: the blades' half width (fraction of the width) and
+          half height (fraction of the height) along their rotated axes (rectangle:
+          ``field_half_width``, ``field_half_height``; iris-blades: 5.0, ``field_blade_half``);
+        * ``field_cos``, ``field_sin``: cosine and sine of the blades' rotation
+          (``field_rotation_deg``, or ``field_blade_rotation_deg`` for iris-blades), computed as
+          :meth:`Collimator.mask` does (Python's ``math``);
+        * ``max_value``: ``2^bits - 1``, ``dtype``.
+
+        The seven ``field_*`` geometry entries are float64 whatever ``dtype`` (the masks of
+        :func:`field_masks` are then exactly the numpy ones); the device must support float64.
+
+    The settings of :func:`sim.physics.chain.apply_chain`: the one place where draws become the
+    chain's input.
+    """
+    import torch  # slow to import: only the chain's callers need it
+
+    from sim.physics.chain import FIELD_CODES, GEOMETRY_KEYS  # loads torch (above); the chain is below this module
+
+    dtype = torch.float32 if dtype is None else dtype
+    try:
+        draws = list(draws)
+    except TypeError:
+        raise RandomizeError(f"draw_tensors: draws must be a list of sim.randomize.Draw, got {type(draws).__name__}") \
+            from None
+    bad = [type(d).__name__ for d in draws if not isinstance(d, Draw)]
+    if bad:
+        raise RandomizeError(f"draw_tensors: draws must be sim.randomize.Draw (DomainRandomization.draw), got {bad[0]}")
+    if not (isinstance(dtype, torch.dtype) and dtype.is_floating_point):
+        raise RandomizeError(f"draw_tensors: dtype must be a torch floating dtype, got {dtype!r}")
+    values = [d.values for d in draws]
+    out: dict[str, torch.Tensor] = {}
+
+    def put(name, column, kind):
+        out[name] = torch.tensor(column, dtype=kind, device=device).reshape(len(draws))
+
+    for r in DECLARATION:
+        column = [v[r.name] for v in values]
+        if r.dist == "bernoulli":
+            put(r.name, [bool(c) for c in column], torch.bool)
+        elif r.dist == "choice":
+            put(r.name, [r.choices.index(c) for c in column], torch.int64)
+            if all(not isinstance(c, str) for c in r.choices):
+                put(f"{r.name}_value", [float(c) for c in column], dtype)
+        else:
+            put(r.name, [float(c) for c in column], dtype)
+
+    geo = {k: [] for k in ("field_code",) + GEOMETRY_KEYS}
+    for v in values:
+        shape, blades = v["field"], v["field_blades"]
+        code = FIELD_CODES.index("iris-blades" if shape == "circle" and blades else shape)
+        if code == 3:
+            half, rot = (5.0, float(v["field_blade_half"])), float(v["field_blade_rotation_deg"])
+        else:
+            half, rot = (float(v["field_half_width"]), float(v["field_half_height"])), float(v["field_rotation_deg"])
+        t = math.radians(rot)
+        for k, x in zip(geo, (code, 0.5 + float(v["field_offset_x"]), 0.5 + float(v["field_offset_y"]),
+                              float(v["field_radius"]), half[0], half[1], math.cos(t), math.sin(t))):
+            geo[k].append(x)
+    put("field_code", geo.pop("field_code"), torch.int64)
+    for k, column in geo.items():
+        put(k, column, torch.float64)
+    put("max_value", [float((1 << int(v["bits"])) - 1) for v in values], dtype)
+    return out
 
 
 # --------------------------------------------------------------------------------------------

@@ -7,7 +7,9 @@ detector signal (full physics: spectrum, materials, CsI detector, scatter, noise
 :class:`sim.physics.display.Collimator` (or an open field) and a
 :class:`sim.physics.display.DisplayChain`, written as DICOM with its geometry tags
 (``DistanceSourceToDetector``, ``DistanceSourceToPatient``, ``ImagerPixelSpacing``), Modality RF and
-the chain's bits: a frame as a C-arm delivers it. With ``tools`` each frame also shows metal tools
+the chain's bits: a frame as a C-arm delivers it. After the imager, a frame goes through the imaging
+chain every realistic image of the project goes through (:func:`sim.physics.chain.apply_chain`:
+collimation and display; its scatter and noise are the imager's own). With ``tools`` each frame also shows metal tools
 fixed to the patient (:func:`sim.distractors.implanted_tools`: screws, K-wires, plates,
 retractors around the anatomy centre), a new arrangement per frame seed.
 """
@@ -65,12 +67,24 @@ class FrameSimulator:
         return imager.render(pose, seed=seed)["raw"][0].astype(np.float64)
 
     def display(self, raw: np.ndarray, *, collimated: bool = True) -> tuple[np.ndarray, np.ndarray | None]:
-        """The displayed frame of ``raw`` and its field mask (None: open): through the collimator
-        (unless ``collimated`` is False or there is none), then the display chain."""
+        """The displayed frame ``(H, W)`` uint16 of ``raw`` ``(H, W)`` and its field mask (None: open):
+        through the collimator (unless ``collimated`` is False or there is none), then the display
+        chain, by the imaging chain (:func:`sim.physics.chain.apply_chain`, a batch of one in float64;
+        no scatter or electronic noise of its own: the imager's signal holds them)."""
+        import torch  # slow to import: only where frames are simulated
+
+        from sim.physics.chain import apply_chain  # loads torch (above)
+
         collimator = self.collimator if collimated else None
-        field = None if collimator is None else collimator.mask(*raw.shape)
-        pixels = self.chain.apply(raw if collimator is None else collimator.apply(raw), self.imager.flat, field)
-        return pixels, field
+        h, w = raw.shape
+        field = None if collimator is None else collimator.mask(h, w)
+        p = {**self.chain.tensors(1, dtype=torch.float64), "scatter": torch.zeros(1, dtype=torch.int64),
+             "field_transmission": torch.full((1,), 1.0 if collimator is None else collimator.transmission,
+                                              dtype=torch.float64)}
+        mask = np.ones((h, w), bool) if field is None else field
+        pixels, _ = apply_chain(torch.from_numpy(np.asarray(raw, np.float64))[None], float(self.imager.flat), p,
+                                field=torch.from_numpy(mask)[None])
+        return pixels[0].numpy().astype(np.uint16), field
 
     def write(self, path: str | Path, pixels: np.ndarray) -> Path:
         """``pixels`` as DICOM at ``path`` (RF, the chain's bits, the geometry's tags)."""

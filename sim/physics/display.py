@@ -242,21 +242,6 @@ class Collimator:
 # --------------------------------------------------------------------------------------------
 
 
-def _blur(x: np.ndarray, sigma: float, field: np.ndarray | None) -> np.ndarray:
-    """Gaussian of ``x``; with a field, the normalised convolution inside it and, separately, outside it."""
-    from scipy.ndimage import gaussian_filter
-
-    if field is None or field.all() or not field.any():
-        return gaussian_filter(x, sigma, mode="reflect")
-    out = np.empty_like(x)
-    for m in (field, ~field):
-        mf = m.astype(np.float64)
-        num = gaussian_filter(x * mf, sigma, mode="reflect")
-        den = gaussian_filter(mf, sigma, mode="reflect")
-        out[m] = num[m] / den[m]
-    return out
-
-
 @dataclass(frozen=True)
 class DisplayChain:
     """The vendor processing of a fluoroscopy / radiography frame (see the module doc for the order).
@@ -322,7 +307,10 @@ class DisplayChain:
     def apply(self, raw: np.ndarray, i0: float, field: np.ndarray | None = None) -> np.ndarray:
         """Raw detector signal ``(H, W)`` (or ``(B, H, W)``, each frame windowed on its own),
         flat-field signal ``i0`` (same units, > 0) and the collimated field ``(H, W)`` bool (None:
-        the whole image) -> display integers, same shape, ``uint16`` in ``0 .. 2^bits - 1``."""
+        the whole image) -> display integers, same shape, ``uint16`` in ``0 .. 2^bits - 1``.
+
+        The imaging chain's display stage (:func:`sim.physics.chain.display`, in float64), the one
+        every realistic image of the project goes through."""
         raw = np.asarray(raw)
         if raw.ndim not in (2, 3) or not np.issubdtype(raw.dtype, np.number) or np.iscomplexobj(raw):
             raise PhysicsError(f"raw signal must be a real (H, W) or (B, H, W) array, got shape {raw.shape} "
@@ -335,36 +323,37 @@ class DisplayChain:
                                    f"got {field.dtype} {field.shape}")
             if not field.any():
                 raise PhysicsError("field must contain at least one pixel (the window is taken over it)")
-        if raw.ndim == 3:
-            return np.stack([self._frame(f, i0, field) for f in raw]) if len(raw) else \
-                np.zeros(raw.shape, np.uint16)
-        return self._frame(raw, i0, field)
-
-    def _frame(self, raw: np.ndarray, i0: float, field: np.ndarray | None) -> np.ndarray:
-        raw = raw.astype(np.float64)
-        if not np.all(np.isfinite(raw)):
+        frames = raw.astype(np.float64).reshape(-1, *raw.shape[-2:])
+        if not np.all(np.isfinite(frames)):
             raise PhysicsError("raw signal must be finite (no NaN or inf)")
-        if self.log:
-            v = -np.log(np.maximum(raw, 1e-12 * i0) / i0)  # high for bone
-        else:
-            v = raw / i0  # low for bone
-        lo, hi = np.percentile(v if field is None else v[field], self.window)
-        span = hi - lo
-        if span > 0:
-            x = np.clip((v - lo) / span, 0.0, 1.0)
-        else:  # a flat field: everything at its value is mid-grey
-            x = np.where(v > lo, 1.0, np.where(v < lo, 0.0, 0.5))
-        # x grows with attenuation for log, with intensity for linear: flip where bone must be dark
-        if self.log != (self.polarity == "bone-bright"):
-            x = 1.0 - x
-        if self.unsharp_amount > 0:
-            x = np.clip(x + self.unsharp_amount * (x - _blur(x, self.unsharp_sigma_px, field)), 0.0, 1.0)
-        if self.gamma != 1.0:
-            x = x ** self.gamma
-        out = np.rint(x * self.max_value).astype(np.uint16)
-        if field is not None and self.shutter != "none":
-            out[~field] = 0 if self.shutter == "black" else self.max_value
-        return out
+        if not len(frames):
+            return np.zeros(raw.shape, np.uint16)
+        import torch  # slow to import: only where a frame is displayed
+
+        from sim.physics.chain import display  # loads torch (above); the chain is below this module
+
+        b = len(frames)
+        mask = np.ones(raw.shape[-2:], bool) if field is None else field
+        out = display(torch.from_numpy(frames), torch.full((b,), i0, dtype=torch.float64),
+                      torch.from_numpy(mask)[None].expand(b, -1, -1),
+                      self.tensors(b, dtype=torch.float64))
+        return out.numpy().astype(np.uint16).reshape(raw.shape)
+
+    def tensors(self, batch: int, *, dtype=None, device=None) -> dict:
+        """This chain's settings for ``batch`` images as the display stage's ``(B,)`` tensors
+        (:data:`sim.physics.chain.DISPLAY_KEYS`; the codes: the index in :data:`POLARITIES` and
+        :data:`SHUTTERS`), floats in ``dtype`` (None: float32) on ``device``. A ``shutter`` other
+        than ``none`` shows its value outside a field only; an open field has no outside."""
+        import torch  # slow to import: only where a frame is displayed
+
+        dtype = torch.float32 if dtype is None else dtype
+        full = lambda v, kind: torch.full((int(batch),), v, dtype=kind, device=device)  # noqa: E731
+        return {"log": full(self.log, torch.bool), "polarity": full(POLARITIES.index(self.polarity), torch.int64),
+                "window_low": full(self.window[0], dtype), "window_high": full(self.window[1], dtype),
+                "gamma": full(self.gamma, dtype), "unsharp": full(self.unsharp_amount > 0, torch.bool),
+                "unsharp_sigma_px": full(self.unsharp_sigma_px, dtype),
+                "unsharp_amount": full(self.unsharp_amount, dtype), "max_value": full(float(self.max_value), dtype),
+                "shutter": full(SHUTTERS.index(self.shutter), torch.int64)}
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-able settings (tuples as lists); :meth:`from_dict` reads them back."""

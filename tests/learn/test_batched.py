@@ -74,7 +74,7 @@ def test_batched_pairs_with_fitted_scatter_are_the_per_pair_pairs(campaign, tmp_
     from learn.batched import BatchedPairs
 
     # the texture (its own noise draw in each path) nearly off: it is tested batched against numpy
-    # with the same draws in tests/sim/test_physics_batched.py
+    # with the same draws in tests/sim/test_physics_chain.py
     table = {**TABLE, "scatter": ["sks"], "ideal": 0.0, "mas": [4.0, 8.0], "sks_texture": [0.001, 0.002]}
     r = DomainRandomization.from_table(table)
     per_pair = OnlinePairs(campaign, "train", seed=4, randomization=r)

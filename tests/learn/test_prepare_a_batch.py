@@ -16,8 +16,8 @@ import pytest
 import torch
 
 from learn.online import OnlinePairsError, prepare_like_registration
-from sim.physics.batched import apply_image_batched, draw_tensors, field_masks
-from sim.randomize import DomainRandomization, image_rng
+from sim.physics.chain import apply_chain, field_masks
+from sim.randomize import DomainRandomization, draw_tensors, image_rng
 
 TOL = 1e-4
 
@@ -60,7 +60,7 @@ def test_a_batch_equals_each_pair_on_random_pairs(size):
             _check(display, field, current, log_display, bone_dark, mask_current, dtype)
 
 
-def test_a_batch_equals_each_pair_after_apply_image_batched():
+def test_a_batch_equals_each_pair_after_the_imaging_chain():
     """End to end: displays of the batched post-render stages, polarity and log from the draws."""
     h, w, n = 64, 64, 50
     dr = DomainRandomization.from_table({"scatter": ["none", "kernel"]})
@@ -70,7 +70,7 @@ def test_a_batch_equals_each_pair_after_apply_image_batched():
     line = np.stack([1.5 * np.exp(-((yy - 20 - i % 9) ** 2 + (xx - 30) ** 2) / 300.0) for i in range(n)])
     raw = torch.from_numpy(1000.0 * np.exp(-line))
     normals = torch.from_numpy(np.stack([image_rng(4, i).standard_normal((h, w)) for i in range(n)]))
-    display, field = apply_image_batched(raw, 1000.0, p, normals)
+    display, field = apply_chain(raw, 1000.0, p, normals)
     bone_dark = (p["polarity"] == 0).numpy()
     _check(display.numpy(), field.numpy(), line, p["log"].numpy(), bone_dark, True, torch.float64)
 

@@ -331,9 +331,13 @@ def test_scatter_stages():
                                              "scatter_spr": [1.0, 1.0], "electronic_noise_fraction": 1e-9,
                                              "window_low": 0, "window_high": 100, "gamma": 1, "unsharp": False,
                                              "bits": [16], "polarity": ["bone-bright"]})
+    import torch
     from scipy.ndimage import gaussian_filter
 
-    from sim.randomize import _kernel_scatter
+    from sim.physics.chain import gaussian_reflect
+
+    def _kernel_scatter(x, sigma):  # the chain's Gaussian with mirrored edges, of one image
+        return gaussian_reflect(torch.from_numpy(np.asarray(x, np.float64))[None], float(sigma))[0].numpy()
 
     d = kernel.draw(0, 0)
     img, _ = apply_image(raw, i0, d, image_rng(0, 0))  # raw + spr G(raw), then noise, then the chain

@@ -1,8 +1,11 @@
-"""The batched torch post-render stages (sim/physics/batched.py) equal the numpy ones they stand for.
+"""The imaging chain (sim/physics/chain.py) against an independent NumPy / SciPy implementation
+(tests/sim/reference_chain.py: FFT Gaussians, scipy's gaussian_filter, numpy.percentile, the
+scatter-kernel model's own predict), and its three callers against it: a per-pair draw
+(sim.randomize.apply_image), a fixed display chain (DisplayChain.apply) and a batch.
 
 Tolerances: the field masks, the percentiles and (in float64) the display integers are
-compared exactly; the Gaussians to 1e-12 (rounding: both are the numpy / scipy operator, only
-summed in another order). In float64 the display integers of ``apply_image_batched`` may
+compared exactly; the Gaussians to 1e-12 (rounding: both are the same operator, only
+summed in another order). In float64 the display integers of ``apply_chain`` may
 differ by one level where ``x (2^bits - 1)`` falls within rounding of a half-integer (none
 does here: the test demands >= 99.9 % exact, at most 1 level); in float32 (the GPU default) by
 one level on ~0.1 % of the pixels (the test demands >= 99 % exact, at most 1 level).
@@ -15,10 +18,10 @@ import pytest
 import torch
 
 from sim.physics import PhysicsError
-from sim.physics.batched import (FIELD_CODES, _field_blur, apply_image_batched, draw_tensors, field_masks,
-                                 gaussian_reflect, masked_percentile)
-from sim.physics.display import _blur
-from sim.randomize import DECLARATION, DomainRandomization, RandomizeError, _kernel_scatter, apply_image, image_rng
+from sim.physics.chain import FIELD_CODES, apply_chain, field_blur, field_masks, gaussian_reflect, masked_percentile
+from sim.physics.display import POLARITIES, SHUTTERS, Collimator, DisplayChain
+from sim.randomize import DECLARATION, DomainRandomization, RandomizeError, apply_image, draw_tensors, image_rng
+from tests.sim import reference_chain as ref_chain
 
 SEED = 5
 
@@ -70,9 +73,9 @@ def test_draw_tensors_holds_every_setting_coded():
 
 
 def test_draw_tensors_refuses_what_is_not_a_draw():
-    with pytest.raises(PhysicsError, match="sim.randomize.Draw"):
+    with pytest.raises(RandomizeError, match="sim.randomize.Draw"):
         draw_tensors([{"kvp": 80}])
-    with pytest.raises(PhysicsError, match="dtype"):
+    with pytest.raises(RandomizeError, match="dtype"):
         draw_tensors([DomainRandomization().draw(0, 0)], dtype=torch.int32)
 
 
@@ -95,12 +98,12 @@ def test_field_masks_equal_collimator_masks_exactly(shape):
 
 
 @pytest.mark.parametrize("shape", [(5, 7), (64, 64), (48, 80)])
-def test_gaussian_reflect_equals_kernel_scatter(shape):
+def test_gaussian_reflect_equals_the_fft_of_the_mirror_extension(shape):
     rng = np.random.default_rng(1)
     x = rng.random((4,) + shape)
     sigma = np.array([0.0, 1.3, 6.4, 16.0])
     got = gaussian_reflect(torch.from_numpy(x), torch.from_numpy(sigma)).numpy()
-    ref = np.stack([_kernel_scatter(a, s) for a, s in zip(x, sigma)])
+    ref = np.stack([ref_chain.mirror_gaussian(a, s) for a, s in zip(x, sigma)])
     np.testing.assert_allclose(got, ref, rtol=0, atol=1e-12)
     got32 = gaussian_reflect(torch.from_numpy(x).float(), torch.from_numpy(sigma)).numpy()
     assert got32.dtype == np.float32
@@ -108,7 +111,7 @@ def test_gaussian_reflect_equals_kernel_scatter(shape):
 
 
 @pytest.mark.parametrize("shape", [(5, 7), (64, 64), (48, 80)])
-def test_field_blur_equals_display_blur(shape):
+def test_field_blur_equals_scipy_s_normalised_convolution(shape):
     """The unsharp mask's blur: scipy gaussian_filter (reflect, truncate 4), field-normalised."""
     rng = np.random.default_rng(2)
     h, w = shape
@@ -117,8 +120,8 @@ def test_field_blur_equals_display_blur(shape):
     disc = (yy - h / 2) ** 2 + (xx - w / 2) ** 2 <= (0.4 * min(h, w)) ** 2
     fields = np.stack([disc, ~disc | (xx < 2), np.ones((h, w), bool), rng.random((h, w)) > 0.3])
     sigma = np.array([1.0, 2.7, 8.0, 3.3])
-    got = _field_blur(torch.from_numpy(x), torch.from_numpy(sigma), torch.from_numpy(fields)).numpy()
-    ref = np.stack([_blur(a, s, f) for a, s, f in zip(x, sigma, fields)])
+    got = field_blur(torch.from_numpy(x), torch.from_numpy(sigma), torch.from_numpy(fields)).numpy()
+    ref = np.stack([ref_chain.field_blur(a, s, f) for a, s, f in zip(x, sigma, fields)])
     np.testing.assert_allclose(got, ref, rtol=0, atol=1e-12)
 
 
@@ -160,14 +163,14 @@ def _pairs(n: int, h: int, w: int, table: dict, seed: int = SEED):
     i0 = rng.uniform(100.0, 5000.0, n)
     raw = np.stack([smooth_raw(rng, h, w, a) for a in i0])
     normals = np.stack([image_rng(seed, i).standard_normal((h, w)) for i in range(n)])
-    out = [apply_image(r, float(a), d, image_rng(seed, i)) for i, (r, a, d) in enumerate(zip(raw, i0, draws))]
+    out = [ref_chain.apply_image(r, float(a), d, image_rng(seed, i)) for i, (r, a, d) in enumerate(zip(raw, i0, draws))]
     return draws, raw, i0, normals, np.stack([o[0] for o in out]), np.stack([o[1] for o in out])
 
 
 @pytest.mark.parametrize("shape,table", [((64, 64), {}), ((48, 80), {"bits": [8, 16]}),
                                          ((64, 64), {"unsharp": 1.0, "field": ["circle", "rectangle"]})],
                          ids=["64x64", "48x80-8-16-bits", "64x64-unsharp-collimated"])
-def test_apply_image_batched_equals_apply_image(shape, table):
+def test_apply_chain_equals_the_reference(shape, table):
     h, w = shape
     draws, raw, i0, normals, ref, ref_field = _pairs(64, h, w, table)
     v = [d.values for d in draws]
@@ -176,8 +179,8 @@ def test_apply_image_batched_equals_apply_image(shape, table):
                                                                                                   "none"}
     ref = ref.astype(np.int64)
     for dtype, exact in ((torch.float64, 0.999), (torch.float32, 0.99)):
-        image, field = apply_image_batched(torch.from_numpy(raw).to(dtype), torch.from_numpy(i0).to(dtype),
-                                           draw_tensors(draws, dtype=dtype), torch.from_numpy(normals).to(dtype))
+        image, field = apply_chain(torch.from_numpy(raw).to(dtype), torch.from_numpy(i0).to(dtype),
+                                   draw_tensors(draws, dtype=dtype), torch.from_numpy(normals).to(dtype))
         assert image.dtype == dtype and field.dtype == torch.bool
         np.testing.assert_array_equal(field.numpy(), ref_field)
         got = image.numpy()
@@ -186,33 +189,93 @@ def test_apply_image_batched_equals_apply_image(shape, table):
         diff = np.abs(got.astype(np.int64) - ref)
         assert diff.max() <= 1, f"{dtype}: {diff.max()} levels apart"
         assert (diff == 0).mean() >= exact, f"{dtype}: {(diff == 0).mean():.5f} exact"
+        if dtype == torch.float64:
+            batch = got.astype(np.int64)
+    # one pair through sim.randomize.apply_image is a batch of one of the same chain: the same integers
+    # as in the batch of 64 (each image's arithmetic does not depend on the others')
+    for i in range(0, len(draws), 7):
+        one, one_field = apply_image(raw[i], float(i0[i]), draws[i], image_rng(SEED, i))
+        assert one.dtype == np.uint16
+        np.testing.assert_array_equal(one.astype(np.int64), batch[i])
+        np.testing.assert_array_equal(one_field, ref_field[i])
 
 
-def test_apply_image_batched_refuses_monte_carlo_and_bad_inputs():
+def test_monte_carlo_scatter_is_the_render_s_scaled_before_the_chain():
+    dr = DomainRandomization.from_table({"scatter": ["monte-carlo"], "field": ["circle"]})
+    rng = np.random.default_rng(2)
+    for i in range(4):
+        d = dr.draw(SEED, i)
+        raw = smooth_raw(rng, 40, 48, 2000.0)
+        scatter = 40.0 + 20.0 * rng.random((40, 48))
+        got, field = apply_image(raw, 2000.0, d, image_rng(SEED, i), scatter=scatter)
+        ref, ref_field = ref_chain.apply_image(raw, 2000.0, d, image_rng(SEED, i), scatter=scatter)
+        np.testing.assert_array_equal(field, ref_field)
+        diff = np.abs(got.astype(np.int64) - ref.astype(np.int64))
+        assert diff.max() <= 1 and (diff == 0).mean() >= 0.999
+    with pytest.raises(RandomizeError, match="monte-carlo"):
+        apply_image(raw, 2000.0, d, image_rng(SEED, 0))
+
+
+@pytest.mark.parametrize("chain", [DisplayChain(), DisplayChain(log=False, polarity="bone-bright", gamma=0.7,
+                                                                unsharp_sigma_px=3.0, unsharp_amount=0.8, bits=16,
+                                                                shutter="white"),
+                                   DisplayChain(window=(2.0, 98.0), gamma=1.3, bits=8, shutter="none")],
+                         ids=["default", "linear-unsharp-16-bit-white", "8-bit-no-shutter"])
+def test_a_fixed_display_chain_is_the_chain_s_display_stage(chain):
+    rng = np.random.default_rng(4)
+    raw = np.stack([smooth_raw(rng, 56, 72, 1500.0) for _ in range(3)])
+    field = Collimator(shape="rectangle", half_size=(0.4, 0.3), rotation_deg=10).mask(56, 72)
+    got = chain.apply(raw, 1500.0, field)
+    assert got.dtype == np.uint16 and got.shape == raw.shape
+    for frame, out in zip(raw, got):
+        ref = ref_chain.display(chain, frame, 1500.0, field).astype(np.int64)
+        diff = np.abs(out.astype(np.int64) - ref)
+        assert diff.max() <= 1 and (diff == 0).mean() >= 0.999
+    np.testing.assert_array_equal(chain.apply(raw[0], 1500.0, field), got[0])  # a frame alone: the same
+    assert not np.array_equal(chain.apply(raw[0], 1500.0), got[0]) or chain.shutter == "none"  # no field: no shutter
+
+
+def test_the_chain_s_codes_are_the_declaration_s_and_the_display_s():
+    by_name = {r.name: r for r in DECLARATION}
+    assert by_name["polarity"].choices == POLARITIES and by_name["shutter"].choices == SHUTTERS
+    assert by_name["scatter"].choices == ("none", "kernel", "monte-carlo", "sks")  # apply_chain's 0 .. 3
+
+
+def test_apply_chain_refuses_monte_carlo_and_bad_inputs():
     dr = DomainRandomization.from_table({"scatter": ["monte-carlo"]})
     p = draw_tensors([dr.draw(0, i) for i in range(3)])
     raw, normals = torch.ones(3, 8, 8), torch.zeros(3, 8, 8)
     with pytest.raises(PhysicsError, match="monte-carlo"):
-        apply_image_batched(raw, 1.0, p, normals)
+        apply_chain(raw, 1.0, p, normals)
     p = draw_tensors([DomainRandomization.from_table({"scatter": ["none"]}).draw(0, i) for i in range(3)])
     with pytest.raises(PhysicsError, match="raw must be a real"):
-        apply_image_batched(torch.ones(8, 8), 1.0, p, normals)
-    with pytest.raises(PhysicsError, match=r"p\['kvp'\]|p\['scatter'\] must be a \(2,\)"):
-        apply_image_batched(torch.ones(2, 8, 8), 1.0, p, torch.zeros(2, 8, 8))
+        apply_chain(torch.ones(8, 8), 1.0, p, normals)
+    with pytest.raises(PhysicsError, match=r"p\['\w+'\] must be a \(2,\)"):
+        apply_chain(torch.ones(2, 8, 8), 1.0, p, torch.zeros(2, 8, 8))
     with pytest.raises(PhysicsError, match="i0"):
-        apply_image_batched(raw, torch.tensor([1.0, 0.0, 1.0]), p, normals)
+        apply_chain(raw, torch.tensor([1.0, 0.0, 1.0]), p, normals)
     with pytest.raises(PhysicsError, match="normals"):
-        apply_image_batched(raw, 1.0, p, torch.zeros(3, 8, 9))
+        apply_chain(raw, 1.0, p, torch.zeros(3, 8, 9))
     with pytest.raises(PhysicsError, match="finite"):
-        apply_image_batched(raw * torch.nan, 1.0, p, normals)
+        apply_chain(raw * torch.nan, 1.0, p, normals)
+    with pytest.raises(PhysicsError, match="field must be a bool"):
+        apply_chain(raw, 1.0, p, normals, field=torch.ones(3, 8, 8))
+    with pytest.raises(PhysicsError, match=r"images \[1\] hold no pixel"):
+        one_empty = torch.ones(3, 8, 8, dtype=torch.bool).index_fill(0, torch.tensor([1]), False)
+        apply_chain(raw, 1.0, p, normals, field=one_empty)
+    no_noise = {k: v for k, v in p.items() if k != "electronic_noise_fraction"}
+    with pytest.raises(PhysicsError, match="electronic_noise_fraction"):
+        apply_chain(raw, 1.0, no_noise, normals)
+    image, _ = apply_chain(raw, 1.0, no_noise)  # without normals: no electronic noise, none needed
+    assert image.shape == raw.shape
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device")
-def test_apply_image_batched_on_cuda_equals_cpu():
+def test_apply_chain_on_cuda_equals_the_reference():
     draws, raw, i0, normals, ref, ref_field = _pairs(64, 64, 64, {})
     p = draw_tensors(draws, device="cuda")
-    image, field = apply_image_batched(torch.from_numpy(raw).float().cuda(), torch.from_numpy(i0).float().cuda(), p,
-                                       torch.from_numpy(normals).float().cuda())
+    image, field = apply_chain(torch.from_numpy(raw).float().cuda(), torch.from_numpy(i0).float().cuda(), p,
+                               torch.from_numpy(normals).float().cuda())
     assert image.is_cuda and field.is_cuda
     np.testing.assert_array_equal(field.cpu().numpy(), ref_field)
     diff = np.abs(image.cpu().numpy().astype(np.int64) - ref.astype(np.int64))
@@ -243,7 +306,7 @@ def _thick_tau(rng: np.random.Generator, b: int, h: int, w: int) -> np.ndarray:
 
 
 def test_kernel_superposition_equals_the_numpy_model():
-    from sim.physics.batched import sks_scatter_batched
+    from sim.physics.chain import sks_scatter_batched
     from sim.physics.scatter_kernel import default_table
 
     rng = np.random.default_rng(3)
@@ -264,7 +327,7 @@ def test_kernel_superposition_equals_the_numpy_model():
     assert ref.max() > 0 and np.all(ref >= 0)
 
 
-def test_apply_image_batched_sks_equals_apply_image():
+def test_apply_chain_sks_equals_the_reference():
     h, w, n = 48, 64, 24
     g = _sks_geometry(h, w)
     dr = DomainRandomization.from_table({"scatter": ["sks", "none"], "field": ["none", "circle"]})
@@ -277,21 +340,25 @@ def test_apply_image_batched_sks_equals_apply_image():
     gaps = rng.uniform(250.0, 450.0, n)
     ref, ref_field, normals, scatter_normals = [], [], [], []
     for i, (r, a, d, gap) in enumerate(zip(raw, i0, draws, gaps)):
-        img, field = apply_image(r, float(a), d, image_rng(SEED, i), geometry=g, gap_mm=float(gap))
+        img, field = ref_chain.apply_image(r, float(a), d, image_rng(SEED, i), geometry=g, gap_mm=float(gap))
         ref.append(img)
         ref_field.append(field)
         stream = image_rng(SEED, i)
         normals.append(stream.standard_normal((h, w)))
         scatter_normals.append(np.stack([stream.standard_normal((h, w)) for _ in range(2)]))  # its 2nd and 3rd draws
     ref = np.stack(ref).astype(np.int64)
-    image, field = apply_image_batched(torch.from_numpy(raw), torch.from_numpy(i0), draw_tensors(draws, dtype=torch.float64),
+    image, field = apply_chain(torch.from_numpy(raw), torch.from_numpy(i0), draw_tensors(draws, dtype=torch.float64),
                                        torch.from_numpy(np.stack(normals)), geometry=g, gap_mm=torch.from_numpy(gaps),
                                        scatter_normals=torch.from_numpy(np.stack(scatter_normals)))
     np.testing.assert_array_equal(field.numpy(), np.stack(ref_field))
     diff = np.abs(image.numpy().astype(np.int64) - ref)
     assert diff.max() <= 1 and (diff == 0).mean() >= 0.995
+    # a pair alone (sim.randomize.apply_image: its own stream's three draws) is the batch's pair
+    for i in range(0, n, 5):
+        one, _ = apply_image(raw[i], float(i0[i]), draws[i], image_rng(SEED, i), geometry=g, gap_mm=float(gaps[i]))
+        assert np.abs(one.astype(np.int64) - image[i].numpy().astype(np.int64)).max() <= 1
     # the scatter acts: the same pairs without it differ where the draw is sks, and only there
-    plain = [apply_image(r, float(a), d, image_rng(SEED, i)) [0] if d["scatter"] == "none" else None
+    plain = [ref_chain.apply_image(r, float(a), d, image_rng(SEED, i))[0] if d["scatter"] == "none" else None
              for i, (r, a, d) in enumerate(zip(raw, i0, draws))]
     for i, d in enumerate(draws):
         if d["scatter"] == "none":
@@ -310,9 +377,9 @@ def test_apply_image_sks_needs_the_geometry_and_adds_physical_scatter():
         apply_image(raw, 1000.0, d, image_rng(0, 0))
     p = draw_tensors([d], dtype=torch.float64)
     with pytest.raises(PhysicsError, match="geometry"):
-        apply_image_batched(torch.from_numpy(raw[None]), 1000.0, p, torch.zeros(1, h, w))
+        apply_chain(torch.from_numpy(raw[None]), 1000.0, p, torch.zeros(1, h, w))
     with pytest.raises(PhysicsError, match="scatter_normals of shape"):
-        apply_image_batched(torch.from_numpy(raw[None]), 1000.0, p, torch.zeros(1, h, w), geometry=g)
+        apply_chain(torch.from_numpy(raw[None]), 1000.0, p, torch.zeros(1, h, w), geometry=g)
     # a grid removes scatter, more of it at a higher ratio; a harder beam scatters more (no grid)
     table = default_table()
     tau = -np.log(raw / 1000.0)
@@ -329,6 +396,8 @@ def test_the_sks_texture_has_the_drawn_strength_and_scale():
     sigma^2)))."""
     from sim.randomize import sks_texture
 
+    normals = np.random.default_rng(0).standard_normal((512, 512))
+    np.testing.assert_allclose(sks_texture(normals, 0.1, 6.0), ref_chain.sks_texture(normals, 0.1, 6.0), atol=1e-12)
     t = sks_texture(np.random.default_rng(0).standard_normal((512, 512)), 0.1, 6.0)
     inner = t[48:-48, 48:-48]
     assert abs(inner.mean() - 1.0) < 0.01 and 0.09 < inner.std() < 0.11

@@ -1,38 +1,45 @@
-"""The post-render stages of domain randomization, batched in torch: many training pairs at once, on any device.
+"""The imaging chain after the render, in one place: collimator, scatter, noise, display, for a batch of images.
 
-:func:`sim.randomize.apply_image` turns one pair's raw detector signal into the integers a
-C-arm displays (collimation, kernel scatter, electronic noise, the display chain of
-:mod:`sim.physics.display`), in numpy, one pair at a time. Training draws thousands of pairs
-per second, so this module does the same for a batch ``(B, H, W)`` in torch: the same code
-on the CPU or a GPU, every pair with its own drawn settings, no Python loop over pairs or
-pixels (only over the few discrete choices). Each function equals its numpy counterpart
-(``tests/sim/test_physics_batched.py``):
+Every realistic image of the project leaves the render through :func:`apply_chain`, a frame of one
+as a batch of one:
 
-* :func:`draw_tensors`: a list of :class:`sim.randomize.Draw` -> one ``(B,)`` tensor per
-  declared setting (and a few derived ones);
-* :func:`field_masks`: :meth:`sim.physics.display.Collimator.mask` of every pair (exact: the
-  geometry is computed in float64 with the numpy code's operations);
-* :func:`gaussian_reflect`: ``sim.randomize._kernel_scatter`` (the Gaussian of the mirror
-  extension, by its transfer function), one sigma per pair;
-* :func:`kernel_superposition`, :func:`sks_scatter_batched`: ``ScatterKernelModel.predict``
-  (:mod:`sim.physics.scatter_kernel`), each pair with its own fitted kernels (``scatter = "sks"``);
-* :func:`masked_percentile`: ``numpy.percentile`` (linear interpolation) over each pair's
-  masked values;
-* :func:`apply_image_batched`: stages 2-4 of :func:`sim.randomize.apply_image` for draws whose
-  scatter is ``none``, ``kernel`` or ``sks`` (a Monte Carlo transport per pair is not a batch job).
+* the held-out frames of the studies and the demo (``register.evaluation.frames.FrameSimulator``:
+  its collimator and display chain, on the imager's signal);
+* the per-pair training targets (:func:`sim.randomize.apply_image`: one pair's
+  :class:`sim.randomize.Draw`, NumPy in and out, float64);
+* the batched training pairs (``learn.batched.BatchedPairs``: a batch of draws on the CPU or a GPU).
 
-Both Gaussians are separable linear operators with mirrored edges, so both are applied as a
-``(H, H)`` and a ``(W, W)`` matrix per pair (two batched matrix products, the mirror folded
-into the matrices): the kernel scatter's with the periodic Gaussian of numpy's FFT (its
-transfer function), the display chain's unsharp mask with scipy ``gaussian_filter``'s kernel
-(mode ``reflect``, truncated at 4 sigma, normalised). Both equal their numpy / scipy
-counterparts up to rounding (1e-15 in float64), not merely up to the difference between a
-truncated and an FFT Gaussian. The cost is ``O(H W (H + W))`` per pair: cheap for the
-network's 64-256 px images (an FFT would be cheaper for much larger ones).
+The randomized settings are drawn in one place (:meth:`sim.randomize.DomainRandomization.draw`,
+turned into ``(B,)`` tensors by :func:`sim.randomize.draw_tensors`) and applied here; a fixed
+:class:`sim.physics.display.DisplayChain` becomes the same tensors by its ``tensors`` method, and its
+``apply`` is :func:`display` of those. A fix to a stage (a display curve, a noise term) reaches
+every image. The stages, in order:
 
-Exactness: in float64, :func:`apply_image_batched` gives ``apply_image``'s integers (a level
-apart only where ``x (2^bits - 1)`` lies within rounding of a half-integer: none in the tests);
-in float32 (the GPU default), at most one level on about 0.1 % of the pixels.
+1. collimation: the signal outside the field times ``field_transmission`` (the field: the
+   caller's, e.g. :meth:`sim.physics.display.Collimator.mask`, or :func:`field_masks` of the drawn
+   settings, equal to it);
+2. scatter, each image its own choice: a Gaussian kernel (:func:`gaussian_reflect`), or the
+   scatter-kernel superposition fitted to the Monte Carlo (``sks``: :func:`sks_scatter_batched`,
+   times a smooth random texture, with its quantum noise); the Monte Carlo transport's own scatter
+   is the render's, added by the caller before;
+3. electronic noise ``electronic_noise_fraction x i0 x normals``;
+4. the display chain (:func:`display`): log or linear, window percentiles over the field
+   (:func:`masked_percentile`), polarity, unsharp mask (:func:`field_blur`), gamma, the bit depth,
+   the shutter outside the field.
+
+The same code runs on the CPU or a GPU, every image with its own settings, no Python loop over
+images or pixels (only over the few discrete choices). Both Gaussians are separable linear
+operators with mirrored edges, applied as a ``(H, H)`` and a ``(W, W)`` matrix per image (two
+batched matrix products, the mirror folded into the matrices): the kernel scatter's is the
+periodic Gaussian of the ``(2H, 2W)`` mirror extension (its transfer function), the unsharp mask's
+scipy ``gaussian_filter``'s kernel (mode ``reflect``, truncated at 4 sigma, normalised). The cost
+is ``O(H W (H + W))`` per image: cheap for the network's 64-256 px images and a study's 512 px frames.
+
+Exactness: ``tests/sim/test_physics_chain.py`` checks each stage against an independent NumPy /
+SciPy implementation (FFT Gaussian, ``scipy.ndimage.gaussian_filter``, ``numpy.percentile``, the
+scatter-kernel model's own ``predict``): in float64 the display integers are equal (a level apart
+only where ``x (2^bits - 1)`` lies within rounding of a half-integer: none in the tests); in float32
+(the GPU default), at most one level on about 0.1 % of the pixels.
 """
 
 from __future__ import annotations
@@ -43,112 +50,22 @@ from typing import Sequence
 import torch
 
 from sim.physics import PhysicsError
-from sim.randomize import DECLARATION, Draw
 from sim.physics.scatter_kernel import default_table
 from sim.projection.geometry import CArmGeometry
 
-__all__ = ["FIELD_CODES", "draw_tensors", "field_masks", "gaussian_reflect", "kernel_superposition",
-           "sks_scatter_batched", "masked_percentile", "apply_image_batched"]
+__all__ = ["FIELD_CODES", "GEOMETRY_KEYS", "DISPLAY_KEYS", "field_masks", "gaussian_reflect", "field_blur",
+           "kernel_superposition", "sks_scatter_batched", "sks_texture", "masked_percentile", "display", "apply_chain"]
 
-#: ``p["field_code"]`` of :func:`draw_tensors`: the shape of each pair's collimated field, as
-#: :meth:`sim.randomize.Draw.collimator` builds it (a circle with blades is ``iris-blades``).
+#: ``p["field_code"]`` of :func:`sim.randomize.draw_tensors`: the shape of each pair's collimated
+#: field, as :meth:`sim.randomize.Draw.collimator` builds it (a circle with blades is ``iris-blades``).
 FIELD_CODES: tuple[str, ...] = ("none", "circle", "rectangle", "iris-blades")
 
-#: The derived entries of :func:`draw_tensors` kept in float64 whatever ``dtype``: the field
-#: geometry, so that :func:`field_masks` equals the numpy masks exactly.
-_GEOMETRY = ("field_cx", "field_cy", "field_r", "field_half_u", "field_half_v", "field_cos", "field_sin")
+#: The field geometry entries of :func:`sim.randomize.draw_tensors`, kept in float64 whatever the
+#: dtype, so that :func:`field_masks` equals the NumPy masks exactly.
+GEOMETRY_KEYS = ("field_cx", "field_cy", "field_r", "field_half_u", "field_half_v", "field_cos", "field_sin")
 
 #: scipy.ndimage.gaussian_filter's default kernel radius, in sigmas.
 _TRUNCATE = 4.0
-
-
-# --------------------------------------------------------------------------------------------
-# draws -> tensors
-# --------------------------------------------------------------------------------------------
-
-
-def draw_tensors(draws: Sequence, *, device=None, dtype: torch.dtype = torch.float32) -> dict[str, torch.Tensor]:
-    """The drawn settings of a batch as tensors, one ``(B,)`` tensor per entry.
-
-    Args:
-        draws: ``B`` :class:`sim.randomize.Draw` (``DomainRandomization.draw``), one per pair.
-        device: where the tensors live (None: torch's default device).
-        dtype: the floating dtype of the numeric settings.
-
-    Returns:
-        ``{name: (B,) tensor}`` with, for every declared setting (:data:`sim.randomize.DECLARATION`)
-        under its own name and in its own unit:
-
-        * ``uniform`` / ``log-uniform`` settings: the value, ``dtype``;
-        * ``bernoulli`` settings: bool;
-        * ``choice`` settings: int64 codes, the index of the value in the setting's declared
-          ``choices`` (e.g. ``scatter``: 0 ``none``, 1 ``kernel``, 2 ``monte-carlo``; ``bits``:
-          0 for 8, 1 for 10, 2 for 12, 3 for 16); a choice among numbers (``cu_mm``, ``bits``)
-          also gets ``<name>_value``, the value itself, ``dtype``;
-
-        and the derived entries
-
-        * ``field_code`` int64: the field's shape, an index into :data:`FIELD_CODES` (0 none,
-          1 circle, 2 rectangle, 3 iris-blades, as :meth:`sim.randomize.Draw.collimator`);
-        * ``field_cx``, ``field_cy``: the field centre, fractions of the width and height
-          (``0.5 + field_offset_x``, ``0.5 + field_offset_y``);
-        * ``field_r``: the circle radius, a fraction of the shorter side (circle, iris-blades);
-        * ``field_half_u``, ``field_half_v``: the blades' half width (fraction of the width) and
-          half height (fraction of the height) along their rotated axes (rectangle:
-          ``field_half_width``, ``field_half_height``; iris-blades: 5.0, ``field_blade_half``);
-        * ``field_cos``, ``field_sin``: cosine and sine of the blades' rotation
-          (``field_rotation_deg``, or ``field_blade_rotation_deg`` for iris-blades), computed as
-          :meth:`Collimator.mask` does (Python's ``math``);
-        * ``max_value``: ``2^bits - 1``, ``dtype``.
-
-        The seven ``field_*`` geometry entries are float64 whatever ``dtype`` (the masks of
-        :func:`field_masks` are then exactly the numpy ones); the device must support float64.
-    """
-
-    try:
-        draws = list(draws)
-    except TypeError:
-        raise PhysicsError(f"draw_tensors: draws must be a list of sim.randomize.Draw, got {type(draws).__name__}") \
-            from None
-    bad = [type(d).__name__ for d in draws if not isinstance(d, Draw)]
-    if bad:
-        raise PhysicsError(f"draw_tensors: draws must be sim.randomize.Draw (DomainRandomization.draw), got {bad[0]}")
-    if not (isinstance(dtype, torch.dtype) and dtype.is_floating_point):
-        raise PhysicsError(f"draw_tensors: dtype must be a torch floating dtype, got {dtype!r}")
-    values = [d.values for d in draws]
-    out: dict[str, torch.Tensor] = {}
-
-    def put(name, column, kind):
-        out[name] = torch.tensor(column, dtype=kind, device=device).reshape(len(draws))
-
-    for r in DECLARATION:
-        column = [v[r.name] for v in values]
-        if r.dist == "bernoulli":
-            put(r.name, [bool(c) for c in column], torch.bool)
-        elif r.dist == "choice":
-            put(r.name, [r.choices.index(c) for c in column], torch.int64)
-            if all(not isinstance(c, str) for c in r.choices):
-                put(f"{r.name}_value", [float(c) for c in column], dtype)
-        else:
-            put(r.name, [float(c) for c in column], dtype)
-
-    geo = {k: [] for k in ("field_code",) + _GEOMETRY}
-    for v in values:
-        shape, blades = v["field"], v["field_blades"]
-        code = FIELD_CODES.index("iris-blades" if shape == "circle" and blades else shape)
-        if code == 3:
-            half, rot = (5.0, float(v["field_blade_half"])), float(v["field_blade_rotation_deg"])
-        else:
-            half, rot = (float(v["field_half_width"]), float(v["field_half_height"])), float(v["field_rotation_deg"])
-        t = math.radians(rot)
-        for k, x in zip(geo, (code, 0.5 + float(v["field_offset_x"]), 0.5 + float(v["field_offset_y"]),
-                              float(v["field_radius"]), half[0], half[1], math.cos(t), math.sin(t))):
-            geo[k].append(x)
-    put("field_code", geo.pop("field_code"), torch.int64)
-    for k, column in geo.items():
-        put(k, column, torch.float64)
-    put("max_value", [float((1 << int(v["bits"])) - 1) for v in values], dtype)
-    return out
 
 
 def _entries(p, names: Sequence[str], batch: int | None, where: str) -> int:
@@ -182,20 +99,20 @@ def _size(name: str, n, where: str) -> int:
 def field_masks(p: dict[str, torch.Tensor], height: int, width: int) -> torch.Tensor:
     """The collimated field of every pair: ``(B, height, width)`` bool, True inside.
 
-    ``p`` is :func:`draw_tensors`'s dict (its ``field_code`` and ``field_*`` geometry); the
+    ``p`` is :func:`sim.randomize.draw_tensors`'s dict (its ``field_code`` and ``field_*`` geometry); the
     result is on their device. Pixel ``(row, column)`` is inside when its centre ``(column + 0.5,
     row + 0.5)`` (pixels) is inside the shape or on its boundary, computed in float64 with the
     operations of :meth:`sim.physics.display.Collimator.mask`: equal to
     ``draw.collimator(height, width).mask(height, width)`` (all True for ``field = "none"``).
-    A field may hold no pixel (``Draw.collimator`` refuses that; :func:`apply_image_batched`
+    A field may hold no pixel (``Draw.collimator`` refuses that; :func:`apply_chain`
     does too).
     """
-    names = ("field_code",) + _GEOMETRY
+    names = ("field_code",) + GEOMETRY_KEYS
     _entries(p, names, None, "field_masks")
     h, w = _size("height", height, "field_masks"), _size("width", width, "field_masks")
     code = p["field_code"]
     dev = code.device
-    g = {k: p[k].to(device=dev, dtype=torch.float64)[:, None, None] for k in _GEOMETRY}
+    g = {k: p[k].to(device=dev, dtype=torch.float64)[:, None, None] for k in GEOMETRY_KEYS}
     x = (torch.arange(w, dtype=torch.float64, device=dev) + 0.5)[None, None, :]
     y = (torch.arange(h, dtype=torch.float64, device=dev) + 0.5)[None, :, None]
     dx = x - g["field_cx"] * w
@@ -233,16 +150,16 @@ def _per_pair(name: str, v, batch: int, like: torch.Tensor, where: str) -> torch
 
 
 def gaussian_reflect(x: torch.Tensor, sigma_px) -> torch.Tensor:
-    """Gaussian blur with mirrored edges, one sigma per pair: ``sim.randomize._kernel_scatter`` batched.
+    """Gaussian blur with mirrored edges, one sigma per image (the kernel scatter, the sks texture, the detector blur).
 
     ``x`` ``(B, H, W)`` (any unit; float), ``sigma_px`` ``(B,)`` (or one number) Gaussian sigma
-    in pixels, >= 0 -> ``(B, H, W)``, same dtype and device. The numpy function convolves the
-    ``(2H, 2W)`` mirror extension (edge pixels repeated: scipy's ``reflect``), which is
-    periodic, circularly with the Gaussian's transfer function ``exp(-2 pi^2 sigma^2 f^2)`` by
-    one 2-D FFT. That transfer function is separable, so the same operator is ``A_H x A_W^T``:
+    in pixels, >= 0 -> ``(B, H, W)``, same dtype and device. The operator: the circular convolution
+    of the ``(2H, 2W)`` mirror extension (edge pixels repeated: scipy's ``reflect``), which is
+    periodic, with the Gaussian's transfer function ``exp(-2 pi^2 sigma^2 f^2)`` (one 2-D FFT would
+    do it). That transfer function is separable, so the same operator is ``A_H x A_W^T``:
     ``A_n[i, j] = k(i - j) + k(i + j + 1)`` (indices mod ``2n``) with ``k`` the periodic kernel
     of length ``2n``, the inverse 1-D FFT of the pair's transfer function (float64), the mirror
-    folded in. Equal to the numpy function up to rounding (1e-15 relative in float64), and for
+    folded in. Equal to the FFT's result up to rounding (1e-15 relative in float64), and for
     the network's image sizes faster than the 2-D FFTs (two ``(n, n)`` matrix products per pair).
     """
     x = _image("x", x, "gaussian_reflect")
@@ -286,7 +203,7 @@ def kernel_superposition(tau: torch.Tensor, tau_nodes, amplitude: torch.Tensor, 
         convolution is linear (cut at the detector's edges, nothing folded back) and separable:
         per pair, node and Gaussian a ``(H, H)`` and a ``(W, W)`` matrix of pixel-integrated 1-D
         Gaussians (``ndtr`` differences, as the numpy model's kernel spectra), two batched matrix
-        products. Equal to the numpy model to float32 rounding (``tests/sim/test_physics_batched.py``).
+        products. Equal to the NumPy model's ``predict`` to float32 rounding (``tests/sim/test_physics_chain.py``).
     """
     where = "kernel_superposition"
     tau = _image("tau", tau, where)
@@ -366,8 +283,8 @@ def _gaussian_filter(x: torch.Tensor, sigma: torch.Tensor) -> torch.Tensor:
     return y.reshape(b, h, c, w).permute(0, 2, 1, 3)
 
 
-def _field_blur(x: torch.Tensor, sigma: torch.Tensor, field: torch.Tensor) -> torch.Tensor:
-    """``sim.physics.display._blur`` batched: ``(B, H, W)`` -> ``(B, H, W)``; the normalised
+def field_blur(x: torch.Tensor, sigma: torch.Tensor, field: torch.Tensor) -> torch.Tensor:
+    """The unsharp mask's blur: ``(B, H, W)`` -> ``(B, H, W)``; the normalised
     Gaussian inside the field and, separately, outside it; the plain one where the field is
     the whole image."""
     mf = field.to(x.dtype)
@@ -460,14 +377,24 @@ def _order_statistics(flat: torch.Tensor, mflat: torch.Tensor, ranks: torch.Tens
 
 
 # --------------------------------------------------------------------------------------------
-# apply_image, batched
+# the chain
 # --------------------------------------------------------------------------------------------
 
-_APPLY_NEEDS = ("scatter", "scatter_spr", "scatter_sigma", "sks_amplitude", "sks_width", "sks_open", "sks_texture",
-                "sks_texture_sigma", "kvp", "grid", "grid_ratio",
-                "electronic_noise_fraction", "field_transmission",
-                "shutter", "log", "polarity", "window_low", "window_high", "gamma", "unsharp", "unsharp_sigma_px",
-                "unsharp_amount", "max_value", "field_code") + _GEOMETRY
+#: The settings of the display stage (:func:`display`), one ``(B,)`` tensor each: ``log`` (bool),
+#: ``polarity`` (int64, the index in ``sim.physics.display.POLARITIES``: 1 bone-bright),
+#: ``window_low`` / ``window_high`` (%), ``gamma``, ``unsharp`` (bool), ``unsharp_sigma_px`` (px),
+#: ``unsharp_amount``, ``max_value`` (``2^bits - 1``), ``shutter`` (int64, the index in
+#: ``sim.physics.display.SHUTTERS``: 0 black, 1 white, 2 none).
+DISPLAY_KEYS = ("log", "polarity", "window_low", "window_high", "gamma", "unsharp", "unsharp_sigma_px",
+                "unsharp_amount", "max_value", "shutter")
+
+#: The settings of the stages before the display (:func:`apply_chain`): ``scatter`` (int64, the index
+#: in ``("none", "kernel", "monte-carlo", "sks")``), ``field_transmission`` (fraction); and where
+#: used, ``electronic_noise_fraction`` (of ``i0``), the kernel scatter's ``scatter_spr`` and
+#: ``scatter_sigma`` (fraction of the shorter side), the sks scatter's settings.
+_SIGNAL_KEYS = ("scatter", "field_transmission")
+_KERNEL_KEYS = ("scatter_spr", "scatter_sigma")
+_SKS_KEYS = ("sks_amplitude", "sks_width", "sks_open", "sks_texture", "sks_texture_sigma", "kvp", "grid", "grid_ratio")
 
 
 def sks_scatter_batched(raw: torch.Tensor, i0: torch.Tensor, models, geometry, gap_mm=None) -> torch.Tensor:
@@ -497,122 +424,160 @@ def sks_scatter_batched(raw: torch.Tensor, i0: torch.Tensor, models, geometry, g
                                 geometry.pixel_spacing_mm) * i0[:, None, None]
 
 
-def apply_image_batched(raw: torch.Tensor, i0, p: dict[str, torch.Tensor], normals: torch.Tensor, *,
-                        geometry=None, gap_mm=None, scatter_normals: torch.Tensor | None = None, sks_table=None
-                        ) -> tuple[torch.Tensor, torch.Tensor]:
-    """Stages 2-4 of :func:`sim.randomize.apply_image` for a batch of pairs, each with its own draw.
+def sks_texture(normals: torch.Tensor, strength, sigma_px) -> torch.Tensor:
+    """The smooth random factor on the ``sks`` scatter: ``max(0, 1 + strength n)`` with ``n`` the
+    standard normal numbers ``normals`` ``(B, H, W)`` blurred by a Gaussian of ``sigma_px`` ``(B,)``
+    (mirrored edges, :func:`gaussian_reflect`) and scaled back to unit standard deviation
+    (``x 2 sqrt(pi) sigma``, white noise's under a 2-D Gaussian; exact away from the edges for
+    sigma >= 1 px). ``strength`` ``(B,)`` (or one number); the result in ``normals``' dtype."""
+    n = _image("normals", normals, "sks_texture")
+    b = n.shape[0]
+    sigma = _per_pair("sigma_px", sigma_px, b, n.to(torch.float64), "sks_texture")
+    strength = _per_pair("strength", strength, b, n, "sks_texture")
+    texture = gaussian_reflect(n, sigma) * ((2.0 * math.sqrt(math.pi)) * sigma)[:, None, None].to(n.dtype)
+    return (1.0 + strength[:, None, None] * texture).clamp(min=0.0)
+
+
+def display(signal: torch.Tensor, i0: torch.Tensor, field: torch.Tensor, d: dict[str, torch.Tensor]) -> torch.Tensor:
+    """The display chain (:class:`sim.physics.display.DisplayChain`) of each image, its own settings.
 
     Args:
-        raw: ``(B, H, W)`` raw detector signal (keV or counts per pixel, the render's ``raw``).
-        i0: ``(B,)`` flat-field signal per pair (same unit, > 0), or one number for all.
-        p: :func:`draw_tensors` of the pairs' draws; their ``scatter`` must be ``none``,
-            ``kernel`` or ``sks`` (``monte-carlo`` needs the render's scatter image: use ``apply_image``).
-        normals: ``(B, H, W)`` standard normal numbers, the electronic noise (pair ``b`` as
-            ``apply_image`` with ``image_rng(seed, index)``:
-            ``image_rng(seed, index).standard_normal((H, W))``).
-        geometry, gap_mm, scatter_normals, sks_table: for pairs whose scatter is ``sks``
-            (``apply_image``'s): the images' :class:`sim.projection.geometry.CArmGeometry` (required then),
-            the target poses' air gaps ``(B,)`` mm (None: the models' reference gap), ``(B, 2, H,
-            W)`` standard normal numbers for the scatter's quantum noise and its texture (required
-            then; ``apply_image``'s second and third draws of the pair's ``rng``), the
-            :class:`ScatterKernelTable` (None: the default).
+        signal: ``(B, H, W)`` detector signal (keV or counts per pixel), finite.
+        i0: ``(B,)`` flat-field signal (same unit, > 0).
+        field: ``(B, H, W)`` bool, the collimated field (the window's pixels; each holds one).
+        d: the :data:`DISPLAY_KEYS` settings, ``(B,)`` tensors.
 
     Returns:
-        ``(image, field)``: ``image`` ``(B, H, W)`` in ``raw``'s floating dtype (float32 for
-        integer input), integer values in ``0 .. 2^bits - 1`` (``apply_image``'s ``uint16``);
-        ``field`` ``(B, H, W)`` bool, the collimated field (all True when open). Both on
-        ``raw``'s device.
-
-    The stages, as ``apply_image``: the signal outside the field times ``field_transmission``;
-    kernel scatter ``scatter_spr * G(raw)`` (:func:`gaussian_reflect`, sigma ``scatter_sigma x
-    min(H, W)`` px); electronic noise ``electronic_noise_fraction x i0 x normals``; then the
-    display chain (:meth:`sim.physics.display.DisplayChain.apply`): ``-log(max(I, 1e-12 i0) /
-    i0)`` or ``I / i0``, the window percentiles over the field (:func:`masked_percentile`), the
-    polarity, the unsharp mask (field-normalised blur inside and outside, scipy's truncated
-    kernel), gamma, ``rint`` to the bit depth, and the shutter outside the field (an open field
-    has no outside). In float64 it equals ``apply_image`` up to rounding (a level where
-    ``x (2^bits - 1)`` lies within rounding of a half-integer); float32 adds float32 rounding.
+        ``(B, H, W)`` in ``signal``'s dtype, integers in ``0 .. 2^bits - 1``: ``-log(max(I, 1e-12 i0) /
+        i0)`` or ``I / i0``; the window percentiles over the field (:func:`masked_percentile`) to 0 / 1,
+        clipped (a flat field: 1 above its value, 0 below, 0.5 at it); ``1 - x`` where the polarity
+        asks (log images are bone bright, linear ones bone dark); the unsharp mask ``x + amount (x -
+        G(x))`` (:func:`field_blur`), clipped; ``x ** gamma``; ``round(x (2^bits - 1))`` half to even;
+        outside the field the shutter's 0 or ``2^bits - 1`` (``none``: the processed shadow).
     """
-    where = "apply_image_batched"
-    raw = _image("raw", raw, where)
-    b, h, w = raw.shape
-    _entries(p, _APPLY_NEEDS, b, where)
-    if not isinstance(normals, torch.Tensor) or normals.shape != raw.shape:
-        shape = tuple(normals.shape) if isinstance(normals, torch.Tensor) else type(normals).__name__
-        raise PhysicsError(f"{where}: normals must be a tensor of raw's shape {tuple(raw.shape)}, got {shape}")
-    dt, dev = raw.dtype, raw.device
-    i0 = _per_pair("i0", i0, b, raw, where)
-    if not bool(torch.all(torch.isfinite(i0) & (i0 > 0))):
-        raise PhysicsError(f"{where}: i0 (the flat-field signal) must be finite and > 0 for every pair")
-    if not bool(torch.all(torch.isfinite(raw))):
-        raise PhysicsError(f"{where}: raw must be finite (no NaN or inf)")
-    q = {k: p[k].to(dev) for k in _APPLY_NEEDS}
-    f = {k: v.to(dt) for k, v in q.items() if v.dtype.is_floating_point and k not in _GEOMETRY}
-    mc = q["scatter"] == 2
-    if bool(mc.any()):
-        raise PhysicsError(f"{where}: pairs {torch.nonzero(mc).flatten().tolist()[:10]} have scatter monte-carlo; "
-                           f"only none, kernel and sks can be batched (use sim.randomize.apply_image)")
-
-    field = field_masks(q, h, w)
-    if b and not bool(field.flatten(1).any(1).all()):
-        empty = torch.nonzero(~field.flatten(1).any(1)).flatten().tolist()[:10]
-        raise PhysicsError(f"{where}: the fields of pairs {empty} hold no pixel of a {h} x {w} image")
+    dt = signal.dtype
     col = lambda k: k[:, None, None]  # noqa: E731 (B,) -> (B, 1, 1)
-
-    # 2-3: collimation, kernel scatter, electronic noise
-    x = torch.where(field, raw, raw * col(f["field_transmission"]))
-    kern = torch.nonzero(q["scatter"] == 1).flatten()
-    if kern.numel():
-        xk = x[kern]
-        sigma = q["scatter_sigma"][kern].to(torch.float64) * min(h, w)
-        x = x.index_copy(0, kern, xk + col(f["scatter_spr"][kern]) * gaussian_reflect(xk, sigma))
-    sks = torch.nonzero(q["scatter"] == 3).flatten()
-    if sks.numel():
-        if not isinstance(geometry, CArmGeometry) or (geometry.height, geometry.width) != (h, w):
-            raise PhysicsError(f"{where}: pairs with scatter sks need the images' geometry (a CArmGeometry of {h} x "
-                               f"{w} px), got {geometry!r}")
-        if not isinstance(scatter_normals, torch.Tensor) or scatter_normals.shape != (b, 2, h, w):
-            raise PhysicsError(f"{where}: pairs with scatter sks need scatter_normals of shape {(b, 2, h, w)}")
-        table = default_table() if sks_table is None else sks_table
-        rows = sks.tolist()
-        kv, grid, ratio, amp, wid = (q[k][sks].tolist() for k in ("kvp", "grid", "grid_ratio", "sks_amplitude",
-                                                                     "sks_width"))
-        models = [table.drawn(kv[j], ratio[j] if grid[j] else 0.0, amp[j], wid[j]) for j in range(len(rows))]
-        gaps = None if gap_mm is None else [float(gap_mm[r]) for r in rows]
-        opened = q["sks_open"][sks][:, None, None]
-        source = torch.where(opened, raw[sks], x[sks])  # sks_open: the exposure before collimation
-        sc = sks_scatter_batched(source, i0[sks], models, geometry, gaps)
-        sc = torch.where(opened & ~field[sks], sc * col(f["field_transmission"][sks]), sc)
-        spp = torch.tensor([m.signal_per_photon for m in models], dtype=dt, device=dev)[:, None, None]
-        sn = scatter_normals[sks].to(device=dev, dtype=dt)
-        sigma = q["sks_texture_sigma"][sks].to(torch.float64) * min(h, w)  # sim.randomize.sks_texture
-        texture = gaussian_reflect(sn[:, 1], sigma) * col((2.0 * math.sqrt(math.pi)) * sigma).to(dt)
-        sc = sc * (1.0 + col(f["sks_texture"][sks]) * texture).clamp(min=0.0)
-        scatter_add = sc + torch.sqrt(sc * spp) * sn[:, 0]
-    x = x + col(f["electronic_noise_fraction"] * i0) * normals.to(device=dev, dtype=dt)
-    if sks.numel():
-        x = x.index_add(0, sks, scatter_add)
-
-    # 4: display chain
-    log = q["log"]
-    v = torch.where(col(log), -torch.log(torch.maximum(x, col(1e-12 * i0)) / col(i0)), x / col(i0))
-    window = torch.stack([q["window_low"], q["window_high"]], dim=1).to(torch.float64)
+    f = {k: d[k].to(device=signal.device, dtype=dt) if d[k].dtype.is_floating_point else d[k].to(signal.device)
+         for k in DISPLAY_KEYS}
+    i0 = i0.to(device=signal.device, dtype=dt)
+    log = f["log"]
+    v = torch.where(col(log), -torch.log(torch.maximum(signal, col(1e-12 * i0)) / col(i0)), signal / col(i0))
+    window = torch.stack([d["window_low"], d["window_high"]], dim=1).to(device=signal.device, dtype=torch.float64)
     lohi = masked_percentile(v, field, window)
     lo, hi = col(lohi[:, 0]), col(lohi[:, 1])
     span = hi - lo
     flat = torch.where(v > lo, 1.0, torch.where(v < lo, 0.0, 0.5)).to(dt)
     x = torch.where(span > 0, ((v - lo) / torch.where(span > 0, span, 1.0)).clamp(0.0, 1.0), flat)
-    flip = log != (q["polarity"] == 1)  # bone-bright is choice 1
+    flip = log != (f["polarity"] == 1)  # bone-bright is POLARITIES[1]
     x = torch.where(col(flip), 1.0 - x, x)
-    sharp = torch.nonzero(q["unsharp"] & (f["unsharp_amount"] > 0)).flatten()
+    sharp = torch.nonzero(f["unsharp"] & (f["unsharp_amount"] > 0)).flatten()
     if sharp.numel():
         xs, fs = x[sharp], field[sharp]
-        blurred = _field_blur(xs, q["unsharp_sigma_px"][sharp].to(torch.float64), fs)
+        blurred = field_blur(xs, d["unsharp_sigma_px"][sharp].to(device=signal.device, dtype=torch.float64), fs)
         xs = (xs + col(f["unsharp_amount"][sharp]) * (xs - blurred)).clamp(0.0, 1.0)
         x = x.index_copy(0, sharp, xs)
     x = torch.pow(x, col(f["gamma"]))
     top = col(f["max_value"])
     out = torch.round(x * top)  # half to even, as numpy.rint
-    shutter = col(q["shutter"])
-    out = torch.where(field, out, torch.where(shutter == 0, 0.0, torch.where(shutter == 1, top, out)).to(dt))
-    return out, field
+    shutter = col(f["shutter"])
+    return torch.where(field, out, torch.where(shutter == 0, 0.0, torch.where(shutter == 1, top, out)).to(dt))
+
+
+def apply_chain(raw: torch.Tensor, i0, p: dict[str, torch.Tensor], normals: torch.Tensor | None = None, *,
+                field: torch.Tensor | None = None, geometry=None, gap_mm=None,
+                scatter_normals: torch.Tensor | None = None, sks_table=None) -> tuple[torch.Tensor, torch.Tensor]:
+    """The imaging chain after the render (module doc) for a batch of images, each with its own settings.
+
+    Args:
+        raw: ``(B, H, W)`` raw detector signal (keV or counts per pixel, the render's ``raw``; a
+            Monte Carlo render's scatter already in it).
+        i0: ``(B,)`` flat-field signal per image (same unit, > 0), or one number for all.
+        p: the settings, ``(B,)`` tensors: :func:`sim.randomize.draw_tensors` of the images' draws, or
+            a fixed chain's (``DisplayChain.tensors`` with ``scatter`` and ``field_transmission``).
+            Their ``scatter`` must be ``none``, ``kernel`` or ``sks`` (the Monte Carlo's is the
+            render's: add it before, as :func:`sim.randomize.apply_image` does).
+        normals: ``(B, H, W)`` standard normal numbers, the electronic noise (image ``b`` of a
+            per-pair draw: ``image_rng(seed, index).standard_normal((H, W))``); None: no electronic
+            noise (an imager that adds its own).
+        field: ``(B, H, W)`` bool, the collimated field (each holding a pixel); None:
+            :func:`field_masks` of ``p``.
+        geometry, gap_mm, scatter_normals, sks_table: for images whose scatter is ``sks``: the
+            images' :class:`sim.projection.geometry.CArmGeometry` (required then), the target poses'
+            air gaps ``(B,)`` mm (None: the models' reference gap), ``(B, 2, H, W)`` standard normal
+            numbers for the scatter's quantum noise and its texture (required then; a per-pair draw's
+            second and third draws of its ``rng``), the :class:`ScatterKernelTable` (None: the default).
+
+    Returns:
+        ``(image, field)``: ``image`` ``(B, H, W)`` in ``raw``'s floating dtype (float32 for integer
+        input), integer values in ``0 .. 2^bits - 1``; ``field`` ``(B, H, W)`` bool. Both on ``raw``'s device.
+    """
+    where = "apply_chain"
+    raw = _image("raw", raw, where)
+    b, h, w = raw.shape
+    _entries(p, _SIGNAL_KEYS + DISPLAY_KEYS, b, where)
+    if normals is not None and (not isinstance(normals, torch.Tensor) or normals.shape != raw.shape):
+        shape = tuple(normals.shape) if isinstance(normals, torch.Tensor) else type(normals).__name__
+        raise PhysicsError(f"{where}: normals must be a tensor of raw's shape {tuple(raw.shape)}, got {shape}")
+    dt, dev = raw.dtype, raw.device
+    i0 = _per_pair("i0", i0, b, raw, where)
+    if not bool(torch.all(torch.isfinite(i0) & (i0 > 0))):
+        raise PhysicsError(f"{where}: i0 (the flat-field signal) must be finite and > 0 for every image")
+    if not bool(torch.all(torch.isfinite(raw))):
+        raise PhysicsError(f"{where}: raw must be finite (no NaN or inf)")
+    scatter = p["scatter"].to(dev)
+    mc = scatter == 2
+    if bool(mc.any()):
+        raise PhysicsError(f"{where}: images {torch.nonzero(mc).flatten().tolist()[:10]} have scatter monte-carlo; "
+                           f"its scatter is the render's (add it to raw and pass scatter none: "
+                           f"sim.randomize.apply_image)")
+    kern = torch.nonzero(scatter == 1).flatten()
+    sks = torch.nonzero(scatter == 3).flatten()
+    _entries(p, (("electronic_noise_fraction",) if normals is not None else ()) + (_KERNEL_KEYS if kern.numel() else ())
+             + (_SKS_KEYS if sks.numel() else ()), b, where)
+    if field is None:
+        field = field_masks(p, h, w).to(dev)
+    elif not isinstance(field, torch.Tensor) or field.dtype != torch.bool or field.shape != raw.shape:
+        got = f"{field.dtype} {tuple(field.shape)}" if isinstance(field, torch.Tensor) else type(field).__name__
+        raise PhysicsError(f"{where}: field must be a bool tensor of raw's shape {tuple(raw.shape)}, got {got}")
+    field = field.to(dev)
+    if b and not bool(field.flatten(1).any(1).all()):
+        empty = torch.nonzero(~field.flatten(1).any(1)).flatten().tolist()[:10]
+        raise PhysicsError(f"{where}: the fields of images {empty} hold no pixel of a {h} x {w} image")
+    col = lambda k: k[:, None, None]  # noqa: E731 (B,) -> (B, 1, 1)
+    num = lambda k: p[k].to(device=dev, dtype=dt)  # noqa: E731 (a float setting in raw's dtype)
+
+    # 1. collimation; 2. scatter; 3. electronic noise
+    transmission = num("field_transmission")
+    x = torch.where(field, raw, raw * col(transmission))
+    if kern.numel():
+        xk = x[kern]
+        sigma = p["scatter_sigma"].to(device=dev, dtype=torch.float64)[kern] * min(h, w)
+        x = x.index_copy(0, kern, xk + col(num("scatter_spr")[kern]) * gaussian_reflect(xk, sigma))
+    if sks.numel():
+        if not isinstance(geometry, CArmGeometry) or (geometry.height, geometry.width) != (h, w):
+            raise PhysicsError(f"{where}: images with scatter sks need their geometry (a CArmGeometry of {h} x "
+                               f"{w} px), got {geometry!r}")
+        if not isinstance(scatter_normals, torch.Tensor) or scatter_normals.shape != (b, 2, h, w):
+            raise PhysicsError(f"{where}: images with scatter sks need scatter_normals of shape {(b, 2, h, w)}")
+        table = default_table() if sks_table is None else sks_table
+        rows = sks.tolist()
+        kv, grid, ratio, amp, wid = (p[k].to(dev)[sks].tolist() for k in ("kvp", "grid", "grid_ratio",
+                                                                         "sks_amplitude", "sks_width"))
+        models = [table.drawn(kv[j], ratio[j] if grid[j] else 0.0, amp[j], wid[j]) for j in range(len(rows))]
+        gaps = None if gap_mm is None else [float(gap_mm[r]) for r in rows]
+        opened = p["sks_open"].to(dev)[sks][:, None, None]
+        source = torch.where(opened, raw[sks], x[sks])  # sks_open: the exposure before collimation
+        sc = sks_scatter_batched(source, i0[sks], models, geometry, gaps)
+        sc = torch.where(opened & ~field[sks], sc * col(transmission[sks]), sc)
+        spp = torch.tensor([m.signal_per_photon for m in models], dtype=dt, device=dev)[:, None, None]
+        sn = scatter_normals[sks].to(device=dev, dtype=dt)
+        sigma = p["sks_texture_sigma"].to(device=dev, dtype=torch.float64)[sks] * min(h, w)
+        sc = sc * sks_texture(sn[:, 1], num("sks_texture")[sks], sigma)
+        scatter_add = sc + torch.sqrt(sc * spp) * sn[:, 0]
+    if normals is not None:
+        x = x + col(num("electronic_noise_fraction") * i0) * normals.to(device=dev, dtype=dt)
+    if sks.numel():
+        x = x.index_add(0, sks, scatter_add)
+
+    # 4. the display chain
+    return display(x, i0, field, p), field
