@@ -3,6 +3,7 @@ registrations and trainings).
 
     .venv/bin/python scripts/same_outputs.py make OUT        # in a checkout: its outputs into OUT
     .venv/bin/python scripts/same_outputs.py compare A B     # every output of A against B's
+    .venv/bin/python scripts/same_outputs.py small --write   # the CI-sized set, tests/data/same_outputs_small.npz
 
 ``make`` runs, in the checkout the script lies in (its code first on ``PYTHONPATH``, ``register.cli:main``): the demo (a realistic
 DICOM frame registered from AP), a 10-case ``ctxreg evaluate`` (contextual+cmaes on line DRRs of the
@@ -24,6 +25,7 @@ from __future__ import annotations
 
 import argparse
 import csv
+import hashlib
 import json
 import math
 import os
@@ -81,6 +83,94 @@ def make(out: Path, tables: Path | None = None) -> None:
             (folder / "config.toml").write_text("\n".join(lines) + "\n")
             _run([*ctxreg, "train", str(folder / "config.toml"), "--device", "cpu"], log)
     print(f"outputs in {out}")
+
+
+#: The CI-sized fixed set's arrays (``small``), checked bit for bit by ``tests/test_same_outputs.py``.
+SMALL = ROOT / "tests" / "data" / "same_outputs_small.npz"
+
+
+def small_outputs() -> dict[str, "np.ndarray"]:
+    """The CI-sized fixed set, in this process, in seconds: renders of the built-in phantom (line and
+    poly), the imaging chain on them (per-pair draws of each scatter kind, a fixed display chain),
+    the preparation of the targets (one NumPy pair and the batch), a CMA-ES registration of the line
+    frame, and a training step of the tiny network (one torch thread). Nothing here traces the tool
+    bank with Mitsuba, whose chords differ from one process to the next in their last bits."""
+    import numpy as np
+    import torch
+
+    from learn.model import pose_update_net
+    from learn.online import prepare_like_registration
+    from register.api import register_xray
+    from register.xray.io import XRayImage
+    from sim import load_ct, render
+    from sim.physics.display import Collimator, DisplayChain
+    from sim.projection.geometry import CArmGeometry
+    from sim.randomize import DomainRandomization, apply_image, draw_tensors, image_rng
+
+    torch.set_num_threads(1)
+    out: dict[str, np.ndarray] = {}
+    ct = load_ct("phantom")
+    pose = [-10.0, 5.0, 3.0, 4.0, -6.0, 8.0]
+    out["render_line"] = render(ct, pose, size=(48, 48))
+    out["render_poly"] = render(ct, pose, size=(32, 32), physics="poly")
+    raw = 2000.0 * np.exp(-out["render_line"].astype(np.float64))
+    g = CArmGeometry(sdd_mm=1020.0, sod_mm=620.0, height=48, width=48, pixel_spacing_mm=8.0)
+    dr = DomainRandomization.from_table({"scatter": {"none": 0.25, "kernel": 0.25, "sks": 0.25, "monte-carlo": 0.25},
+                                         "unsharp": 0.5, "tools": 0.0})
+    images, fields = [], []
+    for i in range(8):
+        d = dr.draw(3, i)
+        sc = 60.0 + 0.05 * raw if d["scatter"] == "monte-carlo" else None
+        image, field = apply_image(raw, 2000.0, d, image_rng(3, i), scatter=sc, geometry=g, gap_mm=300.0)
+        images.append(image)
+        fields.append(field)
+    out["chain_per_pair"], out["chain_fields"] = np.stack(images), np.stack(fields)
+    chain = DisplayChain(gamma=0.8, unsharp_sigma_px=2.0, unsharp_amount=0.6, shutter="white")
+    out["chain_fixed"] = chain.apply(raw, 2000.0, Collimator(shape="circle", radius=0.4).mask(48, 48))
+    current = out["render_line"].astype(np.float64)
+    t, c = prepare_like_registration(images[0], fields[0], current, log_display=True, bone_dark=True)
+    out["prepared_pair"] = np.stack([t, c])
+    draws = [dr.draw(3, i) for i in range(8)]
+    logs = draw_tensors(draws)["log"]
+    bt, bc = prepare_like_registration(torch.from_numpy(np.stack(images).astype(np.float32)),
+                                       torch.from_numpy(np.stack(fields)),
+                                       torch.from_numpy(np.repeat(current[None], 8, 0).astype(np.float32)),
+                                       log_display=logs, bone_dark=draw_tensors(draws)["polarity"] == 0)
+    out["prepared_batch"] = torch.stack([bt, bc]).numpy()
+    reg = register_xray(ct, XRayImage(pixels=out["render_line"], attenuation_bright=True), method="cmaes",
+                        size=(32, 32), restarts=0, init=[0.0, 0.0, 0.0, 0.0, 0.0, 0.0])
+    out["registration_pose"] = np.asarray(reg.result.pose, np.float64)
+    torch.manual_seed(0)
+    net = pose_update_net(backbone="tiny")
+    opt = torch.optim.Adam(net.parameters(), lr=1e-3)
+    x = torch.from_numpy(out["prepared_batch"])[:, :4, None].float()
+    loss = net(x[0], x[1]).g.square().mean()
+    loss.backward()
+    opt.step()
+    weights = torch.cat([q.detach().flatten() for q in net.parameters()]).numpy()
+    # the stepped weights by their SHA-256 (2 MB of random weights do not compress), and their first values
+    out["train_step_sha256"] = np.frombuffer(hashlib.sha256(weights.tobytes()).digest(), np.uint8)
+    out["train_step_loss"], out["train_step_head"] = np.float32(loss.item()), weights[:256]
+    return out
+
+
+def small_differences(outputs: dict, reference: Path = SMALL) -> list[str]:
+    """What of ``outputs`` (:func:`small_outputs`) is not bit for bit the committed set's (one line each)."""
+    import numpy as np
+
+    with np.load(reference) as ref:
+        want = {k: ref[k] for k in ref.files}
+    lines = [f"{k}: only in {'the committed set' if k in want else 'this run'}" for k in sorted(set(want) ^ set(outputs))]
+    for k in sorted(set(want) & set(outputs)):
+        a, b = np.asarray(outputs[k]), want[k]
+        if a.shape != b.shape or a.dtype != b.dtype:
+            lines.append(f"{k}: {a.dtype} {a.shape} against {b.dtype} {b.shape}")
+        elif not np.array_equal(a, b, equal_nan=True):
+            d = np.abs(a.astype(np.float64) - b.astype(np.float64))
+            lines.append(f"{k}: {int((a != b).sum())} of {a.size} values differ, at most {np.nanmax(d):.3g}")
+    for line in lines:
+        print("DIFFERS", line)
+    return lines
 
 
 def _volatile(key: str) -> bool:
@@ -201,6 +291,9 @@ def main() -> int:
     m.add_argument("out", type=Path)
     m.add_argument("--tables", type=Path, help="a batched run's cached tables folder to reuse (another make's "
                                                "OUT/train_batched/run/tables)")
+    sm = sub.add_parser("small", help="the CI-sized set (tests/test_same_outputs.py checks it bit for bit)")
+    sm.add_argument("--write", action="store_true", help=f"write it to {SMALL.relative_to(ROOT)} (after a change "
+                                                          "that changes outputs on purpose; say why in the commit)")
     c = sub.add_parser("compare", help="the outputs of A against B's")
     c.add_argument("a", type=Path)
     c.add_argument("b", type=Path)
@@ -209,6 +302,20 @@ def main() -> int:
         sys.path.insert(0, str(ROOT))
         make(args.out, args.tables)
         return 0
+    if args.cmd == "small":
+        sys.path.insert(0, str(ROOT))
+        outputs = small_outputs()
+        if args.write:
+            import numpy as np
+
+            from sim.core.atomic import atomic_path
+
+            SMALL.parent.mkdir(parents=True, exist_ok=True)
+            with atomic_path(SMALL) as tmp:
+                np.savez_compressed(tmp, **outputs)
+            print(f"wrote {SMALL.relative_to(ROOT)}: {', '.join(outputs)}")
+            return 0
+        return 0 if not small_differences(outputs) else 1
     return compare(args.a, args.b)
 
 
