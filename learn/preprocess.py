@@ -28,6 +28,7 @@ import torch
 import torch.nn.functional as F
 
 from sim.core.errors import InputError
+from sim import prepare
 from sim.prepare import Step  # the one step protocol, which TensorStep is
 
 __all__ = [
@@ -117,7 +118,8 @@ class LogCorrect(TensorStep):
 
     ``input_kind="intensity"`` (default) expects ``I > 0``; ``I0`` is the image's
     ``percentile``-th percentile (an estimate of the unattenuated beam), values are clamped to
-    ``>= 1e-12 I0`` before the log. ``input_kind="line_integral"`` (DRRs rendered by :mod:`sim`,
+    ``>= 1e-12 I0`` before the log: :func:`sim.prepare.i0_percentile` and
+    :func:`sim.prepare.log_correct`, registration's arithmetic. ``input_kind="line_integral"`` (DRRs rendered by :mod:`sim`,
     already ``-log`` of a transmission) makes the step the identity.
     """
 
@@ -142,15 +144,14 @@ class LogCorrect(TensorStep):
         if self.input_kind == "line_integral":
             return x
         b, c, h, w = x.shape
-        flat = x.reshape(b * c, h * w)
-        i0 = torch.quantile(flat, self.percentile / 100.0, dim=1, keepdim=True)
+        images = x.reshape(b * c, h, w)
+        i0 = prepare.i0_percentile(images, None, self.percentile)
         if bool((i0 <= 0).any()):
             raise LearnPreprocessError(
                 "x: LogCorrect(input_kind='intensity') needs positive intensities; an image has "
                 "its high percentile <= 0 (pass input_kind='line_integral' for DRRs)"
             )
-        ratio = torch.clamp(flat / i0, min=_EPS)
-        return (-torch.log(ratio)).reshape(b, c, h, w)
+        return prepare.log_correct(images, i0, _EPS).reshape(b, c, h, w)
 
 
 class Normalize(TensorStep):
@@ -188,7 +189,8 @@ class Normalize(TensorStep):
 class Median(TensorStep):
     """Median filter over a ``size x size`` pixel window (odd ``size``), replicate padding.
 
-    Implemented with ``torch.nn.functional.unfold``: memory ``size^2`` times the image.
+    :func:`sim.prepare.median_filter` (``unfold``: memory ``size^2`` times the image), registration's
+    median.
     """
 
     name = "median"
@@ -203,13 +205,8 @@ class Median(TensorStep):
         return {"size": self.size}
 
     def _apply(self, x: torch.Tensor) -> torch.Tensor:
-        if self.size == 1:
-            return x
         b, c, h, w = x.shape
-        r = self.size // 2
-        padded = F.pad(_flat(x), (r, r, r, r), mode="replicate")
-        patches = F.unfold(padded, kernel_size=self.size)  # (B C, size^2, H W)
-        return patches.median(dim=1).values.reshape(b, c, h, w)
+        return prepare.median_filter(x.reshape(b * c, h, w), self.size).reshape(b, c, h, w)
 
 
 class Sobel(TensorStep):

@@ -18,6 +18,7 @@ The steps:
 * :func:`invert`: ``max + min - x`` over the field's extremes (bone dark <-> bone bright);
 * :func:`i0_percentile`, :func:`log_correct`: ``-ln(max(I, floor_frac I0) / I0)``, transmitted
   intensity -> line-integral-like values, ``I0`` a high percentile over the field;
+* :func:`median_filter`: the ``size x size`` median, the edges repeated;
 * :func:`field_box`: the field's bounding box (the crop of the field);
 * :func:`crop_to_field`: images and their field cropped to the box and resampled to the whole
   image (bilinear, ``align_corners=False``, for images; nearest for the field), as ``F.interpolate``;
@@ -25,9 +26,9 @@ The steps:
   to 0 / 1, clipped to ``[0, 1]`` (an image whose percentiles are equal becomes 0);
 * :func:`masked_fill`: the pixels outside the field set to the mean over it.
 
-Two operations have one implementation per kind, behind the step that uses them: the percentiles
+Three operations have one implementation per kind, behind the step that uses them: the percentiles
 (``np.percentile``; :func:`sim.physics.chain.masked_percentile`, which computes them as NumPy
-does) and the box resampling (``F.interpolate`` on the crop; for a batch of different boxes, one
+does), the median (scipy's; ``unfold``'s: the same numbers) and the box resampling (``F.interpolate`` on the crop; for a batch of different boxes, one
 gather with ``F.interpolate``'s own source indices and weights, equal to it up to float32 rounding,
 the field exactly). The field mean is NumPy's pairwise sum for an image and torch's sum for a batch.
 
@@ -51,7 +52,8 @@ import numpy as np
 
 from sim.core.atomic import jsonable
 
-__all__ = ["Step", "checked_image", "field_values", "invert", "i0_percentile", "log_correct", "field_box",
+__all__ = ["Step", "checked_image", "field_values", "invert", "i0_percentile", "log_correct", "median_filter",
+           "field_box",
            "crop_to_field", "resize_boxes", "bilinear_source", "nearest_source", "gather2d", "percentile_bounds",
            "normalize", "masked_fill"]
 
@@ -188,18 +190,47 @@ def invert(image: Array, mask, which=True) -> tuple[Array, Any, Any]:
     return (out if which else image), lo, hi
 
 
-def i0_percentile(image: np.ndarray, mask: np.ndarray | None, percentile: float) -> float:
-    """The unattenuated intensity ``I0`` of a transmission image (NumPy): the ``percentile``-th
-    percentile of the field (the brightest, least attenuated part stands for the direct beam)."""
+def i0_percentile(image: Array, mask, percentile: float):
+    """The unattenuated intensity ``I0`` of a transmission image: the ``percentile``-th percentile
+    of the field (the brightest, least attenuated part stands for the direct beam); a float for a
+    NumPy image, ``(B,)`` for a batch."""
+    if _is_torch(image):
+        from sim.physics.chain import masked_percentile  # loads torch: only reached with a tensor
+
+        return masked_percentile(image, mask, [percentile])[:, 0]
     return float(np.percentile(field_values(image, mask), percentile))
 
 
-def log_correct(image: np.ndarray, i0: float, floor_frac: float = 1e-6) -> np.ndarray:
+def log_correct(image: Array, i0, floor_frac: float = 1e-6) -> Array:
     """``-ln(max(image, floor_frac * i0) / i0)``: transmitted intensity -> line-integral-like values
-    (bone bright, the direct beam ~ 0; pixels above ``i0`` get small negative values). NumPy: training's
-    batched targets are display images, which are not log-corrected."""
+    (bone bright, the direct beam ~ 0; pixels above ``i0`` get small negative values). ``i0``: a
+    number for a NumPy image, ``(B,)`` for a batch (:func:`i0_percentile`)."""
+    i0 = _per_image(i0, image)
+    if _is_torch(image):
+        import torch  # only reached with a tensor: torch is loaded
+
+        return -torch.log(torch.maximum(image, floor_frac * i0) / i0)
     floor = floor_frac * i0
     return -np.log(np.maximum(image, floor) / i0)
+
+
+def median_filter(image: Array, size: int) -> Array:
+    """The ``size x size`` median (odd ``size``; the edges repeated, scipy's ``nearest``) of a NumPy
+    image ``(H, W)`` (``scipy.ndimage.median_filter``) or of each image of a batch ``(B, H, W)``
+    (the ``size^2`` neighbours by ``unfold``: memory ``size^2`` times the batch). The median of an
+    odd count is one of the values: both give the same numbers."""
+    if size == 1:
+        return image
+    if _is_torch(image):
+        import torch.nn.functional as F  # only reached with a tensor: torch is loaded
+
+        b, h, w = image.shape
+        r = size // 2
+        padded = F.pad(image[:, None], (r, r, r, r), mode="replicate")
+        return F.unfold(padded, kernel_size=size).median(dim=1).values.reshape(b, h, w)
+    from scipy import ndimage  # slow to import: only where a NumPy image is filtered
+
+    return ndimage.median_filter(image, size=int(size), mode="nearest")
 
 
 def field_box(mask: Array, margin: int = 0) -> tuple[Any, Any, Any, Any]:

@@ -38,7 +38,6 @@ from dataclasses import dataclass
 from typing import Any, ClassVar, Iterable, Sequence
 
 import numpy as np
-from scipy import ndimage
 
 from register.xray.field import FieldSettings, detect_field
 from register.xray.intensity import POLARITIES, SCALES, TONE_LEVELS, TONES, decide, tone_curve
@@ -225,7 +224,7 @@ class Median(Step):
             raise PreprocessError(f"median.size: must be an odd positive integer (pixels), got {self.size!r}")
 
     def apply(self, image, mask):
-        out = ndimage.median_filter(image, size=int(self.size), mode="nearest")
+        out = prepare.median_filter(image, int(self.size))
         return out, mask, {"changed_fraction": float(np.mean(out != image))}
 
 

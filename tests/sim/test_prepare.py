@@ -197,3 +197,30 @@ def test_checked_image_takes_a_finite_numeric_2d_image_and_names_what_is_wrong()
                            (np.array([["a"]]), "frame: must be numeric")):
         with pytest.raises(Bad, match=message):
             checked_image(image, "frame", Bad)
+
+
+@pytest.mark.parametrize("size", [1, 3, 5])
+def test_the_median_of_a_batch_is_scipy_s_of_each_image(size):
+    from scipy import ndimage
+
+    x, _ = _batch(7)
+    got = prepare.median_filter(torch.from_numpy(x), size).numpy()
+    for i in range(len(x)):
+        ref = ndimage.median_filter(x[i], size=size, mode="nearest")
+        np.testing.assert_array_equal(got[i], ref)  # the median of an odd count is one of the values
+        np.testing.assert_array_equal(prepare.median_filter(x[i], size), ref)
+
+
+def test_log_correction_of_a_batch_is_each_image_s():
+    rng = np.random.default_rng(8)
+    L = rng.uniform(0.0, 6.0, (4, 12, 10))
+    intensity = rng.uniform(500.0, 4000.0, (4, 1, 1)) * np.exp(-L)
+    intensity[0, 0, 0] = 0.0  # below the floor: clipped to it
+    t = torch.from_numpy(intensity)
+    i0 = prepare.i0_percentile(t, None, 99.5)
+    out = prepare.log_correct(t, i0, 1e-6).numpy()
+    for k in range(4):
+        ref_i0 = prepare.i0_percentile(intensity[k], None, 99.5)
+        assert float(i0[k]) == ref_i0  # numpy's percentile, computed as numpy does
+        np.testing.assert_allclose(out[k], prepare.log_correct(intensity[k], ref_i0, 1e-6), rtol=0, atol=1e-14)
+    assert out[0, 0, 0] == pytest.approx(-np.log(1e-6))
