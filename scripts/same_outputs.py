@@ -7,7 +7,9 @@ registrations and trainings).
 
 ``make`` runs, in the checkout the script lies in (its code first on ``PYTHONPATH``, ``register.cli:main``): the demo (a realistic
 DICOM frame registered from AP), a 10-case ``ctxreg evaluate`` (contextual+cmaes on line DRRs of the
-pelvis CT), a line and a full-physics ``ctxreg render``, and two short trainings (3 steps of 4 pairs,
+pelvis CT), a line, a poly and a full-physics ``ctxreg render``, the smoke campaign's shards (``ctxreg
+simulate``), a tiny study's rows (``ctxreg study``: a variant trained 2 steps, evaluated on line DRRs and
+realistic frames), and two short trainings (3 steps of 4 pairs,
 batched and per-pair realistic pairs, from ``configs/train_batched_gpu.toml``). Without
 ``../shared/data`` the built-in phantom stands in for the CT.
 
@@ -50,6 +52,38 @@ def _run(args: list[str], log) -> None:
         sys.exit(f"same_outputs: {' '.join(args)} failed (exit {r.returncode}); see the log")
 
 
+#: A tiny study (one variant trained 2 steps on the smoke campaign; a line target and a realistic-frame
+#: target of 2 cases): its rows (results/*/summary.json) are compared.
+STUDY = """[study]
+ct = "phantom"
+cases = 2
+methods = ["contextual"]
+size = [64, 64]
+
+[[variant]]
+name = "tiny"
+[variant.train]
+dataset = "{campaign}"
+iterations = 2
+batch_size = 2
+val_pairs = 2
+val_every = 1
+checkpoint_every = 1
+pairs_per_epoch = 4
+head_channels = 8
+
+[[target]]
+name = "line"
+
+[[target]]
+name = "fluoro"
+kind = "xray"
+physics = {{ level = "full", kvp = 80, mas = 1.0, scatter_photons = 20000 }}
+collimator = {{ shape = "circle", radius = 0.45, transmission = 0.02 }}
+display = {{ log = true, polarity = "bone-dark", gamma = 0.8, bits = 12, shutter = "black" }}
+"""
+
+
 def make(out: Path, tables: Path | None = None) -> None:
     out = out.resolve()
     out.mkdir(parents=True, exist_ok=True)
@@ -64,6 +98,12 @@ def make(out: Path, tables: Path | None = None) -> None:
               str(out / "render" / "line.npy")], log)
         _run([*ctxreg, "render", "--ct", ct, "--size", "64", "64", "--pose", *pose, "--physics", "full",
               "--scatter-photons", "20000", "--seed", "3", "--out", str(out / "render" / "full.npy")], log)
+        _run([*ctxreg, "render", "--ct", ct, "--size", "48", "48", "--pose", *pose, "--physics", "poly", "--seed",
+              "5", "--out", str(out / "render" / "poly.npy")], log)
+        _run([*ctxreg, "simulate", str(ROOT / "campaigns" / "smoke.toml"), "--out", str(out / "campaign")], log)
+        study = out / "study.toml"
+        study.write_text(STUDY.format(campaign=ROOT / "campaigns" / "smoke.toml"))
+        _run([*ctxreg, "study", str(study), "--out", str(out / "study")], log)
         base = tomllib.loads((ROOT / "configs" / "train_batched_gpu.toml").read_text())
         for pairs in ("batched", "per-pair"):
             folder = out / f"train_{pairs}"
@@ -183,6 +223,8 @@ def _same(a, b, where: str, diffs: list[str]) -> None:
         for k in sorted(set(a) | set(b)):
             if _volatile(str(k)):
                 continue
+            if k == "sha256" and "settings" in a:  # a study variant's fingerprint of its settings, paths
+                continue  # included: the settings themselves are compared
             if k not in a or k not in b:
                 diffs.append(f"{where}.{k}: only in {'B' if k not in a else 'A'}")
             else:
@@ -244,6 +286,26 @@ def _compare_file(a: Path, b: Path) -> list[str]:
                 return [f"arrays {sorted(za.files)} against {sorted(zb.files)}"]
             return [f"{k}: arrays differ" for k in za.files
                     if not np.array_equal(za[k], zb[k], equal_nan=za[k].dtype.kind in "fc")]
+    if a.suffix in (".h5", ".hdf5"):  # a campaign shard: every dataset's values and every attribute (the
+        # file's bytes carry HDF5's modification times)
+        import h5py
+        import numpy as np
+
+        diffs: list[str] = []
+        with h5py.File(a, "r") as fa, h5py.File(b, "r") as fb:
+            def visit(name, obj):
+                other = fb.get(name)
+                if other is None:
+                    diffs.append(f"{name}: only in A")
+                    return
+                if isinstance(obj, h5py.Dataset) and not np.array_equal(obj[()], other[()]):
+                    diffs.append(f"{name}: values differ")
+                for k, v in obj.attrs.items():
+                    if not _volatile(k) and not np.array_equal(np.asarray(v), np.asarray(other.attrs.get(k))):
+                        diffs.append(f"{name}@{k}: differs")
+            fa.visititems(visit)
+            fb.visititems(lambda name, _: None if name in fa else diffs.append(f"{name}: only in B"))
+        return diffs
     if a.suffix == ".dcm":  # every element but the fresh UIDs, dates and times; the pixels exactly
         import pydicom
 
@@ -261,9 +323,9 @@ def _compare_file(a: Path, b: Path) -> list[str]:
         diffs = []
         _same(data, _load(b), "", diffs)
         return diffs
-    if a.suffix in (".log", ".txt", ".gif", ".md") or a.name == ".ctxreg.lock":  # logs and tables carry rates
-        # and times (the numbers are in the JSON and CSV beside them); the GIF its frame times; a run's lock
-        # file its process and host
+    if a.suffix in (".log", ".txt", ".gif", ".md", ".sh") or a.name == ".ctxreg.lock":  # logs and tables carry
+        # rates and times (the numbers are in the JSON and CSV beside them); the GIF its frame times; a run's lock
+        # file its process and host; a study's commands.sh the output folder's path
         return []
     return [] if a.read_bytes() == b.read_bytes() else ["bytes differ"]
 
