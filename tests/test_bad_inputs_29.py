@@ -3,6 +3,10 @@ is refused before any work, in one line naming the option, with exit status 2 an
 
 from __future__ import annotations
 
+import ast
+import functools
+import importlib
+
 import pytest
 
 from pathlib import Path
@@ -78,19 +82,53 @@ def inputs29(inputs, tmp_path_factory):  # noqa: F811
             "tampered": str(d / "tampered" / "model.pt")}
 
 
+@functools.lru_cache(maxsize=None)
+def users_of(name: str, packages=("sim", "learn", "register")) -> tuple[str, ...]:
+    """The project's modules that bind ``name`` by a module-level ``from ... import``: a patch of the
+    name's own module does not reach them, and one of them first imported under the patch would keep
+    the patched object after the test (a later test then meets it: found by a shuffled run)."""
+    found = []
+    for package in packages:
+        for path in sorted((ROOT / package).rglob("*.py")):
+            tree = ast.parse(path.read_text())
+            if any(isinstance(node, ast.ImportFrom) and any(a.name == name and a.asname is None for a in node.names)
+                   for node in tree.body):
+                parts = list(path.relative_to(ROOT).with_suffix("").parts)
+                found.append(".".join(parts[:-1] if parts[-1] == "__init__" else parts))
+    return tuple(found)
+
+
+def patch_where_used(monkeypatch, source: str, name: str, replacement) -> None:
+    """``source.name`` and every module's own binding of it (:func:`users_of`) replaced for one test,
+    each module imported before the patch so that none binds the replacement at its import."""
+    users = [importlib.import_module(m) for m in users_of(name)]
+    real = getattr(importlib.import_module(source), name)
+    monkeypatch.setattr(importlib.import_module(source), name, replacement)
+    for module in users:
+        if getattr(module, name, None) is real:
+            monkeypatch.setattr(module, name, replacement)
+
+
+def test_a_patch_where_used_reaches_every_binding_and_leaves_none(monkeypatch):
+    import sim.render
+
+    assert "sim.render" in users_of("XRayImager") and "register.evaluation.demo" in users_of("XRayImager")
+    real = sim.render.XRayImager
+    with monkeypatch.context() as m:
+        patch_where_used(m, "sim.physics.imaging", "XRayImager", None)
+        assert sim.render.XRayImager is None and importlib.import_module("sim.physics.imaging").XRayImager is None
+    assert sim.render.XRayImager is real
+
+
 @pytest.mark.parametrize("name", list(BAD))
 def test_a_bad_input_is_refused_before_the_work_naming_the_option(name, inputs29, tmp_path, capsys, monkeypatch):
-    import register.evaluation.demo
-    import sim.physics.imaging
-
     def no_work(*args, **kwargs):
         raise AssertionError("simulated or loaded before the refusal")
 
-    monkeypatch.setattr(sim.physics.imaging, "XRayImager", no_work)  # the demo's simulation
+    patch_where_used(monkeypatch, "sim.physics.imaging", "XRayImager", no_work)  # a simulation
     if name not in READ_THE_CT:
-        monkeypatch.setattr("sim.ct.io.load_ct_spec", no_work)  # the demo's CT
-        monkeypatch.setattr("sim.load_ct", no_work)  # register's CT
-    assert register.evaluation.demo  # imported: its imports are made inside run_demo
+        patch_where_used(monkeypatch, "sim.ct.io", "load_ct_spec", no_work)  # the demo's CT
+        patch_where_used(monkeypatch, "sim", "load_ct", no_work)  # register's CT
     line, words = BAD[name]
     status, new = _run(line, inputs29, tmp_path)
     said = assert_refused(status, capsys.readouterr().err, new, line, words)
