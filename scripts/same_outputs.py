@@ -8,8 +8,8 @@ registrations and trainings).
 ``make`` runs, in the checkout the script lies in (its code first on ``PYTHONPATH``, ``register.cli:main``): the demo (a realistic
 DICOM frame registered from AP), a 10-case ``ctxreg evaluate`` (contextual+cmaes on line DRRs of the
 pelvis CT), a line, a poly and a full-physics ``ctxreg render``, the smoke campaign's shards (``ctxreg
-simulate``), a tiny study's rows (``ctxreg study``: a variant trained 2 steps, evaluated on line DRRs and
-realistic frames), and two short trainings (3 steps of 4 pairs,
+simulate``), the smoke study's rows (``ctxreg study studies/smoke.toml``: two variants trained 2 steps,
+evaluated on line DRRs and realistic frames), and two short trainings (3 steps of 4 pairs,
 batched and per-pair realistic pairs, from ``configs/train_batched_gpu.toml``). Without
 ``../shared/data`` the built-in phantom stands in for the CT.
 
@@ -52,38 +52,6 @@ def _run(args: list[str], log) -> None:
         sys.exit(f"same_outputs: {' '.join(args)} failed (exit {r.returncode}); see the log")
 
 
-#: A tiny study (one variant trained 2 steps on the smoke campaign; a line target and a realistic-frame
-#: target of 2 cases): its rows (results/*/summary.json) are compared.
-STUDY = """[study]
-ct = "phantom"
-cases = 2
-methods = ["contextual"]
-size = [64, 64]
-
-[[variant]]
-name = "tiny"
-[variant.train]
-dataset = "{campaign}"
-iterations = 2
-batch_size = 2
-val_pairs = 2
-val_every = 1
-checkpoint_every = 1
-pairs_per_epoch = 4
-head_channels = 8
-
-[[target]]
-name = "line"
-
-[[target]]
-name = "fluoro"
-kind = "xray"
-physics = {{ level = "full", kvp = 80, mas = 1.0, scatter_photons = 20000 }}
-collimator = {{ shape = "circle", radius = 0.45, transmission = 0.02 }}
-display = {{ log = true, polarity = "bone-dark", gamma = 0.8, bits = 12, shutter = "black" }}
-"""
-
-
 def make(out: Path, tables: Path | None = None) -> None:
     out = out.resolve()
     out.mkdir(parents=True, exist_ok=True)
@@ -101,9 +69,7 @@ def make(out: Path, tables: Path | None = None) -> None:
         _run([*ctxreg, "render", "--ct", ct, "--size", "48", "48", "--pose", *pose, "--physics", "poly", "--seed",
               "5", "--out", str(out / "render" / "poly.npy")], log)
         _run([*ctxreg, "simulate", str(ROOT / "campaigns" / "smoke.toml"), "--out", str(out / "campaign")], log)
-        study = out / "study.toml"
-        study.write_text(STUDY.format(campaign=ROOT / "campaigns" / "smoke.toml"))
-        _run([*ctxreg, "study", str(study), "--out", str(out / "study")], log)
+        _run([*ctxreg, "study", str(ROOT / "studies" / "smoke.toml"), "--out", str(out / "study")], log)
         base = tomllib.loads((ROOT / "configs" / "train_batched_gpu.toml").read_text())
         for pairs in ("batched", "per-pair"):
             folder = out / f"train_{pairs}"
