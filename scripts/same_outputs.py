@@ -297,6 +297,10 @@ def _compare_file(a: Path, b: Path) -> list[str]:
 
 
 def compare(a_dir: Path, b_dir: Path) -> int:
+    for d in (a_dir, b_dir):
+        if not d.is_dir():
+            print(f"same_outputs: {d} is not a folder of outputs (make one with: make OUT)", file=sys.stderr)
+            return 2
     files_a = {p.relative_to(a_dir) for p in a_dir.rglob("*") if p.is_file()}
     files_b = {p.relative_to(b_dir) for p in b_dir.rglob("*") if p.is_file()}
     bad = 0
