@@ -50,7 +50,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from register.verdict import VerdictSettings, judge, runner_up  # noqa: E402
+from register.verdict import VerdictSettings, checks, failure, judge, runner_up  # noqa: E402
 
 #: A registration within this mTRE (mm) is good: the issue's bar, and the study's success.
 WITHIN_MM = 10.0
@@ -60,7 +60,18 @@ GRID = {"min_similarity": (0.15, 0.2, 0.25, 0.3, 0.35, 0.4, 0.5, 0.6),
         "min_tone_fit": (0.0, 0.2, 0.3, 0.4, 0.5, 0.6),
         "min_margin": (0.0, 0.02, 0.03, 0.05, 0.07, 0.1, 0.15),
         "sure_similarity": (0.85, 0.88, 0.9, 0.92, 0.95, 1.0),
-        "min_depth_drop": (0.0, 0.03, 0.05, 0.07)}
+        "min_depth_drop": (0.0, 0.03, 0.05, 0.07),
+        "min_profile_drop": (None, 0.02, 0.04, 0.06, 0.08),
+        "max_tone_gain": (None, 0.3, 0.2, 0.1, 0.05)}
+
+
+def strictness(settings: VerdictSettings) -> float:
+    """How strict ``settings`` are, for ties of :func:`calibrate`: the lower bounds summed, less the
+    upper bound (``max_tone_gain``); a check left out (None) is the least strict."""
+    v = asdict(settings)
+    lower = sum(x for k, x in v.items() if k in GRID and k != "max_tone_gain" and x is not None)
+    gain = v["max_tone_gain"]
+    return lower - (2.0 if gain is None else gain)
 
 
 def load_rows(paths) -> list[dict]:
@@ -107,21 +118,45 @@ def rates(rows, settings: VerdictSettings) -> dict:
             "failed": labels.count("failed")}
 
 
+#: The evidence each threshold of :data:`GRID` that may be None judges (rows registered before it
+#: was gathered lack it; where no row has it, the threshold stays None).
+EVIDENCE_OF = {"min_profile_drop": "depth_profile", "max_tone_gain": "tone_rival"}
+
+
+def _passes(rows, name: str, value, base: VerdictSettings) -> np.ndarray:
+    """``(N,)`` bool: whether each row passes the check that ``name`` sets at ``value`` (a check
+    not made on a row passes)."""
+    s = replace(base, **{name: value})
+    return np.array([all(ok for n, ok, _ in checks(r["evidence"], s) if n == name) for r in rows], bool)
+
+
 def calibrate(rows) -> tuple[VerdictSettings, dict]:
     """The settings of :data:`GRID` with no false accept on ``rows`` that accept the most good
-    registrations (ties: the stricter, i.e. the larger thresholds summed)."""
+    registrations (ties: the stricter, :func:`strictness`). Each threshold sets one check
+    (:func:`register.verdict.checks`), so every value's passes are found once and a combination is
+    registered where all of its checks pass. A threshold of :data:`EVIDENCE_OF` whose evidence no
+    row has stays None (not judged on evidence never seen)."""
+    base = VerdictSettings()
+    grid = {name: (None,) if name in EVIDENCE_OF and not any(r["evidence"].get(EVIDENCE_OF[name]) for r in rows)
+            else values for name, values in GRID.items()}
+    good = np.array([_good(r) for r in rows], bool)
+    fixed = np.array([failure(r["evidence"], base) is None and all(ok for n, ok, _ in checks(r["evidence"], base)
+                                                                     if n not in grid) for r in rows], bool)
+    passes = {name: [_passes(rows, name, v, base) for v in values] for name, values in grid.items()}
     best, best_key = None, None
-    for values in itertools.product(*GRID.values()):
-        s = replace(VerdictSettings(), **dict(zip(GRID, values)))
-        r = rates(rows, s)
-        if r["false_accepts"]:
+    for idx in itertools.product(*(range(len(v)) for v in grid.values())):
+        reg = fixed.copy()
+        for name, i in zip(grid, idx):
+            reg &= passes[name][i]
+        if (reg & ~good).any():
             continue
-        key = (r["accepted"], sum(values))
+        s = replace(base, **{name: grid[name][i] for name, i in zip(grid, idx)})
+        key = (float(reg[good].mean()) if good.any() else 0.0, strictness(s))
         if best_key is None or key > best_key:
-            best, best_key = (s, r), key
+            best, best_key = s, key
     if best is None:
         raise SystemExit("verdict: no thresholds of the grid avoid every false accept on these rows")
-    return best
+    return best, rates(rows, best)
 
 
 def table(rows, settings: VerdictSettings) -> str:

@@ -25,7 +25,7 @@ from __future__ import annotations
 import math
 import os
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any, Callable
 
@@ -34,7 +34,9 @@ from scipy import ndimage
 
 from learn.adapt import adapted_ct_warning
 from register.engines.methods import build_method, check_method, load_predictor, needs_model
-from register.engines.metrics import downsample, gradient_ncc
+from register.engines.cmaes import CMAESRegistration
+from register.engines.metrics import downsample, gradient_ncc, plain_equivalent
+from register.engines.pipeline import REFINE_SETTINGS
 from register.engines.result import RegistrationError
 from register.engines.search import GlobalSearch, GlobalSearchSettings, describe_search
 from register.verdict import Verdict, judge_result
@@ -442,7 +444,7 @@ class RegistrationRequest:
             log(line)
         ran = result.search is not None and bool(result.search.get("grid_poses"))
         with clock("verdict"):
-            verdict = _verdict(volume, c, prepared, result)
+            verdict = _verdict(self, volume, c, prepared, result)
         return XRayRegistration(method=self.method, result=result, prepared=prepared, volume=volume, center_lps=c,
                                 init_params=self.start, physics=self.moving, label_materials=self.label_materials,
                                 notes=notes, search_mode=self.search if self.method in SEARCH_METHODS else None,
@@ -652,15 +654,25 @@ class _PolarityCheckedRun:
         return result, self.prepared
 
 
-def _verdict(volume, center_lps, prepared, result) -> Verdict:
+def _verdict(request: RegistrationRequest, volume, center_lps, prepared, result) -> Verdict:
     """The verdict (:func:`register.verdict.judge_result`) on a registration's ``result``: three line
-    DRRs (its pose and the depth probe's), at the optimiser's size."""
+    DRRs (its pose and the depth probe's), the depth profile by the refinement's CMA-ES (the
+    request's moving images, scored as the refinement scored this X-ray) and the tone rival by a
+    line-DRR CMA-ES, at the optimiser's size."""
     g = prepared.geometry
-    renderer = DRRRenderer(volume, RenderSettings(size=(g.height, g.width)), center_lps=center_lps, geometry=g)
+    size = (g.height, g.width)
+    renderer = DRRRenderer(volume, RenderSettings(size=size), center_lps=center_lps, geometry=g)
+    settings = replace(REFINE_SETTINGS, size=size)
+    refine = CMAESRegistration(volume, settings, geometry=g, center_lps=center_lps, physics=request.moving,
+                               label_materials=request.label_materials)
+    if prepared.toned is None:  # line integrals: plain gradient NCC, as the refinement scores them
+        refine = refine.scored_by(tuple(plain_equivalent(m) for m in settings.metrics))
+    line = refine if request.moving.level == "line" else CMAESRegistration(volume, settings, geometry=g,
+                                                                           center_lps=center_lps)
     fld = prepared.step("field")
     fraction = fld["valid_fraction"] if fld is not None and "valid_fraction" in fld else None
     return judge_result(result, prepared.image, render=renderer.render, sod_mm=g.sod_mm, mask=prepared.mask,
-                        toned=prepared.toned, field_fraction=fraction)
+                        toned=prepared.toned, field_fraction=fraction, refine=refine, tone_search=line)
 
 
 def grid_bytes(box, shape, geometry) -> float:

@@ -20,7 +20,17 @@ independent evidence, each gathered once after the registration (:func:`gather_e
   the ray through the anatomy centre, nearer or farther (the image scaled about the centre's
   projection): a single view reads depth from the magnification alone, and where the similarity
   barely changes over +-30 mm the depth is not determined (most wrong registrations of known
-  truth were off in depth: 14-170 mm).
+  truth were off in depth: 14-170 mm);
+* ``depth_profile``: the same probe with the other five parameters fitted again at each depth
+  (:func:`depth_profile`): a wrong depth is often held by a tilt that makes up for the
+  magnification, which the plain probe does not try, so its drop stays large where the
+  profile's vanishes;
+* ``tone_rival``: where the intensities alone would put the pose (:func:`tone_rival`: the tone
+  fit maximised from the final pose): a distinct pose whose intensities fit far better than the
+  final one's says the edges and the intensities disagree.
+
+The last two need a CMA-ES (``judge_result``'s ``refine`` and ``tone_search``); their thresholds
+are None (recorded, not judged) until calibrated.
 
 :func:`judge` turns the evidence into the verdict with :class:`VerdictSettings`, whose thresholds
 were calibrated on registrations of known truth (``benchmarks/verdict.py``; docs/results.md,
@@ -41,13 +51,14 @@ from dataclasses import asdict, dataclass, field
 
 import numpy as np
 
+from register.engines.cmaes import CMAESRegistration, along_view_ray
 from register.engines.metrics import bind_metric, ncc
 from register.engines.result import RegistrationError
 from sim.projection.geometry import pose_from_params
 from sim.projection.se3 import rotation_error_deg
 
-__all__ = ["Verdict", "VerdictSettings", "gather_evidence", "judge", "judge_result", "pose_gap", "runner_up",
-           "depth_probe_poses", "DEPTH_PROBE_MM", "EXIT_STATUS",
+__all__ = ["Verdict", "VerdictSettings", "gather_evidence", "checks", "failure", "judge", "judge_result", "pose_gap", "runner_up",
+           "depth_probe_poses", "depth_profile", "tone_rival", "DEPTH_PROBE_MM", "EXIT_STATUS",
            "LABELS", "DISTINCT_DEG", "DISTINCT_MM", "DISTINCT_DEPTH_MM"]
 
 #: The verdicts, best first.
@@ -73,6 +84,16 @@ DISTINCT_DEPTH_MM = 20.0
 #: way (:func:`depth_probe_poses`): 30 mm at 700 mm from the source scales the image by 4 %.
 DEPTH_PROBE_MM = 30.0
 
+#: The depth profile (:func:`depth_profile`): the CMA-ES generations of the fit at each probe's
+#: depth, and the half-width (mm) of the box that pins the depth there.
+PROFILE_GENERATIONS = 25
+PROFILE_PIN_MM = 0.5
+
+#: The tone rival (:func:`tone_rival`): the half-width (mm) of its box in depth (in plane, the
+#: refinement's box) and its CMA-ES generations.
+TONE_SEARCH_DEPTH_MM = 90.0
+TONE_SEARCH_GENERATIONS = 30
+
 
 @dataclass(frozen=True)
 class VerdictSettings:
@@ -95,6 +116,11 @@ class VerdictSettings:
         min_field_fraction: ``registered`` needs at least this share of the X-ray's pixels used.
         min_depth_drop: ``registered`` needs the similarity to fall by at least this much
             :data:`DEPTH_PROBE_MM` nearer or farther (the better of the two).
+        min_profile_drop: ``registered`` needs the depth profile (:func:`depth_profile`) to fall
+            by at least this much; None: recorded, not judged.
+        max_tone_gain: ``registered`` needs the tone rival (:func:`tone_rival`), where distinct
+            from the final pose, to fit the intensities by at most this much better; None:
+            recorded, not judged.
     """
 
     fail_below: float = 0.15
@@ -105,9 +131,13 @@ class VerdictSettings:
     sure_similarity: float = 0.9
     min_field_fraction: float = 0.1
     min_depth_drop: float = 0.07
+    min_profile_drop: float | None = None
+    max_tone_gain: float | None = None
 
     def __post_init__(self) -> None:
         for name, v in asdict(self).items():
+            if v is None and name in ("min_profile_drop", "max_tone_gain"):
+                continue
             if isinstance(v, bool) or not isinstance(v, (int, float)) or not np.isfinite(v) or not -1 <= v <= 1:
                 raise RegistrationError(f"VerdictSettings.{name} must be a number in [-1, 1], got {v!r}")
 
@@ -154,6 +184,81 @@ def depth_probe_poses(T: np.ndarray, d_mm: float = DEPTH_PROBE_MM) -> np.ndarray
     return out
 
 
+def depth_profile(refine: CMAESRegistration, image: np.ndarray, params, *, mask: np.ndarray | None = None,
+                  d_mm: float = DEPTH_PROBE_MM) -> tuple[float, np.ndarray, np.ndarray]:
+    """The similarity ``d_mm`` farther from and nearer to the source along the ray through the
+    anatomy centre, the other five parameters fitted again there.
+
+    The plain probe (:func:`depth_probe_poses`) keeps the rotation and the in-plane translation,
+    so a pose whose depth is wrong and whose tilt makes up for the magnification still shows a
+    sharp drop there (a frame 45 mm off in depth and 5 deg in tilt: the plain probe fell by 0.26,
+    the profile by 0.07; the right poses of its condition fell by 0.09-0.25 in the profile). Here
+    CMA-ES (``refine``'s settings, :data:`PROFILE_GENERATIONS` generations, no polish, the depth
+    pinned within :data:`PROFILE_PIN_MM`) starts at each moved pose (:func:`along_view_ray`).
+
+    Args:
+        refine: the registration's refinement (:class:`register.engines.cmaes.CMAESRegistration`
+            at the image's size), scoring as the registration did.
+        image: ``(h, w)`` the X-ray as registered; mask: ``(h, w)`` its valid pixels (None: all).
+        params: ``(6,)`` the final pose (deg, mm).
+
+    Returns ``(here, scores, poses)``: the similarity at ``params``, ``(2,)`` the best at the two
+    depths (farther, nearer; the fit's or the moved pose's own, whichever is higher; all at full
+    resolution, ``refine``'s finest metric; a moved pose that shows no CT is not fitted) and
+    ``(2, 6)`` where they were found.
+    """
+    p = np.asarray(params, float).reshape(6)
+    pinned = refine.adjusted(range_depth_mm=PROFILE_PIN_MM, sigma_depth_mm=PROFILE_PIN_MM,
+                             generations=(PROFILE_GENERATIONS,), polish=False)
+    s = pinned.settings
+    score = bind_metric(s.per_level("metrics", len(s.levels) - 1), image, mask)
+    here = float(score(pinned.render(p[None]))[0])
+    probes = along_view_ray(p, [d_mm, -d_mm], pinned.geometry.sod_mm)
+    plain = score(pinned.render(probes))  # CMA-ES fits at its level's resolution: the probe itself may score higher
+    scores, poses = plain.copy(), probes.copy()
+    seen = np.flatnonzero(pinned.in_view(probes))  # a probe that shows no CT is not fitted (CMA-ES cannot start there)
+    for k, r in zip(seen, pinned.register_many(image, probes[seen], mask=mask, polish=False)):
+        if r.similarity > scores[k]:
+            scores[k], poses[k] = r.similarity, r.params
+    return here, scores, poses
+
+
+def tone_rival(search: CMAESRegistration, fixed: np.ndarray, params, *, mask: np.ndarray | None = None
+               ) -> dict | None:
+    """Where the intensities alone put the pose: CMA-ES on the tone fit (the NCC of ``fixed`` with
+    line DRRs) from the final pose ``params`` ``(6,)`` (deg, mm), in ``search``'s box widened to
+    +-:data:`TONE_SEARCH_DEPTH_MM` in depth (:data:`TONE_SEARCH_GENERATIONS` generations, no polish).
+
+    The similarity weighs edges and the tone fit intensities. At a right pose both are near their
+    best; a pose the edges favour wrongly can sit beside one the intensities favour far more (the
+    frame above: tone fit 0.78 at the registered pose, 0.99 at a pose 10 deg away; the right poses
+    of its condition gained 0.00-0.02).
+
+    Args:
+        search: a line-DRR :class:`register.engines.cmaes.CMAESRegistration` at the image's size
+            (its metric is replaced by NCC here).
+        fixed: ``(h, w)`` what the tone fit compares (the X-ray's toned version for a display
+            image, else the X-ray); mask: ``(h, w)`` its valid pixels (None: all).
+
+    Returns ``{"tone_fit", "gain", "deg", "mm", "depth_mm"}``: the tone fit it reached, how much
+    above the final pose's (both at full resolution by ``search``'s renderer; the final pose itself,
+    gain 0, where the search ended no higher), and its :func:`pose_gap` from the final pose; None
+    where the final pose shows no CT.
+    """
+    s = search.adjusted(metrics=("ncc",), range_depth_mm=TONE_SEARCH_DEPTH_MM,
+                        generations=(TONE_SEARCH_GENERATIONS,), polish=False)
+    p = np.asarray(params, float).reshape(6)
+    if not s.in_view(p)[0]:  # no CT in the view: nothing to fit (the similarity fails such a pose)
+        return None
+    here = float(ncc(fixed, s.render(p[None]), mask=mask)[0])
+    found = s.register(fixed, p, mask=mask, polish=False)
+    if found.similarity <= here:  # CMA-ES fits at its level's resolution: the final pose itself may fit best
+        return {"tone_fit": here, "gain": 0.0, "deg": 0.0, "mm": 0.0, "depth_mm": 0.0}
+    gap = pose_gap(found.pose, pose_from_params(p, s.geometry.sod_mm))
+    return {"tone_fit": float(found.similarity), "gain": float(found.similarity - here),
+            "deg": round(gap[0], 3), "mm": round(gap[1], 3), "depth_mm": round(gap[2], 3)}
+
+
 def distinct(gap: tuple[float, float, float]) -> bool:
     """Whether a pose gap ``(deg, mm, depth_mm)`` is another answer (:data:`DISTINCT_DEG`,
     :data:`DISTINCT_MM`, :data:`DISTINCT_DEPTH_MM`)."""
@@ -163,7 +268,7 @@ def distinct(gap: tuple[float, float, float]) -> bool:
 def gather_evidence(*, similarity: float, pose: np.ndarray, image: np.ndarray, mask: np.ndarray | None,
                     drr: np.ndarray, toned: np.ndarray | None, search: dict | None, search_ran: bool,
                     network_pose: np.ndarray | None, sod_mm: float, field_fraction: float,
-                    depth_scores=None) -> dict:
+                    depth_scores=None, profile=None, rival: dict | None = None) -> dict:
     """The evidence of the module doc, as plain numbers (JSON).
 
     Args:
@@ -175,6 +280,8 @@ def gather_evidence(*, similarity: float, pose: np.ndarray, image: np.ndarray, m
         sod_mm: the geometry's source-object distance (mm): the refined starts' poses from their parameters.
         field_fraction: the share of the X-ray's pixels in the registration's field.
         depth_scores: ``(3,)`` the similarity at :func:`depth_probe_poses` (None: not probed).
+        profile: :func:`depth_profile`'s ``(here, scores, poses)`` (None: not profiled).
+        rival: :func:`tone_rival`'s answer (None: not searched).
     """
     ev: dict = {"similarity": float(similarity), "field_fraction": float(field_fraction)}
     ev["tone_fit"] = float(ncc(image if toned is None else toned, drr, mask=mask)[0])
@@ -186,6 +293,11 @@ def gather_evidence(*, similarity: float, pose: np.ndarray, image: np.ndarray, m
     if depth_scores is not None:
         d = np.asarray(depth_scores, float).reshape(3)
         ev["depth_drop"] = float(d[0] - max(d[1], d[2]))
+    ev["depth_profile"] = None
+    if profile is not None:
+        here, scores = float(profile[0]), np.asarray(profile[1], float).reshape(2)
+        ev["depth_profile"] = {"drop": here - float(scores.max()), "similarity": here, "scores": scores.tolist()}
+    ev["tone_rival"] = None if rival is None else dict(rival)
     ev["runner_up"] = runner_up(search, pose, sod_mm) if search_ran else None
     if search_ran and search is not None and search.get("refined"):
         ev["alternatives"] = len(search["refined"]) - 1
@@ -207,65 +319,98 @@ def runner_up(search: dict | None, pose: np.ndarray, sod_mm: float) -> dict | No
     return best
 
 
-def judge(evidence: dict, settings: VerdictSettings | None = None) -> Verdict:
-    """The verdict on ``evidence`` (:func:`gather_evidence`) with ``settings``: ``failed`` where the
-    similarity or the tone fit is below its floor; ``registered`` where every check passes;
-    ``doubtful`` otherwise. Each check that decided it gives a reason."""
-    s = settings or VerdictSettings()
+def failure(evidence: dict, settings: VerdictSettings) -> str | None:
+    """Why ``evidence`` is ``failed`` (the similarity or the tone fit below its floor), or None."""
+    s = settings
     sim_, tone = evidence["similarity"], evidence["tone_fit"]
     if not np.isfinite(sim_) or sim_ < s.fail_below:
-        return Verdict("failed", (f"similarity {sim_:.2f} < {s.fail_below:.2f}: the DRR does not match the X-ray",),
-                       evidence)
+        return f"similarity {sim_:.2f} < {s.fail_below:.2f}: the DRR does not match the X-ray"
     if not np.isfinite(tone) or tone < s.tone_fail_below:
-        return Verdict("failed", (f"tone fit {tone:.2f} < {s.tone_fail_below:.2f}: the X-ray's intensities disagree with "
-                                  f"the CT's at this pose",), evidence)
-    doubts, checks = [], []
-    if sim_ < s.min_similarity:
-        doubts.append(f"similarity {sim_:.2f} < {s.min_similarity:.2f}")
-    else:
-        checks.append(f"similarity {sim_:.2f}")
-    if tone < s.min_tone_fit:
-        doubts.append(f"tone fit {tone:.2f} < {s.min_tone_fit:.2f}")
-    else:
-        checks.append(f"tone fit {tone:.2f}")
+        return f"tone fit {tone:.2f} < {s.tone_fail_below:.2f}: the X-ray's intensities disagree with the CT's at this pose"
+    return None
+
+
+def checks(evidence: dict, settings: VerdictSettings) -> list[tuple[str, bool, str]]:
+    """The checks a ``registered`` verdict needs, each ``(setting, passed, reason)``: the
+    :class:`VerdictSettings` field that sets its threshold, whether ``evidence`` passes it, and
+    the sentence that says so (a doubt where it failed). A check whose evidence was not gathered,
+    or whose threshold is None, is left out. ``benchmarks/verdict.py --calibrate`` varies each
+    setting against its own check."""
+    s = settings
+    sim_, tone = evidence["similarity"], evidence["tone_fit"]
+    out = [("min_similarity", sim_ >= s.min_similarity,
+            f"similarity {sim_:.2f}" if sim_ >= s.min_similarity else f"similarity {sim_:.2f} < {s.min_similarity:.2f}"),
+           ("min_tone_fit", tone >= s.min_tone_fit,
+            f"tone fit {tone:.2f}" if tone >= s.min_tone_fit else f"tone fit {tone:.2f} < {s.min_tone_fit:.2f}")]
     runner = evidence.get("runner_up")
     if evidence["search"] == "ran":
         if runner is not None and sim_ - runner["similarity"] < s.min_margin:
-            doubts.append(f"a distinct pose ({runner['deg']:.0f} deg, {runner['mm']:.0f} mm across and "
-                          f"{runner.get('depth_mm', 0):.0f} mm in depth away) scored "
-                          f"{runner['similarity']:.2f}, within {s.min_margin:.2f} of it")
+            out.append(("min_margin", False, f"a distinct pose ({runner['deg']:.0f} deg, {runner['mm']:.0f} mm across and "
+                        f"{runner.get('depth_mm', 0):.0f} mm in depth away) scored {runner['similarity']:.2f}, within "
+                        f"{s.min_margin:.2f} of it"))
         else:
-            checks.append("no distinct pose of the search scored within "
-                          f"{s.min_margin:.2f}" if runner is not None else "the search found no distinct pose")
+            out.append(("min_margin", True, f"no distinct pose of the search scored within {s.min_margin:.2f}"
+                        if runner is not None else "the search found no distinct pose"))
     elif sim_ < s.sure_similarity:
-        doubts.append(f"no alternative examined (search {evidence['search']}) and similarity {sim_:.2f} < "
-                      f"{s.sure_similarity:.2f}")
+        out.append(("sure_similarity", False, f"no alternative examined (search {evidence['search']}) and similarity "
+                    f"{sim_:.2f} < {s.sure_similarity:.2f}"))
     else:
-        checks.append(f"similarity {sim_:.2f} >= {s.sure_similarity:.2f} without a search")
+        out.append(("sure_similarity", True, f"similarity {sim_:.2f} >= {s.sure_similarity:.2f} without a search"))
     drop = evidence.get("depth_drop")
-    if drop is not None and drop < s.min_depth_drop:
-        doubts.append(f"the depth is not determined: {DEPTH_PROBE_MM:.0f} mm nearer or farther scores within "
-                      f"{max(drop, 0.0):.3f} (< {s.min_depth_drop:.3f})")
-    elif drop is not None:
-        checks.append(f"depth: +-{DEPTH_PROBE_MM:.0f} mm scores {drop:.3f} lower")
-    if evidence["field_fraction"] < s.min_field_fraction:
-        doubts.append(f"{100 * evidence['field_fraction']:.0f} % of the X-ray used (< "
-                      f"{100 * s.min_field_fraction:.0f} %)")
+    if drop is not None:
+        out.append(("min_depth_drop", drop >= s.min_depth_drop,
+                    f"depth: +-{DEPTH_PROBE_MM:.0f} mm scores {drop:.3f} lower" if drop >= s.min_depth_drop else
+                    f"the depth is not determined: {DEPTH_PROBE_MM:.0f} mm nearer or farther scores within "
+                    f"{max(drop, 0.0):.3f} (< {s.min_depth_drop:.3f})"))
+    profile = evidence.get("depth_profile")
+    if profile is not None and s.min_profile_drop is not None:
+        ok = profile["drop"] >= s.min_profile_drop
+        out.append(("min_profile_drop", ok, f"depth profile: +-{DEPTH_PROBE_MM:.0f} mm, fitted again, scores "
+                    f"{profile['drop']:.3f} lower" if ok else f"the depth is not determined: {DEPTH_PROBE_MM:.0f} mm "
+                    f"nearer or farther, the other parameters fitted again, scores within {max(profile['drop'], 0.0):.3f} "
+                    f"(< {s.min_profile_drop:.3f})"))
+    rival = evidence.get("tone_rival")
+    if rival is not None and s.max_tone_gain is not None:
+        ok = not (rival["gain"] > s.max_tone_gain and distinct((rival["deg"], rival["mm"], rival["depth_mm"])))
+        out.append(("max_tone_gain", ok, f"no distinct pose fits the intensities more than {s.max_tone_gain:.2f} better"
+                    if ok else f"the intensities fit a distinct pose ({rival['deg']:.0f} deg, {rival['mm']:.0f} mm across "
+                    f"and {rival['depth_mm']:.0f} mm in depth away) better: tone fit {rival['tone_fit']:.2f}, "
+                    f"{rival['gain']:.2f} above this pose's (> {s.max_tone_gain:.2f})"))
+    frac = evidence["field_fraction"]
+    out.append(("min_field_fraction", frac >= s.min_field_fraction,
+                f"{100 * frac:.0f} % of the X-ray used" if frac >= s.min_field_fraction else
+                f"{100 * frac:.0f} % of the X-ray used (< {100 * s.min_field_fraction:.0f} %)"))
+    return out
+
+
+def judge(evidence: dict, settings: VerdictSettings | None = None) -> Verdict:
+    """The verdict on ``evidence`` (:func:`gather_evidence`) with ``settings``: ``failed`` where the
+    similarity or the tone fit is below its floor (:func:`failure`); ``registered`` where every
+    check (:func:`checks`) passes; ``doubtful`` otherwise. Each check that decided it gives a reason."""
+    s = settings or VerdictSettings()
+    why = failure(evidence, s)
+    if why is not None:
+        return Verdict("failed", (why,), evidence)
+    done = checks(evidence, s)
+    doubts = tuple(reason for _, ok, reason in done if not ok)
     if doubts:
-        return Verdict("doubtful", tuple(doubts), evidence)
-    return Verdict("registered", tuple(checks), evidence)
+        return Verdict("doubtful", doubts, evidence)
+    return Verdict("registered", tuple(reason for name, _, reason in done if name != "min_field_fraction"), evidence)
 
 
 def judge_result(result, image: np.ndarray, *, render, sod_mm: float, mask: np.ndarray | None = None,
                  toned: np.ndarray | None = None, field_fraction: float | None = None,
-                 settings: VerdictSettings | None = None) -> Verdict:
+                 settings: VerdictSettings | None = None, refine: CMAESRegistration | None = None,
+                 tone_search: CMAESRegistration | None = None) -> Verdict:
     """The verdict on an engine's :class:`register.engines.result.RegistrationResult` of ``image``
     ``(h, w)`` (its ``mask`` and ``toned`` version as registered). ``render``: ``(B, 4, 4) -> (B, h,
     w)`` line DRRs at the image's geometry (the tone fit's at ``result.pose`` and the depth probe's,
     :func:`depth_probe_poses`, scored by the refinement's similarity: tone-tolerant gradient NCC for
     a display image, gradient NCC otherwise); ``sod_mm``: the geometry's source-object distance (the
     poses of the search's refined starts); ``field_fraction``: the share of pixels used (default:
-    the mask's)."""
+    the mask's); ``refine``: the refinement's CMA-ES as it scored the image (the depth profile,
+    :func:`depth_profile`; None: not profiled); ``tone_search``: a line-DRR CMA-ES at the image's
+    size (the tone rival, :func:`tone_rival`; None: not searched)."""
     search = result.search
     ran = search is not None and bool(search.get("grid_poses"))
     network = None
@@ -275,7 +420,10 @@ def judge_result(result, image: np.ndarray, *, render, sod_mm: float, mask: np.n
         field_fraction = 1.0 if mask is None else float(np.mean(mask))
     drrs = np.asarray(render(depth_probe_poses(result.pose)), float)
     depth = bind_metric("tone_tolerant_gncc" if toned is not None else "gncc", image, mask)(drrs)
+    profile = None if refine is None else depth_profile(refine, image, result.params, mask=mask)
+    rival = None if tone_search is None else tone_rival(tone_search, image if toned is None else toned,
+                                                          result.params, mask=mask)
     ev = gather_evidence(similarity=result.similarity, pose=result.pose, image=image, mask=mask, drr=drrs[0],
                          toned=toned, search=search, search_ran=ran, network_pose=network, sod_mm=sod_mm,
-                         field_fraction=field_fraction, depth_scores=depth)
+                         field_fraction=field_fraction, depth_scores=depth, profile=profile, rival=rival)
     return judge(ev, settings)

@@ -193,8 +193,20 @@ class CMAESRegistration:
         settings name a display-tolerant one."""
         if tuple(metrics) == tuple(self.settings.metrics):
             return self
+        return self.adjusted(metrics=tuple(metrics))
+
+    def adjusted(self, **changes) -> "CMAESRegistration":
+        """This registration with ``changes`` to its :class:`CMAESSettings` (checked as there),
+        sharing its renderers: the levels must be ones it renders, and the size stays."""
+        settings = replace(self.settings, **changes)
+        if tuple(settings.size) != tuple(self.settings.size):
+            raise RegistrationError(f"adjusted: the size stays {self.settings.size} (its renderers'), got {settings.size}")
+        missing = sorted(set(settings.levels) - set(self.by_factor))
+        if missing:
+            raise RegistrationError(f"adjusted: no renderer for the level factor(s) {missing}; it renders "
+                                    f"{sorted(self.by_factor)}")
         other = copy.copy(self)
-        other.settings = replace(self.settings, metrics=tuple(metrics))
+        other.settings = settings
         return other
 
     def render(self, params: np.ndarray, factor: int = 1) -> np.ndarray:

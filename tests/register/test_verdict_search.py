@@ -1,0 +1,127 @@
+"""The verdict's evidence that needs a CMA-ES (register/verdict.py): the depth profile and the tone
+rival, on a phantom X-ray of known pose (a line DRR, so the truth is the similarity's and the tone
+fit's optimum), and how the judge and the calibration use them."""
+
+from __future__ import annotations
+
+import sys
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from register.engines.cmaes import CMAESRegistration, along_view_ray
+from register.engines.pipeline import REFINE_SETTINGS
+from register.engines.result import RegistrationError
+from register.verdict import (DEPTH_PROBE_MM, PROFILE_PIN_MM, VerdictSettings, depth_profile, judge, pose_gap,
+                              tone_rival)
+from sim.projection.drr import DRRRenderer, RenderSettings
+from sim.projection.geometry import pose_from_params
+from tests.conftest import REPO
+
+sys.path.insert(0, str(REPO / "benchmarks"))
+import verdict as bench  # noqa: E402  (benchmarks/verdict.py, not a package)
+
+SIZE = (64, 64)
+TRUTH = np.array([5.0, -3.0, 2.0, 6.0, -4.0, 10.0])
+
+
+@pytest.fixture(scope="module")
+def scene():
+    from sim.ct.anatomy import anatomy_center
+    from sim.ct.phantom import make_pelvis_phantom
+
+    vol = make_pelvis_phantom(0, spacing_mm=4.0)
+    c = anatomy_center(vol)
+    xray = DRRRenderer(vol, RenderSettings(size=SIZE), center_lps=c).render_params(TRUTH)[0]
+    refine = CMAESRegistration(vol, replace(REFINE_SETTINGS, size=SIZE, popsize=12), center_lps=c).scored_by(("gncc",))
+    return vol, c, xray, refine
+
+
+def test_the_profile_pins_the_depth_and_falls_from_the_true_pose(scene):
+    _, _, xray, refine = scene
+    here, scores, poses = depth_profile(refine, xray, TRUTH)
+    sod = refine.geometry.sod_mm
+    # the X-ray is the DRR at the truth: its gradient NCC there is 1 (to the float sums' rounding)
+    assert here == pytest.approx(1.0, abs=1e-9)
+    # each fit stays on its probe's depth: the camera depth of the centre within the pinning box
+    probes = along_view_ray(TRUTH, [DEPTH_PROBE_MM, -DEPTH_PROBE_MM], sod)
+    np.testing.assert_allclose(poses[:, 5], probes[:, 5], atol=PROFILE_PIN_MM + 1e-9)
+    # no rigid pose 30 mm nearer or farther makes the same image (the magnification changes by
+    # 4-5 %): the profile falls, though less than far off (the fit makes up some of it)
+    assert np.all(scores < here - 0.02) and np.all(scores > 0.2)
+    # at least the moved pose's own score (the fit runs at half resolution and may end below it)
+    from register.engines.metrics import gradient_ncc
+
+    plain = gradient_ncc(xray, refine.render(probes))
+    assert np.all(scores >= plain) and np.all(scores < 1.0)
+
+
+def test_the_tone_rival_finds_the_intensities_optimum_and_gains_nothing_at_it(scene):
+    _, _, xray, refine = scene
+    sod = refine.geometry.sod_mm
+    at_truth = tone_rival(refine, xray, TRUTH)
+    assert at_truth["gain"] == pytest.approx(0.0, abs=1e-6) and at_truth["tone_fit"] == pytest.approx(1.0, abs=1e-9)
+    # from a pose 3 deg and 25 mm in depth off, the intensities lead back towards the truth
+    off = TRUTH + np.array([0.0, 3.0, 0.0, 0.0, 0.0, 25.0])
+    rival = tone_rival(refine, xray, off)
+    assert rival["gain"] > 0.02 and rival["tone_fit"] > 0.95
+    before = pose_gap(pose_from_params(off, sod), pose_from_params(TRUTH, sod))
+    assert rival["depth_mm"] > 0.5 * before[2]  # it moved most of the way in depth
+
+
+def test_adjusted_shares_the_renderers_and_refuses_a_level_it_does_not_render(scene):
+    _, _, _, refine = scene
+    other = refine.adjusted(generations=(5,))
+    assert other.by_factor is refine.by_factor and other.settings.generations == (5,)
+    assert refine.settings.generations == REFINE_SETTINGS.generations
+    with pytest.raises(RegistrationError, match="no renderer for the level"):
+        refine.adjusted(levels=(8,))
+    with pytest.raises(RegistrationError, match="the size stays"):
+        refine.adjusted(size=(32, 32))
+
+
+def _ev(**kw) -> dict:
+    ev = {"similarity": 0.9, "tone_fit": 0.8, "runner_up": None, "search": "ran", "field_fraction": 0.5}
+    ev.update(kw)
+    return ev
+
+
+def test_the_judge_uses_the_profile_and_the_rival_only_with_thresholds():
+    flat = _ev(depth_profile={"drop": 0.01, "similarity": 0.9, "scores": [0.89, 0.85]})
+    rival = _ev(tone_rival={"tone_fit": 0.99, "gain": 0.2, "deg": 10.0, "mm": 9.0, "depth_mm": 9.0})
+    assert judge(flat).label == "registered" and judge(rival).label == "registered"  # None: not judged
+    s = VerdictSettings(min_profile_drop=0.04, max_tone_gain=0.1)
+    v = judge(flat, s)
+    assert v.label == "doubtful" and "fitted again" in v.reasons[0]
+    v = judge(rival, s)
+    assert v.label == "doubtful" and "intensities fit a distinct pose" in v.reasons[0]
+    # a gain at a pose that is not distinct is the same answer refined
+    same = _ev(tone_rival={"tone_fit": 0.99, "gain": 0.2, "deg": 1.0, "mm": 2.0, "depth_mm": 5.0})
+    assert judge(same, s).label == "registered"
+    with pytest.raises(RegistrationError, match="min_profile_drop"):
+        VerdictSettings(min_profile_drop=float("nan"))
+
+
+def test_the_calibration_judges_the_new_evidence_only_where_rows_have_it():
+    good = [{"condition": "c", "mtre_mm": 1.0, "evidence": _ev(similarity=0.8 + 0.01 * i,
+                                                              depth_profile={"drop": 0.1 + 0.01 * i})} for i in range(5)]
+    # a wrong pose every old check passes: only the profile tells it
+    wrong = {"condition": "c", "mtre_mm": 45.0, "evidence": _ev(similarity=0.95, depth_profile={"drop": 0.03})}
+    chosen, r = bench.calibrate(good + [wrong])
+    assert r["false_accepts"] == 0 and r["accepted"] == 1.0
+    assert 0.03 < chosen.min_profile_drop <= 0.1 and chosen.max_tone_gain is None  # no row has a rival
+    without = [{**x, "evidence": {k: v for k, v in x["evidence"].items() if k != "depth_profile"}} for x in good]
+    chosen, _ = bench.calibrate(without)
+    assert chosen.min_profile_drop is None
+
+
+def test_a_pose_that_shows_no_ct_is_profiled_without_a_fit_and_has_no_rival(scene):
+    # an untrained network may end anywhere: the evidence is still gathered, and the similarity fails it
+    _, _, xray, refine = scene
+    away = np.array([0.0, 0.0, 0.0, 3000.0, 0.0, 0.0])
+    assert not refine.in_view(away)[0]
+    here, scores, poses = depth_profile(refine, xray, away)
+    np.testing.assert_allclose(poses, along_view_ray(away, [DEPTH_PROBE_MM, -DEPTH_PROBE_MM], refine.geometry.sod_mm))
+    assert abs(here) < 0.05 and np.all(np.abs(scores) < 0.05)
+    assert tone_rival(refine, xray, away) is None
