@@ -59,19 +59,30 @@ WITHIN_MM = 10.0
 GRID = {"min_similarity": (0.15, 0.2, 0.25, 0.3, 0.35, 0.4, 0.5, 0.6),
         "min_tone_fit": (0.0, 0.2, 0.3, 0.4, 0.5, 0.6),
         "min_margin": (0.0, 0.02, 0.03, 0.05, 0.07, 0.1, 0.15),
+        "min_tone_margin": (None, 0.3, 0.2, 0.1, 0.05),
         "sure_similarity": (0.85, 0.88, 0.9, 0.92, 0.95, 1.0),
         "min_depth_drop": (0.0, 0.03, 0.05, 0.07),
         "min_profile_drop": (None, 0.02, 0.04, 0.06, 0.08),
         "max_tone_gain": (None, 0.3, 0.2, 0.1, 0.05)}
 
+#: The check (:func:`register.verdict.checks`, by the setting it is named for) each threshold of
+#: :data:`GRID` sets; ``min_tone_margin`` excuses a runner-up within ``min_margin``, so the two
+#: are tried together.
+CHECK_OF = {name: name for name in GRID} | {"min_tone_margin": "min_margin"}
+
+#: The evidence each threshold of :data:`GRID` that may be None judges (rows registered before it
+#: was gathered lack it; where no row has it, the threshold stays None).
+EVIDENCE_OF = {"min_profile_drop": "depth_profile", "max_tone_gain": "tone_rival", "min_tone_margin": "refined_tones"}
+
 
 def strictness(settings: VerdictSettings) -> float:
     """How strict ``settings`` are, for ties of :func:`calibrate`: the lower bounds summed, less the
-    upper bound (``max_tone_gain``); a check left out (None) is the least strict."""
+    upper bound (``max_tone_gain``; None, no bound, counts as 2), and ``min_tone_margin`` as a
+    lower bound where None (no runner-up excused) counts as 2."""
     v = asdict(settings)
-    lower = sum(x for k, x in v.items() if k in GRID and k != "max_tone_gain" and x is not None)
-    gain = v["max_tone_gain"]
-    return lower - (2.0 if gain is None else gain)
+    lower = sum(x for k, x in v.items() if k in GRID and k not in ("max_tone_gain", "min_tone_margin") and x is not None)
+    gain, excuse = v["max_tone_gain"], v["min_tone_margin"]
+    return lower - (2.0 if gain is None else gain) + (2.0 if excuse is None else excuse)
 
 
 def load_rows(paths) -> list[dict]:
@@ -90,7 +101,7 @@ def load_rows(paths) -> list[dict]:
             res = r["result"]
             if ev["search"] == "ran":  # the runner-up again, by the current rule of distinct poses
                 ev = {**ev, "runner_up": runner_up(res.get("search"), np.array(res["pose_4x4"]),
-                                                   res["geometry"]["sod_mm"])}
+                                                   res["geometry"]["sod_mm"], ev.get("refined_tones"))}
             ct = Path(str(r.get("ct"))).name.split(".")[0]
             model = "adapted" if r.get("model") and "adapt" in str(r["model"]) else "shipped"
             method = "grid always" if "always" in str(r.get("method", "")) else "default"
@@ -118,39 +129,40 @@ def rates(rows, settings: VerdictSettings) -> dict:
             "failed": labels.count("failed")}
 
 
-#: The evidence each threshold of :data:`GRID` that may be None judges (rows registered before it
-#: was gathered lack it; where no row has it, the threshold stays None).
-EVIDENCE_OF = {"min_profile_drop": "depth_profile", "max_tone_gain": "tone_rival"}
-
-
-def _passes(rows, name: str, value, base: VerdictSettings) -> np.ndarray:
-    """``(N,)`` bool: whether each row passes the check that ``name`` sets at ``value`` (a check
-    not made on a row passes)."""
-    s = replace(base, **{name: value})
-    return np.array([all(ok for n, ok, _ in checks(r["evidence"], s) if n == name) for r in rows], bool)
+def _passes(rows, check: str, values: dict, base: VerdictSettings) -> np.ndarray:
+    """``(N,)`` bool: whether each row passes ``check`` with the thresholds ``values`` (a check not
+    made on a row passes)."""
+    s = replace(base, **values)
+    return np.array([all(ok for n, ok, _ in checks(r["evidence"], s) if n == check) for r in rows], bool)
 
 
 def calibrate(rows) -> tuple[VerdictSettings, dict]:
     """The settings of :data:`GRID` with no false accept on ``rows`` that accept the most good
-    registrations (ties: the stricter, :func:`strictness`). Each threshold sets one check
-    (:func:`register.verdict.checks`), so every value's passes are found once and a combination is
-    registered where all of its checks pass. A threshold of :data:`EVIDENCE_OF` whose evidence no
-    row has stays None (not judged on evidence never seen)."""
+    registrations (ties: the stricter, :func:`strictness`). Each check (:func:`register.verdict.checks`)
+    depends on its own thresholds (:data:`CHECK_OF`), so each check's passes are found once per
+    combination of them, and a combination of all is registered where every check passes. A
+    threshold of :data:`EVIDENCE_OF` whose evidence no row has stays None (not judged on evidence
+    never seen)."""
     base = VerdictSettings()
     grid = {name: (None,) if name in EVIDENCE_OF and not any(r["evidence"].get(EVIDENCE_OF[name]) for r in rows)
             else values for name, values in GRID.items()}
+    groups: dict[str, list[str]] = {}
+    for name in grid:
+        groups.setdefault(CHECK_OF[name], []).append(name)
     good = np.array([_good(r) for r in rows], bool)
     fixed = np.array([failure(r["evidence"], base) is None and all(ok for n, ok, _ in checks(r["evidence"], base)
-                                                                     if n not in grid) for r in rows], bool)
-    passes = {name: [_passes(rows, name, v, base) for v in values] for name, values in grid.items()}
+                                                                     if n not in groups) for r in rows], bool)
+    options = {check: [dict(zip(names, vals)) for vals in itertools.product(*(grid[n] for n in names))]
+               for check, names in groups.items()}
+    passes = {check: [_passes(rows, check, o, base) for o in opts] for check, opts in options.items()}
     best, best_key = None, None
-    for idx in itertools.product(*(range(len(v)) for v in grid.values())):
+    for idx in itertools.product(*(range(len(o)) for o in options.values())):
         reg = fixed.copy()
-        for name, i in zip(grid, idx):
-            reg &= passes[name][i]
+        for check, i in zip(options, idx):
+            reg &= passes[check][i]
         if (reg & ~good).any():
             continue
-        s = replace(base, **{name: grid[name][i] for name, i in zip(grid, idx)})
+        s = replace(base, **{k: v for check, i in zip(options, idx) for k, v in options[check][i].items()})
         key = (float(reg[good].mean()) if good.any() else 0.0, strictness(s))
         if best_key is None or key > best_key:
             best, best_key = s, key

@@ -121,6 +121,9 @@ class VerdictSettings:
         max_tone_gain: ``registered`` needs the tone rival (:func:`tone_rival`), where distinct
             from the final pose, to fit the intensities by at most this much better; None:
             recorded, not judged.
+        min_tone_margin: a runner-up within ``min_margin`` does not make the registration
+            doubtful where its tone fit is at least this much below the final pose's (the
+            intensities rule it out); None: every such runner-up does.
     """
 
     fail_below: float = 0.15
@@ -133,10 +136,11 @@ class VerdictSettings:
     min_depth_drop: float = 0.07
     min_profile_drop: float | None = None
     max_tone_gain: float | None = None
+    min_tone_margin: float | None = None
 
     def __post_init__(self) -> None:
         for name, v in asdict(self).items():
-            if v is None and name in ("min_profile_drop", "max_tone_gain"):
+            if v is None and name in ("min_profile_drop", "max_tone_gain", "min_tone_margin"):
                 continue
             if isinstance(v, bool) or not isinstance(v, (int, float)) or not np.isfinite(v) or not -1 <= v <= 1:
                 raise RegistrationError(f"VerdictSettings.{name} must be a number in [-1, 1], got {v!r}")
@@ -268,7 +272,7 @@ def distinct(gap: tuple[float, float, float]) -> bool:
 def gather_evidence(*, similarity: float, pose: np.ndarray, image: np.ndarray, mask: np.ndarray | None,
                     drr: np.ndarray, toned: np.ndarray | None, search: dict | None, search_ran: bool,
                     network_pose: np.ndarray | None, sod_mm: float, field_fraction: float,
-                    depth_scores=None, profile=None, rival: dict | None = None) -> dict:
+                    depth_scores=None, profile=None, rival: dict | None = None, refined_tones=None) -> dict:
     """The evidence of the module doc, as plain numbers (JSON).
 
     Args:
@@ -282,6 +286,8 @@ def gather_evidence(*, similarity: float, pose: np.ndarray, image: np.ndarray, m
         depth_scores: ``(3,)`` the similarity at :func:`depth_probe_poses` (None: not probed).
         profile: :func:`depth_profile`'s ``(here, scores, poses)`` (None: not profiled).
         rival: :func:`tone_rival`'s answer (None: not searched).
+        refined_tones: ``(K,)`` the tone fit at each of the search's refined starts (None: not
+            rendered): the runner-up's is then in ``runner_up``.
     """
     ev: dict = {"similarity": float(similarity), "field_fraction": float(field_fraction)}
     ev["tone_fit"] = float(ncc(image if toned is None else toned, drr, mask=mask)[0])
@@ -298,24 +304,29 @@ def gather_evidence(*, similarity: float, pose: np.ndarray, image: np.ndarray, m
         here, scores = float(profile[0]), np.asarray(profile[1], float).reshape(2)
         ev["depth_profile"] = {"drop": here - float(scores.max()), "similarity": here, "scores": scores.tolist()}
     ev["tone_rival"] = None if rival is None else dict(rival)
-    ev["runner_up"] = runner_up(search, pose, sod_mm) if search_ran else None
+    ev["refined_tones"] = None if refined_tones is None else [float(t) for t in refined_tones]
+    ev["runner_up"] = runner_up(search, pose, sod_mm, refined_tones) if search_ran else None
     if search_ran and search is not None and search.get("refined"):
         ev["alternatives"] = len(search["refined"]) - 1
     return ev
 
 
-def runner_up(search: dict | None, pose: np.ndarray, sod_mm: float) -> dict | None:
+def runner_up(search: dict | None, pose: np.ndarray, sod_mm: float, tones=None) -> dict | None:
     """The best of the global search's refined starts (``search["refined"]`` similarities,
     ``search["refined_params"]`` deg/mm) that is :func:`distinct` from ``pose`` ``(4, 4)``:
-    ``{"similarity", "deg", "mm", "depth_mm"}`` (its gap, :func:`pose_gap`), or None (no search,
-    or every start ended at the same answer)."""
+    ``{"similarity", "deg", "mm", "depth_mm", "index"}`` (its gap, :func:`pose_gap`, and its place
+    among the starts; with ``tones``, each start's tone fit, also its ``"tone_fit"``), or None (no
+    search, or every start ended at the same answer)."""
     if search is None or not search.get("refined"):
         return None
     best = None
-    for s, p in zip(search["refined"], search["refined_params"]):
+    for i, (s, p) in enumerate(zip(search["refined"], search["refined_params"])):
         gap = pose_gap(pose_from_params(np.asarray(p, float), sod_mm), pose)
         if distinct(gap) and (best is None or s > best["similarity"]):
-            best = {"similarity": float(s), "deg": round(gap[0], 3), "mm": round(gap[1], 3), "depth_mm": round(gap[2], 3)}
+            best = {"similarity": float(s), "deg": round(gap[0], 3), "mm": round(gap[1], 3), "depth_mm": round(gap[2], 3),
+                    "index": i}
+    if best is not None and tones is not None:
+        best["tone_fit"] = float(tones[best["index"]])
     return best
 
 
@@ -344,7 +355,12 @@ def checks(evidence: dict, settings: VerdictSettings) -> list[tuple[str, bool, s
             f"tone fit {tone:.2f}" if tone >= s.min_tone_fit else f"tone fit {tone:.2f} < {s.min_tone_fit:.2f}")]
     runner = evidence.get("runner_up")
     if evidence["search"] == "ran":
-        if runner is not None and sim_ - runner["similarity"] < s.min_margin:
+        ruled_out = (runner is not None and s.min_tone_margin is not None and "tone_fit" in runner
+                     and tone - runner["tone_fit"] >= s.min_tone_margin)
+        if runner is not None and sim_ - runner["similarity"] < s.min_margin and ruled_out:
+            out.append(("min_margin", True, f"a distinct pose scored {runner['similarity']:.2f}, within {s.min_margin:.2f}, "
+                        f"but its tone fit, {runner['tone_fit']:.2f}, is {tone - runner['tone_fit']:.2f} lower"))
+        elif runner is not None and sim_ - runner["similarity"] < s.min_margin:
             out.append(("min_margin", False, f"a distinct pose ({runner['deg']:.0f} deg, {runner['mm']:.0f} mm across and "
                         f"{runner.get('depth_mm', 0):.0f} mm in depth away) scored {runner['similarity']:.2f}, within "
                         f"{s.min_margin:.2f} of it"))
@@ -420,10 +436,15 @@ def judge_result(result, image: np.ndarray, *, render, sod_mm: float, mask: np.n
         field_fraction = 1.0 if mask is None else float(np.mean(mask))
     drrs = np.asarray(render(depth_probe_poses(result.pose)), float)
     depth = bind_metric("tone_tolerant_gncc" if toned is not None else "gncc", image, mask)(drrs)
+    tones = None
+    if ran and search.get("refined_params"):  # each refined start's tone fit: is a rival's intensities' fit as good?
+        starts = np.array([pose_from_params(np.asarray(p, float), sod_mm) for p in search["refined_params"]])
+        tones = ncc(image if toned is None else toned, np.asarray(render(starts), float), mask=mask)
     profile = None if refine is None else depth_profile(refine, image, result.params, mask=mask)
     rival = None if tone_search is None else tone_rival(tone_search, image if toned is None else toned,
                                                           result.params, mask=mask)
     ev = gather_evidence(similarity=result.similarity, pose=result.pose, image=image, mask=mask, drr=drrs[0],
                          toned=toned, search=search, search_ran=ran, network_pose=network, sod_mm=sod_mm,
-                         field_fraction=field_fraction, depth_scores=depth, profile=profile, rival=rival)
+                         field_fraction=field_fraction, depth_scores=depth, profile=profile, rival=rival,
+                         refined_tones=tones)
     return judge(ev, settings)

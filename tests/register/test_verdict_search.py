@@ -125,3 +125,58 @@ def test_a_pose_that_shows_no_ct_is_profiled_without_a_fit_and_has_no_rival(scen
     np.testing.assert_allclose(poses, along_view_ray(away, [DEPTH_PROBE_MM, -DEPTH_PROBE_MM], refine.geometry.sod_mm))
     assert abs(here) < 0.05 and np.all(np.abs(scores) < 0.05)
     assert tone_rival(refine, xray, away) is None
+
+
+def test_a_close_runner_up_whose_intensities_fit_worse_is_ruled_out_only_with_a_tone_margin():
+    runner = {"similarity": 0.87, "deg": 12.0, "mm": 5.0, "depth_mm": 40.0, "index": 1, "tone_fit": 0.6}
+    ev = _ev(similarity=0.9, tone_fit=0.85, runner_up=runner)
+    assert judge(ev).label == "doubtful"  # None: every close runner-up makes it doubtful
+    v = judge(ev, VerdictSettings(min_tone_margin=0.2))
+    assert v.label == "registered" and any("tone fit, 0.60, is 0.25 lower" in r for r in v.reasons)
+    assert judge(ev, VerdictSettings(min_tone_margin=0.3)).label == "doubtful"
+    no_tone = _ev(similarity=0.9, tone_fit=0.85, runner_up={k: v for k, v in runner.items() if k != "tone_fit"})
+    assert judge(no_tone, VerdictSettings(min_tone_margin=0.05)).label == "doubtful"  # not rendered: not excused
+
+
+def test_the_runner_up_carries_its_tone_fit_and_judge_result_renders_every_refined_start():
+    from register.engines.result import RegistrationResult
+    from register.verdict import judge_result, runner_up
+
+    sod = 700.0
+    final = np.zeros(6)
+    starts = [final.tolist(), [0.0, 0.0, 12.0, 0.0, 0.0, 0.0], [0.0, 0.0, 0.0, 0.0, 0.0, 50.0]]
+    search = {"grid_poses": 10, "refined": [0.9, 0.85, 0.88], "refined_params": starts}
+    ru = runner_up(search, pose_from_params(final, sod), sod, [0.8, 0.7, 0.3])
+    assert ru["index"] == 2 and ru["tone_fit"] == 0.3 and ru["depth_mm"] == pytest.approx(50.0)
+    # the line renderer given: the X-ray itself at the final pose (tone fit 1), its negative
+    # elsewhere (tone fit -1)
+    image = np.random.default_rng(3).random((24, 24))
+    T = pose_from_params(final, sod)
+
+    def line(poses):
+        return np.array([image if np.allclose(p, T) else -image for p in np.asarray(poses).reshape(-1, 4, 4)])
+
+    res = RegistrationResult(params=final, pose=T, projection=np.eye(3, 4), similarity=0.9, renders=1,
+                             stage_seconds={}, search=search)
+    v = judge_result(res, image, render=line, sod_mm=sod)
+    assert v.evidence["refined_tones"] == pytest.approx([1.0, -1.0, -1.0])
+    assert v.evidence["runner_up"]["tone_fit"] == pytest.approx(-1.0) and v.evidence["runner_up"]["index"] == 2
+
+
+def test_the_calibration_tries_the_margin_and_the_tone_margin_together():
+    def row(mtre, sim, tone, ru_sim, ru_tone):
+        return {"condition": "c", "mtre_mm": mtre,
+                "evidence": _ev(similarity=sim, tone_fit=tone, refined_tones=[tone, ru_tone],
+                                runner_up={"similarity": ru_sim, "deg": 10.0, "mm": 5.0, "depth_mm": 30.0,
+                                           "index": 1, "tone_fit": ru_tone})}
+    # right poses with a close rival whose intensities fit far worse; a wrong one whose rival fits as well
+    rows = [row(1.0, 0.9, 0.9, 0.88, 0.5), row(2.0, 0.85, 0.8, 0.84, 0.55), row(40.0, 0.9, 0.8, 0.89, 0.78)]
+    chosen, r = bench.calibrate(rows)
+    assert r["false_accepts"] == 0 and r["accepted"] == 1.0
+    assert chosen.min_tone_margin is not None and 0.02 < chosen.min_tone_margin <= 0.25
+    # without the rivals' tone fits, no margin excuses them: the right ones stay doubtful
+    plain = [{**x, "evidence": {**x["evidence"], "refined_tones": None,
+                                "runner_up": {k: v for k, v in x["evidence"]["runner_up"].items() if k != "tone_fit"}}}
+             for x in rows]
+    chosen, r = bench.calibrate(plain)
+    assert chosen.min_tone_margin is None and r["false_accepts"] == 0
