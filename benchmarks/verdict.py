@@ -9,8 +9,8 @@ the current :class:`register.verdict.VerdictSettings` (or the calibrated ones wi
 ``--calibrate``) and the runner-up found again from the search's record by the current rule of
 distinct poses, so a change of thresholds or of that rule needs no registration again.
 
-The rows of docs/results.md's tables are committed, compacted, in ``benchmarks/verdict_rows/``
-(``calib.jsonl``, ``heldout.jsonl``, ``unmatched.jsonl``)::
+The rows of docs/results.md's tables are committed, compacted (``--compact OUT``: only what the
+tables read), in ``benchmarks/verdict_rows/`` (``calib.jsonl``, ``heldout.jsonl``, ``unmatched.jsonl``)::
 
     .venv/bin/python benchmarks/verdict.py benchmarks/verdict_rows/calib.jsonl --calibrate
     .venv/bin/python benchmarks/verdict.py benchmarks/verdict_rows/heldout.jsonl benchmarks/verdict_rows/unmatched.jsonl
@@ -214,6 +214,28 @@ def unmatched(a) -> int:
     return 0
 
 
+#: What :func:`compact` keeps of a row's ``result`` (everything :func:`load_rows` and the tables read,
+#: and the stage times).
+COMPACT_RESULT_KEYS = ("geometry", "params", "pose_4x4", "search", "search_status", "similarity", "verdict",
+                       "verdict_evidence", "timings_s")
+
+
+def compact(src: Path, dst: Path) -> int:
+    """Write the rows of ``src`` to ``dst`` with only :data:`COMPACT_RESULT_KEYS` of each result (the
+    committed rows, ``benchmarks/verdict_rows/``); returns the rows written."""
+    out = []
+    for line in Path(src).read_text().splitlines():
+        if line.strip():
+            r = json.loads(line)
+            if "result" in r:
+                r["result"] = {k: r["result"][k] for k in COMPACT_RESULT_KEYS if k in r["result"]}
+            out.append(json.dumps(r))
+    tmp = Path(dst).with_suffix(".tmp")
+    tmp.write_text("\n".join(out) + "\n")
+    tmp.replace(dst)
+    return len(out)
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("rows", nargs="*", help="JSON-lines files of registrations (benchmarks/search.py --rows)")
@@ -224,7 +246,15 @@ def main() -> int:
     ap.add_argument("--ct", default=None, help="with --unmatched: the CT")
     ap.add_argument("--model", default=None, help="with --unmatched: the network (default: the shipped default)")
     ap.add_argument("--label", default="unmatched X-ray", help="with --unmatched: the condition's name")
+    ap.add_argument("--compact", default=None, metavar="OUT",
+                    help="write the one ROWS file to OUT with only what the tables read of each result")
     a = ap.parse_args()
+    if a.compact is not None:
+        if len(a.rows) != 1 or not Path(a.rows[0]).is_file():
+            print("verdict: --compact needs one existing ROWS file", file=sys.stderr)
+            return 2
+        print(f"verdict: {compact(Path(a.rows[0]), Path(a.compact))} rows -> {a.compact}")
+        return 0
     if a.unmatched is not None:
         if a.ct is None or not a.rows or len(a.rows) != 1:
             print("verdict: --unmatched needs --ct and one ROWS file to append to", file=sys.stderr)

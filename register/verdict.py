@@ -29,8 +29,8 @@ independent evidence, each gathered once after the registration (:func:`gather_e
   fit maximised from the final pose): a distinct pose whose intensities fit far better than the
   final one's says the edges and the intensities disagree.
 
-The last two need a CMA-ES (``judge_result``'s ``refine`` and ``tone_search``); their thresholds
-are None (recorded, not judged) until calibrated.
+The last two need a CMA-ES (``judge_result``'s ``refine`` and ``tone_search``); where they were
+not gathered (``judge_result`` without them), their checks are left out.
 
 :func:`judge` turns the evidence into the verdict with :class:`VerdictSettings`, whose thresholds
 were calibrated on registrations of known truth (``benchmarks/verdict.py``; docs/results.md,
@@ -97,11 +97,15 @@ TONE_SEARCH_GENERATIONS = 30
 
 @dataclass(frozen=True)
 class VerdictSettings:
-    """The thresholds of :func:`judge`. ``min_similarity``, ``min_tone_fit``, ``min_margin`` and
-    ``sure_similarity`` are ``benchmarks/verdict.py --calibrate``'s choice on 120 registrations of
-    known truth (the training pelvis, six conditions, the default pipeline and the grid always):
-    no false accept, the most right registrations accepted, ties to the stricter; ``fail_below``,
-    ``tone_fail_below`` and ``min_field_fraction`` are floors no right registration came near.
+    """The thresholds of :func:`judge`. ``min_similarity``, ``min_tone_fit``, ``min_margin``,
+    ``min_tone_margin``, ``sure_similarity``, ``min_depth_drop``, ``min_profile_drop`` and
+    ``max_tone_gain`` are ``benchmarks/verdict.py --calibrate``'s choice on 120 registrations of
+    known truth (the training pelvis, six conditions, the default pipeline and the grid always;
+    ``benchmarks/verdict_rows/calib.jsonl``): no false accept, the most right registrations
+    accepted, ties to the stricter. With the depth profile and the tone rival it needs no margin
+    over a runner-up (``min_margin`` 0: only a runner-up that scored higher before the polish
+    counts). ``fail_below``, ``tone_fail_below`` and ``min_field_fraction`` are floors no right
+    registration came near.
 
     Attributes:
         fail_below: a final similarity below this is ``failed`` (the DRR does not match the X-ray).
@@ -117,10 +121,10 @@ class VerdictSettings:
         min_depth_drop: ``registered`` needs the similarity to fall by at least this much
             :data:`DEPTH_PROBE_MM` nearer or farther (the better of the two).
         min_profile_drop: ``registered`` needs the depth profile (:func:`depth_profile`) to fall
-            by at least this much; None: recorded, not judged.
+            by at least this much; None: not judged.
         max_tone_gain: ``registered`` needs the tone rival (:func:`tone_rival`), where distinct
-            from the final pose, to fit the intensities by at most this much better; None:
-            recorded, not judged.
+            from the final pose, to fit the intensities by at most this much better; None: not
+            judged.
         min_tone_margin: a runner-up within ``min_margin`` does not make the registration
             doubtful where its tone fit is at least this much below the final pose's (the
             intensities rule it out); None: every such runner-up does.
@@ -129,13 +133,13 @@ class VerdictSettings:
     fail_below: float = 0.15
     tone_fail_below: float = 0.0
     min_similarity: float = 0.4
-    min_tone_fit: float = 0.5
-    min_margin: float = 0.07
-    sure_similarity: float = 0.9
+    min_tone_fit: float = 0.6
+    min_margin: float = 0.0
+    sure_similarity: float = 0.85
     min_field_fraction: float = 0.1
-    min_depth_drop: float = 0.07
-    min_profile_drop: float | None = None
-    max_tone_gain: float | None = None
+    min_depth_drop: float = 0.05
+    min_profile_drop: float | None = 0.02
+    max_tone_gain: float | None = 0.05
     min_tone_margin: float | None = None
 
     def __post_init__(self) -> None:

@@ -90,7 +90,8 @@ def _ev(**kw) -> dict:
 def test_the_judge_uses_the_profile_and_the_rival_only_with_thresholds():
     flat = _ev(depth_profile={"drop": 0.01, "similarity": 0.9, "scores": [0.89, 0.85]})
     rival = _ev(tone_rival={"tone_fit": 0.99, "gain": 0.2, "deg": 10.0, "mm": 9.0, "depth_mm": 9.0})
-    assert judge(flat).label == "registered" and judge(rival).label == "registered"  # None: not judged
+    off = VerdictSettings(min_profile_drop=None, max_tone_gain=None)
+    assert judge(flat, off).label == "registered" and judge(rival, off).label == "registered"  # None: not judged
     s = VerdictSettings(min_profile_drop=0.04, max_tone_gain=0.1)
     v = judge(flat, s)
     assert v.label == "doubtful" and "fitted again" in v.reasons[0]
@@ -130,12 +131,13 @@ def test_a_pose_that_shows_no_ct_is_profiled_without_a_fit_and_has_no_rival(scen
 def test_a_close_runner_up_whose_intensities_fit_worse_is_ruled_out_only_with_a_tone_margin():
     runner = {"similarity": 0.87, "deg": 12.0, "mm": 5.0, "depth_mm": 40.0, "index": 1, "tone_fit": 0.6}
     ev = _ev(similarity=0.9, tone_fit=0.85, runner_up=runner)
-    assert judge(ev).label == "doubtful"  # None: every close runner-up makes it doubtful
-    v = judge(ev, VerdictSettings(min_tone_margin=0.2))
+    margin = VerdictSettings(min_margin=0.07)
+    assert judge(ev, margin).label == "doubtful"  # None: every close runner-up makes it doubtful
+    v = judge(ev, VerdictSettings(min_margin=0.07, min_tone_margin=0.2))
     assert v.label == "registered" and any("tone fit, 0.60, is 0.25 lower" in r for r in v.reasons)
-    assert judge(ev, VerdictSettings(min_tone_margin=0.3)).label == "doubtful"
+    assert judge(ev, VerdictSettings(min_margin=0.07, min_tone_margin=0.3)).label == "doubtful"
     no_tone = _ev(similarity=0.9, tone_fit=0.85, runner_up={k: v for k, v in runner.items() if k != "tone_fit"})
-    assert judge(no_tone, VerdictSettings(min_tone_margin=0.05)).label == "doubtful"  # not rendered: not excused
+    assert judge(no_tone, VerdictSettings(min_margin=0.07, min_tone_margin=0.05)).label == "doubtful"  # not excused
 
 
 def test_the_runner_up_carries_its_tone_fit_and_judge_result_renders_every_refined_start():
