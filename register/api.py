@@ -35,8 +35,8 @@ from scipy import ndimage
 from learn.adapt import adapted_ct_warning
 from register.engines.methods import build_method, check_method, load_predictor, needs_model
 from register.engines.cmaes import CMAESRegistration
-from register.engines.metrics import downsample, gradient_ncc, plain_equivalent
-from register.engines.pipeline import REFINE_SETTINGS
+from register.engines.metrics import downsample, gradient_ncc
+from register.engines.pipeline import REFINE_SETTINGS, scored_as_refined
 from register.engines.result import RegistrationError
 from register.engines.search import GlobalSearch, GlobalSearchSettings, describe_search
 from register.verdict import Verdict, judge_result
@@ -663,10 +663,9 @@ def _verdict(request: RegistrationRequest, volume, center_lps, prepared, result)
     size = (g.height, g.width)
     renderer = DRRRenderer(volume, RenderSettings(size=size), center_lps=center_lps, geometry=g)
     settings = replace(REFINE_SETTINGS, size=size)
-    refine = CMAESRegistration(volume, settings, geometry=g, center_lps=center_lps, physics=request.moving,
-                               label_materials=request.label_materials)
-    if prepared.toned is None:  # line integrals: plain gradient NCC, as the refinement scores them
-        refine = refine.scored_by(tuple(plain_equivalent(m) for m in settings.metrics))
+    refine = scored_as_refined(CMAESRegistration(volume, settings, geometry=g, center_lps=center_lps,
+                                                 physics=request.moving, label_materials=request.label_materials),
+                               prepared.toned)
     line = refine if request.moving.level == "line" else CMAESRegistration(volume, settings, geometry=g,
                                                                            center_lps=center_lps)
     fld = prepared.step("field")

@@ -37,7 +37,7 @@ from register.engines.metrics import plain_equivalent
 from register.engines.result import RegistrationError, RegistrationResult
 from register.engines.search import GlobalSearch, GlobalSearchSettings
 
-__all__ = ["ContextualPipeline", "NETWORK_DEPTH_RANGE_MM", "REFINE_SETTINGS"]
+__all__ = ["ContextualPipeline", "NETWORK_DEPTH_RANGE_MM", "REFINE_SETTINGS", "scored_as_refined"]
 
 #: The narrowed CMA-ES box after the contextual iteration (degrees, mm): one level at 1/2 resolution,
 #: then the polish at full resolution. A first level at 1/4 resolution (as CMA-ES from afar uses)
@@ -62,6 +62,14 @@ REFINE_SETTINGS = CMAESSettings(levels=(2,), sigma_deg=3.0, sigma_mm=8.0, range_
 #: depths are searched already (the grid spans +-75 mm), and the narrower box stays: the wide one let
 #: a start of a frame whose field was misread follow its similarity 20 mm off in depth.
 NETWORK_DEPTH_RANGE_MM = 90.0
+
+
+def scored_as_refined(refinement: CMAESRegistration, toned) -> CMAESRegistration:
+    """``refinement`` as the refinement scores an X-ray: a display image (with a ``toned`` version)
+    display-tolerantly, line integrals (``toned`` None) with the plain equivalents of its metrics."""
+    if toned is not None:
+        return refinement
+    return refinement.scored_by(tuple(plain_equivalent(m) for m in refinement.settings.metrics))
 
 
 #: :meth:`ContextualPipeline.starts`' answer where ``before_grid`` stopped the search.
@@ -144,11 +152,8 @@ class ContextualPipeline:
         return _STOPPED if found is None else found
 
     def scored(self, toned) -> CMAESRegistration:
-        """The refinement's CMA-ES as it scores this X-ray: a display image (with a toned version)
-        display-tolerantly, line integrals plainly."""
-        if toned is not None:
-            return self.refinement
-        return self.refinement.scored_by(tuple(plain_equivalent(m) for m in self.refinement.settings.metrics))
+        """The refinement's CMA-ES as it scores this X-ray (:func:`scored_as_refined`)."""
+        return scored_as_refined(self.refinement, toned)
 
     @staticmethod
     def refine(refine: CMAESRegistration, fixed, starts: list, *, mask=None) -> list[RegistrationResult]:
