@@ -7,7 +7,11 @@ null: every pose counts as off, e.g. the paediatric radiographs against an adult
 ``benchmarks/verdict.py --unmatched``). The verdict is judged again from each row's evidence with
 the current :class:`register.verdict.VerdictSettings` (or the calibrated ones with
 ``--calibrate``) and the runner-up found again from the search's record by the current rule of
-distinct poses, so a change of thresholds or of that rule needs no registration again.
+distinct poses, so a change of thresholds or of that rule needs no registration again; a change of
+the evidence needs none either: ``--rejudge OUT`` makes each row's X-ray again and judges it at its
+recorded pose (``register.api.RegistrationRequest.judge``), about 3 s a row on 2 cores::
+
+    .venv/bin/python benchmarks/verdict.py benchmarks/verdict_rows/calib.jsonl --rejudge runs/verdict/calib.jsonl
 
 The rows of docs/results.md's tables are committed, compacted (``--compact OUT``: only what the
 tables read), in ``benchmarks/verdict_rows/`` (``calib.jsonl``, ``heldout.jsonl``, ``unmatched.jsonl``)::
@@ -59,30 +63,33 @@ WITHIN_MM = 10.0
 GRID = {"min_similarity": (0.15, 0.2, 0.25, 0.3, 0.35, 0.4, 0.5, 0.6),
         "min_tone_fit": (0.0, 0.2, 0.3, 0.4, 0.5, 0.6),
         "min_margin": (0.0, 0.02, 0.03, 0.05, 0.07, 0.1, 0.15),
-        "min_tone_margin": (None, 0.3, 0.2, 0.1, 0.05),
+        "min_joint_margin": (None, -0.05, -0.02, 0.0, 0.02, 0.05),
         "sure_similarity": (0.85, 0.88, 0.9, 0.92, 0.95, 1.0),
         "min_depth_drop": (0.0, 0.03, 0.05, 0.07),
         "min_profile_drop": (None, 0.02, 0.04, 0.06, 0.08),
-        "max_tone_gain": (None, 0.3, 0.2, 0.1, 0.05)}
+        "max_rival_gain": (None, 0.2, 0.1, 0.07, 0.05, 0.03)}
 
 #: The check (:func:`register.verdict.checks`, by the setting it is named for) each threshold of
-#: :data:`GRID` sets; ``min_tone_margin`` excuses a runner-up within ``min_margin``, so the two
-#: are tried together.
-CHECK_OF = {name: name for name in GRID} | {"min_tone_margin": "min_margin"}
+#: :data:`GRID` sets.
+CHECK_OF = {name: name for name in GRID}
 
 #: The evidence each threshold of :data:`GRID` that may be None judges (rows registered before it
 #: was gathered lack it; where no row has it, the threshold stays None).
-EVIDENCE_OF = {"min_profile_drop": "depth_profile", "max_tone_gain": "tone_rival", "min_tone_margin": "refined_tones"}
+EVIDENCE_OF = {"min_profile_drop": "depth_profile", "max_rival_gain": "rival", "min_joint_margin": "refined_tones"}
+
+
+def _strictness_of(name: str, value) -> float:
+    """One threshold's part of :func:`strictness`."""
+    if name == "max_rival_gain":
+        return -(2.0 if value is None else value)
+    return -2.0 if value is None else value
 
 
 def strictness(settings: VerdictSettings) -> float:
-    """How strict ``settings`` are, for ties of :func:`calibrate`: the lower bounds summed, less the
-    upper bound (``max_tone_gain``; None, no bound, counts as 2), and ``min_tone_margin`` as a
-    lower bound where None (no runner-up excused) counts as 2."""
+    """How strict ``settings`` are, for ties of :func:`calibrate`: the lower bounds of :data:`GRID`
+    summed (None, not judged, counts as -2), less the upper bound ``max_rival_gain`` (None counts as 2)."""
     v = asdict(settings)
-    lower = sum(x for k, x in v.items() if k in GRID and k not in ("max_tone_gain", "min_tone_margin") and x is not None)
-    gain, excuse = v["max_tone_gain"], v["min_tone_margin"]
-    return lower - (2.0 if gain is None else gain) + (2.0 if excuse is None else excuse)
+    return round(sum(_strictness_of(k, v[k]) for k in GRID), 9)
 
 
 def load_rows(paths) -> list[dict]:
@@ -138,9 +145,10 @@ def _passes(rows, check: str, values: dict, base: VerdictSettings) -> np.ndarray
 
 def calibrate(rows) -> tuple[VerdictSettings, dict]:
     """The settings of :data:`GRID` with no false accept on ``rows`` that accept the most good
-    registrations (ties: the stricter, :func:`strictness`). Each check (:func:`register.verdict.checks`)
-    depends on its own thresholds (:data:`CHECK_OF`), so each check's passes are found once per
-    combination of them, and a combination of all is registered where every check passes. A
+    registrations (ties: the stricter, :func:`strictness`; then the first in the grid's order). Each
+    check (:func:`register.verdict.checks`) depends on its own thresholds (:data:`CHECK_OF`), so each
+    check's passes are found once per combination of them, and a combination of all is registered
+    where every check passes; the last two checks' combinations are tried at once, as arrays. A
     threshold of :data:`EVIDENCE_OF` whose evidence no row has stays None (not judged on evidence
     never seen)."""
     base = VerdictSettings()
@@ -154,18 +162,30 @@ def calibrate(rows) -> tuple[VerdictSettings, dict]:
                                                                      if n not in groups) for r in rows], bool)
     options = {check: [dict(zip(names, vals)) for vals in itertools.product(*(grid[n] for n in names))]
                for check, names in groups.items()}
-    passes = {check: [_passes(rows, check, o, base) for o in opts] for check, opts in options.items()}
+    passes = {check: np.array([_passes(rows, check, o, base) for o in opts]) for check, opts in options.items()}
+    part = {check: np.array([sum(_strictness_of(k, v) for k, v in o.items()) for o in opts])
+            for check, opts in options.items()}
+    *outer, a, b = options  # the last two checks as arrays: (A, B, rows)
+    inner = passes[a][:, None, :] & passes[b][None, :, :]
+    inner_part = part[a][:, None] + part[b][None, :]
     best, best_key = None, None
-    for idx in itertools.product(*(range(len(o)) for o in options.values())):
+    for idx in itertools.product(*(range(len(options[c])) for c in outer)):
         reg = fixed.copy()
-        for check, i in zip(options, idx):
+        for check, i in zip(outer, idx):
             reg &= passes[check][i]
-        if (reg & ~good).any():
+        joint = reg & inner  # (A, B, rows)
+        allowed = ~(joint & ~good).any(axis=2)
+        if not allowed.any():
             continue
-        s = replace(base, **{k: v for check, i in zip(options, idx) for k, v in options[check][i].items()})
-        key = (float(reg[good].mean()) if good.any() else 0.0, strictness(s))
+        accepted = np.where(allowed, joint[..., good].sum(axis=2), -1)
+        strict = np.round(sum(part[c][i] for c, i in zip(outer, idx)) + inner_part, 9)
+        top = accepted == accepted.max()
+        k = int(np.argmax(np.where(top, strict, -np.inf)))  # the first of the strictest among the most accepted
+        ia, ib = np.unravel_index(k, allowed.shape)
+        key = (int(accepted[ia, ib]), float(strict[ia, ib]))
         if best_key is None or key > best_key:
-            best, best_key = s, key
+            chosen = [options[c][i] for c, i in zip(outer, idx)] + [options[a][ia], options[b][ib]]
+            best, best_key = replace(base, **{k: v for o in chosen for k, v in o.items()}), key
     if best is None:
         raise SystemExit("verdict: no thresholds of the grid avoid every false accept on these rows")
     return best, rates(rows, best)
@@ -214,6 +234,80 @@ def unmatched(a) -> int:
     return 0
 
 
+def _frame(row, frames_dir: Path, cache: dict) -> tuple[Path, object, np.ndarray]:
+    """The X-ray of ``row`` (its file for an unmatched one; else its study's frame, simulated again
+    into ``frames_dir/<CT>/<target>/case_###.dcm`` as ``benchmarks/search.py`` made it), its CT and
+    the CT's anatomy centre; ``cache`` keeps the CTs and the frame simulators."""
+    from register.evaluation.evaluate import EvaluationSettings, sample_cases
+    from register.evaluation.study import frame_seed, load_study, study_frames
+    from sim import load_ct
+    from sim.ct.anatomy import anatomy_center
+    from sim.projection.geometry import pose_from_params
+
+    ct = row["ct"]
+    if ct not in cache:
+        volume = load_ct(ct)
+        cache[ct] = (volume, anatomy_center(volume))
+    volume, center = cache[ct]
+    if row.get("xray"):
+        return Path(row["xray"]), volume, center
+    key = (ct, row["study"], row["target"])
+    if key not in cache:
+        study = load_study(ROOT / row["study"])
+        target = next(t for t in study.targets if t.name == row["target"])
+        cache[key] = (study, study_frames(study, target, volume, center))
+    study, frames = cache[key]
+    case = int(row["case"])
+    poses, _ = sample_cases(EvaluationSettings(cases=case + 1, seed=study.seed, size=study.size, start="ap"))
+    path = frames_dir / Path(ct).name.split(".")[0] / row["target"] / f"case_{case:03d}.dcm"
+    path.parent.mkdir(parents=True, exist_ok=True)
+    frames.cached(path, pose_from_params(poses[case], frames.imager.geometry.sod_mm), frame_seed(study, case))
+    return path, volume, center
+
+
+#: The evidence :func:`rejudge` must find again as recorded (it is made the same way): a check that
+#: the X-ray was prepared as it was registered.
+SAME_EVIDENCE = ("tone_fit", "depth_drop")
+
+
+def rejudge(src: Path, dst: Path, frames_dir: Path) -> int:
+    """Judge the registrations of ``src`` again with the current evidence and write them to ``dst``
+    (atomically): each X-ray made again (:func:`_frame`) and judged at its recorded pose
+    (:meth:`register.api.RegistrationRequest.judge`: no registration), the network's gap carried
+    over. Rows without a result (refused frames) are copied. Prints how far the evidence made the
+    same way (:data:`SAME_EVIDENCE`) moved: 0 where each X-ray was prepared as it was registered."""
+    from register.api import RegistrationRequest
+
+    rows = [json.loads(line) for line in Path(src).read_text().splitlines() if line.strip()]
+    cache: dict = {}
+    out, moved = [], {k: 0.0 for k in SAME_EVIDENCE}
+    t0 = time.perf_counter()
+    for i, row in enumerate(rows):
+        res = row.get("result")
+        if res is not None and res.get("verdict_evidence") is not None:
+            path, volume, center = _frame(row, frames_dir, cache)
+            request = RegistrationRequest(search="always" if "always" in str(row.get("method", "")) else "auto",
+                                          center=center)
+            params = [res["params"][k] for k in ("phi", "theta", "psi", "tx", "ty", "tz")]
+            verdict = request.judge(volume, path, params, similarity=res["similarity"], search=res.get("search"))
+            old = res["verdict_evidence"]
+            new = {**verdict.evidence, "network_gap": old.get("network_gap")}
+            for k in SAME_EVIDENCE:
+                if old.get(k) is not None and new.get(k) is not None:
+                    moved[k] = max(moved[k], abs(old[k] - new[k]))
+            row = {**row, "result": {**res, "verdict": verdict.label, "verdict_evidence": new}}
+        out.append(json.dumps(row, default=lambda v: v.tolist() if hasattr(v, "tolist") else repr(v)))
+        rate = (i + 1) / (time.perf_counter() - t0)
+        print(f"verdict: rejudged {i + 1}/{len(rows)} ({rate:.2f} rows/s, ETA {(len(rows) - i - 1) / rate:.0f} s)",
+              file=sys.stderr, flush=True)
+    tmp = Path(dst).with_suffix(".tmp")
+    tmp.write_text("\n".join(out) + "\n")
+    tmp.replace(dst)
+    print(f"verdict: {len(out)} rows -> {dst}; the evidence made as recorded moved by at most "
+          + ", ".join(f"{k} {v:.2g}" for k, v in moved.items()))
+    return len(out)
+
+
 #: What :func:`compact` keeps of a row's ``result`` (everything :func:`load_rows` and the tables read,
 #: and the stage times).
 COMPACT_RESULT_KEYS = ("geometry", "params", "pose_4x4", "search", "search_status", "similarity", "verdict",
@@ -246,9 +340,20 @@ def main() -> int:
     ap.add_argument("--ct", default=None, help="with --unmatched: the CT")
     ap.add_argument("--model", default=None, help="with --unmatched: the network (default: the shipped default)")
     ap.add_argument("--label", default="unmatched X-ray", help="with --unmatched: the condition's name")
+    ap.add_argument("--rejudge", default=None, metavar="OUT",
+                    help="judge the one ROWS file's registrations again with the current evidence (each X-ray made "
+                         "again, no registration) into OUT")
+    ap.add_argument("--frames", default="runs/verdict/rejudge_frames",
+                    help="with --rejudge: where the study frames are simulated again (cached)")
     ap.add_argument("--compact", default=None, metavar="OUT",
                     help="write the one ROWS file to OUT with only what the tables read of each result")
     a = ap.parse_args()
+    if a.rejudge is not None:
+        if len(a.rows) != 1 or not Path(a.rows[0]).is_file():
+            print("verdict: --rejudge needs one existing ROWS file", file=sys.stderr)
+            return 2
+        rejudge(Path(a.rows[0]), Path(a.rejudge), Path(a.frames))
+        return 0
     if a.compact is not None:
         if len(a.rows) != 1 or not Path(a.rows[0]).is_file():
             print("verdict: --compact needs one existing ROWS file", file=sys.stderr)

@@ -37,7 +37,7 @@ from register.engines.methods import build_method, check_method, load_predictor,
 from register.engines.cmaes import CMAESRegistration
 from register.engines.metrics import downsample, gradient_ncc
 from register.engines.pipeline import REFINE_SETTINGS, scored_as_refined
-from register.engines.result import RegistrationError
+from register.engines.result import RegistrationError, RegistrationResult
 from register.engines.search import GlobalSearch, GlobalSearchSettings, describe_search
 from register.verdict import Verdict, judge_result
 from register.plots import checkerboard_png, convergence_plot, overlay_png, trajectory_figure, trajectory_gif
@@ -59,7 +59,7 @@ from sim.ct.anatomy import find_center
 from sim.physics.imaging import PhysicsSettings
 from sim.physics.settings import LEVELS
 from sim.projection.drr import DRRRenderer, RenderSettings, check_in_view
-from sim.projection.geometry import pose_from_params
+from sim.projection.geometry import pose_from_params, projection_matrix
 
 __all__ = ["register_xray", "RegistrationRequest", "XRayRegistration", "parse_init", "REGISTER_RESTARTS", "REGISTER_SCATTER_PHOTONS",
            "OUTPUT_FILES", "SEARCH_MODES", "SEARCH_METHODS"]
@@ -452,6 +452,46 @@ class RegistrationRequest:
                                 center_how=found.to_dict()["anatomy_center_how"], verdict=verdict)
 
 
+    def judge(self, ct, xray, params, *, similarity: float, search: dict | None = None, network_params=None,
+              log: Callable[[str], None] | None = None) -> Verdict:
+        """The verdict on a pose of ``xray`` already found (by a registration with this request, or
+        elsewhere), without registering again: the X-ray read and prepared as :meth:`run` does, its
+        polarity checked by that pose (or, where the pose does not confirm it, on the grid around
+        the start, as a registration whose pose does not), then the verdict's evidence at the pose
+        (:func:`_verdict`). ``benchmarks/verdict.py --rejudge`` judges recorded registrations again
+        so when the evidence changes.
+
+        Args:
+            ct, xray: as :meth:`run` takes them.
+            params: ``(6,)`` the pose (deg, mm).
+            similarity: its final similarity as the registration scored it.
+            search: the global search's record (``result.json``'s ``search``; None: no search).
+            network_params: ``(6,)`` where the network's iteration ended (None: no network).
+        """
+        log = log or (lambda line: None)
+        p = np.asarray(params, float).reshape(-1)
+        if p.shape != (6,) or not np.all(np.isfinite(p)):
+            raise RegistrationError(f"judge: the pose must be six finite numbers (deg, mm), got {params!r}")
+        if not np.isfinite(similarity):
+            raise RegistrationError(f"judge: the similarity must be finite, got {similarity!r}")
+        xr, pixel_spacing_mm = _read_xray(self, xray, log)
+        _check_before_loading(self, xr, ct, pixel_spacing_mm)
+        volume, found = _load_anatomy(self, ct, log)
+        c = found.lps_mm
+        prepared = _prepare(self, xr, volume, c, pixel_spacing_mm)
+        g = prepared.geometry
+        pose = pose_from_params(p, g.sod_mm)
+        if polarity_needs_check(prepared):
+            checked = confirm_polarity_by_pose(prepared, _plain_score(volume, c, prepared, pose), p)
+            prepared = checked if checked is not None else confirm_polarity(
+                prepared, volume, c, self.start, physics=self.moving, label_materials=self.label_materials)
+        trajectory = None if network_params is None else {"params": np.asarray(network_params, float).reshape(1, 6)}
+        result = RegistrationResult(params=p, pose=pose, projection=projection_matrix(g, pose, c),
+                                    similarity=float(similarity), renders=0, stage_seconds={}, search=search,
+                                    trajectory=trajectory)
+        return _verdict(self, volume, c, prepared, result)
+
+
 def register_xray(ct, xray, *, log: Callable[[str], None] | None = None, note: Callable[[str], None] | None = None,
                   **options) -> XRayRegistration:
     """Register the X-ray ``xray`` to the CT ``ct``: its pose, as ``ctxreg register`` finds it.
@@ -657,7 +697,7 @@ class _PolarityCheckedRun:
 def _verdict(request: RegistrationRequest, volume, center_lps, prepared, result) -> Verdict:
     """The verdict (:func:`register.verdict.judge_result`) on a registration's ``result``: three line
     DRRs (its pose and the depth probe's), the depth profile by the refinement's CMA-ES (the
-    request's moving images, scored as the refinement scored this X-ray) and the tone rival by a
+    request's moving images, scored as the refinement scored this X-ray) and the rival by a
     line-DRR CMA-ES, at the optimiser's size."""
     g = prepared.geometry
     size = (g.height, g.width)
@@ -671,7 +711,7 @@ def _verdict(request: RegistrationRequest, volume, center_lps, prepared, result)
     fld = prepared.step("field")
     fraction = fld["valid_fraction"] if fld is not None and "valid_fraction" in fld else None
     return judge_result(result, prepared.image, render=renderer.render, sod_mm=g.sod_mm, mask=prepared.mask,
-                        toned=prepared.toned, field_fraction=fraction, refine=refine, tone_search=line)
+                        toned=prepared.toned, field_fraction=fraction, refine=refine, rival_search=line)
 
 
 def grid_bytes(box, shape, geometry) -> float:

@@ -239,7 +239,7 @@ class CMAESRegistration:
         best, final = x0, -np.inf
         for attempt in range(s.restarts + 1):
             prefix = "" if attempt == 0 else f"restart{attempt}."
-            params, value, n = self._search(fixed, mask, x0, lo, hi, scale, seed=s.seed + 100 * attempt,
+            params, value, n = self._search(self._scorer(fixed, mask), x0, lo, hi, scale, seed=s.seed + 100 * attempt,
                                             popsize=s.popsize * 2 ** attempt, prefix=prefix, stages=stages,
                                             history=history, progress=progress,
                                             polish=s.polish if polish is None else polish and s.polish)
@@ -273,7 +273,7 @@ class CMAESRegistration:
         boxes = [self._box(x) for x in x0s]
         stages: dict[str, float] = {}
         histories: list[list] = [[] for _ in x0s]
-        out = self._search_many(fixed, mask, x0s, np.array([b[0] for b in boxes]), np.array([b[1] for b in boxes]),
+        out = self._search_many(self._scorer(fixed, mask), x0s, np.array([b[0] for b in boxes]), np.array([b[1] for b in boxes]),
                                 self._scale(), seed=s.seed,
                                 popsize=s.popsize, prefix="", stages=stages, histories=histories, progress=None,
                                 polish=s.polish if polish is None else polish and s.polish)
@@ -394,19 +394,68 @@ class CMAESRegistration:
                 x, f = (moved.copy(), float(f_move)) if f_move <= fp[k] else (probes[k].copy(), float(fp[k]))
         return x, -f, renders
 
-    def _search(self, fixed, mask, x0, lo, hi, scale, *, seed, popsize, prefix, stages, history, progress,
+    def maximise(self, objective, init_params) -> RegistrationResult:
+        """CMA-ES as :meth:`register` searches (these settings' levels, box around ``init_params``
+        ``(6,)`` deg/mm, steps and generations; no restarts, no polish), on any score of the DRRs:
+        ``objective(factor)`` returns the score of a level, ``(B, H/f, W/f)`` DRRs -> ``(B,)``, higher
+        better (e.g. two similarities summed, each with its own fixed image bound). The result's
+        ``similarity`` is the objective at full resolution (factor 1).
+
+        Example::
+
+            >>> import numpy as np
+            >>> from sim import load_ct
+            >>> reg = CMAESRegistration(load_ct("phantom"), CMAESSettings(size=(32, 32), levels=(2,), generations=(10,),
+            ...                                                       metrics=("gncc",)))
+            >>> target = reg.render(np.zeros(6))[0]
+            >>> def closeness(f):  # minus the mean absolute difference from the target at factor f
+            ...     t = target.reshape(32 // f, f, 32 // f, f).mean(axis=(1, 3))
+            ...     return lambda m: -np.abs(m - t).mean(axis=(1, 2))
+            >>> r = reg.maximise(closeness, [0, 0, 0, 8.0, 0, 0])
+            >>> bool(abs(r.params[3]) < 8.0 and r.similarity > closeness(1)(reg.render([0, 0, 0, 8.0, 0, 0]))[0])
+            True
+        """
+        x0 = np.asarray(init_params, dtype=np.float64).reshape(6)
+        if not np.all(np.isfinite(x0)):
+            raise RegistrationError(f"the start pose must be finite, got {x0}")
+        if not self.in_view(x0)[0]:
+            raise RegistrationError("the CT does not overlap the view at the start pose (its DRR is empty)")
+        lo, hi = self._box(x0)
+        stages: dict[str, float] = {}
+        history: list = []
+        best, final, renders = self._search(lambda level, factor: objective(factor), x0, lo, hi, self._scale(),
+                                            seed=self.settings.seed, popsize=self.settings.popsize, prefix="",
+                                            stages=stages, history=history, progress=None, polish=False)
+        pose = pose_from_params(best, self.geometry.sod_mm)
+        return RegistrationResult(params=best, pose=pose, projection=self.by_factor[1].projection_matrix(pose),
+                                  similarity=final, renders=renders, stage_seconds=stages, history=history)
+
+    def _scorer(self, fixed, mask):
+        """``score_at(level, factor)``: the settings' similarity of that level with ``fixed``
+        ``(H, W)`` and ``mask`` bound at ``factor``'s resolution (:func:`register.engines.metrics.bind_metric`)."""
+        s = self.settings
+
+        def score_at(level: int, factor: int):
+            if factor == 1:
+                return bind_metric(s.per_level("metrics", level), fixed, mask)
+            lvl_mask = None if mask is None else downsample(mask.astype(np.float64), factor) > 0.999
+            return bind_metric(s.per_level("metrics", level), downsample(fixed, factor), lvl_mask)
+
+        return score_at
+
+    def _search(self, score_at, x0, lo, hi, scale, *, seed, popsize, prefix, stages, history, progress,
                 polish):
         """One coarse-to-fine CMA-ES search and polish from ``x0``; returns (params, final similarity,
         renders) and appends to ``stages`` / ``history`` under stage names ``prefix + level<i>``."""
-        (best, final, renders), = self._search_many(fixed, mask, x0[None], lo[None], hi[None], scale, seed=seed,
+        (best, final, renders), = self._search_many(score_at, x0[None], lo[None], hi[None], scale, seed=seed,
                                                     popsize=popsize, prefix=prefix, stages=stages,
                                                     histories=[history], progress=progress, polish=polish)
         return best, final, renders
 
-    def _search_many(self, fixed, mask, x0s, los, his, scale, *, seed, popsize, prefix, stages, histories,
+    def _search_many(self, score_at, x0s, los, his, scale, *, seed, popsize, prefix, stages, histories,
                      progress, polish):
         """Independent coarse-to-fine searches from each row of ``x0s`` ``(K, 6)`` (boxes ``los`` /
-        ``his``), in lockstep: each generation renders every search's population in one batch. Each
+        ``his``), scored by ``score_at(level, factor)`` (:meth:`_scorer`), in lockstep: each generation renders every search's population in one batch. Each
         search is the one :meth:`_search` would run alone (same seed). Returns ``[(params, final
         similarity, renders)]`` per start; ``stages`` gets the lockstep's wall time,
         ``histories[k]`` search k's rows."""
@@ -419,11 +468,7 @@ class CMAESRegistration:
         sigma = s.sigma_deg
         for level, factor in enumerate(s.levels):
             t0 = time.perf_counter()
-            target = downsample(fixed, factor) if factor > 1 else fixed
-            lvl_mask = None
-            if mask is not None:
-                lvl_mask = downsample(mask.astype(np.float64), factor) > 0.999 if factor > 1 else mask
-            score = bind_metric(s.per_level("metrics", level), target, lvl_mask)  # the X-ray's part once
+            score = score_at(level, factor)  # the X-ray's part once
             opts = {"popsize": popsize, "seed": seed + 1 + level, "verbose": -9,
                     "maxiter": s.per_level("generations", level), "tolfun": 1e-6, "tolx": 1e-3}
             # each search draws from its own generator (cma's default is numpy's global one, seeded by
@@ -450,7 +495,7 @@ class CMAESRegistration:
             bests = [np.clip(np.asarray(ess[k].result.xbest) * scale, los[k], his[k]) for k in range(K)]
             sigma *= s.sigma_shrink
             stages[stage] = time.perf_counter() - t0
-        finest = bind_metric(s.per_level("metrics", len(s.levels) - 1), fixed, mask)
+        finest = score_at(len(s.levels) - 1, 1)
         if polish:
             t0 = time.perf_counter()
             out = []
