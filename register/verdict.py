@@ -250,7 +250,7 @@ def rival(search: CMAESRegistration, image: np.ndarray, params, *, toned: np.nda
     degree or two off where its tone curve bends, and the intensities alone, shaped by scatter
     and the heel effect that line DRRs lack, favour poses 5-11 deg away that fit them 0.05-0.17
     better (benchmarks/verdict.py). Together they are near their best at a right pose (197 right
-    registrations of realistic frames, ten conditions, two pelves: the rival gained 0-0.04, never
+    registrations of realistic frames, nine display chains, two pelves: the rival gained 0-0.04, never
     at a distinct pose), and a wrong pose held by its edges alone sits beside one the two together
     favour (a frame 48 mm off: 0.15 more, 22 mm away in depth).
 
