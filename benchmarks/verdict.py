@@ -245,6 +245,12 @@ def _frame(row, frames_dir: Path, cache: dict) -> tuple[Path, object, np.ndarray
     from sim.projection.geometry import pose_from_params
 
     ct = row["ct"]
+    needed = [("CT", Path(ct)), ("X-ray", Path(row["xray"])) if row.get("xray") else ("study", ROOT / row["study"])]
+    for what, path in needed:
+        if not path.exists():
+            print(f"verdict: --rejudge: the {what} of a row ({row.get('target')}, case {row.get('case')}) is not here: "
+                  f"{path} (run from the repository root with ../shared beside it)", file=sys.stderr)
+            raise SystemExit(2)
     if ct not in cache:
         volume = load_ct(ct)
         cache[ct] = (volume, anatomy_center(volume))
