@@ -221,3 +221,17 @@ def phantom_xray(scene):
     g = r.geometry
     image = r.render_params(TRUTH + np.array([2.0, 0.0, 0.0, 4.0, 0.0, 0.0]))[0]
     return vol, c, XRayImage(image, pixel_spacing_mm=g.pixel_spacing_mm, sdd_mm=g.sdd_mm, sod_mm=g.sod_mm, source="drr")
+
+
+def test_rejudge_refuses_a_row_whose_ct_is_not_here(tmp_path, capsys):
+    import json
+
+    row = {"target": "fluoro-65kV", "study": "studies/domain_gap.toml", "case": 0, "ct": str(tmp_path / "no.nii.gz"),
+           "mtre_mm": 1.0, "result": {"params": dict.fromkeys(("phi", "theta", "psi", "tx", "ty", "tz"), 0.0),
+                                      "similarity": 0.9, "verdict_evidence": {"search": "none"}}}
+    src = tmp_path / "rows.jsonl"
+    src.write_text(json.dumps(row) + "\n")
+    with pytest.raises(SystemExit) as e:
+        bench.rejudge(src, tmp_path / "out.jsonl", tmp_path / "frames")
+    assert e.value.code == 2 and "the CT of a row (fluoro-65kV, case 0) is not here" in capsys.readouterr().err
+    assert not (tmp_path / "out.jsonl").exists()
