@@ -31,3 +31,10 @@ def test_the_held_out_rates_are_the_documented_ones():
     assert r["accepted"] == pytest.approx(97 / 104)
     unmatched = [x for x in rows if x["mtre_mm"] is None]
     assert len(unmatched) == 20 and bench.rates(unmatched, VerdictSettings())["registered"] == 0
+
+
+def test_six_more_held_out_display_chains_have_no_false_accept():
+    rows = bench.load_rows([ROWS / "heldout_chains.jsonl"])
+    r = bench.rates(rows, VerdictSettings())
+    assert (len(rows), r["within"], r["off"], r["false_accepts"]) == (60, 49, 11, 0)
+    assert r["accepted"] == pytest.approx(46 / 49)
