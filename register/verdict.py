@@ -56,7 +56,7 @@ from dataclasses import asdict, dataclass, field
 import numpy as np
 
 from register.engines.cmaes import CMAESRegistration, along_view_ray
-from register.engines.metrics import bind_metric, downsample, ncc
+from register.engines.metrics import bind_metric, bind_metric_at, ncc
 from register.engines.result import RegistrationError
 from sim.projection.geometry import pose_from_params
 from sim.projection.se3 import rotation_error_deg
@@ -273,10 +273,7 @@ def rival(search: CMAESRegistration, image: np.ndarray, params, *, toned: np.nda
     tones = image if toned is None else toned
 
     def scores(factor: int):
-        if factor == 1:
-            return bind_metric(edge_metric, image, mask), bind_metric("ncc", tones, mask)
-        m = None if mask is None else downsample(mask.astype(np.float64), factor) > 0.999
-        return bind_metric(edge_metric, downsample(image, factor), m), bind_metric("ncc", downsample(tones, factor), m)
+        return bind_metric_at(edge_metric, image, mask, factor), bind_metric_at("ncc", tones, mask, factor)
 
     def joint(factor: int):
         edges, fit = scores(factor)
@@ -397,10 +394,10 @@ def checks(evidence: dict, settings: VerdictSettings) -> list[tuple[str, bool, s
         if runner is not None and "tone_fit" in runner and s.min_joint_margin is not None:
             margin = sim_ + tone - runner["similarity"] - runner["tone_fit"]
             ok = margin >= s.min_joint_margin
-            out.append(("min_joint_margin", ok, f"the runner-up scores {margin:.2f} less on similarity and tone fit "
-                        "together" if ok else f"a distinct pose of the search ({runner['deg']:.0f} deg, {runner['mm']:.0f} "
-                        f"mm across and {runner.get('depth_mm', 0):.0f} mm in depth away) scores as well on similarity and "
-                        f"tone fit together: {-margin:+.2f} (needs {s.min_joint_margin:+.2f} less)"))
+            out.append(("min_joint_margin", ok, f"similarity plus tone fit {margin:+.2f} against the runner-up's"
+                        if ok else f"a distinct pose of the search ({runner['deg']:.0f} deg, {runner['mm']:.0f} mm across "
+                        f"and {runner.get('depth_mm', 0):.0f} mm in depth away) scores as well on similarity and tone fit "
+                        f"together: this pose {margin:+.2f} against it (< {s.min_joint_margin:+.2f})"))
     elif sim_ < s.sure_similarity:
         out.append(("sure_similarity", False, f"no alternative examined (search {evidence['search']}) and similarity "
                     f"{sim_:.2f} < {s.sure_similarity:.2f}"))

@@ -22,7 +22,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from register.engines.metrics import bind_metric, downsample, get_metric
+from register.engines.metrics import bind_metric, bind_metric_at, get_metric
 from register.engines.result import RegistrationError, RegistrationResult
 from sim.core.errors import InputError
 from sim.projection.geometry import pose_from_params
@@ -432,16 +432,10 @@ class CMAESRegistration:
 
     def _scorer(self, fixed, mask):
         """``score_at(level, factor)``: the settings' similarity of that level with ``fixed``
-        ``(H, W)`` and ``mask`` bound at ``factor``'s resolution (:func:`register.engines.metrics.bind_metric`)."""
+        ``(H, W)`` and ``mask`` bound at ``factor``'s resolution (:func:`register.engines.metrics.bind_metric_at`)."""
         s = self.settings
 
-        def score_at(level: int, factor: int):
-            if factor == 1:
-                return bind_metric(s.per_level("metrics", level), fixed, mask)
-            lvl_mask = None if mask is None else downsample(mask.astype(np.float64), factor) > 0.999
-            return bind_metric(s.per_level("metrics", level), downsample(fixed, factor), lvl_mask)
-
-        return score_at
+        return lambda level, factor: bind_metric_at(s.per_level("metrics", level), fixed, mask, factor)
 
     def _search(self, score_at, x0, lo, hi, scale, *, seed, popsize, prefix, stages, history, progress,
                 polish):

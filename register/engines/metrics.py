@@ -45,6 +45,7 @@ __all__ = [
     "METRICS",
     "MetricError",
     "bind_metric",
+    "bind_metric_at",
     "downsample",
     "get_metric",
     "gradient_ncc",
@@ -667,6 +668,26 @@ def bind_metric(name: str, fixed: Any, mask: Any = None) -> Callable[[Any], np.n
         return free if scores is None else 0.5 * (scores + free)
 
     return score
+
+
+def bind_metric_at(name: str, fixed: Any, mask: Any, factor: int) -> Callable[[Any], np.ndarray]:
+    """:func:`bind_metric` at ``factor``'s resolution: ``fixed`` ``(H, W)`` block-mean downsampled
+    (:func:`downsample`) and ``mask`` ``(H, W)`` bool kept where every pixel of a block is valid;
+    ``score(moving)`` then takes ``(B, H/f, W/f)`` DRRs rendered at that resolution. Factor 1 is
+    :func:`bind_metric` itself.
+
+    Example::
+
+        >>> import numpy as np
+        >>> x = np.add.outer(np.arange(8.0), np.arange(8.0) ** 2)
+        >>> score = bind_metric_at("ncc", x, None, 2)
+        >>> bool(np.isclose(score(downsample(x, 2))[0], 1.0))
+        True
+    """
+    if factor == 1:
+        return bind_metric(name, fixed, mask)
+    m = None if mask is None else downsample(np.asarray(mask, np.float64), factor) > 0.999
+    return bind_metric(name, downsample(np.asarray(fixed, np.float64), factor), m)
 
 
 # ----------------------------------------------------------------------------- pyramids

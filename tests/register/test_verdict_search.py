@@ -141,9 +141,9 @@ def test_a_runner_up_as_good_on_edges_and_intensities_together_is_judged_only_wi
     ev = _ev(similarity=0.9, tone_fit=0.85, runner_up=runner)
     assert judge(ev, VerdictSettings(min_joint_margin=None)).label == "registered"  # None: not judged
     v = judge(ev, VerdictSettings(min_joint_margin=0.0))
-    assert v.label == "doubtful" and "scores as well on similarity and tone fit together: +0.02" in v.reasons[0]
+    assert v.label == "doubtful" and "scores as well on similarity and tone fit together: this pose -0.02" in v.reasons[0]
     v = judge(ev, VerdictSettings(min_joint_margin=-0.05))  # the runner-up may score up to 0.05 more
-    assert v.label == "registered" and any("the runner-up scores -0.02 less" in r for r in v.reasons)
+    assert v.label == "registered" and any("similarity plus tone fit -0.02 against the runner-up's" in r for r in v.reasons)
     # a runner-up without its tone fit (rows recorded before it) is judged on its similarity alone
     no_tone = _ev(similarity=0.9, tone_fit=0.85, runner_up={k: v for k, v in runner.items() if k != "tone_fit"})
     assert judge(no_tone, VerdictSettings(min_joint_margin=0.05)).label == "registered"
