@@ -14,7 +14,8 @@ recorded pose (``register.api.RegistrationRequest.judge``), about 3 s a row on 2
     .venv/bin/python benchmarks/verdict.py benchmarks/verdict_rows/calib.jsonl --rejudge runs/verdict/calib.jsonl
 
 The rows of docs/results.md's tables are committed, compacted (``--compact OUT``: only what the
-tables read), in ``benchmarks/verdict_rows/`` (``calib.jsonl``, ``heldout.jsonl``, ``unmatched.jsonl``)::
+tables read), in ``benchmarks/verdict_rows/`` (``calib.jsonl``, ``heldout.jsonl``, ``unmatched.jsonl``,
+``heldout_chains.jsonl``: six more display chains, docs/results.md)::
 
     .venv/bin/python benchmarks/verdict.py benchmarks/verdict_rows/calib.jsonl --calibrate
     .venv/bin/python benchmarks/verdict.py benchmarks/verdict_rows/heldout.jsonl benchmarks/verdict_rows/unmatched.jsonl
@@ -350,7 +351,7 @@ def main() -> int:
                     help="judge the one ROWS file's registrations again with the current evidence (each X-ray made "
                          "again, no registration) into OUT")
     ap.add_argument("--frames", default="runs/verdict/rejudge_frames",
-                    help="with --rejudge: where the study frames are simulated again (cached)")
+                    help="with --rejudge: where the study frames are simulated again, cached (default: %(default)s)")
     ap.add_argument("--compact", default=None, metavar="OUT",
                     help="write the one ROWS file to OUT with only what the tables read of each result")
     a = ap.parse_args()
