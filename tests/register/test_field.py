@@ -8,6 +8,7 @@ so that a field boundary just beyond the image edge counts as a boundary.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import time
 
@@ -781,3 +782,38 @@ def test_raw_frames_must_not_be_negative():
     img = np.linspace(-1.0, 1.0, 64 * 64).reshape(64, 64)
     with pytest.raises(FieldError, match="not negative"):
         detect_field(img, raw=True)
+
+
+def test_where_no_model_fits_the_image_its_log_views_are_tried(monkeypatch):
+    """The image as stored fits no model (kind ``"none"``) though it leaves enough field: a fitted
+    model of a logarithmic view replaces it (a linear display behind a leaky iris), a ``"none"``
+    of the log views does not (the image's own result is kept)."""
+    import register.xray.field as field_module
+
+    truth = _circle(128, 128, 100)(S)
+    img = _as(_compose(truth, _anatomy(S, 3)), "u12")
+    real = field_module._detect
+    seen = []
+
+    def display_fits_nothing(view, s):
+        found = real(view, s)
+        seen.append(found.kind)
+        if len(seen) == 1:  # the image as stored
+            return dataclasses.replace(found, kind="none", params={"reason": "stand-in"},
+                                       field_mask=np.ones_like(found.field_mask))
+        return found
+
+    monkeypatch.setattr(field_module, "_detect", display_fits_nothing)
+    f = detect_field(img)
+    assert f.kind == "circle" and f.view in ("log-dark", "log-bright") and len(seen) == 2
+
+    seen.clear()
+
+    def nothing_fits(view, s):
+        found = real(view, s)
+        seen.append(found.kind)
+        return dataclasses.replace(found, kind="none", params={"reason": "stand-in"})
+
+    monkeypatch.setattr(field_module, "_detect", nothing_fits)
+    f = detect_field(img)
+    assert f.kind == "none" and f.view == "display" and len(seen) == 3
