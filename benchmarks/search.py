@@ -62,6 +62,9 @@ def main() -> int:
     ap.add_argument("--ct", default=str(ROOT.parent / "shared" / "data" / "ct" / "pelvis_abdomen_3mm.nii.gz"),
                     help="the CT (NIfTI; default ../shared/data/ct/pelvis_abdomen_3mm.nii.gz)")
     ap.add_argument("--cases", type=int, default=10, help="frames: the protocol's first N poses (default 10)")
+    ap.add_argument("--only", type=int, nargs="+", default=None, metavar="CASE",
+                    help="register only these frames of the first --cases (0-based; default all): to register again "
+                         "the frames a change of the pipeline touches")
     ap.add_argument("--study", nargs="+", default=[str(ROOT / "studies" / "domain_gap.toml")],
                     help="the study file(s) whose xray targets give the frames (default studies/domain_gap.toml; "
                          "studies/heldout*.toml: conditions the search was not tuned on)")
@@ -95,6 +98,8 @@ def main() -> int:
 
         methods.REFINE_SETTINGS = replace(methods.REFINE_SETTINGS, polish_method=a.refine_polish)
     problem = input_problem("search", a.ct, a.cases)
+    if not problem and a.only is not None and not all(0 <= c < a.cases for c in a.only):
+        problem = f"search: --only: frames are 0 to {a.cases - 1} (--cases {a.cases}), got {a.only}"
     if not problem and a.scatter_smooth_mm is not None and not (0 <= a.scatter_smooth_mm <= 1000):
         problem = f"search: --scatter-smooth-mm must be a sigma in [0, 1000] mm, got {a.scatter_smooth_mm}"
     if problem:
@@ -219,7 +224,10 @@ def _measure(a, study, target, volume, center):
     split = []
     refused = 0  # frames whose content registration refuses (counted as failures)
     t_all = time.perf_counter()
+    done, total = 0, a.cases if a.only is None else len(set(a.only))
     for i, params in enumerate(poses):
+        if a.only is not None and i not in a.only:
+            continue
         T_true = pose_from_params(params, sod)
         path = folder / f"case_{i:03d}.dcm"
         frames.cached(path, T_true, frame_seed(study, i))
@@ -256,9 +264,9 @@ def _measure(a, study, target, volume, center):
                   f"similarity {res.similarity:.2f}, search {res.search_status}, {seconds:.1f} s", file=sys.stderr,
                   flush=True)
         refused += refused_frame
-        done = i + 1
+        done += 1
         rate = done / (time.perf_counter() - t_all)
-        print(f"search: {done}/{a.cases} frames, {rate:.3f} frames/s, ETA {(a.cases - done) / rate:.0f} s",
+        print(f"search: {done}/{total} frames, {rate:.3f} frames/s, ETA {(total - done) / rate:.0f} s",
               file=sys.stderr, flush=True)
 
     peer_rows = rows.get("cmaes + restarts (peer)")

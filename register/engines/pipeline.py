@@ -13,6 +13,9 @@ start, the winner polished.
 3. :meth:`~ContextualPipeline.refine`: CMA-ES in a narrowed box (:data:`REFINE_SETTINGS`; without
    a search, +-:data:`NETWORK_DEPTH_RANGE_MM` in depth) from each start (no polish where there are
    several); the highest similarity at full resolution wins (ties: the earlier start);
+   Where the grid was skipped but the network's pose, refined, ends below ``search.found_above``
+   by the refinement's score, :meth:`~ContextualPipeline.grid_after` runs the grid after all from
+   the refined pose, and step 3 refines its finalists;
 4. :meth:`~ContextualPipeline.polish`: only the winner is polished (several starts; the refinement's
    polish is the batched pattern search, ``REFINE_SETTINGS.polish_method``);
 5. :meth:`~ContextualPipeline.result`: the winner with the whole run's stage times (summed over
@@ -133,6 +136,12 @@ class ContextualPipeline:
         starts = [it.params] if found is None else [np.asarray(f["params"], float) for f in found.search["finalists"]]
         refine = self.scored(toned)
         refined = self.refine(refine, fixed, starts, mask=mask)
+        if found is not None and not found.search["grid_poses"] and refined[0].similarity < self.search.settings.found_above:
+            found = self.grid_after(fixed, init_params, found, refined[0], mask=mask, toned=toned, before_grid=before_grid)
+            if found is _STOPPED:
+                return None
+            starts = [np.asarray(f["params"], float) for f in found.search["finalists"]]
+            refined = self.refine(refine, fixed, starts, mask=mask)
         won = self.winner(refined)
         polished = self.polish(refine, fixed, refined[won], starts[won], mask=mask) if len(starts) > 1 else None
         return self.result(it, found, refined, won, polished)
@@ -150,6 +159,31 @@ class ContextualPipeline:
         found = self.search.register(fixed, init_params, mask=mask, poses=[it.params], toned=toned,
                                      before_grid=before_grid)
         return _STOPPED if found is None else found
+
+    def grid_after(self, fixed, init_params, skipped: RegistrationResult, refined: RegistrationResult, *,
+                   mask=None, toned=None, before_grid=None):
+        """Step 3b: the network's pose reached ``search.found_above`` (the grid skipped), but its
+        refinement ended below it by the refinement's own score (the tone-tolerant one of a display
+        image: the plain score had been lifted by the display's curve, or the refinement moved off):
+        the grid runs after all, the refined pose its given one, as where the network's pose had
+        scored less. Returns that search (its record's ``after_refinement``: the refined
+        similarity that sent it; the skipped search's and the first refinement's seconds and
+        renders counted in), or ``_STOPPED`` where ``before_grid`` stopped it. On the held-out
+        frames 3 of the 54 registrations that skipped the grid ended so, none of the calibration's 19
+        (docs/results.md)."""
+        found = self.search.register(fixed, init_params, mask=mask, poses=[refined.params], toned=toned,
+                                     before_grid=before_grid, grid=True)
+        if found is None:
+            return _STOPPED
+        stages = dict(found.stage_seconds)
+        for k, v in skipped.stage_seconds.items():
+            stages[k] = stages.get(k, 0.0) + v
+        stages["cmaes_before_grid"] = sum(refined.stage_seconds.values())
+        found.stage_seconds = stages
+        found.history = [*skipped.history, *refined.history, *found.history]
+        found.renders += skipped.renders + refined.renders
+        found.search = {**found.search, "after_refinement": float(refined.similarity)}
+        return found
 
     def scored(self, toned) -> CMAESRegistration:
         """The refinement's CMA-ES as it scores this X-ray (:func:`scored_as_refined`)."""

@@ -459,14 +459,16 @@ class GlobalSearch:
 
     def register(self, fixed: np.ndarray, init_params=np.zeros(6), *, mask: np.ndarray | None = None,
                  poses=(), toned: np.ndarray | None = None,
-                 before_grid: Callable[[], bool] | None = None) -> RegistrationResult | None:
+                 before_grid: Callable[[], bool] | None = None, grid: bool = False) -> RegistrationResult | None:
         """The best pose the search finds for ``fixed`` ``(H, W)`` around ``init_params`` (deg, mm).
 
         ``toned``: ``(H, W)`` the X-ray's toned version (:attr:`register.xray.prepare.PreparedXRay.toned`)
         or None: the grid ranks both, each supplying its share of the candidates.
         ``poses``: ``(K, 6)`` parameters searched locally first (the network's pose), each clipped
         into the prior box (``init_params`` +- ``range_deg`` / ``range_mm``) first: when the best
-        of them reaches ``found_above`` the grid is skipped. The result's similarity is the gradient
+        of them reaches ``found_above`` the grid is skipped (unless ``grid`` or ``always_grid``: the
+        grid runs whatever they score; ``grid`` is the pipeline's, for a pose that fell below
+        ``found_above`` in its refinement). The result's similarity is the gradient
         NCC at full resolution at its pose; ``stage_seconds`` has ``search_local`` (and
         ``search_grid`` when the grid ran); ``history`` one row per local search (stage
         ``search``); ``search`` the record ``{"given_similarity": the best given pose's local
@@ -531,7 +533,7 @@ class GlobalSearch:
         given_score = None if best is None else self._plain_similarity(fixed, best, mask, metric)
         grid_poses = candidates = 0
         grid_times = {"render": 0.0, "ncc": 0.0}  # the grid's and the rescoring's
-        if given_score is None or s.always_grid or given_score < s.found_above:
+        if given_score is None or grid or s.always_grid or given_score < s.found_above:
             if before_grid is not None and before_grid():
                 return None
             t0 = time.perf_counter()
@@ -591,13 +593,16 @@ def describe_search(record: dict) -> str:
     pose as the given one; with ``"refined"`` and ``"chosen"`` when the refinement ran from its
     finalists, :class:`register.engines.pipeline.ContextualPipeline`)."""
     net = record["given_similarity"]
-    head = "global search: " + ("no network pose" if net is None else f"the network's pose scored {net:.2f}")
+    after = record.get("after_refinement")
+    head = "global search: " + ("no network pose" if net is None else
+                                f"the network's pose scored >= {record['found_above']:g}, its refinement "
+                                f"{after:.2f}" if after is not None else f"the network's pose scored {net:.2f}")
     if not record["grid_poses"]:
         return head + f" (>= {record['found_above']:g}): grid skipped, refined from it"
     finalists = record.get("finalists") or [{"start": record["start"], "similarity": record["similarity"]}]
     chosen = record.get("chosen", 0)
     kept = finalists[chosen]
-    origin = "the network's pose" if kept["start"] == "given" else "a grid pose"
+    origin = ("the network's pose" + (" refined" if after is not None else "")) if kept["start"] == "given" else "a grid pose"
     why = ("grid run whatever it scored, --search always" if record.get("always_grid")
            else f"< {record['found_above']:g}")
     line = head + f" ({why}): {record['grid_poses']} grid poses, {record['candidates']} searched locally; "

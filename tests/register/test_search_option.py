@@ -151,6 +151,36 @@ def test_search_auto_skips_the_grid_for_a_good_pose_and_always_runs_it(phantom):
     assert "--search always" in always.summary()
 
 
+def test_a_network_pose_that_ends_below_found_above_after_refinement_runs_the_grid(phantom, monkeypatch):
+    """The network's pose scores found_above (grid skipped), but its refinement ends below it (here
+    forced: the refinement's first result reports 0.5): the grid runs after all, from the refined
+    pose, its finalists refined; the record says why, and the first refinement's seconds count."""
+    from dataclasses import replace
+
+    from register.engines.pipeline import ContextualPipeline
+    from register.engines.search import describe_search
+
+    real = ContextualPipeline.refine
+    calls = []
+
+    def refine(refine_engine, fixed, starts, *, mask=None):
+        out = real(refine_engine, fixed, starts, mask=mask)
+        calls.append(len(starts))
+        if len(calls) == 1:
+            out[0] = replace(out[0], similarity=0.5)
+        return out
+
+    monkeypatch.setattr(ContextualPipeline, "refine", staticmethod(refine))
+    res = register_drr(phantom, NEAR, search="auto")
+    record = res.result.search
+    assert len(calls) == 2 and calls[0] == 1  # the network's pose alone, then the grid's finalists
+    assert res.search_ran is True and record["grid_poses"] > 0 and record["after_refinement"] == 0.5
+    assert record["always_grid"] is False and res.search_status == "ran"
+    assert "cmaes_before_grid" in res.result.stage_seconds and "search_grid" in res.result.stage_seconds
+    assert "its refinement 0.50 (< 0.85)" in describe_search(record)
+    assert res.similarity >= 0.85  # a line DRR of the truth: the grid's start refines to it
+
+
 def test_methods_without_the_search_record_none_and_refuse_the_option(phantom, tmp_path):
     from register.api import register_xray
 
