@@ -58,6 +58,7 @@ import numpy as np
 from register.engines.cmaes import CMAESRegistration, along_view_ray
 from register.engines.metrics import bind_metric, bind_metric_at, ncc
 from register.engines.result import RegistrationError
+from register.engines.search import GlobalSearchSettings
 from sim.projection.geometry import pose_from_params
 from sim.projection.se3 import rotation_error_deg
 
@@ -122,7 +123,11 @@ class VerdictSettings:
         min_margin: ``registered`` needs the final similarity to beat a distinct runner-up by at
             least this much.
         sure_similarity: where the search's grid did not run (skipped, off, or a method without
-            it: no alternative was examined), ``registered`` needs at least this similarity.
+            it: no alternative was examined), ``registered`` needs at least this similarity. The
+            default pipeline runs the grid after all where its refined pose ends below it
+            (:attr:`register.engines.search.GlobalSearchSettings.refined_above`, whose value it
+            takes: one number for both), so the check decides only ``--search off`` and the
+            methods without the search.
         min_field_fraction: ``registered`` needs at least this share of the X-ray's pixels used.
         min_depth_drop: ``registered`` needs the similarity to fall by at least this much
             :data:`DEPTH_PROBE_MM` nearer or farther (the better of the two).
@@ -141,7 +146,7 @@ class VerdictSettings:
     min_similarity: float = 0.4
     min_tone_fit: float = 0.5
     min_margin: float = 0.0
-    sure_similarity: float = 0.85
+    sure_similarity: float = GlobalSearchSettings.refined_above
     min_field_fraction: float = 0.1
     min_depth_drop: float = 0.05
     min_profile_drop: float | None = 0.02

@@ -13,7 +13,7 @@ start, the winner polished.
 3. :meth:`~ContextualPipeline.refine`: CMA-ES in a narrowed box (:data:`REFINE_SETTINGS`; without
    a search, +-:data:`NETWORK_DEPTH_RANGE_MM` in depth) from each start (no polish where there are
    several); the highest similarity at full resolution wins (ties: the earlier start);
-   Where the grid was skipped but the network's pose, refined, ends below ``search.found_above``
+   Where the grid was skipped but the network's pose, refined, ends below ``search.refined_above``
    by the refinement's score, :meth:`~ContextualPipeline.grid_after` runs the grid after all from
    the refined pose, and step 3 refines its finalists;
 4. :meth:`~ContextualPipeline.polish`: only the winner is polished (several starts; the refinement's
@@ -136,7 +136,7 @@ class ContextualPipeline:
         starts = [it.params] if found is None else [np.asarray(f["params"], float) for f in found.search["finalists"]]
         refine = self.scored(toned)
         refined = self.refine(refine, fixed, starts, mask=mask)
-        if found is not None and not found.search["grid_poses"] and refined[0].similarity < self.search.settings.found_above:
+        if found is not None and not found.search["grid_poses"] and refined[0].similarity < self.search.settings.refined_above:
             found = self.grid_after(fixed, init_params, found, refined[0], mask=mask, toned=toned, before_grid=before_grid)
             if found is _STOPPED:
                 return None
@@ -163,13 +163,14 @@ class ContextualPipeline:
     def grid_after(self, fixed, init_params, skipped: RegistrationResult, refined: RegistrationResult, *,
                    mask=None, toned=None, before_grid=None):
         """Step 3b: the network's pose reached ``search.found_above`` (the grid skipped), but its
-        refinement ended below it by the refinement's own score (the tone-tolerant one of a display
-        image: the plain score had been lifted by the display's curve, or the refinement moved off):
+        refinement ended below ``search.refined_above`` by the refinement's own score (the
+        tone-tolerant one of a display image: the plain score had been lifted by the display's
+        curve, or the refinement moved off; 0.88: what the verdict needs without alternatives):
         the grid runs after all, the refined pose its given one, as where the network's pose had
         scored less. Returns that search (its record's ``after_refinement``: the refined
         similarity that sent it; the skipped search's and the first refinement's seconds and
-        renders counted in), or ``_STOPPED`` where ``before_grid`` stopped it. On the held-out
-        frames 3 of the 54 registrations that skipped the grid ended so, none of the calibration's 19
+        renders counted in), or ``_STOPPED`` where ``before_grid`` stopped it. On the
+        verdict's rows 7 of the 73 default registrations that skipped the grid ended so
         (docs/results.md)."""
         found = self.search.register(fixed, init_params, mask=mask, poses=[refined.params], toned=toned,
                                      before_grid=before_grid, grid=True)
@@ -182,7 +183,8 @@ class ContextualPipeline:
         found.stage_seconds = stages
         found.history = [*skipped.history, *refined.history, *found.history]
         found.renders += skipped.renders + refined.renders
-        found.search = {**found.search, "after_refinement": float(refined.similarity)}
+        found.search = {**found.search, "after_refinement": float(refined.similarity),
+                        "refined_above": self.search.settings.refined_above}
         return found
 
     def scored(self, toned) -> CMAESRegistration:

@@ -99,6 +99,13 @@ class GlobalSearchSettings:
             resolution) at or above which the grid is skipped (default 0.85: a wrong network pose on
             a realistic radiograph scored 0.75, right ones 0.7-0.9, so only a clear match skips the
             grid, which costs 2-4 s).
+        refined_above: the refined similarity (the refinement's own score, tone-tolerant for a
+            display image) the network's pose must reach after its refinement where the grid was
+            skipped, or the grid runs after all (:class:`register.engines.pipeline.ContextualPipeline`;
+            default 0.88: the similarity the verdict needs where no alternative was examined,
+            :attr:`register.verdict.VerdictSettings.sure_similarity`, so that a skipped grid
+            never leaves the verdict without the alternatives it would ask for). At least
+            ``found_above``.
         always_grid: run the grid even when a given pose reaches ``found_above`` (``ctxreg register
             --search always``: the grid's finalists compete with the network's pose whatever it
             scored); default False.
@@ -124,6 +131,7 @@ class GlobalSearchSettings:
     local_popsize: int = 16
     finalists: int = 3
     found_above: float = 0.85
+    refined_above: float = 0.88
     metric: str = "tone_tolerant_gncc"
     always_grid: bool = False
     seed: int = 0
@@ -150,6 +158,9 @@ class GlobalSearchSettings:
             raise RegistrationError(f"always_grid must be True or False, got {self.always_grid!r}")
         if not (np.isfinite(self.found_above) and -1.0 <= self.found_above <= 1.0):
             raise RegistrationError(f"found_above must be a similarity in [-1, 1], got {self.found_above}")
+        if not (np.isfinite(self.refined_above) and self.found_above <= self.refined_above <= 1.0):
+            raise RegistrationError(f"refined_above must be a similarity in [found_above, 1] "
+                                    f"([{self.found_above:g}, 1]), got {self.refined_above}")
 
         try:
             get_metric(self.metric)
@@ -467,8 +478,8 @@ class GlobalSearch:
         ``poses``: ``(K, 6)`` parameters searched locally first (the network's pose), each clipped
         into the prior box (``init_params`` +- ``range_deg`` / ``range_mm``) first: when the best
         of them reaches ``found_above`` the grid is skipped (unless ``grid`` or ``always_grid``: the
-        grid runs whatever they score; ``grid`` is the pipeline's, for a pose that fell below
-        ``found_above`` in its refinement). The result's similarity is the gradient
+        grid runs whatever they score; ``grid`` is the pipeline's, for a pose whose refinement
+        ended below ``refined_above``). The result's similarity is the gradient
         NCC at full resolution at its pose; ``stage_seconds`` has ``search_local`` (and
         ``search_grid`` when the grid ran); ``history`` one row per local search (stage
         ``search``); ``search`` the record ``{"given_similarity": the best given pose's local
@@ -597,6 +608,7 @@ def describe_search(record: dict) -> str:
     head = "global search: " + ("no network pose" if net is None else
                                 f"the network's pose scored >= {record['found_above']:g}, its refinement "
                                 f"{after:.2f}" if after is not None else f"the network's pose scored {net:.2f}")
+    below = record.get("refined_above", record["found_above"]) if after is not None else record["found_above"]
     if not record["grid_poses"]:
         return head + f" (>= {record['found_above']:g}): grid skipped, refined from it"
     finalists = record.get("finalists") or [{"start": record["start"], "similarity": record["similarity"]}]
@@ -604,7 +616,7 @@ def describe_search(record: dict) -> str:
     kept = finalists[chosen]
     origin = ("the network's pose" + (" refined" if after is not None else "")) if kept["start"] == "given" else "a grid pose"
     why = ("grid run whatever it scored, --search always" if record.get("always_grid")
-           else f"< {record['found_above']:g}")
+           else f"< {below:g}")
     line = head + f" ({why}): {record['grid_poses']} grid poses, {record['candidates']} searched locally; "
     if "refined" in record and len(record["refined"]) > 1:
         rank = ("best", "second best", "third best")[chosen] if chosen < 3 else f"number {chosen + 1}"

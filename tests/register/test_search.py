@@ -56,7 +56,8 @@ def test_settings_are_checked():
     assert np.allclose(offsets.mean(0), 0) and np.allclose(np.abs(offsets).max(0), [40, 20, 20, 0, 0, 75])
     for bad, match in [(dict(step_deg=0.0), "step_deg"), (dict(range_deg=(40, 20)), "range_deg"),
                        (dict(candidates=0), "candidates"), (dict(depths=1.5), "depths"),
-                       (dict(found_above=2.0), "found_above"), (dict(factor=True), "factor"),
+                       (dict(found_above=2.0), "found_above"), (dict(refined_above=0.8), "refined_above"),
+                       (dict(factor=True), "factor"),
                        (dict(rescore=-1), "rescore"), (dict(local_factor=0), "local_factor"),
                        (dict(finalists=0), "finalists"), (dict(local_generations=0), "local_generations"),
                        (dict(local_fine_generations=-1), "local_fine_generations"),

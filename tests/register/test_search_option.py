@@ -151,8 +151,9 @@ def test_search_auto_skips_the_grid_for_a_good_pose_and_always_runs_it(phantom):
     assert "--search always" in always.summary()
 
 
-def test_a_network_pose_that_ends_below_found_above_after_refinement_runs_the_grid(phantom, monkeypatch):
-    """The network's pose scores found_above (grid skipped), but its refinement ends below it (here
+def test_a_network_pose_that_ends_below_refined_above_after_refinement_runs_the_grid(phantom, monkeypatch):
+    """The network's pose scores found_above (grid skipped), but its refinement ends below
+    refined_above, the similarity the verdict needs without alternatives (here
     forced: the refinement's first result reports 0.5): the grid runs after all, from the refined
     pose, its finalists refined; the record says why, and the first refinement's seconds count."""
     from dataclasses import replace
@@ -177,7 +178,7 @@ def test_a_network_pose_that_ends_below_found_above_after_refinement_runs_the_gr
     assert res.search_ran is True and record["grid_poses"] > 0 and record["after_refinement"] == 0.5
     assert record["always_grid"] is False and res.search_status == "ran"
     assert "cmaes_before_grid" in res.result.stage_seconds and "search_grid" in res.result.stage_seconds
-    assert "its refinement 0.50 (< 0.85)" in describe_search(record)
+    assert record["refined_above"] == 0.88 and "its refinement 0.50 (< 0.88)" in describe_search(record)
     assert res.similarity >= 0.85  # a line DRR of the truth: the grid's start refines to it
 
 

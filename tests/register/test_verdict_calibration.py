@@ -21,14 +21,14 @@ def test_the_shipped_thresholds_are_the_calibrations_choice():
     assert len(rows) == 120
     chosen, rates = bench.calibrate(rows)
     assert chosen == VerdictSettings()
-    assert rates["false_accepts"] == 0 and rates["accepted"] == pytest.approx(90 / 93)
+    assert rates["false_accepts"] == 0 and rates["accepted"] == pytest.approx(91 / 94)
 
 
 def test_the_held_out_rates_are_the_documented_ones():
     rows = bench.load_rows([ROWS / "heldout.jsonl", ROWS / "unmatched.jsonl"])
     r = bench.rates(rows, VerdictSettings())
-    assert (r["within"], r["off"], r["false_accepts"]) == (104, 56, 0)
-    assert r["accepted"] == pytest.approx(97 / 104)
+    assert (r["within"], r["off"], r["false_accepts"]) == (106, 54, 0)
+    assert r["accepted"] == pytest.approx(104 / 106)
     unmatched = [x for x in rows if x["mtre_mm"] is None]
     assert len(unmatched) == 20 and bench.rates(unmatched, VerdictSettings())["registered"] == 0
 
@@ -36,5 +36,5 @@ def test_the_held_out_rates_are_the_documented_ones():
 def test_six_more_held_out_display_chains_have_no_false_accept():
     rows = bench.load_rows([ROWS / "heldout_chains.jsonl"])
     r = bench.rates(rows, VerdictSettings())
-    assert (len(rows), r["within"], r["off"], r["false_accepts"]) == (60, 49, 11, 0)
-    assert r["accepted"] == pytest.approx(46 / 49)
+    assert (len(rows), r["within"], r["off"], r["false_accepts"]) == (60, 51, 9, 0)
+    assert r["accepted"] == pytest.approx(50 / 51)
