@@ -80,7 +80,8 @@ RESTART_METHODS = ("cmaes",)
 SEARCH_METHODS = ("contextual+cmaes",)
 
 #: ``search`` (``--search``) of contextual+cmaes: ``"auto"`` runs the global search's grid where the
-#: network's pose scores below :attr:`register.engines.search.GlobalSearchSettings.found_above` (the default),
+#: network's pose scores below :attr:`register.engines.search.GlobalSearchSettings.found_above` or ends below
+#: :attr:`~register.engines.search.GlobalSearchSettings.refined_above` after its refinement (the default),
 #: ``"off"`` never builds the search (the network's pose goes straight to the CMA-ES refinement: the
 #: network measured on its own), ``"always"`` runs the grid whatever the network's pose scored.
 SEARCH_MODES = ("auto", "off", "always")

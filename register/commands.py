@@ -248,7 +248,9 @@ class RegisterCommand:
     search: str = field(default="auto", metadata=opt(
         "the global search of --method contextual+cmaes (a rotation / depth grid over the prior box around "
         "--init): auto runs it where the network's pose scores below "
-        f"{GlobalSearchSettings.found_above:g} (gradient NCC), else refines the network's pose directly; off never builds it: the network's pose goes straight to the CMA-ES "
+        f"{GlobalSearchSettings.found_above:g} (gradient NCC), else refines the network's pose directly and runs it after all "
+        f"where that refinement ends below {GlobalSearchSettings.refined_above:g}; off never builds it: the network's pose goes "
+        "straight to the CMA-ES "
         f"refinement, whose box is +-{NETWORK_DEPTH_RANGE_MM:g} mm in depth, where the network is least sure "
         "(the network measured on its own; the polarity is still checked, by the registered pose or on a grid "
         "of its own, deciding the polarity only); "
