@@ -17,14 +17,18 @@ simulator's collimator mask (an open collimator: every pixel):
   (registration counts them as failures); ``log views``: frames read in a logarithmic view (the
   fallback for linear displays, :data:`register.xray.field.LOG_VIEWS`).
 
-Prints one row per condition (medians over its frames) and the frames that are wrong or refused.
+Prints one row per condition (medians over its frames) and the frames that are wrong or refused;
+with ``--against REV``, a table of detect_field's seconds against the code of git revision REV on
+the same frames (docs/benchmarks.md, "Time of the detection").
 """
 
 from __future__ import annotations
 
 import argparse
+import subprocess
 import sys
 import time
+import types
 from pathlib import Path
 
 import numpy as np
@@ -55,6 +59,9 @@ def main() -> int:
     ap.add_argument("--target", default="all", help="one xray target, or 'all' (default)")
     ap.add_argument("--out", default=str(ROOT / "runs" / "bench_search"),
                     help="frame cache folder, shared with benchmarks/search.py (default runs/bench_search)")
+    ap.add_argument("--against", default=None, metavar="REV",
+                    help="also time detect_field against register/xray/field.py as it was at git revision REV, "
+                         "in the same process on the same frames (median seconds per condition and their ratio)")
     a = ap.parse_args()
     problem = input_problem("field", a.ct, a.cases)
     if problem:
@@ -74,7 +81,14 @@ def main() -> int:
         names = sorted({t.name for p in a.study for t in load_study(p).targets if t.kind == "xray"})
         print(f"field: --target must be 'all' or one of {names}, got {a.target!r}", file=sys.stderr)
         return 2
-    rows, notes = [], []
+    peer = None
+    if a.against is not None:
+        try:
+            peer = _field_at(a.against)
+        except (subprocess.CalledProcessError, OSError) as exc:
+            print(f"field: --against {a.against}: no register/xray/field.py there ({exc})", file=sys.stderr)
+            return 2
+    rows, notes, times = [], [], []
     t_all = time.perf_counter()
     for k, (path, target) in enumerate(chosen):
         _, _, _, found, frames = study_frame_files(path, target.name, a.ct, a.cases, a.out)
@@ -83,6 +97,10 @@ def main() -> int:
             pixels = load_xray(frame).pixels
             h, w = pixels.shape
             truth = np.ones((h, w), bool) if frames.collimator is None else frames.collimator.mask(h, w)
+            if peer is not None:
+                refusals = (FieldError, peer.FieldError)
+                times.append((target.name, _seconds(detect_field, pixels, refusals),
+                              _seconds(peer.detect_field, pixels, refusals)))
             try:
                 f = detect_field(pixels)
             except FieldError as exc:
@@ -115,7 +133,45 @@ def main() -> int:
         print(f"| `{name}` | {n} | {refused} | {wrong} | {logs} | {kind} | {p:.2f} | {r:.2f} |")
     if notes:
         print("\n" + "\n".join(f"- {n}" for n in notes))
+    if times:
+        print(f"\nSeconds of detect_field, median over each condition's frames (each the median of "
+              f"{TIMING_CALLS} calls), against {a.against} in the same process\n")
+        print(f"| condition | {a.against} s | now s | ratio |")
+        print("|---|---|---|---|")
+        for name in dict.fromkeys(n for n, _, _ in times):
+            now = float(np.median([t for n, t, _ in times if n == name]))
+            before = float(np.median([t for n, _, t in times if n == name]))
+            print(f"| `{name}` | {before:.3f} | {now:.3f} | {now / before:.2f}x |")
     return 0
+
+
+#: Calls timed per frame and version (their median is the frame's seconds).
+TIMING_CALLS = 3
+
+
+def _seconds(detect, pixels, refusals: tuple) -> float:
+    """The median seconds of ``detect(pixels)`` over :data:`TIMING_CALLS` calls (a refusal, one of
+    ``refusals``, is timed like a result)."""
+    out = []
+    for _ in range(TIMING_CALLS):
+        t0 = time.perf_counter()
+        try:
+            detect(pixels)
+        except refusals:
+            pass
+        out.append(time.perf_counter() - t0)
+    return float(np.median(out))
+
+
+def _field_at(rev: str):
+    """register/xray/field.py as it was at git revision ``rev``, loaded as a module of its own."""
+    source = subprocess.run(["git", "-C", str(ROOT), "show", f"{rev}:register/xray/field.py"], check=True,
+                            capture_output=True, text=True).stdout
+    module = types.ModuleType(f"field_at_{rev}")
+    module.__file__ = f"{rev}:register/xray/field.py"
+    sys.modules[module.__name__] = module  # dataclasses resolve their module by name
+    exec(compile(source, module.__file__, "exec"), module.__dict__)
+    return module
 
 
 if __name__ == "__main__":
