@@ -211,6 +211,16 @@ _NOTCHED_POLY_EDGE_COVER = 0.3
 #: own kind ``"none"``: of 27 study frames where a log view fitted one, 26 left 0.33-0.74 valid; the
 #: other, 0.12, was a strip of the field between clipped air and anatomy at the view's extremes.
 _LOG_FIT_MIN_VALID = 0.25
+#: A fitted field of the image as stored under this share of the image may be the air inside the field
+#: (a display that puts the body within a few grey levels of its painted outside: the body read as
+#: outside, the air beside it as the field); a logarithmic view's fitted field then replaces it where
+#: it holds at least :data:`_AROUND_HELD` of it and is :data:`_AROUND_LARGER` times larger. On 340
+#: study frames: 7 such fields (12-25 % of the image, 0.18-0.40 recall of the collimator's mask) were
+#: the air, each found whole in a log view (0.88-0.99); the smallest right field, a synthetic tight
+#: one of 17 %, has no larger field around it in any view.
+_SMALL_FIELD = 0.3
+_AROUND_HELD = 0.9
+_AROUND_LARGER = 1.5
 #: Most outside levels (step 1b): the body's shadow, the air's clipped and the air's grey.
 _MAX_OUTSIDE_LEVELS = 3
 #: Most blades cutting an iris (two pairs of shutter blades).
@@ -1316,7 +1326,10 @@ def detect_field(image: np.ndarray, settings: FieldSettings | None = None, *, ra
     anatomy within 20 counts of black), and the logarithm spreads those levels apart as a log
     display would. The mask is of the image's own pixels either way; :attr:`Field.view` says which
     view found it. Where the image as stored fits no shape model (kind ``"none"``), a logarithmic
-    view's fitted model (leaving at least a quarter of the image valid) replaces it.
+    view's fitted model (leaving at least a quarter of the image valid) replaces it; where it fits
+    one to less than :data:`_SMALL_FIELD` of the image, a log view's fitted field that holds it and
+    is larger (:data:`_AROUND_HELD`, :data:`_AROUND_LARGER`) replaces it: the small one was the air
+    inside the field, the body beside it taken for the outside.
 
     Args:
         image: ``(H, W)`` real, finite values of any range and dtype (8-, 12-, 16-bit integers or
@@ -1349,6 +1362,10 @@ def detect_field(image: np.ndarray, settings: FieldSettings | None = None, *, ra
             raise FieldError(f"{first} (in the image and in its logarithmic views)") from None
         return found
     if found.kind != "none":
+        if found.field_mask.mean() < _SMALL_FIELD:  # maybe the air inside the field, taken for it
+            around = _in_log_views(img, lo, hi, s, around=found.field_mask)
+            if around is not None:
+                return around
         return found
     # no model fits the image as stored: one may fit its logarithm (a linear display's leaky blades)
     logged = _in_log_views(img, lo, hi, s, fitted_only=True)
@@ -1356,17 +1373,22 @@ def detect_field(image: np.ndarray, settings: FieldSettings | None = None, *, ra
 
 
 def _in_log_views(img: np.ndarray, lo: float, hi: float, s: FieldSettings, *,
-                  fitted_only: bool = False) -> Field | None:
+                  fitted_only: bool = False, around: np.ndarray | None = None) -> Field | None:
     """:func:`_detect` on the logarithmic views of ``img`` (the end where most pixels lie first):
     the first that leaves enough field (with ``fitted_only``: the first whose field a shape model
-    fits, not kind ``"none"``), its excluded plateaus named in the image's own polarity; None if
-    none does."""
+    fits, not kind ``"none"``; with ``around`` ``(H, W)`` bool: the first fitted one that holds
+    :data:`_AROUND_HELD` of it and is :data:`_AROUND_LARGER` times larger), its excluded plateaus
+    named in the image's own polarity; None if none does."""
     for view in _log_view_order(img, lo, hi):
         try:
             found = _detect(log_view(img, view), s)
         except _TooLittleField:
             continue
-        if fitted_only and found.kind == "none":
+        if (fitted_only or around is not None) and found.kind == "none":
+            continue
+        if around is not None and not (
+                (found.field_mask & around).sum() >= _AROUND_HELD * around.sum()
+                and found.field_mask.sum() >= _AROUND_LARGER * around.sum()):
             continue
         changes = {"view": view}
         if view == "log-bright":  # the view is inverted: its black is the image's white, its empty saturated

@@ -817,3 +817,37 @@ def test_where_no_model_fits_the_image_its_log_views_are_tried(monkeypatch):
     monkeypatch.setattr(field_module, "_detect", nothing_fits)
     f = detect_field(img)
     assert f.kind == "none" and f.view == "display" and len(seen) == 3
+
+
+def test_a_small_field_gives_way_to_a_log_views_field_around_it(monkeypatch):
+    """A field fitted to under 30 % of the image as stored (the air inside the field, the body read
+    as outside) is replaced by a log view's fitted field that holds it and is 1.5 times larger; a
+    log view's field elsewhere, or one not larger, leaves it as it is."""
+    import register.xray.field as field_module
+
+    truth = _circle(128, 128, 100)(S)
+    img = _as(_compose(truth, _anatomy(S, 3)), "u12")
+    real = field_module._detect
+    small = np.zeros(S, bool)
+    small[150:200, 100:160] = True  # inside the circle: 3000 px, 5 % of the image
+    elsewhere = np.zeros(S, bool)
+    elsewhere[:, :100] = True  # 39 % of the image, holding none of it
+    calls = []
+
+    def display_small(log_field):
+        def detect(view, s):
+            found = real(view, s)
+            calls.append(found.kind)
+            if len(calls) == 1:  # the image as stored: a polygon fitted to the small region
+                return dataclasses.replace(found, kind="polygon", field_mask=small, mask=small)
+            return found if log_field is None else dataclasses.replace(found, field_mask=log_field(found))
+        return detect
+
+    monkeypatch.setattr(field_module, "_detect", display_small(None))
+    f = detect_field(img)
+    assert f.kind == "circle" and f.view in ("log-dark", "log-bright") and f.field_mask[small].all()
+    for log_field in (lambda found: elsewhere, lambda found: small | np.roll(small, 20, axis=0)):  # 1.4x: not larger
+        calls.clear()
+        monkeypatch.setattr(field_module, "_detect", display_small(log_field))
+        f = detect_field(img)
+        assert f.view == "display" and np.array_equal(f.field_mask, small) and len(calls) == 3
