@@ -68,7 +68,8 @@ GRID = {"min_similarity": (0.15, 0.2, 0.25, 0.3, 0.35, 0.4, 0.5, 0.6),
         "sure_similarity": (0.85, 0.88, 0.9, 0.92, 0.95, 1.0),
         "min_depth_drop": (0.0, 0.03, 0.05, 0.07),
         "min_profile_drop": (None, 0.02, 0.04, 0.06, 0.08),
-        "max_rival_gain": (None, 0.2, 0.1, 0.07, 0.05, 0.03)}
+        "max_rival_gain": (None, 0.2, 0.1, 0.07, 0.05, 0.03),
+        "min_local_similarity": (None, 0.1, 0.2, 0.3, 0.35, 0.4, 0.5)}
 
 #: The check (:func:`register.verdict.checks`, by the setting it is named for) each threshold of
 #: :data:`GRID` sets.
@@ -76,7 +77,8 @@ CHECK_OF = {name: name for name in GRID}
 
 #: The evidence each threshold of :data:`GRID` that may be None judges (rows registered before it
 #: was gathered lack it; where no row has it, the threshold stays None).
-EVIDENCE_OF = {"min_profile_drop": "depth_profile", "max_rival_gain": "rival", "min_joint_margin": "refined_tones"}
+EVIDENCE_OF = {"min_profile_drop": "depth_profile", "max_rival_gain": "rival", "min_joint_margin": "refined_tones",
+               "min_local_similarity": "local_similarity"}
 
 
 def _strictness_of(name: str, value) -> float:

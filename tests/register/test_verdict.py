@@ -167,3 +167,37 @@ def test_the_command_line_prints_the_last_line_and_exits_with_the_status(monkeyp
     code = cli.main(["register", "--ct", "phantom", "--xray", "x.png", "--out", "o"])
     out = capsys.readouterr().out.strip().splitlines()
     assert code == 3 and out[-1] == "verdict: doubtful (x)" and out[-2] == "wrote a.png"
+
+
+def _body_with_bones(bone_shift_px: int) -> np.ndarray:
+    """A 128 px line-integral image: a body whose outline crosses the image (a step of 3, the
+    strongest edge by far) over air, with anatomy inside it (smooth structure, sd 0.1, 4 px across),
+    moved by ``bone_shift_px`` along the outline: the same outline, other anatomy."""
+    from scipy import ndimage
+
+    y, x = np.mgrid[0:128, 0:128].astype(float)
+    body = 1.0 / (1.0 + np.exp(-(0.35 * x - y + 70.0)))  # the body above a sloping outline, air below
+    texture = ndimage.gaussian_filter(np.random.default_rng(3).standard_normal((128, 128 + 64)), 4.0)
+    texture = 0.1 * texture[:, 32 - bone_shift_px:160 - bone_shift_px] / texture.std()
+    return body * (3.0 + texture)
+
+
+def test_one_strong_edge_carrying_the_whole_similarity_is_doubtful_window_by_window():
+    # truth: the DRR at a pose that puts the outline where the X-ray has it but the bones elsewhere
+    # correlates with the X-ray as a whole (the outline dominates both images' gradients), window by
+    # window it does not (the bones meet nothing); at the right pose both are 1
+    xray = _body_with_bones(0)
+    wrong, right = _body_with_bones(17), xray
+    ev = {}
+    for name, drr in (("wrong", wrong), ("right", right)):
+        ev[name] = gather_evidence(similarity=0.93, pose=np.eye(4), image=xray, mask=None, drr=drr, toned=None,
+                                   search=None, search_ran=False, network_pose=None, sod_mm=SOD, field_fraction=1.0)
+    from register.engines.metrics import gradient_ncc
+    assert gradient_ncc(xray, wrong)[0] > 0.85  # the whole image's similarity cannot tell
+    assert ev["right"]["local_similarity"] == pytest.approx(1.0)
+    s = VerdictSettings()
+    assert ev["wrong"]["local_similarity"] < s.min_local_similarity
+    v = judge({**ev["wrong"], "depth_drop": 0.3}, s)
+    assert v.label == "doubtful" and any("window by window" in r for r in v.reasons)
+    assert judge({**ev["right"], "depth_drop": 0.3}, s).label == "registered"
+    assert judge({**ev["wrong"], "depth_drop": 0.3}, VerdictSettings(min_local_similarity=None)).label == "registered"
