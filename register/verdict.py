@@ -13,10 +13,10 @@ independent evidence, each gathered once after the registration (:func:`gather_e
   (:data:`DISTINCT_DEG` / :data:`DISTINCT_MM` away): two poses that score alike mean the X-ray
   does not decide between them. Where the search's grid did not run, no alternative was
   examined, and only a clear match (``sure_similarity``) may be called registered;
-* ``local_similarity``: the patch gradient NCC (:func:`register.engines.metrics.patch_gradient_ncc`,
-  Grupp et al. 2020) of the X-ray with the line DRR at the final pose, in windows of
-  :data:`LOCAL_PATCH_PX` px at the optimiser's 128 px (:func:`local_patch_px`): whether the edges
-  agree window by window over the field. The whole image's correlation can rest on one strong
+* ``local_similarity``: the gradient NCC window by window
+  (:func:`register.engines.metrics.local_gradient_ncc`: patch gradient NCC, Grupp et al. 2020, in
+  15 px windows at the optimiser's 128 px) of the X-ray with the line DRR at the final pose: whether
+  the edges agree window by window over the field (None: a field smaller than one window). The whole image's correlation can rest on one strong
   edge: where a linear display shows the body as a flat white and the air beside it black, the
   body's outline is the only edge, and any pose that puts the DRR's outline there scores 0.93
   (a frame 153 mm off in depth, every other check passed); window by window, its bone edges meet
@@ -64,7 +64,7 @@ from dataclasses import asdict, dataclass, field
 import numpy as np
 
 from register.engines.cmaes import CMAESRegistration, along_view_ray
-from register.engines.metrics import bind_metric, bind_metric_at, ncc, patch_gradient_ncc
+from register.engines.metrics import NoWindowError, bind_metric, bind_metric_at, local_gradient_ncc, ncc
 from register.engines.result import RegistrationError
 from register.engines.search import GlobalSearchSettings
 from sim.projection.geometry import pose_from_params
@@ -96,12 +96,6 @@ DISTINCT_DEPTH_MM = 20.0
 #: How far (mm) along the ray through the anatomy centre the depth probe moves the final pose, each
 #: way (:func:`depth_probe_poses`): 30 mm at 700 mm from the source scales the image by 4 %.
 DEPTH_PROBE_MM = 30.0
-
-#: The local similarity's window (px, odd) at :data:`LOCAL_REFERENCE_SIDE_PX` on the image's longer
-#: side (:func:`local_patch_px`: scaled with ``--size``): about 12 % of the image, some 35 mm of the
-#: anatomy, a bone edge's neighbourhood with room for its shift by a few px.
-LOCAL_PATCH_PX = 15
-LOCAL_REFERENCE_SIDE_PX = 128
 
 #: The depth profile (:func:`depth_profile`): the CMA-ES generations of the fit at each probe's
 #: depth, and the half-width (mm) of the box that pins the depth there.
@@ -200,19 +194,6 @@ class Verdict:
 
     def to_dict(self) -> dict:
         return {"verdict": self.label, "verdict_reasons": list(self.reasons), "verdict_evidence": self.evidence}
-
-
-def local_patch_px(shape) -> int:
-    """The local similarity's window (odd px, at least 5) for an image of ``shape`` ``(h, w)``:
-    :data:`LOCAL_PATCH_PX` scaled from :data:`LOCAL_REFERENCE_SIDE_PX` on the longer side.
-
-    Example::
-
-        >>> local_patch_px((128, 96)), local_patch_px((256, 256)), local_patch_px((32, 32))
-        (15, 31, 5)
-    """
-    side = max(int(shape[0]), int(shape[1]))
-    return max(5, 2 * int(LOCAL_PATCH_PX * side / LOCAL_REFERENCE_SIDE_PX // 2) + 1)
 
 
 def pose_gap(T_a: np.ndarray, T_b: np.ndarray) -> tuple[float, float, float]:
@@ -357,7 +338,10 @@ def gather_evidence(*, similarity: float, pose: np.ndarray, image: np.ndarray, m
     """
     ev: dict = {"similarity": float(similarity), "field_fraction": float(field_fraction)}
     ev["tone_fit"] = float(ncc(image if toned is None else toned, drr, mask=mask)[0])
-    ev["local_similarity"] = float(patch_gradient_ncc(image, drr, patch=local_patch_px(image.shape), mask=mask)[0])
+    try:
+        ev["local_similarity"] = float(local_gradient_ncc(image, drr, mask=mask)[0])
+    except NoWindowError:  # no window half inside the field: not judged (min_field_fraction judges such a field)
+        ev["local_similarity"] = None
     ev["search"] = "none" if search is None else ("ran" if search_ran else "skipped")
     ev["network_gap"] = None
     if network_pose is not None:

@@ -16,6 +16,9 @@ from scipy import ndimage
 from register.engines.metrics import (
     METRICS,
     MetricError,
+    NoWindowError,
+    local_gradient_ncc,
+    local_patch_px,
     bind_metric,
     downsample,
     get_metric,
@@ -268,7 +271,8 @@ def test_float32_and_float64_agree(rng):
 
 
 def test_registry_names_and_lookup(rng):
-    assert set(METRICS) == {"ncc", "gncc", "tone_free_gncc", "tone_tolerant_gncc", "patch_ncc", "patch_gncc"}
+    assert set(METRICS) == {"ncc", "gncc", "tone_free_gncc", "tone_tolerant_gncc", "patch_ncc", "patch_gncc",
+                            "local_gncc"}
     f, m = smooth_image(rng), smooth_image(rng)
     np.testing.assert_allclose(get_metric("ncc")(f, m), ncc(f, m), atol=0)
     np.testing.assert_allclose(get_metric("gncc")(f, m), gradient_ncc(f, m), atol=0)
@@ -277,7 +281,9 @@ def test_registry_names_and_lookup(rng):
                                0.5 * (gradient_ncc(f, m) + tone_free_gradient_ncc(f, m)), atol=1e-15)
     np.testing.assert_allclose(get_metric("patch_ncc")(f, m, patch=5), patch_ncc(f, m, patch=5), atol=0)
     np.testing.assert_allclose(get_metric("patch_gncc")(f, m, patch=5), patch_gradient_ncc(f, m, patch=5), atol=0)
-    with pytest.raises(MetricError, match="valid names: gncc, ncc, patch_gncc, patch_ncc, tone_free_gncc, tone_tolerant_gncc"):
+    np.testing.assert_allclose(get_metric("local_gncc")(f, m),
+                               patch_gradient_ncc(f, m, patch=local_patch_px(f.shape)), atol=0)
+    with pytest.raises(MetricError, match="valid names: gncc, local_gncc, ncc, patch_gncc, patch_ncc, tone_free_gncc, tone_tolerant_gncc"):
         get_metric("mutual_information")
 
 
@@ -438,3 +444,14 @@ def test_the_modules_examples_run():
     import register.engines.metrics as metrics
 
     assert doctest.testmod(metrics).failed == 0
+
+
+def test_the_local_similarity_scales_its_window_with_the_image_and_says_when_no_window_fits(rng):
+    # the same anatomy at 64 and 128 px: 7 and 15 px windows, the same share of it
+    assert (local_patch_px((64, 48)), local_patch_px((128, 96)), local_patch_px((3, 256, 200))) == (7, 15, 31)
+    f, m = smooth_image(rng), smooth_image(rng)
+    np.testing.assert_allclose(local_gradient_ncc(f, m), patch_gradient_ncc(f, m, patch=local_patch_px(f.shape)), atol=0)
+    dot = np.zeros(f.shape, bool)
+    dot[10:14, 10:14] = True  # a field smaller than one window
+    with pytest.raises(NoWindowError, match="no .* window"):
+        local_gradient_ncc(f, m, mask=dot)

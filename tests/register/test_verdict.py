@@ -201,3 +201,14 @@ def test_one_strong_edge_carrying_the_whole_similarity_is_doubtful_window_by_win
     assert v.label == "doubtful" and any("window by window" in r for r in v.reasons)
     assert judge({**ev["right"], "depth_drop": 0.3}, s).label == "registered"
     assert judge({**ev["wrong"], "depth_drop": 0.3}, VerdictSettings(min_local_similarity=None)).label == "registered"
+
+
+def test_a_field_smaller_than_one_window_leaves_the_local_similarity_unjudged():
+    xray = _body_with_bones(0)
+    mask = np.zeros(xray.shape, bool)
+    mask[40:46, 40:46] = True  # 36 px: no 15 px window half inside
+    ev = gather_evidence(similarity=0.93, pose=np.eye(4), image=xray, mask=mask, drr=xray, toned=None, search=None,
+                         search_ran=False, network_pose=None, sod_mm=SOD, field_fraction=0.002)
+    assert ev["local_similarity"] is None
+    v = judge({**ev, "depth_drop": 0.3})
+    assert v.label == "doubtful" and v.reasons == ("0 % of the X-ray used (< 10 %)",)  # judged by the field's share
