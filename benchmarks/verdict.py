@@ -8,8 +8,10 @@ null: every pose counts as off, e.g. the paediatric radiographs against an adult
 the current :class:`register.verdict.VerdictSettings` (or the calibrated ones with
 ``--calibrate``) and the runner-up found again from the search's record by the current rule of
 distinct poses, so a change of thresholds or of that rule needs no registration again; a change of
-the evidence needs none either: ``--rejudge OUT`` makes each row's X-ray again and judges it at its
-recorded pose (``register.api.RegistrationRequest.judge``), about 3 s a row on 2 cores::
+the evidence, or of a step after the pipeline's winner, needs none either: ``--rejudge OUT`` makes
+each row's X-ray again and finishes it from its recorded pose (``register.api.RegistrationRequest.finish``:
+the rescue by local similarity where the pose's is low, then the verdict), about 3 s a row on 2
+cores, 10-12 s more for a row the rescue searches again::
 
     .venv/bin/python benchmarks/verdict.py benchmarks/verdict_rows/calib.jsonl --rejudge runs/verdict/calib.jsonl
 
@@ -279,17 +281,39 @@ def _frame(row, frames_dir: Path, cache: dict) -> tuple[Path, object, np.ndarray
 SAME_EVIDENCE = ("tone_fit", "depth_drop")
 
 
+#: A pose's six parameters, in result.json's order (deg, mm).
+PARAM_KEYS = ("phi", "theta", "psi", "tx", "ty", "tz")
+
+
+def _errors(row, pose, volume, center, cache) -> dict:
+    """``mtre_mm``, ``rot_err_deg``, ``trans_err_mm`` of ``pose`` ``(4, 4)`` against the row's truth,
+    as ``benchmarks/search.py`` measures them (2000 bone points of the CT, cached)."""
+    from register.evaluation.errors import bone_points, pose_errors
+    from sim.projection.geometry import pose_from_params
+
+    key = ("points", row["ct"])
+    if key not in cache:
+        cache[key] = bone_points(volume, 2000, 0)
+    T_true = pose_from_params(np.asarray(row["true_params"], float), row["result"]["geometry"]["sod_mm"])
+    e = pose_errors(np.asarray(pose, float), T_true, cache[key], center, np.eye(3, 4), np.eye(3, 4), 1.0)
+    return {k: float(e[k]) for k in ("mtre_mm", "rot_err_deg", "trans_err_mm")}
+
+
 def rejudge(src: Path, dst: Path, frames_dir: Path) -> int:
-    """Judge the registrations of ``src`` again with the current evidence and write them to ``dst``
-    (atomically): each X-ray made again (:func:`_frame`) and judged at its recorded pose
-    (:meth:`register.api.RegistrationRequest.judge`: no registration), the network's gap carried
-    over. Rows without a result (refused frames) are copied. Prints how far the evidence made the
-    same way (:data:`SAME_EVIDENCE`) moved: 0 where each X-ray was prepared as it was registered."""
+    """Finish the registrations of ``src`` again with the current steps after the pipeline's winner
+    and write them to ``dst`` (atomically): each X-ray made again (:func:`_frame`) and finished from
+    its recorded pose (:meth:`register.api.RegistrationRequest.finish`: no registration; the rescue by
+    local similarity for the contextual+cmaes rows, then the verdict), the network's gap carried over
+    (None where the rescue moved the pose: the compact rows keep no network pose). A rescued row gets
+    the new pose, its errors against the truth and the rescue's search record. Rows without a result
+    (refused frames) are copied. Prints how many were rescued and how far the evidence made the
+    same way (:data:`SAME_EVIDENCE`) moved elsewhere: 0 where each X-ray was prepared as it was
+    registered."""
     from register.api import RegistrationRequest
 
     rows = [json.loads(line) for line in Path(src).read_text().splitlines() if line.strip()]
     cache: dict = {}
-    out, moved = [], {k: 0.0 for k in SAME_EVIDENCE}
+    out, moved, rescued = [], {k: 0.0 for k in SAME_EVIDENCE}, 0
     t0 = time.perf_counter()
     for i, row in enumerate(rows):
         res = row.get("result")
@@ -297,14 +321,24 @@ def rejudge(src: Path, dst: Path, frames_dir: Path) -> int:
             path, volume, center = _frame(row, frames_dir, cache)
             request = RegistrationRequest(search="always" if "always" in str(row.get("method", "")) else "auto",
                                           center=center)
-            params = [res["params"][k] for k in ("phi", "theta", "psi", "tx", "ty", "tz")]
-            verdict = request.judge(volume, path, params, similarity=res["similarity"], search=res.get("search"))
+            params = [res["params"][k] for k in PARAM_KEYS]
+            result, verdict = request.finish(volume, path, params, similarity=res["similarity"], search=res.get("search"))
             old = res["verdict_evidence"]
             new = {**verdict.evidence, "network_gap": old.get("network_gap")}
-            for k in SAME_EVIDENCE:
-                if old.get(k) is not None and new.get(k) is not None:
-                    moved[k] = max(moved[k], abs(old[k] - new[k]))
-            row = {**row, "result": {**res, "verdict": verdict.label, "verdict_evidence": new}}
+            rescue = (result.search or {}).get("rescue")
+            if rescue is not None and rescue["kept"] == "rescued":  # another pose: its errors, no network gap known
+                rescued += 1
+                new["network_gap"] = None
+                res = {**res, "params": dict(zip(PARAM_KEYS, np.asarray(result.params, float).tolist())),
+                       "pose_4x4": np.asarray(result.pose).tolist(), "similarity": float(result.similarity)}
+                if row.get("mtre_mm") is not None:
+                    row = {**row, **_errors(row, result.pose, volume, center, cache)}
+            else:
+                for k in SAME_EVIDENCE:
+                    if old.get(k) is not None and new.get(k) is not None:
+                        moved[k] = max(moved[k], abs(old[k] - new[k]))
+            row = {**row, "result": {**res, "search": result.search, "verdict": verdict.label,
+                                     "verdict_reasons": list(verdict.reasons), "verdict_evidence": new}}
         out.append(json.dumps(row, default=lambda v: v.tolist() if hasattr(v, "tolist") else repr(v)))
         rate = (i + 1) / (time.perf_counter() - t0)
         print(f"verdict: rejudged {i + 1}/{len(rows)} ({rate:.2f} rows/s, ETA {(len(rows) - i - 1) / rate:.0f} s)",
@@ -312,8 +346,8 @@ def rejudge(src: Path, dst: Path, frames_dir: Path) -> int:
     tmp = Path(dst).with_suffix(".tmp")
     tmp.write_text("\n".join(out) + "\n")
     tmp.replace(dst)
-    print(f"verdict: {len(out)} rows -> {dst}; the evidence made as recorded moved by at most "
-          + ", ".join(f"{k} {v:.2g}" for k, v in moved.items()))
+    print(f"verdict: {len(out)} rows -> {dst} ({rescued} rescued: another pose); the evidence made as recorded "
+          "moved by at most " + ", ".join(f"{k} {v:.2g}" for k, v in moved.items()))
     return len(out)
 
 
@@ -350,8 +384,9 @@ def main() -> int:
     ap.add_argument("--model", default=None, help="with --unmatched: the network (default: the shipped default)")
     ap.add_argument("--label", default="unmatched X-ray", help="with --unmatched: the condition's name")
     ap.add_argument("--rejudge", default=None, metavar="OUT",
-                    help="judge the one ROWS file's registrations again with the current evidence (each X-ray made "
-                         "again, no registration) into OUT")
+                    help="finish the one ROWS file's registrations again from their recorded poses with the current "
+                         "steps after the pipeline's winner (the rescue by local similarity, the verdict; each X-ray "
+                         "made again, no registration) into OUT")
     ap.add_argument("--frames", default="runs/verdict/rejudge_frames",
                     help="with --rejudge: where the study frames are simulated again, cached (default: %(default)s)")
     ap.add_argument("--compact", default=None, metavar="OUT",

@@ -36,7 +36,7 @@ from learn.adapt import adapted_ct_warning
 from register.engines.methods import build_method, check_method, load_predictor, needs_model
 from register.engines.cmaes import CMAESRegistration
 from register.engines.metrics import downsample, gradient_ncc
-from register.engines.pipeline import REFINE_SETTINGS, scored_as_refined
+from register.engines.pipeline import REFINE_SETTINGS, rescue as rescue_pose, scored_as_refined
 from register.engines.result import RegistrationError, RegistrationResult
 from register.engines.search import GlobalSearch, GlobalSearchSettings, describe_search
 from register.verdict import Verdict, judge_result
@@ -287,7 +287,8 @@ class XRayRegistration:
                 drrs.append(DRRRenderer(self.volume, RenderSettings(size=(g.height, g.width)), center_lps=self.center_lps,
                                         geometry=g).render(result.pose)[0])
                 params.append(result.params)
-                labels.append("final (CMA-ES)")
+                rescued = ((result.search or {}).get("rescue") or {}).get("kept") == "rescued"
+                labels.append("final (local similarity)" if rescued else "final (CMA-ES)")
             trajectory_gif(image, np.array(drrs), np.array(params), out / "trajectory.gif", errors=trajectory_errors,
                            title=f"verdict: {self.verdict.label}" if self.verdict is not None else None,
                            labels=labels)
@@ -456,11 +457,22 @@ class RegistrationRequest:
     def judge(self, ct, xray, params, *, similarity: float, search: dict | None = None, network_params=None,
               log: Callable[[str], None] | None = None) -> Verdict:
         """The verdict on a pose of ``xray`` already found (by a registration with this request, or
-        elsewhere), without registering again: the X-ray read and prepared as :meth:`run` does, its
-        polarity checked by that pose (or, where the pose does not confirm it, on the grid around
-        the start, as a registration whose pose does not), then the verdict's evidence at the pose
-        (:func:`_verdict`). ``benchmarks/verdict.py --rejudge`` judges recorded registrations again
-        so when the evidence changes.
+        elsewhere), without registering again: :meth:`finish` without the rescue. ``benchmarks/verdict.py
+        --rejudge`` judges recorded registrations again so when the evidence changes."""
+        return self.finish(ct, xray, params, similarity=similarity, search=search, network_params=network_params,
+                           log=log, rescue=False)[1]
+
+    def finish(self, ct, xray, params, *, similarity: float, search: dict | None = None, network_params=None,
+               log: Callable[[str], None] | None = None, rescue: bool = True) -> tuple[RegistrationResult, Verdict]:
+        """The steps after the pipeline's winner, on a pose of ``xray`` already found: the X-ray read
+        and prepared as :meth:`run` does, its polarity checked by that pose (or, where the pose does
+        not confirm it, on the grid around the start, as a registration whose pose does not), then
+        (``rescue``, contextual+cmaes with its search) the search again by local similarity where
+        the pose's is low (:func:`register.engines.pipeline.rescue`), then the verdict's evidence at
+        the pose (:func:`_verdict`). A registration's winner, so finished, ends where :meth:`run`
+        ends (the pipeline's steps are deterministic); ``benchmarks/verdict.py --rejudge`` finishes
+        recorded registrations so when a step after the winner changes. Returns the result (the
+        given pose, or the rescue's) and its verdict.
 
         Args:
             ct, xray: as :meth:`run` takes them.
@@ -490,7 +502,17 @@ class RegistrationRequest:
         result = RegistrationResult(params=p, pose=pose, projection=projection_matrix(g, pose, c),
                                     similarity=float(similarity), renders=0, stage_seconds={}, search=search,
                                     trajectory=trajectory)
-        return _verdict(self, volume, c, prepared, result)
+        if rescue and self.searches:
+            size = (g.height, g.width)
+            grid = GlobalSearch(volume, GlobalSearchSettings(always_grid=self.search == "always"), size=size,
+                                scene=self.scene, geometry=g, center_lps=c, physics=self.moving,
+                                label_materials=self.label_materials)
+            refinement = CMAESRegistration(volume, replace(REFINE_SETTINGS, size=size), scene=self.scene, geometry=g,
+                                           center_lps=c, physics=self.moving, label_materials=self.label_materials)
+            result = rescue_pose(grid, refinement, prepared.image, self.start, result, mask=prepared.mask,
+                                 toned=prepared.toned)
+            result.projection = projection_matrix(g, result.pose, c)
+        return result, _verdict(self, volume, c, prepared, result)
 
 
 def register_xray(ct, xray, *, log: Callable[[str], None] | None = None, note: Callable[[str], None] | None = None,

@@ -173,7 +173,10 @@ def convergence_plot(history, path: str | Path, *, title: str | None = None, sea
     search's local searches (one point each, best first; ``search_status`` says whether its grid
     ran), then each CMA-ES refinement's best per generation (one line per start) and the polish,
     the final value starred. The refinement's levels score at their own resolution (1/2: higher
-    than at full), so only the polish and the final value compare. ``history``: rows
+    than at full), so only the polish and the final value compare. Where the pipeline searched
+    again by local similarity (stages ``rescue.*``), a third panel shows that search and its
+    refinements on their own scale, and the second panel's last value is the pose it replaced.
+    ``history``: rows
     ``(stage, value, params)``; ``title``: the figure's
     title (e.g. the verdict). A PNG, written atomically."""
     import matplotlib
@@ -183,8 +186,9 @@ def convergence_plot(history, path: str | Path, *, title: str | None = None, sea
 
     rows = [(str(stage), float(v)) for stage, v, *_ in history]
     network = [-v for stage, v in rows if _stage_kind(stage) == "network"]
-    other = [(stage, v) for stage, v in rows if _stage_kind(stage) != "network"]
-    panels = int(bool(network)) + int(bool(other))
+    rescue = [(stage[len("rescue."):], v) for stage, v in rows if stage.startswith("rescue.")]
+    other = [(stage, v) for stage, v in rows if _stage_kind(stage) != "network" and not stage.startswith("rescue.")]
+    panels = int(bool(network)) + int(bool(other)) + int(bool(rescue))
     fig, axes = plt.subplots(1, max(panels, 1), figsize=(5.5 * max(panels, 1), 5.2), squeeze=False)
     axes = list(axes[0])
     if network:
@@ -195,39 +199,53 @@ def convergence_plot(history, path: str | Path, *, title: str | None = None, sea
         ax.set_title("1. the network's iteration", fontsize=10)
         ax.set_ylim(bottom=0)
         ax.grid(alpha=0.3)
-    if other:
-        ax = axes.pop(0)
-        x = 0
-        search = sorted((v for stage, v in other if stage == "search"), reverse=True)
-        if search:
-            what = "the network's pose searched locally" if len(search) == 1 else f"{len(search)} local searches"
-            ax.plot(range(len(search)), search, "o", ms=4, color="tab:orange",
-                    label=f"{what}" + (f"; grid {search_status}" if search_status else ""))
-            x = len(search) + 1
-        runs = list(dict.fromkeys(stage for stage, _ in other if stage != "search"))
-        finals = []
-        for k, stage in enumerate(runs):
-            ys = [v for st, v in other if st == stage]
-            kind = _stage_kind(stage)
-            start = stage.split(".")[0].replace("finalist", "") if "." in stage else "0"
-            level = stage.split(".")[-1]
-            label = ("polish of the winner (full resolution)" if kind == "polish" else
-                     f"refinement{'' if len(runs) < 3 else f' of start {start}'} (CMA-ES, {level}: reduced resolution)")
-            ax.plot(range(x, x + len(ys)), ys, marker="o" if len(ys) < 3 else None,
-                    color="k" if kind == "polish" else plt.cm.Dark2(k % 8), label=label)
-            finals.append((x + len(ys) - 1, ys[-1]))
-            x += len(ys)
-        if finals:
-            fx, fy = finals[-1]
-            ax.plot([fx], [fy], "*", ms=12, color="gold", mec="k", label=f"final {fy:.3f}")
-        ax.set_xlabel("search results (best first), then CMA-ES generations / polish steps")
-        ax.set_ylabel("similarity (1 = identical edges)")
-        ax.set_title(("2. " if network else "") + "search and refinement", fontsize=10)
-        ax.grid(alpha=0.3)
-        ax.legend(fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.16), ncol=1, frameon=False)
+    for part, rows_of in (("usual", other), ("rescue", rescue)):
+        if rows_of:
+            star = "found first, replaced" if part == "usual" and rescue else "final"
+            _search_panel(axes.pop(0), rows_of, part, bool(network), search_status, star)
     if title:
         fig.suptitle(textwrap.fill(title, width=70 * max(panels, 1)), fontsize=10)
     save_figure(fig, path)
+
+
+def _search_panel(ax, other, part: str, network: bool, search_status: str | None, star: str = "final") -> None:
+    """:func:`convergence_plot`'s panel of the search and the refinement (``part`` ``"usual"``) or of
+    the search again by local similarity (``"rescue"``: the pipeline's step 6, its own scale);
+    ``star``: what the last value is called."""
+    import matplotlib.pyplot as plt
+
+    x = 0
+    search = sorted((v for stage, v in other if stage == "search"), reverse=True)
+    if search:
+        what = "the network's pose searched locally" if len(search) == 1 else f"{len(search)} local searches"
+        ax.plot(range(len(search)), search, "o", ms=4, color="tab:orange",
+                label=f"{what}" + (f"; grid {search_status}" if search_status and part == "usual" else ""))
+        x = len(search) + 1
+    runs = list(dict.fromkeys(stage for stage, _ in other if stage != "search"))
+    finals = []
+    for k, stage in enumerate(runs):
+        ys = [v for st, v in other if st == stage]
+        kind = _stage_kind(stage)
+        start = stage.split(".")[0].replace("finalist", "") if "." in stage else "0"
+        level = stage.split(".")[-1]
+        label = ("polish of the winner (full resolution)" if kind == "polish" else
+                 f"refinement{'' if len(runs) < 3 else f' of start {start}'} (CMA-ES, {level}: reduced resolution)")
+        ax.plot(range(x, x + len(ys)), ys, marker="o" if len(ys) < 3 else None,
+                color="k" if kind == "polish" else plt.cm.Dark2(k % 8), label=label)
+        finals.append((x + len(ys) - 1, ys[-1]))
+        x += len(ys)
+    if finals:  # the last value (the polish of the winner); of the search again, the best refinement
+        fx, fy = finals[-1] if part == "usual" else max(finals, key=lambda f: f[1])
+        ax.plot([fx], [fy], "*", ms=12, color="gold", mec="k", label=f"{star} {fy:.3f}")
+    ax.set_xlabel("search results (best first), then CMA-ES generations / polish steps")
+    if part == "usual":
+        ax.set_ylabel("similarity (1 = identical edges)")
+        ax.set_title(("2. " if network else "") + "search and refinement", fontsize=10)
+    else:
+        ax.set_ylabel("local similarity (edges window by window)")
+        ax.set_title(("3. " if network else "2. ") + "searched again by local similarity", fontsize=10)
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.16), ncol=1, frameon=False)
 
 
 #: The trajectory figures' palette (indices of an 8-bit palette image): :data:`_GREYS` grey levels,

@@ -150,13 +150,16 @@ class VerdictSettings:
             the runner-up's by at least this much (negative: the runner-up may score up to that
             much more); None: not judged.
         min_local_similarity: ``registered`` needs the local similarity (``local_similarity``, the
-            patch gradient NCC at the final pose) to be at least this; None: not judged.
+            patch gradient NCC at the final pose) to be at least this; None: not judged. The
+            default pipeline searches a pose below it again by local similarity
+            (:attr:`register.engines.search.GlobalSearchSettings.local_below`, whose value it takes:
+            one number for both).
     """
 
     fail_below: float = 0.15
     tone_fail_below: float = 0.0
     min_similarity: float = 0.4
-    min_tone_fit: float = 0.5
+    min_tone_fit: float = 0.6
     min_margin: float = 0.0
     sure_similarity: float = GlobalSearchSettings.refined_above
     min_field_fraction: float = 0.1
@@ -164,7 +167,7 @@ class VerdictSettings:
     min_profile_drop: float | None = 0.02
     max_rival_gain: float | None = 0.03
     min_joint_margin: float | None = 0.0
-    min_local_similarity: float | None = 0.35
+    min_local_similarity: float | None = GlobalSearchSettings.local_below
 
     def __post_init__(self) -> None:
         for name, v in asdict(self).items():
@@ -256,7 +259,7 @@ def depth_profile(refine: CMAESRegistration, image: np.ndarray, params, *, mask:
 
 
 def rival(search: CMAESRegistration, image: np.ndarray, params, *, toned: np.ndarray | None = None,
-          mask: np.ndarray | None = None) -> dict | None:
+          mask: np.ndarray | None = None, edge_metric: str | None = None) -> dict | None:
     """The best pose near the final one ``params`` ``(6,)`` (deg, mm) by edges and intensities
     together: CMA-ES on the similarity plus the tone fit of line DRRs (the similarity as the
     refinement scores the X-ray: tone-tolerant gradient NCC of ``image`` for a display image, with
@@ -277,6 +280,8 @@ def rival(search: CMAESRegistration, image: np.ndarray, params, *, toned: np.nda
             (its settings' box, level and population; its metric is not used).
         image: ``(h, w)`` the X-ray as registered; toned: its toned version (a display image; None:
             line integrals); mask: ``(h, w)`` its valid pixels (None: all).
+        edge_metric: the similarity's name (:data:`register.engines.metrics.METRICS`); None: as the
+            refinement scores the X-ray (above).
 
     Returns ``{"similarity", "tone_fit", "gain", "deg", "mm", "depth_mm"}``: the rival's two scores
     at full resolution, how much more their sum is than the final pose's, and its :func:`pose_gap`
@@ -287,7 +292,7 @@ def rival(search: CMAESRegistration, image: np.ndarray, params, *, toned: np.nda
     p = np.asarray(params, float).reshape(6)
     if not s.in_view(p)[0]:  # no CT in the view: nothing to fit (the similarity fails such a pose)
         return None
-    edge_metric = "gncc" if toned is None else "tone_tolerant_gncc"
+    edge_metric = edge_metric or ("gncc" if toned is None else "tone_tolerant_gncc")
     tones = image if toned is None else toned
 
     def scores(factor: int):
@@ -400,8 +405,9 @@ def checks(evidence: dict, settings: VerdictSettings) -> list[tuple[str, bool, s
     setting against its own check."""
     s = settings
     sim_, tone = evidence["similarity"], evidence["tone_fit"]
+    what = "local similarity" if evidence.get("similarity_metric") == "local_gncc" else "similarity"
     out = [("min_similarity", sim_ >= s.min_similarity,
-            f"similarity {sim_:.2f}" if sim_ >= s.min_similarity else f"similarity {sim_:.2f} < {s.min_similarity:.2f}"),
+            f"{what} {sim_:.2f}" if sim_ >= s.min_similarity else f"{what} {sim_:.2f} < {s.min_similarity:.2f}"),
            ("min_tone_fit", tone >= s.min_tone_fit,
             f"tone fit {tone:.2f}" if tone >= s.min_tone_fit else f"tone fit {tone:.2f} < {s.min_tone_fit:.2f}")]
     local = evidence.get("local_similarity")
@@ -487,7 +493,13 @@ def judge_result(result, image: np.ndarray, *, render, sod_mm: float, mask: np.n
     poses of the search's refined starts); ``field_fraction``: the share of pixels used (default:
     the mask's); ``refine``: the refinement's CMA-ES as it scored the image (the depth profile,
     :func:`depth_profile`; None: not profiled); ``rival_search``: a line-DRR CMA-ES at the image's
-    size (the rival, :func:`rival`; None: not searched)."""
+    size (the rival, :func:`rival`; None: not searched).
+
+    A pose the pipeline searched again by local similarity (the search record's ``rescue`` kept
+    ``"rescued"``, :func:`register.engines.pipeline.rescue`) is judged by the similarity that found
+    it: its similarity and its runner-ups' are local similarities, and so are the depth probe's,
+    the depth profile's and the rival's edge score (``local_gncc``); the evidence's
+    ``similarity_metric`` names the one used."""
     search = result.search
     ran = search is not None and bool(search.get("grid_poses"))
     network = None
@@ -495,16 +507,22 @@ def judge_result(result, image: np.ndarray, *, render, sod_mm: float, mask: np.n
         network = pose_from_params(np.asarray(result.trajectory["params"][-1], float), sod_mm)
     if field_fraction is None:
         field_fraction = 1.0 if mask is None else float(np.mean(mask))
+    rescued = ((search or {}).get("rescue") or {}).get("kept") == "rescued"
+    metric = "local_gncc" if rescued else ("tone_tolerant_gncc" if toned is not None else "gncc")
     drrs = np.asarray(render(depth_probe_poses(result.pose)), float)
-    depth = bind_metric("tone_tolerant_gncc" if toned is not None else "gncc", image, mask)(drrs)
+    depth = bind_metric(metric, image, mask)(drrs)
     tones = None
     if ran and search.get("refined_params"):  # each refined start's tone fit: is a rival's intensities' fit as good?
         starts = np.array([pose_from_params(np.asarray(p, float), sod_mm) for p in search["refined_params"]])
         tones = ncc(image if toned is None else toned, np.asarray(render(starts), float), mask=mask)
+    if rescued and refine is not None:
+        refine = refine.scored_by((metric,) * len(refine.settings.levels))
     profile = None if refine is None else depth_profile(refine, image, result.params, mask=mask)
-    other = None if rival_search is None else rival(rival_search, image, result.params, toned=toned, mask=mask)
+    other = None if rival_search is None else rival(rival_search, image, result.params, toned=toned, mask=mask,
+                                                    edge_metric=metric if rescued else None)
     ev = gather_evidence(similarity=result.similarity, pose=result.pose, image=image, mask=mask, drr=drrs[0],
                          toned=toned, search=search, search_ran=ran, network_pose=network, sod_mm=sod_mm,
                          field_fraction=field_fraction, depth_scores=depth, profile=profile, rival_pose=other,
                          refined_tones=tones)
+    ev["similarity_metric"] = metric
     return judge(ev, settings)

@@ -21,7 +21,12 @@ start, the winner polished.
 5. :meth:`~ContextualPipeline.result`: the winner with the whole run's stage times (summed over
    the refinements), history, renders, the iteration's trajectory and the search's record (adding
    ``"refined"``, each finalist's similarity before the polish, ``"refined_params"``, its pose (deg,
-   mm) then, and ``"chosen"``, the index of the winner).
+   mm) then, and ``"chosen"``, the index of the winner);
+6. :meth:`~ContextualPipeline.rescue`: where the winner's edges agree as a whole but not window by
+   window (its local similarity below ``search.local_below``: a few strong edges, such as a body's
+   outline over air, carry the whole image's similarity), the search runs again by local
+   similarity and its finalists are refined by it; the pose it finds replaces the winner where its
+   local similarity reaches ``local_below`` and beats the winner's.
 
 The similarity, not the truth, decides, so a user's registration can take it: a network that fails
 on an image outside its training domain costs time, not the registration.
@@ -29,6 +34,7 @@ on an image outside its training domain costs time, not the registration.
 
 from __future__ import annotations
 
+import time
 from collections.abc import Callable
 from dataclasses import replace
 
@@ -36,11 +42,12 @@ import numpy as np
 
 from register.engines.cmaes import CMAESRegistration, CMAESSettings
 from register.engines.contextual import ContextualRegistration, ContextualSettings, Iteration, checked_inputs
-from register.engines.metrics import plain_equivalent
+from register.engines.metrics import NoWindowError, local_gradient_ncc, plain_equivalent
 from register.engines.result import RegistrationError, RegistrationResult
 from register.engines.search import GlobalSearch, GlobalSearchSettings
 
-__all__ = ["ContextualPipeline", "NETWORK_DEPTH_RANGE_MM", "REFINE_SETTINGS", "scored_as_refined"]
+__all__ = ["ContextualPipeline", "NETWORK_DEPTH_RANGE_MM", "REFINE_SETTINGS", "local_similarity", "rescue",
+           "scored_as_refined"]
 
 #: The narrowed CMA-ES box after the contextual iteration (degrees, mm): one level at 1/2 resolution,
 #: then the polish at full resolution. A first level at 1/4 resolution (as CMA-ES from afar uses)
@@ -144,7 +151,14 @@ class ContextualPipeline:
             refined = self.refine(refine, fixed, starts, mask=mask)
         won = self.winner(refined)
         polished = self.polish(refine, fixed, refined[won], starts[won], mask=mask) if len(starts) > 1 else None
-        return self.result(it, found, refined, won, polished)
+        return self.rescue(fixed, init_params, self.result(it, found, refined, won, polished), mask=mask, toned=toned)
+
+    def rescue(self, fixed, init_params, res: RegistrationResult, *, mask=None, toned=None) -> RegistrationResult:
+        """Step 6 (:func:`rescue`) with this pipeline's search and refinement; ``res`` as it is
+        without a search."""
+        if self.search is None:
+            return res
+        return rescue(self.search, self.refinement, fixed, init_params, res, mask=mask, toned=toned)
 
     def iterate(self, fixed, init_params, *, mask=None, toned=None, network_view=None) -> Iteration:
         """Step 1: the network's iteration."""
@@ -245,3 +259,74 @@ class ContextualPipeline:
             res.search = {**found.search, "refined": finals, "chosen": int(np.argmax(finals)),
                           "refined_params": [np.asarray(r.params, float).tolist() for r in refined]}
         return res
+
+
+def local_similarity(refinement: CMAESRegistration, fixed, params, *, mask=None) -> float:
+    """The local similarity (:func:`register.engines.metrics.local_gradient_ncc`) of ``fixed``
+    ``(H, W)`` with ``refinement``'s moving image at ``params`` (deg, mm); NaN where the field is
+    smaller than one window."""
+    try:
+        return float(local_gradient_ncc(fixed, refinement.render(np.asarray(params, float).reshape(1, 6)),
+                                        mask=mask)[0])
+    except NoWindowError:
+        return float("nan")
+
+
+def rescue(search: GlobalSearch, refinement: CMAESRegistration, fixed, init_params, res: RegistrationResult, *,
+           mask=None, toned=None) -> RegistrationResult:
+    """The pipeline's step 6: ``res`` (its winner, registered from ``init_params``) searched again by
+    local similarity where its own (:func:`local_similarity`) is below ``search.settings.local_below``:
+    the grid of locally normalized gradients and local searches by local similarity
+    (:meth:`register.engines.search.GlobalSearch.register` with ``local=True``), its finalists refined
+    by local similarity (``refinement``'s box and level, scored by ``"local_gncc"``). The best of
+    them by local similarity replaces ``res`` where it reaches ``local_below`` and beats ``res``'s:
+    its ``similarity`` and the search record's ``refined`` are then local similarities (the score
+    that found it, which the verdict then judges it by: :func:`register.verdict.judge_result`); its ``history``
+    is ``res``'s and then the second search's and refinements' (local similarities), their stages
+    named ``rescue.search`` and ``rescue.finalist<i>.<level>``. The record's
+    ``"rescue"`` says what happened (``local_before``, ``local_after``, ``local_below``, ``kept``:
+    ``"rescued"`` or ``"first"``, ``seconds``; rescued: ``first_params``, ``first_similarity``),
+    ``stage_seconds["rescue"]`` its time. Where ``res`` reaches ``local_below`` (or its field is
+    smaller than one window), ``res`` as it is.
+
+    A pose that the whole image's similarity holds by one strong edge is another answer than the
+    one the edges window by window give: on realistic frames of linear and bright displays the
+    first was 25-150 mm off where the second was within 2 mm (docs/results.md)."""
+    below = search.settings.local_below
+    before = local_similarity(refinement, fixed, res.params, mask=mask)
+    if not before < below:  # NaN (no window): nothing to compare window by window
+        return res
+    t0 = time.perf_counter()
+    record = {"local_below": below, "local_before": before}
+
+    def kept_first(after):
+        seconds = time.perf_counter() - t0
+        res.search = {**(res.search or {}), "rescue": {**record, "local_after": after, "kept": "first",
+                                                     "seconds": seconds}}
+        res.stage_seconds = {**res.stage_seconds, "rescue": seconds}
+        return res
+
+    try:
+        found = search.register(fixed, init_params, mask=mask, poses=[res.params], toned=toned, local=True)
+        starts = [np.asarray(f["params"], float) for f in found.search["finalists"]]
+        refined = ContextualPipeline.refine(refinement.scored_by(("local_gncc",)), fixed, starts, mask=mask)
+    except NoWindowError:  # a field too small for the local windows at the search's coarse levels
+        return kept_first(None)
+    won = ContextualPipeline.winner(refined)
+    after = local_similarity(refinement, fixed, refined[won].params, mask=mask)
+    if not (after >= below and after > before):
+        return kept_first(after)
+    scores = [float(r.similarity) for r in refined]
+    out = refined[won]
+    out.trajectory = res.trajectory
+    out.history = [*res.history, *[(f"rescue.{stage}", v, q) for stage, v, q in found.history],
+                   *[(f"rescue.finalist{i}.{stage}", v, q) for i, r in enumerate(refined) for stage, v, q in r.history]]
+    out.renders = res.renders + found.renders + sum(r.renders for r in refined)
+    seconds = time.perf_counter() - t0
+    out.stage_seconds = {**res.stage_seconds, "rescue": seconds}
+    out.search = {**found.search, "refined": scores, "chosen": won,
+                  "refined_params": [np.asarray(r.params, float).tolist() for r in refined],
+                  "rescue": {**record, "local_after": after, "kept": "rescued", "seconds": seconds,
+                             "first_params": np.asarray(res.params, float).tolist(),
+                             "first_similarity": float(res.similarity)}}
+    return out

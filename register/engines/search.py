@@ -38,7 +38,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from register.engines.cmaes import CMAESRegistration, CMAESSettings
-from register.engines.metrics import downsample, get_metric, gradient_ncc, plain_equivalent
+from register.engines.metrics import downsample, get_metric, gradient_ncc, local_gradients, plain_equivalent
 from register.engines.result import RegistrationError, RegistrationResult
 from sim.core.errors import InputError
 from sim.projection.geometry import CArmGeometry, pose_from_params
@@ -109,6 +109,15 @@ class GlobalSearchSettings:
         always_grid: run the grid even when a given pose reaches ``found_above`` (``ctxreg register
             --search always``: the grid's finalists compete with the network's pose whatever it
             scored); default False.
+        local_below: the local similarity (:func:`register.engines.metrics.local_gradient_ncc`: the
+            edges window by window) under which the pipeline's pose is searched again by local
+            similarity (:meth:`register.engines.pipeline.ContextualPipeline.rescue`; default 0.35,
+            the verdict's :attr:`register.verdict.VerdictSettings.min_local_similarity`, which takes
+            it: one number for both). A pose under it rests on a few strong edges (a body's outline
+            over air), which the whole image's similarity favours wherever they fall.
+        local_sigma_px: the window (Gaussian sigma, px of each level) of the locally normalized
+            gradients (:func:`register.engines.metrics.local_gradients`) the grid correlates when it
+            searches by local similarity (``GlobalSearch.register(local=True)``); default 2.
         seed: CMA-ES seed.
     """
 
@@ -134,6 +143,8 @@ class GlobalSearchSettings:
     refined_above: float = 0.88
     metric: str = "tone_tolerant_gncc"
     always_grid: bool = False
+    local_below: float = 0.35
+    local_sigma_px: float = 2.0
     seed: int = 0
 
     def __post_init__(self) -> None:
@@ -142,7 +153,7 @@ class GlobalSearchSettings:
             raise RegistrationError(f"range_deg must be three half-widths in [0, 180] deg, got {self.range_deg}")
         object.__setattr__(self, "range_deg", r)
         for name in ("step_deg", "range_mm", "local_sigma_deg", "local_sigma_mm", "local_range_deg", "local_range_mm",
-                     "local_sigma_depth_mm", "local_range_depth_mm"):
+                     "local_sigma_depth_mm", "local_range_depth_mm", "local_sigma_px"):
             v = getattr(self, name)
             if v is None and name.endswith("depth_mm"):
                 continue
@@ -158,6 +169,8 @@ class GlobalSearchSettings:
             raise RegistrationError(f"always_grid must be True or False, got {self.always_grid!r}")
         if not (np.isfinite(self.found_above) and -1.0 <= self.found_above <= 1.0):
             raise RegistrationError(f"found_above must be a similarity in [-1, 1], got {self.found_above}")
+        if not (np.isfinite(self.local_below) and -1.0 <= self.local_below <= 1.0):
+            raise RegistrationError(f"local_below must be a similarity in [-1, 1], got {self.local_below}")
         if not (np.isfinite(self.refined_above) and self.found_above <= self.refined_above <= 1.0):
             raise RegistrationError(f"refined_above must be a similarity in [found_above, 1] "
                                     f"([{self.found_above:g}, 1]), got {self.refined_above}")
@@ -350,10 +363,12 @@ class GlobalSearch:
             self._grid_drrs = (key, drrs)
         return drrs
 
-    def _surfaces(self, fields, params, renderer, g, times=None) -> np.ndarray:
+    def _surfaces(self, fields, params, renderer, g, times=None, local: bool = False) -> np.ndarray:
         """The gradient NCC of every in-plane shift of every pose of ``params`` ``(N, 6)`` against
         each ``(f, m)`` of ``fields`` (one field ``m``; the DRRs rendered once): ``(images, N, du,
-        dv)``; ``times`` as :meth:`grid`."""
+        dv)``; ``times`` as :meth:`grid`. ``local``: of the locally normalized gradients
+        (:func:`register.engines.metrics.local_gradients`, ``local_sigma_px``; the X-ray's over its
+        field) instead of the Sobel ones."""
         from scipy import ndimage
 
         m = fields[0][1]
@@ -363,13 +378,21 @@ class GlobalSearch:
         drrs = self._drrs(params, renderer, g)
         t1 = time.perf_counter()
         score = 0.0
-        for axis in (-1, -2):  # Sobel x, then y: the mean of the two NCCs as gradient NCC
-            templates = np.stack([ndimage.sobel(f, axis=axis) for f, _ in fields])
-            score = score + 0.5 * masked_ncc_shifts(templates, m, ndimage.sobel(drrs, axis=axis))
+        if local:
+            sigma = self.settings.local_sigma_px
+            fixed_g = [local_gradients(f, mk, sigma) for f, mk in fields]
+            moving_g = local_gradients(drrs, None, sigma)
+        for i, axis in enumerate((-1, -2)):  # Sobel x, then y: the mean of the two NCCs as gradient NCC
+            if local:
+                templates, moving = np.stack([fg[i] for fg in fixed_g]), moving_g[i]
+            else:
+                templates = np.stack([ndimage.sobel(f, axis=axis) for f, _ in fields])
+                moving = ndimage.sobel(drrs, axis=axis)
+            score = score + 0.5 * masked_ncc_shifts(templates, m, moving)
         if times is not None:
             times["render"] = times.get("render", 0.0) + t1 - t0
             times["ncc"] = times.get("ncc", 0.0) + time.perf_counter() - t1
-        if renderer is self.padded:  # the grid's: each image's extremes, for the polarity check after it
+        if renderer is self.padded and not local:  # the grid's: each image's extremes, for the polarity check after it
             self._grid_extremes = {self._grid_key(f, mk, params): (float(sc.max()), float(sc.min()))
                                    for (f, mk), sc in zip(fields, score)}
         return score
@@ -396,12 +419,12 @@ class GlobalSearch:
         score = self._surfaces([field], params, self.padded, self.level_geometry)[0]
         return float(score.max()), float(-score.min())
 
-    def _best_shifts(self, fields, params, renderer, g, pad, times=None):
+    def _best_shifts(self, fields, params, renderer, g, pad, times=None, local: bool = False):
         """Each pose of ``params`` ``(N, 6)`` moved by its best in-plane shift (within ``pad`` pixels of
         ``g``) against each ``(f, m)`` of ``fields`` (versions of one X-ray with one field ``m``; the
         DRRs are rendered, and their shared FFT terms computed, once): a list with ``(params (N, 6),
-        scores (N,))`` per image, best first."""
-        score = self._surfaces(fields, params, renderer, g, times)
+        scores (N,))`` per image, best first; ``local`` as :meth:`_surfaces`."""
+        score = self._surfaces(fields, params, renderer, g, times, local)
         out = []
         for sc in score:  # (N, du, dv) per image
             moved = np.array(params, float, copy=True)
@@ -425,22 +448,23 @@ class GlobalSearch:
         return self.grids([fixed], init_params, mask=mask, times=times)[0]
 
     def grids(self, images, init_params=np.zeros(6), *, mask: np.ndarray | None = None,
-              times: dict | None = None) -> list[tuple[np.ndarray, np.ndarray]]:
+              times: dict | None = None, local: bool = False) -> list[tuple[np.ndarray, np.ndarray]]:
         """:meth:`grid` for several versions of the X-ray (``images``: ``(H, W)`` each, one field
-        ``mask``), the grid's DRRs rendered once: a list of ``(params, scores)``, one per image."""
+        ``mask``), the grid's DRRs rendered once: a list of ``(params, scores)``, one per image;
+        ``local``: ranked by locally normalized gradients (:meth:`_surfaces`)."""
         s = self.settings
         fields = [self._field(image, mask, s.factor) for image in images]
         params = np.asarray(init_params, float).reshape(6) + s.grid_offsets()
-        return self._best_shifts(fields, params, self.padded, self.level_geometry, self.pad, times)
+        return self._best_shifts(fields, params, self.padded, self.level_geometry, self.pad, times, local)
 
     def rescored(self, fixed: np.ndarray, params: np.ndarray, *, mask: np.ndarray | None = None,
-                 times: dict | None = None) -> tuple[np.ndarray, np.ndarray]:
+                 times: dict | None = None, local: bool = False) -> tuple[np.ndarray, np.ndarray]:
         """Poses ``(K, 6)`` (grid poses with their shifts) scored again at ``local_factor``'s
         resolution, each shift refined within +-2 grid pixels: ``(params (K, 6), scores (K,))``,
         best first; ``times`` as :meth:`grid`."""
         field = self._field(fixed, mask, self.settings.local_factor)
         return self._best_shifts([field], np.asarray(params, float).reshape(-1, 6), self.rescore_padded,
-                                 self.rescore_geometry, self.rescore_pad, times)[0]
+                                 self.rescore_geometry, self.rescore_pad, times, local)[0]
 
     def _distinct(self, params: np.ndarray, limit: int, kept=()) -> list:
         """Rows of ``params`` (best first), each apart from ``kept`` and from the rows taken before
@@ -470,7 +494,8 @@ class GlobalSearch:
 
     def register(self, fixed: np.ndarray, init_params=np.zeros(6), *, mask: np.ndarray | None = None,
                  poses=(), toned: np.ndarray | None = None,
-                 before_grid: Callable[[], bool] | None = None, grid: bool = False) -> RegistrationResult | None:
+                 before_grid: Callable[[], bool] | None = None, grid: bool = False,
+                 local: bool = False) -> RegistrationResult | None:
         """The best pose the search finds for ``fixed`` ``(H, W)`` around ``init_params`` (deg, mm).
 
         ``toned``: ``(H, W)`` the X-ray's toned version (:attr:`register.xray.prepare.PreparedXRay.toned`)
@@ -497,7 +522,14 @@ class GlobalSearch:
         ``before_grid``: called once just before the grid is rendered and ranked (not where it is
         skipped); where it returns True the search stops there and returns None. ``register_xray``
         checks the X-ray's polarity on this search's grid there (its DRRs then serve the ranking), so
-        that an image to be inverted costs no grid search on the wrong one."""
+        that an image to be inverted costs no grid search on the wrong one.
+
+        ``local``: search by local similarity: the grid correlates locally normalized gradients
+        (:func:`register.engines.metrics.local_gradients`) and the local searches score by
+        :func:`register.engines.metrics.local_gradient_ncc` (``"local_gncc"``), whatever
+        ``settings.metric``; the grid runs whatever the given poses score (the record's ``local``:
+        True). The pipeline's second search where its pose's local similarity is below
+        ``local_below`` (:meth:`register.engines.pipeline.ContextualPipeline.rescue`)."""
         s = self.settings
         fixed = np.asarray(fixed, np.float64)
         if mask is not None:
@@ -513,9 +545,11 @@ class GlobalSearch:
         results: list[RegistrationResult] = []
 
         metric = s.metric if toned is not None else plain_equivalent(s.metric)  # GlobalSearchSettings.metric
+        if local:
+            metric, grid = "local_gncc", True
         coarse_engine, fine_engine = (e.scored_by((metric,)) for e in (self.local, self.local_fine))
 
-        def local(starts, engine):  # every start's local CMA-ES, in lockstep
+        def search_locally(starts, engine):  # every start's local CMA-ES, in lockstep
             nonlocal best, renders
             starts = np.asarray(starts, float).reshape(-1, 6)
             if not len(starts):
@@ -537,7 +571,7 @@ class GlobalSearch:
         half = np.array([*s.range_deg, s.range_mm, s.range_mm, s.range_mm])
         raw = np.asarray(poses, float).reshape(-1, 6)
         given = np.clip(raw, x0 - half, x0 + half)
-        local(given, coarse_engine)
+        search_locally(given, coarse_engine)
         stages["search_local"] = time.perf_counter() - t0
         given_best = best
         # the skip decision's score: the given poses' best, plain gradient NCC at full resolution
@@ -552,7 +586,7 @@ class GlobalSearch:
             # the toned one finds strongly curved displays (a gamma 2.6, a linear display), the
             # prepared one the views whose histogram the tone's reference poses do not share
             images = [fixed] if toned is None else [fixed, np.asarray(toned, np.float64)]
-            ranked = [p for p, _ in self.grids(images, init_params, mask=mask, times=grid_times)]
+            ranked = [p for p, _ in self.grids(images, init_params, mask=mask, times=grid_times, local=local)]
             self._grid_drrs = None  # used (tens of MB freed); the polarity check reads the surfaces' extremes
             grid_poses = len(ranked[0])
             renders += grid_poses
@@ -562,7 +596,7 @@ class GlobalSearch:
             fine = []
             for k, (image, params) in enumerate(zip(images, ranked)):
                 if s.rescore:
-                    top, _ = self.rescored(image, params[:s.rescore], mask=mask, times=grid_times)
+                    top, _ = self.rescored(image, params[:s.rescore], mask=mask, times=grid_times, local=local)
                     renders += len(top)
                     fine = self._distinct(top, n_fine * (k + 1) // len(images), fine)
             kept = list(fine)
@@ -572,8 +606,8 @@ class GlobalSearch:
             stages["search_grid"] = time.perf_counter() - t0
             t0 = time.perf_counter()
             candidates = len(fine) + len(coarse)
-            local(fine, fine_engine)
-            local(coarse, coarse_engine)
+            search_locally(fine, fine_engine)
+            search_locally(coarse, coarse_engine)
             stages["search_local"] += time.perf_counter() - t0
         if best is None:
             raise RegistrationError("global search: no pose of the grid overlaps the X-ray (every DRR is empty); "
@@ -590,7 +624,7 @@ class GlobalSearch:
         best.renders = renders
         best.search = {"given_similarity": None if given_best is None else float(given_best.similarity),
                        "given_score": given_score, "given_clipped": bool(np.any(given != raw)),
-                       "found_above": s.found_above, "always_grid": bool(s.always_grid),
+                       "found_above": s.found_above, "always_grid": bool(s.always_grid), "local": bool(local),
                        "grid_poses": grid_poses, "candidates": candidates,
                        "start": "given" if best is given_best else "grid", "similarity": float(best.similarity),
                        "grid_render_s": grid_times["render"], "grid_ncc_s": grid_times["ncc"],
@@ -602,7 +636,19 @@ class GlobalSearch:
 def describe_search(record: dict) -> str:
     """One line for a user from a search record (:meth:`GlobalSearch.register`, with the network's
     pose as the given one; with ``"refined"`` and ``"chosen"`` when the refinement ran from its
-    finalists, :class:`register.engines.pipeline.ContextualPipeline`)."""
+    finalists, and ``"rescue"`` where the pose was searched again by local similarity,
+    :class:`register.engines.pipeline.ContextualPipeline`)."""
+    rescue = record.get("rescue")
+    if rescue is not None:
+        why = (f"the pose found first agreed with the X-ray's edges as a whole but not window by window (local "
+               f"similarity {rescue['local_before']:.2f} < {rescue['local_below']:g})")
+        after = rescue.get("local_after")
+        if rescue["kept"] == "rescued":
+            return (f"global search: {why}; searched again by local similarity ({record['grid_poses']} grid poses), "
+                    f"its pose agrees window by window ({after:.2f}) and replaced it")
+        found = "nothing" if after is None else f"nothing better ({after:.2f})"
+        return describe_search({k: v for k, v in record.items() if k != "rescue"}) + (
+            f"; {why}: searched again by local similarity, {found}, the first pose kept")
     net = record["given_similarity"]
     after = record.get("after_refinement")
     head = "global search: " + ("no network pose" if net is None else

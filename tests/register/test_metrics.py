@@ -18,6 +18,7 @@ from register.engines.metrics import (
     MetricError,
     NoWindowError,
     local_gradient_ncc,
+    local_gradients,
     local_patch_px,
     bind_metric,
     downsample,
@@ -455,3 +456,28 @@ def test_the_local_similarity_scales_its_window_with_the_image_and_says_when_no_
     dot[10:14, 10:14] = True  # a field smaller than one window
     with pytest.raises(NoWindowError, match="no .* window"):
         local_gradient_ncc(f, m, mask=dot)
+
+
+def test_local_gradients_put_every_regions_edges_at_one_strength(rng):
+    # a step of 100 (a body's outline) and texture of sd 1 (bones) side by side: their raw gradients
+    # differ 100-fold, the locally normalized ones are alike; outside the mask they are 0, and a
+    # batch is normalized image by image (each its own floor)
+    img = smooth_image(rng, sigma=2.0).astype(np.float64) / 40.0
+    img[:, W // 2:] += 100.0
+    gx, gy = local_gradients(img, sigma_px=2.0)
+    mag = np.hypot(gx, gy)
+    edge = mag[:, W // 2 - 1:W // 2 + 1].mean()
+    texture = mag[:, 4:W // 2 - 8].mean()
+    raw = np.hypot(ndimage.sobel(img, axis=-1), ndimage.sobel(img, axis=-2))
+    assert raw[:, W // 2 - 1:W // 2 + 1].mean() > 50 * raw[:, 4:W // 2 - 8].mean()
+    assert 0.5 < edge / texture < 3.0
+    mask = np.zeros(img.shape, bool)
+    mask[:, : W // 2 - 4] = True
+    mx, my = local_gradients(img, mask, sigma_px=2.0)
+    assert not mx[~mask].any() and not my[~mask].any()
+    batch = np.stack([img, 3.0 * img + 7.0])
+    bx, _ = local_gradients(batch, sigma_px=2.0)
+    np.testing.assert_allclose(bx[0], gx, atol=1e-12)
+    np.testing.assert_allclose(bx[1], gx, atol=1e-9)  # affine-invariant: the scale divides out
+    with pytest.raises(MetricError, match="sigma_px"):
+        local_gradients(img, sigma_px=0.0)

@@ -142,7 +142,7 @@ def test_the_search_finds_a_far_pose_and_skips_the_grid_for_a_good_one(phantom):
     finalists = res.search["finalists"]
     assert {k: v for k, v in res.search.items() if not k.endswith("_s") and k != "finalists"} == {
         "given_similarity": res.history[0][1], "given_score": res.history[0][1], "given_clipped": False,
-        "found_above": 0.85, "always_grid": False, "grid_poses": n_grid, "candidates": 3, "start": "grid",
+        "found_above": 0.85, "always_grid": False, "local": False, "grid_poses": n_grid, "candidates": 3, "start": "grid",
         "similarity": res.similarity}  # a line DRR: the skip's score (plain gradient NCC) is the local similarity
     # finalists: the result first, then the next best local results, each apart from those before it
     assert 1 <= len(finalists) <= 3 and finalists[0]["params"] == res.params.tolist()

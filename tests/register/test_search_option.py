@@ -300,3 +300,37 @@ def test_a_wrong_polarity_stops_the_search_before_its_grid_and_the_inverse_is_re
     assert len(renders) == 1  # the grid, once
     assert res.search_ran
     assert np.abs(np.array(list(res.params.values()))[:3] - np.array(FAR[:3])).max() < 2.0, res.params
+
+
+def test_a_pose_whose_edges_agree_only_as_a_whole_is_searched_again_by_local_similarity(phantom, monkeypatch):
+    """The pipeline's winner (forced here: a pose 25 mm and 12 deg off the truth) agrees with the
+    X-ray window by window below local_below: the search runs again by local similarity (the grid of
+    locally normalized gradients, local searches and refinement by local similarity) and its pose,
+    the truth's, replaces the winner; the record says so, with both local similarities, and the
+    result's similarity is the refinement's usual score there. A right winner is kept untouched."""
+    from dataclasses import replace
+
+    from register.engines.pipeline import ContextualPipeline
+    from register.engines.search import describe_search
+    from sim.projection.geometry import pose_from_params
+
+    real = ContextualPipeline.result
+    wrong = np.asarray(NEAR, float) + np.array([12.0, 0.0, 0.0, 25.0, 0.0, 0.0])
+    sod_mm = xray_at(phantom, NEAR).sod_mm
+
+    def result(it, found, refined, won, polished):
+        out = real(it, found, refined, won, polished)
+        return replace(out, params=wrong, pose=pose_from_params(wrong, sod_mm), similarity=0.3)
+
+    monkeypatch.setattr(ContextualPipeline, "result", staticmethod(result))
+    res = register_drr(phantom, NEAR, search="auto")
+    rescue = res.result.search["rescue"]
+    assert rescue["kept"] == "rescued" and rescue["local_before"] < 0.35 <= rescue["local_after"]
+    assert np.allclose(rescue["first_params"], wrong) and res.result.search["local"] is True
+    assert np.abs(res.result.params[:3] - np.asarray(NEAR[:3])).max() < 2.0  # deg
+    assert np.abs(res.result.params[3:5] - np.asarray(NEAR[3:5])).max() < 3.0  # mm across the view
+    assert res.similarity >= 0.85 and "rescue" in res.result.stage_seconds
+    assert "searched again by local similarity" in describe_search(res.result.search)
+    monkeypatch.setattr(ContextualPipeline, "result", staticmethod(real))
+    kept = register_drr(phantom, NEAR, search="auto")
+    assert "rescue" not in kept.result.search and "rescue" not in kept.result.stage_seconds

@@ -21,14 +21,14 @@ def test_the_shipped_thresholds_are_the_calibrations_choice():
     assert len(rows) == 120
     chosen, rates = bench.calibrate(rows)
     assert chosen == VerdictSettings()
-    assert rates["false_accepts"] == 0 and rates["accepted"] == pytest.approx(91 / 94)
+    assert rates["false_accepts"] == 0 and rates["accepted"] == pytest.approx(98 / 105)
 
 
 def test_the_held_out_rates_are_the_documented_ones():
     rows = bench.load_rows([ROWS / "heldout.jsonl", ROWS / "unmatched.jsonl"])
     r = bench.rates(rows, VerdictSettings())
-    assert (r["within"], r["off"], r["false_accepts"]) == (110, 50, 0)
-    assert r["accepted"] == pytest.approx(106 / 110)
+    assert (r["within"], r["off"], r["false_accepts"]) == (139, 21, 0)
+    assert r["accepted"] == pytest.approx(131 / 139)
     unmatched = [x for x in rows if x["mtre_mm"] is None]
     assert len(unmatched) == 20 and bench.rates(unmatched, VerdictSettings())["registered"] == 0
 
@@ -36,19 +36,24 @@ def test_the_held_out_rates_are_the_documented_ones():
 def test_six_more_held_out_display_chains_have_no_false_accept():
     rows = bench.load_rows([ROWS / "heldout_chains.jsonl"])
     r = bench.rates(rows, VerdictSettings())
-    assert (len(rows), r["within"], r["off"], r["false_accepts"]) == (60, 51, 9, 0)
-    assert r["accepted"] == pytest.approx(50 / 51)
+    assert (len(rows), r["within"], r["off"], r["false_accepts"]) == (60, 58, 2, 0)
+    assert r["accepted"] == pytest.approx(56 / 58)
 
 
-def test_the_local_similarity_turns_the_one_edge_false_accept_down_and_no_right_one():
-    """``linear-bright-95kV`` frame 4 (its field found whole): 153 mm off in depth, the body's
-    outline its only edge, every check but the local similarity passed. The check decides no other
-    row: every right registration called registered keeps it."""
-    rows = bench.load_rows([ROWS / "heldout_chains.jsonl"])
-    without = VerdictSettings(min_local_similarity=None)
-    caught = [r for r in rows if bench.judge(r["evidence"], without).label == "registered" and not bench._good(r)]
-    assert len(caught) == 1 and caught[0]["mtre_mm"] > 100 and caught[0]["condition"].startswith("linear-bright-95kV")
-    assert bench.judge(caught[0]["evidence"], VerdictSettings()).label == "doubtful"
-    every = bench.load_rows([ROWS / n for n in ("calib.jsonl", "heldout.jsonl", "unmatched.jsonl", "heldout_chains.jsonl")])
-    changed = [r for r in every if bench.judge(r["evidence"], without).label != bench.judge(r["evidence"], VerdictSettings()).label]
-    assert changed == caught
+def test_the_one_edge_frames_are_searched_again_and_judged_by_local_similarity():
+    """``linear-bright-95kV`` (a linear bone-bright display: the body's outline over black air its
+    strongest edge): the five frames whose pose the whole image's similarity held 46-153 mm off by
+    that outline were searched again by local similarity, each to within 5 mm of the truth, and
+    judged by it (registered); the five right ones were not searched again."""
+    import json
+
+    rows = [json.loads(line) for line in (ROWS / "heldout_chains.jsonl").read_text().splitlines()
+            if '"linear-bright-95kV"' in line]
+    assert len(rows) == 10 and all(r["mtre_mm"] < 10 for r in rows)
+    rescued = [r for r in rows if (r["result"]["search"].get("rescue") or {}).get("kept") == "rescued"]
+    assert len(rescued) == 5 and all(r["mtre_mm"] < 5 for r in rescued)
+    for r in rescued:
+        rescue, ev = r["result"]["search"]["rescue"], r["result"]["verdict_evidence"]
+        assert rescue["local_before"] < rescue["local_below"] <= rescue["local_after"]
+        assert ev["similarity_metric"] == "local_gncc" and bench.judge(ev, VerdictSettings()).label == "registered"
+    assert all(r["result"]["verdict_evidence"]["similarity_metric"] != "local_gncc" for r in rows if r not in rescued)
