@@ -21,6 +21,7 @@ single-process step exactly, which ``tests/learn/test_distributed.py`` checks.
 from __future__ import annotations
 
 import os
+import signal
 from dataclasses import dataclass
 
 import torch
@@ -50,11 +51,16 @@ def launch(procs: int, argv: list[str]) -> None:
     try:
         run(parse_args(["--standalone", "--nproc-per-node", str(procs), "-m", "register.cli", *argv]))
     except ChildFailedError as e:
-        ranks = sorted(e.failures)
-        codes = sorted({f.exitcode for f in e.failures.values()})
-        raise DistributedError(f"{procs} processes: rank{'s' if len(ranks) > 1 else ''} "
-                               f"{', '.join(map(str, ranks))} ended with exit code {', '.join(map(str, codes))} "
-                               "(the message above says why)") from None
+        # where one rank fails, the launcher stops the others (SIGTERM): they did not fail of their own
+        own = {r: f.exitcode for r, f in e.failures.items() if f.exitcode != -signal.SIGTERM} or {
+            r: f.exitcode for r, f in e.failures.items()}
+        stopped = sorted(set(e.failures) - set(own))
+        ranks, codes = sorted(own), sorted(set(own.values()))
+        line = (f"{procs} processes: rank{'s' if len(ranks) > 1 else ''} {', '.join(map(str, ranks))} ended with "
+                f"exit code {', '.join(map(str, codes))}")
+        if stopped:
+            line += f"; rank{'s' if len(stopped) > 1 else ''} {', '.join(map(str, stopped))} stopped by the launcher"
+        raise DistributedError(line + " (the message above says why)") from None
 
 
 class DistributedError(InputError):

@@ -160,20 +160,88 @@ def small_outputs() -> dict[str, "np.ndarray"]:
     return out
 
 
-def small_differences(outputs: dict, reference: Path = SMALL) -> list[str]:
-    """What of ``outputs`` (:func:`small_outputs`) is not bit for bit the committed set's (one line each)."""
+def machine() -> str:
+    """What decides the last bits of the set's floating-point values: the CPU (Dr.Jit's LLVM backend
+    compiles the renders for the host's vector instructions, whose rounding of a few values differs
+    from one instruction set to another), Dr.Jit's and NumPy's versions."""
+    import platform
+
+    import drjit
+    import numpy as np
+
+    model, flags = platform.processor() or "", set()
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            key, _, value = line.partition(":")
+            if key.strip() == "model name" and not model:
+                model = value.strip()
+            elif key.strip() in ("flags", "Features"):
+                flags.update(value.split())
+    except OSError:
+        pass
+    isa = ",".join(f for f in ("avx512f", "avx2", "fma", "asimd") if f in flags)
+    return f"{platform.machine()} {model} [{isa}] drjit {drjit.__version__} numpy {np.__version__}"
+
+
+#: Keys of the committed set that are not outputs: where it was made (:func:`machine`).
+SMALL_META = ("machine",)
+
+
+def _within_last_bits(a, b) -> bool:
+    """Whether ``a`` is ``b`` up to what another CPU's rounding makes of it (:func:`small_differences`)."""
+    import numpy as np
+
+    if a.dtype.kind in "iub":  # counts and masks: a render's last bit can move a rounding by one count
+        d = np.abs(a.astype(np.int64) - b.astype(np.int64))
+        return int(d.max(initial=0)) <= 1 and float((d > 0).mean()) <= 0.01
+    scale = max(float(np.nanmax(np.abs(b))), 1e-30) if b.size else 1.0
+    d = np.abs(a.astype(np.float64) - b.astype(np.float64))
+    return float(np.nanmax(d, initial=0.0)) <= 1e-3 * scale and float((d > 1e-5 * scale).mean()) <= 0.01
+
+
+def _same_pose(a, b) -> bool:
+    """Whether two ``(4, 4)`` poses agree within 0.5 deg and 3 mm: a CMA-ES registration follows
+    another path where a render's last bits differ, and ends within its precision (32 px, 4 mm
+    voxels: 0.1 deg and 1.2 mm apart, mostly in depth, between two CPUs)."""
+    import numpy as np
+
+    from sim.projection.se3 import rotation_error_deg
+
+    return float(rotation_error_deg(a, b)) <= 0.5 and float(np.linalg.norm(a[:3, 3] - b[:3, 3])) <= 3.0
+
+
+def small_differences(outputs: dict, reference: Path = SMALL, *, exact: bool | None = None) -> list[str]:
+    """What of ``outputs`` (:func:`small_outputs`) is not the committed set's (one line each): bit for
+    bit where the set was made on this machine (:func:`machine`, recorded in it; ``exact``
+    overrides), else within the last bits (:func:`_within_last_bits`: floating-point arrays within
+    0.1 % of their largest value, at most 1 % of their values beyond 1e-5 of it; counts and masks
+    within one count on at most 1 % of their values; the registration's pose within 0.5 deg and 3
+    mm, :func:`_same_pose`; the training step's hash not compared, its first values are). Another
+    CPU rounds a few render values differently (seen: 2 of 2304, 4.8e-7, about 2 float32 ulps),
+    which moves a display value by one count here and there downstream."""
     import numpy as np
 
     with np.load(reference) as ref:
         want = {k: ref[k] for k in ref.files}
+    made_on = str(want["machine"]) if "machine" in want else None
+    if exact is None:
+        exact = made_on == machine()
+    want = {k: v for k, v in want.items() if k not in SMALL_META}
+    outputs = {k: v for k, v in outputs.items() if k not in SMALL_META}
     lines = [f"{k}: only in {'the committed set' if k in want else 'this run'}" for k in sorted(set(want) ^ set(outputs))]
     for k in sorted(set(want) & set(outputs)):
         a, b = np.asarray(outputs[k]), want[k]
         if a.shape != b.shape or a.dtype != b.dtype:
             lines.append(f"{k}: {a.dtype} {a.shape} against {b.dtype} {b.shape}")
         elif not np.array_equal(a, b, equal_nan=True):
+            if not exact and (k == "train_step_sha256" or (_same_pose(a, b) if k == "registration_pose"
+                                                            else _within_last_bits(a, b))):
+                continue
             d = np.abs(a.astype(np.float64) - b.astype(np.float64))
             lines.append(f"{k}: {int((a != b).sum())} of {a.size} values differ, at most {np.nanmax(d):.3g}")
+    if not exact:
+        print(f"same_outputs: the set was made on {made_on or 'another machine'}, this is {machine()}: compared "
+              "within the last bits")
     for line in lines:
         print("DIFFERS", line)
     return lines
@@ -323,7 +391,8 @@ def main() -> int:
     m.add_argument("out", type=Path)
     m.add_argument("--tables", type=Path, help="a batched run's cached tables folder to reuse (another make's "
                                                "OUT/train_batched/run/tables)")
-    sm = sub.add_parser("small", help="the CI-sized set (tests/test_same_outputs.py checks it bit for bit)")
+    sm = sub.add_parser("small", help="the CI-sized set (tests/test_same_outputs.py checks it bit for bit on the "
+                                      "machine it was made on, within the last bits elsewhere)")
     sm.add_argument("--write", action="store_true", help=f"write it to {SMALL.relative_to(ROOT)} (after a change "
                                                           "that changes outputs on purpose; say why in the commit)")
     c = sub.add_parser("compare", help="the outputs of A against B's")
@@ -344,7 +413,7 @@ def main() -> int:
 
             SMALL.parent.mkdir(parents=True, exist_ok=True)
             with atomic_path(SMALL) as tmp:
-                np.savez_compressed(tmp, **outputs)
+                np.savez_compressed(tmp, **outputs, machine=np.array(machine()))
             print(f"wrote {SMALL.relative_to(ROOT)}: {', '.join(outputs)}")
             return 0
         return 0 if not small_differences(outputs) else 1
