@@ -46,7 +46,8 @@ def launch(procs: int, argv: list[str]) -> None:
     from torch.distributed.elastic.multiprocessing.errors import ChildFailedError
     from torch.distributed.run import parse_args, run
 
-    if "OMP_NUM_THREADS" not in os.environ:
+    before = os.environ.get("OMP_NUM_THREADS")
+    if before is None:  # for the ranks only: restored below, so that nothing after the run inherits it
         os.environ["OMP_NUM_THREADS"] = str(max(1, (os.cpu_count() or 1) // procs))
     try:
         run(parse_args(["--standalone", "--nproc-per-node", str(procs), "-m", "register.cli", *argv]))
@@ -61,6 +62,9 @@ def launch(procs: int, argv: list[str]) -> None:
         if stopped:
             line += f"; rank{'s' if len(stopped) > 1 else ''} {', '.join(map(str, stopped))} stopped by the launcher"
         raise DistributedError(line + " (the message above says why)") from None
+    finally:
+        if before is None:
+            os.environ.pop("OMP_NUM_THREADS", None)
 
 
 class DistributedError(InputError):

@@ -10,8 +10,9 @@ set, with the demo, an evaluation and two trainings, is ``scripts/same_outputs.p
 (``.venv/bin/python scripts/same_outputs.py small --write``) and says why in its commit.
 
 Tolerance: none on the machine the set was made on (it records it: the CPU and its vector
-instructions, Dr.Jit's and NumPy's versions). Each output is made in a fresh process with one torch
-thread, from fixed seeds, without the Mitsuba-traced tool bank (whose chords differ from one process
+instructions, Dr.Jit's and NumPy's versions). Each output is made in a fresh process with one thread
+(``OMP_NUM_THREADS=1`` whatever the caller's environment: the renders' last bits follow the thread
+count, and an earlier test of the session may have set it) and one torch thread, from fixed seeds, without the Mitsuba-traced tool bank (whose chords differ from one process
 to the next in their last bits); the set was made three times in separate processes, beside a
 training run, and was the same each time, and twice more at once on another machine. On another
 CPU, Dr.Jit's LLVM backend compiles the renders for other vector instructions, which round a few
