@@ -484,9 +484,9 @@ class RegistrationRequest:
         log = log or (lambda line: None)
         p = np.asarray(params, float).reshape(-1)
         if p.shape != (6,) or not np.all(np.isfinite(p)):
-            raise RegistrationError(f"judge: the pose must be six finite numbers (deg, mm), got {params!r}")
+            raise RegistrationError(f"finish: the pose must be six finite numbers (deg, mm), got {params!r}")
         if not np.isfinite(similarity):
-            raise RegistrationError(f"judge: the similarity must be finite, got {similarity!r}")
+            raise RegistrationError(f"finish: the similarity must be finite, got {similarity!r}")
         xr, pixel_spacing_mm = _read_xray(self, xray, log)
         _check_before_loading(self, xr, ct, pixel_spacing_mm)
         volume, found = _load_anatomy(self, ct, log)
@@ -503,14 +503,11 @@ class RegistrationRequest:
                                     similarity=float(similarity), renders=0, stage_seconds={}, search=search,
                                     trajectory=trajectory)
         if rescue and self.searches:
-            size = (g.height, g.width)
-            grid = GlobalSearch(volume, GlobalSearchSettings(always_grid=self.search == "always"), size=size,
-                                scene=self.scene, geometry=g, center_lps=c, physics=self.moving,
-                                label_materials=self.label_materials)
-            refinement = CMAESRegistration(volume, replace(REFINE_SETTINGS, size=size), scene=self.scene, geometry=g,
-                                           center_lps=c, physics=self.moving, label_materials=self.label_materials)
-            result = rescue_pose(grid, refinement, prepared.image, self.start, result, mask=prepared.mask,
-                                 toned=prepared.toned)
+            refinement = CMAESRegistration(volume, replace(REFINE_SETTINGS, size=(g.height, g.width)), scene=self.scene,
+                                           geometry=g, center_lps=c, physics=self.moving,
+                                           label_materials=self.label_materials)
+            result = rescue_pose(_global_search(self, volume, g, c), refinement, prepared.image, self.start, result,
+                                 mask=prepared.mask, toned=prepared.toned)
             result.projection = projection_matrix(g, result.pose, c)
         return result, _verdict(self, volume, c, prepared, result)
 
@@ -645,10 +642,7 @@ def _build_engine(request: RegistrationRequest, prepared, volume, center_lps, pr
     grid = None  # contextual+cmaes's global search, built once: the polarity check scores on its grid
     if request.searches:
         with clock("search_setup"):
-            grid = GlobalSearch(volume, GlobalSearchSettings(always_grid=request.search == "always"),
-                                size=(geometry.height, geometry.width), scene=request.scene, geometry=geometry,
-                                center_lps=center_lps, physics=request.moving,
-                                label_materials=request.label_materials)
+            grid = _global_search(request, volume, geometry, center_lps)
     log(prepared.sources.line())
     for line in _input_lines(prepared):
         log(line)
@@ -659,6 +653,14 @@ def _build_engine(request: RegistrationRequest, prepared, volume, center_lps, pr
                               restarts=request.cmaes_restarts if request.method == "cmaes" else 0,
                               keep_drrs=True, note=remark, search=grid)
     return engine, grid
+
+
+def _global_search(request: RegistrationRequest, volume, geometry, center_lps) -> GlobalSearch:
+    """contextual+cmaes's global search for ``geometry``'s detector (``--search always``: its grid
+    run whatever the network's pose scores)."""
+    return GlobalSearch(volume, GlobalSearchSettings(always_grid=request.search == "always"),
+                        size=(geometry.height, geometry.width), scene=request.scene, geometry=geometry,
+                        center_lps=center_lps, physics=request.moving, label_materials=request.label_materials)
 
 
 class _PolarityCheckedRun:

@@ -334,3 +334,25 @@ def test_a_pose_whose_edges_agree_only_as_a_whole_is_searched_again_by_local_sim
     monkeypatch.setattr(ContextualPipeline, "result", staticmethod(real))
     kept = register_drr(phantom, NEAR, search="auto")
     assert "rescue" not in kept.result.search and "rescue" not in kept.result.stage_seconds
+
+
+def test_finishing_a_recorded_winner_ends_where_the_registration_ended(phantom):
+    """RegistrationRequest.finish (what benchmarks/verdict.py --rejudge runs): a registration's own
+    pose, finished again, keeps its pose and its verdict (round trip); a wrong pose handed to it
+    (25 mm, 12 deg off) is searched again by local similarity and ends at the truth."""
+    from register.api import RegistrationRequest
+
+    vol, c = phantom
+    xray = xray_at(phantom, NEAR)
+    res = register_drr(phantom, NEAR, search="auto")
+    request = RegistrationRequest(model=null_network, center=c, size=(32, 32))
+    again, verdict = request.finish(vol, xray, res.result.params, similarity=res.similarity, search=res.result.search)
+    assert np.array_equal(again.params, res.result.params) and verdict.label == res.verdict.label
+    assert "rescue" not in (again.search or {})
+    wrong = np.asarray(NEAR, float) + np.array([12.0, 0.0, 0.0, 25.0, 0.0, 0.0])
+    moved, _ = request.finish(vol, xray, wrong, similarity=0.3, search=None)
+    assert moved.search["rescue"]["kept"] == "rescued"
+    assert np.abs(moved.params[:3] - np.asarray(NEAR[:3])).max() < 2.0
+    assert np.abs(moved.params[3:5] - np.asarray(NEAR[3:5])).max() < 3.0
+    kept, _ = request.finish(vol, xray, wrong, similarity=0.3, search=None, rescue=False)
+    assert np.array_equal(kept.params, wrong)
