@@ -413,7 +413,9 @@ def checks(evidence: dict, settings: VerdictSettings) -> list[tuple[str, bool, s
     local = evidence.get("local_similarity")
     if local is not None and s.min_local_similarity is not None:
         ok = local >= s.min_local_similarity
-        out.append(("min_local_similarity", ok, f"local similarity {local:.2f}" if ok else
+        judged_by_it = what == "local similarity"  # the similarity above is this one: said once
+        out.append(("min_local_similarity", ok, ("searched again and judged by local similarity" if judged_by_it else
+                                                 f"local similarity {local:.2f}") if ok else
                     f"the edges agree as a whole but not window by window: local similarity {local:.2f} < "
                     f"{s.min_local_similarity:.2f} (one strong edge, such as the body's outline, can carry the whole "
                     "image's similarity)"))

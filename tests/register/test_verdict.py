@@ -212,3 +212,10 @@ def test_a_field_smaller_than_one_window_leaves_the_local_similarity_unjudged():
     assert ev["local_similarity"] is None
     v = judge({**ev, "depth_drop": 0.3})
     assert v.label == "doubtful" and v.reasons == ("0 % of the X-ray used (< 10 %)",)  # judged by the field's share
+
+
+def test_a_pose_found_by_local_similarity_is_judged_and_named_by_it_once():
+    ev = _evidence(similarity=0.63, local_similarity=0.63, similarity_metric="local_gncc", depth_drop=0.2)
+    v = judge(ev)
+    assert v.label == "registered" and v.reasons[0] == "local similarity 0.63"
+    assert sum("0.63" in r for r in v.reasons) == 1 and "searched again and judged by local similarity" in v.reasons
