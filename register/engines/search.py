@@ -38,7 +38,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from register.engines.cmaes import CMAESRegistration, CMAESSettings
-from register.engines.metrics import downsample, get_metric, gradient_ncc, local_gradients, plain_equivalent
+from register.engines.metrics import (downsample, get_metric, gradient_ncc, image_sobel, local_gradients,
+                                      plain_equivalent)
 from register.engines.result import RegistrationError, RegistrationResult
 from sim.core.errors import InputError
 from sim.projection.geometry import CArmGeometry, pose_from_params
@@ -368,9 +369,8 @@ class GlobalSearch:
         each ``(f, m)`` of ``fields`` (one field ``m``; the DRRs rendered once): ``(images, N, du,
         dv)``; ``times`` as :meth:`grid`. ``local``: of the locally normalized gradients
         (:func:`register.engines.metrics.local_gradients`, ``local_sigma_px``; the X-ray's over its
-        field) instead of the Sobel ones."""
-        from scipy import ndimage
-
+        field) instead of the Sobel ones (each DRR's own: :func:`register.engines.metrics.image_sobel`,
+        not blended with its neighbours in the batch)."""
         m = fields[0][1]
         if any(mk.shape != m.shape or np.any(mk != m) for _, mk in fields):
             raise RegistrationError("global search: the versions of an X-ray must share one field")
@@ -386,8 +386,8 @@ class GlobalSearch:
             if local:
                 templates, moving = np.stack([fg[i] for fg in fixed_g]), moving_g[i]
             else:
-                templates = np.stack([ndimage.sobel(f, axis=axis) for f, _ in fields])
-                moving = ndimage.sobel(drrs, axis=axis)
+                templates = image_sobel(np.stack([f for f, _ in fields]), axis)
+                moving = image_sobel(drrs, axis)
             score = score + 0.5 * masked_ncc_shifts(templates, m, moving)
         if times is not None:
             times["render"] = times.get("render", 0.0) + t1 - t0

@@ -91,6 +91,11 @@ def test_the_grid_finds_the_in_plane_translation_of_a_grid_rotation(phantom):
     assert g2.height == 2 * g.height and np.allclose(top[0][[0, 1, 2, 5]], truth[[0, 1, 2, 5]])
     assert np.all(np.abs(top[0][3:5] - truth[3:5]) <= mm_per_px / 2), (top[0], mm_per_px / 2)
     assert top_scores[0] >= top_scores[1:].max() and top_scores[0] > scores[0]  # sharper: closer to 1
+    # each pose's score is its own: scored alone, a grid pose scores what it scored beside its neighbours
+    # (a Sobel over the whole batch also smoothed along it, blending each DRR with the next pose's)
+    batch = np.sort(search.rescored(fixed, params[1:4])[1])
+    alone = np.sort([search.rescored(fixed, params[k:k + 1])[1][0] for k in range(1, 4)])
+    np.testing.assert_allclose(alone, batch, atol=1e-6)
     # a field: only its pixels count, and the shift is still found
     field = np.zeros((128, 128), bool)
     field[16:112, 24:104] = True
