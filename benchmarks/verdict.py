@@ -73,6 +73,16 @@ GRID = {"min_similarity": (0.15, 0.2, 0.25, 0.3, 0.35, 0.4, 0.5, 0.6),
         "max_rival_gain": (None, 0.2, 0.1, 0.07, 0.05, 0.03),
         "min_local_similarity": (None, 0.1, 0.2, 0.3, 0.35, 0.4, 0.5)}
 
+#: A registration this far off (mTRE, mm; 1.5 times :data:`WITHIN_MM`) is clearly wrong: the
+#: thresholds must reject it with a margin (:data:`MARGIN`), not only just.
+CLEARLY_OFF_MM = 15.0
+
+#: The margin, a share of each threshold's value: a clearly wrong registration must still be
+#: rejected with every threshold this much looser (lower bounds lowered by it, ``max_rival_gain``
+#: raised), so that no threshold rests on the exact value of a wrong pose's evidence (a calibration
+#: without it put the similarity's floor at 0.25 against a frame 24.6 mm off that scored 0.248).
+MARGIN = 0.1
+
 #: The check (:func:`register.verdict.checks`, by the setting it is named for) each threshold of
 #: :data:`GRID` sets.
 CHECK_OF = {name: name for name in GRID}
@@ -148,9 +158,18 @@ def _passes(rows, check: str, values: dict, base: VerdictSettings) -> np.ndarray
     return np.array([all(ok for n, ok, _ in checks(r["evidence"], s) if n == check) for r in rows], bool)
 
 
+def _looser(name: str, value):
+    """``value`` of the threshold ``name`` made :data:`MARGIN` looser (None stays None)."""
+    if value is None:
+        return None
+    return value + (MARGIN if name == "max_rival_gain" else -MARGIN) * abs(value)
+
+
 def calibrate(rows) -> tuple[VerdictSettings, dict]:
     """The settings of :data:`GRID` with no false accept on ``rows`` that accept the most good
-    registrations (ties: the stricter, :func:`strictness`; then the first in the grid's order). Each
+    registrations (ties: the stricter, :func:`strictness`; then the first in the grid's order), and
+    that still reject every registration :data:`CLEARLY_OFF_MM` off or more (and every unmatched
+    X-ray) with each threshold :data:`MARGIN` looser (:func:`_looser`). Each
     check (:func:`register.verdict.checks`) depends on its own thresholds (:data:`CHECK_OF`), so each
     check's passes are found once per combination of them, and a combination of all is registered
     where every check passes; the last two checks' combinations are tried at once, as arrays. A
@@ -163,23 +182,28 @@ def calibrate(rows) -> tuple[VerdictSettings, dict]:
     for name in grid:
         groups.setdefault(CHECK_OF[name], []).append(name)
     good = np.array([_good(r) for r in rows], bool)
+    clearly_off = np.array([r["mtre_mm"] is None or r["mtre_mm"] >= CLEARLY_OFF_MM for r in rows], bool)
     fixed = np.array([failure(r["evidence"], base) is None and all(ok for n, ok, _ in checks(r["evidence"], base)
                                                                      if n not in groups) for r in rows], bool)
     options = {check: [dict(zip(names, vals)) for vals in itertools.product(*(grid[n] for n in names))]
                for check, names in groups.items()}
     passes = {check: np.array([_passes(rows, check, o, base) for o in opts]) for check, opts in options.items()}
+    loose = {check: np.array([_passes(rows, check, {k: _looser(k, v) for k, v in o.items()}, base) for o in opts])
+             for check, opts in options.items()}
     part = {check: np.array([sum(_strictness_of(k, v) for k, v in o.items()) for o in opts])
             for check, opts in options.items()}
     *outer, a, b = options  # the last two checks as arrays: (A, B, rows)
     inner = passes[a][:, None, :] & passes[b][None, :, :]
+    inner_loose = loose[a][:, None, :] & loose[b][None, :, :]
     inner_part = part[a][:, None] + part[b][None, :]
     best, best_key = None, None
     for idx in itertools.product(*(range(len(options[c])) for c in outer)):
-        reg = fixed.copy()
+        reg, reg_loose = fixed.copy(), fixed & clearly_off
         for check, i in zip(outer, idx):
             reg &= passes[check][i]
+            reg_loose &= loose[check][i]
         joint = reg & inner  # (A, B, rows)
-        allowed = ~(joint & ~good).any(axis=2)
+        allowed = ~(joint & ~good).any(axis=2) & ~(reg_loose & inner_loose).any(axis=2)
         if not allowed.any():
             continue
         accepted = np.where(allowed, joint[..., good].sum(axis=2), -1)
@@ -239,6 +263,14 @@ def unmatched(a) -> int:
     return 0
 
 
+def _ct_path(row) -> Path:
+    """The CT of ``row``: its recorded path, or where that is not here (rows made on another
+    machine), the file of that name under ``../shared/data/ct`` beside the repository."""
+    recorded = Path(row["ct"])
+    here = ROOT.parent / "shared" / "data" / "ct" / recorded.name
+    return recorded if recorded.exists() or not here.exists() else here
+
+
 def _frame(row, frames_dir: Path, cache: dict) -> tuple[Path, object, np.ndarray]:
     """The X-ray of ``row`` (its file for an unmatched one; else its study's frame, simulated again
     into ``frames_dir/<CT>/<target>/case_###.dcm`` as ``benchmarks/search.py`` made it), its CT and
@@ -249,7 +281,7 @@ def _frame(row, frames_dir: Path, cache: dict) -> tuple[Path, object, np.ndarray
     from sim.ct.anatomy import anatomy_center
     from sim.projection.geometry import pose_from_params
 
-    ct = row["ct"]
+    ct = str(_ct_path(row))
     needed = [("CT", Path(ct)), ("X-ray", Path(row["xray"])) if row.get("xray") else ("study", ROOT / row["study"])]
     for what, path in needed:
         if not path.exists():
@@ -351,6 +383,56 @@ def rejudge(src: Path, dst: Path, frames_dir: Path) -> int:
     return len(out)
 
 
+def rescues(paths) -> str:
+    """What the search again by local similarity (the pipeline's step 6) did in the rows of
+    ``paths``: on how many registrations it ran and how long (s), how many poses it moved, how far
+    off they were before (mTRE of the recorded first winner against the truth, mm) and after, and
+    how many of those it moved to within :data:`WITHIN_MM` the verdict calls registered."""
+    from sim import load_ct
+    from sim.ct.anatomy import anatomy_center
+    from sim.projection.geometry import pose_from_params
+
+    cache: dict = {}
+    ran, moved = [], []
+    total = 0
+    for path in paths:
+        for line in Path(path).read_text().splitlines():
+            row = json.loads(line) if line.strip() else None
+            if row is None or row.get("result") is None:
+                continue
+            total += 1
+            rescue = (row["result"].get("search") or {}).get("rescue")
+            if rescue is None:
+                continue
+            ran.append(rescue["seconds"])
+            if rescue["kept"] != "rescued" or row.get("mtre_mm") is None:
+                continue
+            ct = _ct_path(row)
+            if not ct.exists():
+                raise SystemExit(f"verdict: --rescues: the CT of a row ({row['target']}, case {row.get('case')}) is "
+                                 f"not here: {ct} (run from the repository root with ../shared beside it)")
+            if ct not in cache:
+                volume = load_ct(ct)
+                cache[ct] = (volume, anatomy_center(volume))
+            volume, center = cache[ct]
+            first = pose_from_params(np.asarray(rescue["first_params"], float), row["result"]["geometry"]["sod_mm"])
+            before = _errors(row, first, volume, center, cache)["mtre_mm"]
+            label = judge(row["result"]["verdict_evidence"], VerdictSettings()).label
+            moved.append((before, row["mtre_mm"], label, f"{row['target']} case {row.get('case')}"))
+    if not ran:
+        return f"the search again by local similarity ran on none of {total} registrations"
+    good = [m for m in moved if m[1] < WITHIN_MM]
+    out = [f"the search again by local similarity ran on {len(ran)} of {total} registrations (median "
+           f"{np.median(ran):.1f} s, {min(ran):.1f}-{max(ran):.1f} s) and moved {len(moved)} poses"]
+    if moved:
+        out.append(f"  before: {min(m[0] for m in moved):.1f}-{max(m[0] for m in moved):.1f} mm off; after: "
+                   f"{len(good)} within {WITHIN_MM:g} mm ({sum(m[2] == 'registered' for m in good)} called registered), "
+                   f"{len(moved) - len(good)} not")
+        out += [f"  not within: {m[3]}: {m[0]:.1f} -> {m[1]:.1f} mm ({m[2]})" for m in moved if m[1] >= WITHIN_MM]
+        out += [f"  moved off: {m[3]}: {m[0]:.1f} -> {m[1]:.1f} mm" for m in moved if m[0] < WITHIN_MM]
+    return "\n".join(out)
+
+
 #: What :func:`compact` keeps of a row's ``result`` (everything :func:`load_rows` and the tables read,
 #: and the stage times).
 COMPACT_RESULT_KEYS = ("geometry", "params", "pose_4x4", "search", "search_status", "similarity", "verdict",
@@ -377,7 +459,8 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("rows", nargs="*", help="JSON-lines files of registrations (benchmarks/search.py --rows)")
     ap.add_argument("--calibrate", action="store_true",
-                    help="choose the thresholds of GRID with no false accept that accept the most good registrations")
+                    help="choose the thresholds of GRID with no false accept (and a margin from the clearly wrong: "
+                         "CLEARLY_OFF_MM, MARGIN) that accept the most good registrations")
     ap.add_argument("--unmatched", default=None, metavar="DIR",
                     help="register the X-rays of DIR against --ct (no pose can be right) into --rows")
     ap.add_argument("--ct", default=None, help="with --unmatched: the CT")
@@ -389,6 +472,8 @@ def main() -> int:
                          "made again, no registration) into OUT")
     ap.add_argument("--frames", default="runs/verdict/rejudge_frames",
                     help="with --rejudge: where the study frames are simulated again, cached (default: %(default)s)")
+    ap.add_argument("--rescues", action="store_true",
+                    help="summarise what the search again by local similarity did in the ROWS files")
     ap.add_argument("--compact", default=None, metavar="OUT",
                     help="write the one ROWS file to OUT with only what the tables read of each result")
     a = ap.parse_args()
@@ -403,6 +488,13 @@ def main() -> int:
             print("verdict: --compact needs one existing ROWS file", file=sys.stderr)
             return 2
         print(f"verdict: {compact(Path(a.rows[0]), Path(a.compact))} rows -> {a.compact}")
+        return 0
+    if a.rescues:
+        missing = [p for p in a.rows if not Path(p).is_file()]
+        if not a.rows or missing:
+            print(f"verdict: --rescues: rows file(s) not found: {missing or 'none given'}", file=sys.stderr)
+            return 2
+        print(rescues(a.rows))
         return 0
     if a.unmatched is not None:
         if a.ct is None or not a.rows or len(a.rows) != 1:

@@ -124,6 +124,20 @@ def test_the_calibration_judges_the_new_evidence_only_where_rows_have_it():
     assert chosen.min_profile_drop is None
 
 
+def test_the_calibration_keeps_a_margin_from_a_clearly_wrong_pose_only():
+    # right poses down to 0.28; one wrong pose that only its similarity, 0.248, tells: a floor of 0.25
+    # accepts every right one and rejects it, but by 0.002. 24.6 mm off (clearly wrong: >= 15 mm), the
+    # floor must still reject it 10 % lower (0.225): the 0.28 pose is lost, and of the floors that keep
+    # the other three the strictest, 0.5, is chosen; 12 mm off (just past the bar), rejecting it is enough
+    right = [{"condition": "c", "mtre_mm": 2.0, "evidence": _ev(similarity=s)} for s in (0.28, 0.5, 0.7, 0.9)]
+    for mtre, floor, accepted in ((24.6, 0.5, 0.75), (12.0, 0.25, 1.0)):
+        wrong = {"condition": "c", "mtre_mm": mtre, "evidence": _ev(similarity=0.248)}
+        chosen, r = bench.calibrate(right + [wrong])
+        assert (chosen.min_similarity, r["false_accepts"], r["accepted"]) == (floor, 0, accepted), mtre
+    assert bench.CLEARLY_OFF_MM == 1.5 * bench.WITHIN_MM and bench._looser("max_rival_gain", 0.03) == pytest.approx(0.033)
+    assert bench._looser("min_joint_margin", -0.05) == pytest.approx(-0.055) and bench._looser("min_local_similarity", None) is None
+
+
 def test_a_pose_that_shows_no_ct_is_profiled_without_a_fit_and_has_no_rival(scene):
     # an untrained network may end anywhere: the evidence is still gathered, and the similarity fails it
     _, _, xray, refine = scene
