@@ -17,7 +17,8 @@ cores, 10-12 s more for a row the rescue searches again::
 
 The rows of docs/results.md's tables are committed, compacted (``--compact OUT``: only what the
 tables read), in ``benchmarks/verdict_rows/`` (``calib.jsonl``, ``heldout.jsonl``, ``unmatched.jsonl``,
-``heldout_chains.jsonl``: six more display chains, docs/results.md)::
+``heldout_chains.jsonl``: six more display chains; ``heldout5.jsonl``: three more, new poses, a
+512 px detector; docs/results.md)::
 
     .venv/bin/python benchmarks/verdict.py benchmarks/verdict_rows/calib.jsonl --calibrate
     .venv/bin/python benchmarks/verdict.py benchmarks/verdict_rows/heldout.jsonl benchmarks/verdict_rows/unmatched.jsonl
