@@ -272,27 +272,37 @@ def _ct_path(row) -> Path:
     return recorded if recorded.exists() or not here.exists() else here
 
 
+def _ct(row, cache: dict, what: str) -> tuple[str, object, np.ndarray]:
+    """The CT of ``row`` (:func:`_ct_path`), loaded once per ``cache``, and its anatomy centre:
+    ``(path, volume, centre)``; a CT that is not here ends ``what`` with its name."""
+    from sim import load_ct
+    from sim.ct.anatomy import anatomy_center
+
+    ct = str(_ct_path(row))
+    if not Path(ct).exists():
+        print(f"verdict: {what}: the CT of a row ({row.get('target')}, case {row.get('case')}) is not here: {ct} "
+              "(run from the repository root with ../shared beside it)", file=sys.stderr)
+        raise SystemExit(2)
+    if ct not in cache:
+        volume = load_ct(ct)
+        cache[ct] = (volume, anatomy_center(volume))
+    return (ct, *cache[ct])
+
+
 def _frame(row, frames_dir: Path, cache: dict) -> tuple[Path, object, np.ndarray]:
     """The X-ray of ``row`` (its file for an unmatched one; else its study's frame, simulated again
     into ``frames_dir/<CT>/<target>/case_###.dcm`` as ``benchmarks/search.py`` made it), its CT and
     the CT's anatomy centre; ``cache`` keeps the CTs and the frame simulators."""
     from register.evaluation.evaluate import EvaluationSettings, sample_cases
     from register.evaluation.study import frame_seed, load_study, study_frames
-    from sim import load_ct
-    from sim.ct.anatomy import anatomy_center
     from sim.projection.geometry import pose_from_params
 
-    ct = str(_ct_path(row))
-    needed = [("CT", Path(ct)), ("X-ray", Path(row["xray"])) if row.get("xray") else ("study", ROOT / row["study"])]
-    for what, path in needed:
-        if not path.exists():
-            print(f"verdict: --rejudge: the {what} of a row ({row.get('target')}, case {row.get('case')}) is not here: "
-                  f"{path} (run from the repository root with ../shared beside it)", file=sys.stderr)
-            raise SystemExit(2)
-    if ct not in cache:
-        volume = load_ct(ct)
-        cache[ct] = (volume, anatomy_center(volume))
-    volume, center = cache[ct]
+    what, path = ("X-ray", Path(row["xray"])) if row.get("xray") else ("study", ROOT / row["study"])
+    if not path.exists():
+        print(f"verdict: --rejudge: the {what} of a row ({row.get('target')}, case {row.get('case')}) is not here: "
+              f"{path} (run from the repository root with ../shared beside it)", file=sys.stderr)
+        raise SystemExit(2)
+    ct, volume, center = _ct(row, cache, "--rejudge")
     if row.get("xray"):
         return Path(row["xray"]), volume, center
     key = (ct, row["study"], row["target"])
@@ -389,17 +399,21 @@ def rescues(paths) -> str:
     ``paths``: on how many registrations it ran and how long (s), how many poses it moved, how far
     off they were before (mTRE of the recorded first winner against the truth, mm) and after, and
     how many of those it moved to within :data:`WITHIN_MM` the verdict calls registered."""
-    from sim import load_ct
-    from sim.ct.anatomy import anatomy_center
     from sim.projection.geometry import pose_from_params
 
     cache: dict = {}
     ran, moved = [], []
     total = 0
     for path in paths:
-        for line in Path(path).read_text().splitlines():
-            row = json.loads(line) if line.strip() else None
-            if row is None or row.get("result") is None:
+        for n, line in enumerate(Path(path).read_text().splitlines(), 1):
+            if not line.strip():
+                continue
+            try:
+                row = json.loads(line)
+            except json.JSONDecodeError as e:
+                print(f"verdict: --rescues: {path} line {n} is not a JSON row ({e.msg})", file=sys.stderr)
+                raise SystemExit(2) from None
+            if row.get("result") is None:
                 continue
             total += 1
             rescue = (row["result"].get("search") or {}).get("rescue")
@@ -408,14 +422,7 @@ def rescues(paths) -> str:
             ran.append(rescue["seconds"])
             if rescue["kept"] != "rescued" or row.get("mtre_mm") is None:
                 continue
-            ct = _ct_path(row)
-            if not ct.exists():
-                raise SystemExit(f"verdict: --rescues: the CT of a row ({row['target']}, case {row.get('case')}) is "
-                                 f"not here: {ct} (run from the repository root with ../shared beside it)")
-            if ct not in cache:
-                volume = load_ct(ct)
-                cache[ct] = (volume, anatomy_center(volume))
-            volume, center = cache[ct]
+            _, volume, center = _ct(row, cache, "--rescues")
             first = pose_from_params(np.asarray(rescue["first_params"], float), row["result"]["geometry"]["sod_mm"])
             before = _errors(row, first, volume, center, cache)["mtre_mm"]
             label = judge(row["result"]["verdict_evidence"], VerdictSettings()).label
@@ -460,8 +467,9 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("rows", nargs="*", help="JSON-lines files of registrations (benchmarks/search.py --rows)")
     ap.add_argument("--calibrate", action="store_true",
-                    help="choose the thresholds of GRID with no false accept (and a margin from the clearly wrong: "
-                         "CLEARLY_OFF_MM, MARGIN) that accept the most good registrations")
+                    help="choose the thresholds of GRID with no false accept (and every registration "
+                         f"{CLEARLY_OFF_MM:g} mm off or more still rejected with each threshold {100 * MARGIN:g} %% "
+                         "looser) that accept the most good registrations")
     ap.add_argument("--unmatched", default=None, metavar="DIR",
                     help="register the X-rays of DIR against --ct (no pose can be right) into --rows")
     ap.add_argument("--ct", default=None, help="with --unmatched: the CT")

@@ -75,3 +75,15 @@ def test_the_search_again_by_local_similarity_is_summarised_as_documented():
     assert said.startswith("the search again by local similarity ran on 73 of 340 registrations (median 10.9 s")
     assert "and moved 47 poses" in said and "43 within 10 mm (39 called registered), 4 not" in said
     assert "linear-70kV case 4: 164.9 -> 10.2 mm (doubtful)" in said and "moved off" not in said
+    # its "before" errors come from bench._errors: on the final poses it gives the mTRE that
+    # benchmarks/search.py recorded for them when it registered them (a round trip through the truth)
+    import json
+
+    import numpy as np
+
+    cache: dict = {}
+    rows = [json.loads(line) for line in (ROWS / "calib.jsonl").read_text().splitlines()]
+    for row in [r for r in rows if (r["result"]["search"].get("rescue") or {}).get("kept") == "rescued"][:4]:
+        _, volume, center = bench._ct(row, cache, "test")
+        got = bench._errors(row, np.array(row["result"]["pose_4x4"]), volume, center, cache)
+        assert got["mtre_mm"] == pytest.approx(row["mtre_mm"], rel=1e-6)
