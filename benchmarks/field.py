@@ -36,7 +36,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 from network_on_frames import study_frame_files  # noqa: E402  (benchmarks/network_on_frames.py)
-from timing import input_problem  # noqa: E402  (benchmarks/timing.py)
+from timing import add_frame_arguments, input_problem  # noqa: E402  (benchmarks/timing.py)
 
 STUDIES = ("domain_gap", "heldout", "heldout2", "heldout3", "heldout4")
 
@@ -50,10 +50,7 @@ def field_scores(detected: np.ndarray, truth: np.ndarray) -> tuple[float, float]
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--ct", default=str(ROOT.parent / "shared" / "data" / "ct" / "pelvis_abdomen_3mm.nii.gz"),
-                    help="the CT (NIfTI; default ../shared/data/ct/pelvis_abdomen_3mm.nii.gz)")
-    ap.add_argument("--cases", type=int, default=20, help="frames per condition: the protocol's first N poses "
-                                                          "(default 20)")
+    add_frame_arguments(ap, cases=20)
     ap.add_argument("--study", nargs="+", default=[str(ROOT / "studies" / f"{s}.toml") for s in STUDIES],
                     help="study files whose xray targets give the frames (default the five of studies/)")
     ap.add_argument("--target", default="all", help="one xray target, or 'all' (default)")

@@ -56,7 +56,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))  # the repository first: benchmarks/learn.py and register.py are not the packages
 from network_on_frames import FrameTargetError, study_frame_files  # noqa: E402  (benchmarks/)
-from timing import input_problem  # noqa: E402  (benchmarks/timing.py)
+from timing import add_frame_arguments, input_problem  # noqa: E402  (benchmarks/timing.py)
 
 #: Pair numbers of the synthetic rows start here: far beyond any training batch's
 #: (``k * MAX_BATCH + i`` for k below 10^6), so their draws are not the training's.
@@ -144,11 +144,10 @@ def _with_sks(raw, simulator, physics, pose, seed: int, texture=None):
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--ct", default=str(ROOT.parent / "shared" / "data" / "ct" / "pelvis_abdomen_3mm.nii.gz"))
+    add_frame_arguments(ap, cases=20)
     ap.add_argument("--model", default="pelvis_batched_small",
                     help="a shipped model's name or a checkpoint trained with [train.randomize] and pairs = "
                          "'batched' (default pelvis_batched_small)")
-    ap.add_argument("--cases", type=int, default=20, help="frames: the protocol's first N poses (default 20)")
     ap.add_argument("--draws", type=int, default=4, help="randomization draws per pose for the synthetic rows (default 4)")
     ap.add_argument("--study", default=str(ROOT / "studies" / "domain_gap.toml"))
     ap.add_argument("--target", default="fluoro-65kV", help="an xray target of --study (default fluoro-65kV)")

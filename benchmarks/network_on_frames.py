@@ -37,7 +37,7 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))  # the repository first: benchmarks/learn.py and register.py are not the packages
-from timing import input_problem  # noqa: E402  (benchmarks/timing.py)
+from timing import add_frame_arguments, input_problem  # noqa: E402  (benchmarks/timing.py)
 
 
 def _errors(g_pred: np.ndarray, g_true: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -89,9 +89,7 @@ def add_monte_carlo_frame_arguments(ap, *, cases: int) -> None:
     """The frame options of the scripts that read a ``full`` target's Monte Carlo scatter
     (``--ct``, ``--cases`` with its default ``cases``, ``--study``, ``--target``, ``--out``), for
     :func:`monte_carlo_frames`."""
-    ap.add_argument("--ct", default=str(ROOT.parent / "shared" / "data" / "ct" / "pelvis_abdomen_3mm.nii.gz"),
-                    help="the CT of the frames (default ../shared/data/ct/pelvis_abdomen_3mm.nii.gz)")
-    ap.add_argument("--cases", type=int, default=cases, help=f"frames: the protocol's first N poses (default {cases})")
+    add_frame_arguments(ap, cases=cases)
     ap.add_argument("--study", default=str(ROOT / "studies" / "domain_gap.toml"),
                     help="a study file (default studies/domain_gap.toml)")
     ap.add_argument("--target", default="fluoro-65kV",
@@ -112,10 +110,9 @@ def monte_carlo_frames(study_path, target: str, ct, cases: int, out):
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--ct", default=str(ROOT.parent / "shared" / "data" / "ct" / "pelvis_abdomen_3mm.nii.gz"))
+    add_frame_arguments(ap, cases=20)
     ap.add_argument("--models", nargs="+", default=["pelvis_line"],
                     help="shipped model names or checkpoints (default pelvis_line)")
-    ap.add_argument("--cases", type=int, default=20, help="frames: the protocol's first N poses (default 20)")
     ap.add_argument("--study", default=str(ROOT / "studies" / "domain_gap.toml"))
     ap.add_argument("--target", default="fluoro-65kV", help="an xray target of --study (default fluoro-65kV)")
     ap.add_argument("--out", default=str(ROOT / "runs" / "bench_search"), help="frame cache (frames in OUT/TARGET)")

@@ -49,7 +49,7 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
-from timing import input_problem  # noqa: E402  (benchmarks/timing.py)
+from timing import add_frame_arguments, input_problem  # noqa: E402  (benchmarks/timing.py)
 
 
 def null_network(fixed, drr):
@@ -59,9 +59,7 @@ def null_network(fixed, drr):
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--ct", default=str(ROOT.parent / "shared" / "data" / "ct" / "pelvis_abdomen_3mm.nii.gz"),
-                    help="the CT (NIfTI; default ../shared/data/ct/pelvis_abdomen_3mm.nii.gz)")
-    ap.add_argument("--cases", type=int, default=10, help="frames: the protocol's first N poses (default 10)")
+    add_frame_arguments(ap, cases=10)
     ap.add_argument("--only", type=int, nargs="+", default=None, metavar="CASE",
                     help="register only these frames of the first --cases (0-based; default all): to register again "
                          "the frames a change of the pipeline touches")

@@ -19,6 +19,20 @@ def timed(fn, repeats: int) -> float:
     return statistics.median(out)
 
 
+#: The frame benchmarks' default CT: the training pelvis of ../shared/data (its README).
+DEFAULT_CT = Path(__file__).resolve().parents[2] / "shared" / "data" / "ct" / "pelvis_abdomen_3mm.nii.gz"
+
+
+def add_frame_arguments(ap, *, cases: int, ct_help: str | None = None) -> None:
+    """The two options of every benchmark that simulates a CT's frames: ``--ct`` (default
+    :data:`DEFAULT_CT`; ``ct_help`` says more of it) and ``--cases`` (frames per condition, the
+    protocol's first N poses; default ``cases``), both checked by :func:`input_problem`."""
+    ap.add_argument("--ct", default=str(DEFAULT_CT),
+                    help=ct_help or "the CT (NIfTI; default ../shared/data/ct/pelvis_abdomen_3mm.nii.gz)")
+    ap.add_argument("--cases", type=int, default=cases,
+                    help=f"frames per condition: the protocol's first N poses (default {cases})")
+
+
 def input_problem(script: str, ct, cases: int) -> str | None:
     """One line naming what is wrong with a frame benchmark's ``--ct`` (missing) or ``--cases``
     (below 1), prefixed by the ``script``'s name; None when both are fine."""

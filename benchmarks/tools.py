@@ -40,7 +40,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 from network_on_frames import study_frame_files  # noqa: E402  (benchmarks/network_on_frames.py)
-from timing import input_problem  # noqa: E402  (benchmarks/timing.py)
+from timing import add_frame_arguments, input_problem  # noqa: E402  (benchmarks/timing.py)
 
 #: A pixel is a tool's where the tools' line integral on its ray is at least this (mu x mm at 60 keV,
 #: summed over the tools' materials): about 0.15 mm of stainless steel, 0.4 mm of titanium.
@@ -87,10 +87,7 @@ def tools_at_optimiser(tools: np.ndarray, prepared) -> np.ndarray:
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--ct", default=str(ROOT.parent / "shared" / "data" / "ct" / "pelvis_abdomen_3mm.nii.gz"),
-                    help="the CT (NIfTI; default ../shared/data/ct/pelvis_abdomen_3mm.nii.gz)")
-    ap.add_argument("--cases", type=int, default=10, help="frames per condition: the protocol's first N poses "
-                                                          "(default 10)")
+    add_frame_arguments(ap, cases=10)
     ap.add_argument("--study", default=str(ROOT / "studies" / "metal.toml"),
                     help="a study file whose xray targets with tools give the frames (default studies/metal.toml)")
     ap.add_argument("--target", default="all", help="one xray target with tools, or 'all' (default)")

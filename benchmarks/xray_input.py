@@ -20,20 +20,21 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from register.evaluation.xray_study import format_xray_study, run_xray_study, summarize_xray_study  # noqa: E402
+from timing import add_frame_arguments, input_problem  # noqa: E402  (benchmarks/timing.py)
 from sim.core.atomic import write_json  # noqa: E402
 
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--ct", default=str(ROOT.parent / "shared" / "data" / "ct" / "pelvis_abdomen_3mm.nii.gz"))
-    ap.add_argument("--cases", type=int, default=20)
+    add_frame_arguments(ap, cases=20)
     ap.add_argument("--size", type=int, default=256, help="detector pixels per side (px)")
     ap.add_argument("--scatter-photons", type=int, default=1_000_000)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--out", default="runs/xray_input")
     a = ap.parse_args()
-    if not Path(a.ct).exists():
-        print(f"xray_input: CT {a.ct} not found (see ../shared/data/README.md)", file=sys.stderr)
+    problem = input_problem("xray_input", a.ct, a.cases)
+    if problem:
+        print(problem, file=sys.stderr)
         return 2
     t0 = time.perf_counter()
     rows = run_xray_study(a.ct, a.out, cases=a.cases, size=a.size, seed=a.seed, scatter_photons=a.scatter_photons,
