@@ -64,18 +64,24 @@ def main() -> int:
     if problem:
         print(problem, file=sys.stderr)
         return 2
-    from register.evaluation.study import load_study
+    from register.evaluation.study import StudyError, load_study
     from register.xray.field import FieldError, detect_field
     from register.xray.io import load_xray
 
-    chosen = []
+    studies = {}
     for path in a.study:
         if not Path(path).exists():
             print(f"field: study file {path} not found", file=sys.stderr)
             return 2
-        chosen += [(path, t) for t in load_study(path).targets if t.kind == "xray" and a.target in ("all", t.name)]
+        try:
+            studies[path] = load_study(path)
+        except StudyError as exc:
+            print(f"field: {exc}", file=sys.stderr)
+            return 2
+    chosen = [(path, t) for path, study in studies.items() for t in study.targets
+              if t.kind == "xray" and a.target in ("all", t.name)]
     if not chosen:
-        names = sorted({t.name for p in a.study for t in load_study(p).targets if t.kind == "xray"})
+        names = sorted({t.name for study in studies.values() for t in study.targets if t.kind == "xray"})
         print(f"field: --target must be 'all' or one of {names}, got {a.target!r}", file=sys.stderr)
         return 2
     peer = None

@@ -102,9 +102,13 @@ def main() -> int:
     if not Path(a.study).exists():
         print(f"tools: study file {a.study} not found", file=sys.stderr)
         return 2
-    from register.evaluation.study import load_study
+    from register.evaluation.study import StudyError, load_study
 
-    targets = [t.name for t in load_study(a.study).targets if t.kind == "xray" and t.tools]
+    try:
+        targets = [t.name for t in load_study(a.study).targets if t.kind == "xray" and t.tools]
+    except StudyError as exc:
+        print(f"tools: {exc}", file=sys.stderr)
+        return 2
     chosen = [t for t in targets if a.target in ("all", t)]
     if not chosen:
         print(f"tools: --target must be 'all' or one of {targets} (the xray targets with tools of {a.study}), "

@@ -59,7 +59,7 @@ def test_tools_reach_the_optimiser_pixels_that_see_their_rays():
     assert 200 - 2 * to_full <= span <= 200 + 4 * to_full
 
 
-def test_the_script_names_a_missing_study_and_a_target_without_tools():
+def test_the_script_names_a_missing_or_corrupt_study_and_a_target_without_tools(tmp_path):
     ct = REPO.parent / "shared" / "data" / "ct" / "pelvis_abdomen_3mm.nii.gz"
     if not ct.exists():
         pytest.skip(f"the shared CT {ct} is not here (../shared/data/README.md)")
@@ -68,3 +68,7 @@ def test_the_script_names_a_missing_study_and_a_target_without_tools():
     assert out.returncode == 2 and "study file no-such.toml not found" in out.stderr
     out = subprocess.run([sys.executable, script, "--target", "fluoro-65kV"], capture_output=True, text=True, cwd=REPO)
     assert out.returncode == 2 and "metal-log-75kV" in out.stderr and "Traceback" not in out.stderr
+    corrupt = tmp_path / "study.toml"
+    corrupt.write_text("[study\nct = 1\n")
+    out = subprocess.run([sys.executable, script, "--study", str(corrupt)], capture_output=True, text=True, cwd=REPO)
+    assert out.returncode == 2 and "not valid TOML" in out.stderr and "Traceback" not in out.stderr
