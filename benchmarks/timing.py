@@ -23,12 +23,11 @@ def timed(fn, repeats: int) -> float:
 DEFAULT_CT = Path(__file__).resolve().parents[2] / "shared" / "data" / "ct" / "pelvis_abdomen_3mm.nii.gz"
 
 
-def add_frame_arguments(ap, *, cases: int, ct_help: str | None = None) -> None:
+def add_frame_arguments(ap, *, cases: int) -> None:
     """The two options of every benchmark that simulates a CT's frames: ``--ct`` (default
-    :data:`DEFAULT_CT`; ``ct_help`` says more of it) and ``--cases`` (frames per condition, the
-    protocol's first N poses; default ``cases``), both checked by :func:`input_problem`."""
-    ap.add_argument("--ct", default=str(DEFAULT_CT),
-                    help=ct_help or "the CT (NIfTI; default ../shared/data/ct/pelvis_abdomen_3mm.nii.gz)")
+    :data:`DEFAULT_CT`) and ``--cases`` (frames per condition, the protocol's first N poses;
+    default ``cases``), both checked by :func:`input_problem`."""
+    ap.add_argument("--ct", default=str(DEFAULT_CT), help="the CT (NIfTI; default ../shared/data/ct/pelvis_abdomen_3mm.nii.gz)")
     ap.add_argument("--cases", type=int, default=cases,
                     help=f"frames per condition: the protocol's first N poses (default {cases})")
 
