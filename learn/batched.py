@@ -246,16 +246,27 @@ class BatchedPairs(OnlinePairs):
         return {"near": near, "far": ~near, "ideal": ideal, "log": log & ~ideal, "linear": ~log & ~ideal,
                 "field": field, "open": ~field}
 
-    def _realistic(self, subject, poses, index, p, draws):
+    def drawn_tools(self, p) -> torch.Tensor:
+        """``(R, K, H, W)`` the tools' density integrals (g/cm^2, one channel per
+        :data:`sim.physics.two_basis.TOOL_CHANNELS` material) of draws with :func:`draw_tensors`
+        entries ``p``: each draw's arrangement and look of the bank (``tools_pick``), zero where it
+        draws no tools."""
+        self.prepare()
+        tools = self._tools[(p["tools_pick"].clamp(max=1 - 1e-7) * self._tools.shape[0]).long()]
+        return tools * p["tools"].to(tools.dtype)[:, None, None, None]
+
+    def _realistic(self, subject, poses, index, p, draws, tools=None, basis=None):
         """The displayed realistic targets ``(R, H, W)`` and their fields ``(R, H, W)`` bool of the
         pairs ``index`` ``(R,)`` (their subjects, target poses ``(R, 4, 4)``, :func:`draw_tensors`
-        entries ``p`` and draws): the module doc's stages 1-3."""
+        entries ``p`` and draws): the module doc's stages 1-3. ``tools`` ``(R, K, H, W)``: other tool
+        density integrals than the draws' (:meth:`drawn_tools`); ``basis`` ``(R, 2, H, W)``: the
+        anatomy's basis integrals (g/cm^2) when already marched."""
 
         g = self.geometry
         h, w = g.height, g.width
-        basis = self._volumes.line_integrals(subject, poses, (1, 2)) / 10.0  # water and bone: g/cm^3 mm -> g/cm^2
-        tools = self._tools[(p["tools_pick"].clamp(max=1 - 1e-7) * self._tools.shape[0]).long()]
-        tools = tools * p["tools"].to(tools.dtype)[:, None, None, None]
+        if basis is None:  # water and bone: g/cm^3 mm -> g/cm^2
+            basis = self._volumes.line_integrals(subject, poses, (1, 2)) / 10.0
+        tools = self.drawn_tools(p) if tools is None else tools
         dens = torch.cat([basis, tools.to(basis.dtype)], dim=1)  # (R, 7, H, W)
         combo = torch.as_tensor(self._imager.table.index(*([d[k] for d in draws] for k in ("kvp", "al_mm", "cu_mm"))),
                                 device=self.device)
