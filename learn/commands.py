@@ -101,6 +101,35 @@ def run_adapt(cmd: AdaptCommand) -> list[Path]:
 
 
 @dataclass(frozen=True)
+class TrainToolsCommand:
+    """Defaults of ``ctxreg train-tools`` (:mod:`learn.tool_mask`)."""
+
+    out: str = field(default="runs/tool_mask", metadata=opt(
+        "the output folder: checkpoint.pt and log.csv of the run, model/ (card.toml and weights.pt, for "
+        "models/tool_mask)", group="output", metavar="DIR"))
+    minutes: float = field(default=45.0, metadata=opt(
+        "training time (the learning rate's cosine runs over it); with --resume the same run continues",
+        group="run", unit="min", metavar="M", bounds=Range(0.0, 24 * 60.0, lo_open=True)))
+    device: str = field(default="auto", metadata=opt(
+        "where the segmenter trains and its frames are made: auto (a CUDA GPU when torch sees one), cpu or cuda",
+        group="run", choices=("auto", "cpu", "cuda")))
+    resume: bool = field(default=False, metadata=opt(
+        "continue the run in --out from its checkpoint (same settings)", group="run"))
+
+
+def run_train_tools(cmd: TrainToolsCommand) -> list[Path]:
+    from learn.tool_mask import TOOL_TRAIN_FILES, ToolTrainSettings, export_tool_mask, train_tool_mask  # torch
+    from learn.train import resolve_device  # loads torch: imported where first needed (start-up)
+
+    out = check_output_dir(cmd.out, TOOL_TRAIN_FILES)
+    settings = ToolTrainSettings(minutes=cmd.minutes)
+    device = resolve_device(cmd.device)
+    checkpoint = train_tool_mask(out, settings, resume=cmd.resume, device=device)
+    folder = export_tool_mask(checkpoint, out / "model")
+    return [out / name for name in TOOL_TRAIN_FILES] + [folder]
+
+
+@dataclass(frozen=True)
 class AccuracyCommand:
     """Defaults of ``ctxreg accuracy``."""
 

@@ -44,6 +44,7 @@ from register.plots import checkerboard_png, convergence_plot, overlay_png, traj
 from register.xray.geometry import resolve_geometry
 from register.xray.io import XRayImage, check_orientation, load_xray
 from register.xray.network_view import network_view
+from register.xray.field import TOOL_OPTIONS
 from register.xray.prepare import (_fit_plan, confirm_polarity, confirm_polarity_by_pose, fit_box,
                                    polarity_needs_check, prepare_xray)
 from register.xray.preprocess import DEFAULT_STEPS, Pipeline, PreprocessError
@@ -326,7 +327,7 @@ class RegistrationRequest:
 
     Attributes: ``method``, ``model``, ``init``, ``center``, ``label_map``, ``scene``, ``sdd_mm``,
     ``sod_mm``, ``pixel_spacing_mm``, ``size``, ``physics``, ``label_materials``, ``preprocess``,
-    ``intensity``, ``polarity``, ``tone``, ``orient``, ``restarts``, ``search``, ``ct_cache``:
+    ``intensity``, ``polarity``, ``tone``, ``tools``, ``orient``, ``restarts``, ``search``, ``ct_cache``:
     as :func:`register_xray`'s arguments. Derived: ``start`` ``(6,)`` the start pose (deg, mm),
     ``steps`` the preprocessing step names, ``box`` ``(H, W)`` the optimiser's image box (px),
     ``moving`` the moving images' :class:`sim.physics.imaging.PhysicsSettings`, ``cmaes_restarts``.
@@ -365,6 +366,7 @@ class RegistrationRequest:
     intensity: str = "auto"
     polarity: str = "auto"
     tone: str = "ct"
+    tools: str = "off"
     orient: str = "none"
     restarts: int | None = None
     search: str = "auto"
@@ -396,6 +398,8 @@ class RegistrationRequest:
         if "intensity" not in steps and (self.intensity, self.polarity, self.tone) != ("auto", "auto", "ct"):
             raise RegistrationError("--intensity / --polarity / --tone: meaningful with the 'intensity' preprocessing "
                                     f"step only; this run's steps are {' '.join(steps) or 'none'}")
+        if self.tools not in TOOL_OPTIONS:
+            raise RegistrationError(f"--tools {self.tools}: choose one of {', '.join(TOOL_OPTIONS)}")
         derived(self, "steps", steps)
         box = fit_box(self.size)
         if min(box) < REGISTER_MIN_SIDE_PX:
@@ -544,6 +548,10 @@ def register_xray(ct, xray, *, log: Callable[[str], None] | None = None, note: C
             override of the intensity step (only with ``"intensity"`` among the steps); tone:
             ``"ct"`` maps a display image's values onto the CT's line integrals in its field,
             ``"off"`` keeps them (:class:`register.xray.preprocess.Intensity`).
+        tools: ``"detect"`` (default) leaves the metal tools the shipped segmenter finds in the field
+            out of the similarities' mask (:class:`learn.tool_mask.ToolMask`; where ``"field"`` is
+            the first preprocessing step: tools are looked for inside the detected field, and
+            result.json's ``field.excluded.tools`` counts them); ``"off"`` does not look for them.
         orient: how the stored X-ray is turned into the CT's view first (a name of
             :data:`register.xray.io.ORIENTATIONS`: ``"none"``, ``"flip-left-right"``, ...); the
             figures show the X-ray so turned.
@@ -630,7 +638,7 @@ def _prepare(request: RegistrationRequest, xr: XRayImage, volume, center_lps, pi
     prepared = prepare_xray(xr, volume=volume, center_lps=center_lps, init_params=request.start, scene=request.scene,
                             steps=list(request.steps), scale=request.intensity, polarity=request.polarity,
                             tone=request.tone, size=request.box, sdd_mm=request.sdd_mm, sod_mm=request.sod_mm,
-                            pixel_spacing_mm=pixel_spacing_mm)
+                            pixel_spacing_mm=pixel_spacing_mm, tools=request.tools)
     _check_coarse_field(prepared, request.box, need=MIN_COARSE_FIELD_PX if request.searches else 1)
     return prepared
 

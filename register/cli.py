@@ -14,7 +14,7 @@ import os
 import sys
 
 from sim.core.cliargs import HelpFormatter, add_options, from_namespace
-from learn.commands import AccuracyCommand, AdaptCommand, ModelsCommand, TrainCommand
+from learn.commands import AccuracyCommand, AdaptCommand, ModelsCommand, TrainCommand, TrainToolsCommand
 from register.commands import EvaluateCommand, RegisterCommand, ServeCommand, StudyCommand
 from register.evaluation.demo import DemoCommand
 from register.verdict import EXIT_STATUS
@@ -34,6 +34,8 @@ COMMANDS = {
               "learn.commands:run_train"),
     "adapt": (AdaptCommand, "fine-tune the network to one CT in minutes (a patient it has never seen)",
               "learn.commands:run_adapt"),
+    "train-tools": (TrainToolsCommand, "train the metal-tool segmenter on simulated frames with the simulator's truth",
+                    "learn.commands:run_train_tools"),
     "accuracy": (AccuracyCommand, "single-prediction accuracy of a trained network (per depth, vs zero)",
                  "learn.commands:run_accuracy"),
     "models": (ModelsCommand, "list the shipped models (models/<name>: card, preprocessing, accuracy)",

@@ -27,6 +27,7 @@ from register.evaluation.evaluate import (LOCAL_ROT_DEG, LOCAL_TRANS_MM, START_M
                                           EvaluationSettings, MethodSpec, evaluate)
 from register.xray.intensity import POLARITIES, SCALES, TONES
 from register.serve import FolderWatch, ServeError, serve_frames, stdin_frames
+from register.xray.field import TOOL_OPTIONS
 from register.xray.io import ORIENTATIONS
 from sim.cli import CT_HELP
 from sim.core.cliargs import IMAGE_SIDE_PX, Range, opt, refuse_unused, refuse_unused_label_map
@@ -304,6 +305,10 @@ class RegisterCommand:
         "field's pixels mapped by rank onto the line integrals of DRRs of the CT around the start, which the global "
         "search's grid ranks beside the image (and a network trained on toned targets sees); off makes none; raw "
         "and log images get none", group="image", choices=TONES))
+    tools: str = field(default="off", metadata=opt(
+        "metal tools in the field (screws, K-wires, plates, retractors, cables): detect finds them with the "
+        "shipped segmenter (models/tool_mask) and leaves them out of the similarities' pixels as clipped plateaus "
+        "are (result.json: field.excluded.tools); off does not look for them", group="image", choices=TOOL_OPTIONS))
     orient: str = field(default="none", metadata=opt(
         "how the stored X-ray is turned into the CT's view before anything else: mirrored (flip-left-right, "
         "flip-top-bottom), rotated counter-clockwise (rotate-90/180/270) or both (transpose, transverse); for "
@@ -342,7 +347,7 @@ def _register_keywords(cmd: RegisterCommand, command: str = "register") -> dict:
     return dict(method=cmd.method, init=cmd.init, center=cmd.center, scene=cmd.scene, sdd_mm=cmd.sdd,
                 sod_mm=cmd.sod, pixel_spacing_mm=cmd.pixel_spacing, size=tuple(cmd.size),
                 physics=physics_settings(cmd, noise=False), label_materials=label_materials(cmd), preprocess=steps,
-                intensity=cmd.intensity, polarity=cmd.polarity, tone=cmd.tone, orient=cmd.orient,
+                intensity=cmd.intensity, polarity=cmd.polarity, tone=cmd.tone, tools=cmd.tools, orient=cmd.orient,
                 restarts=cmd.restarts if cmd.method in RESTART_METHODS else None,
                 search=cmd.search if cmd.method in SEARCH_METHODS else "auto",
                 ct_cache={"auto": True, "off": False}.get(cmd.ct_cache, cmd.ct_cache),

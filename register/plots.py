@@ -45,7 +45,7 @@ def _thicken(a: np.ndarray, px: int) -> np.ndarray:
 EDGE_RGB = (1.0, 0.15, 0.1)
 OUTLINE_RGB = (0.1, 0.9, 1.0)
 #: The brightness of the pixels the registration left out (outside the field, text overlays,
-#: saturated or empty pixels) in the overlay, relative to the rest.
+#: saturated or empty pixels, metal tools) in the overlay, relative to the rest.
 LEFT_OUT_DIM = 0.4
 #: The overlay's smallest width (px): a smaller X-ray is shown enlarged (its text would not fit).
 OVERLAY_MIN_WIDTH_PX = 512
@@ -109,7 +109,7 @@ def overlay_png(xray: np.ndarray, drr: np.ndarray, path: str | Path, mask: np.nd
     legend = [(EDGE_RGB, "DRR edges at the registered pose"),
               *([(OUTLINE_RGB, "outline of the pixels used"),
                  (tuple(LEFT_OUT_DIM * 0.6 for _ in range(3)), "dimmed: left out (outside the field, overlays, "
-                                                              "saturated)")] if partial else [])]
+                                                              "clipped plateaus, metal tools)")] if partial else [])]
     swatch = font.size
     legend_lines = [(c, _wrapped(probe, text, font, w - 3 * pad - swatch)) for c, text in legend]
     top = pad + line_h * len(head) + (pad if head else 0)

@@ -140,7 +140,12 @@ from scipy import ndimage
 from register.xray.io import XRayInputError
 from sim.core.atomic import jsonable
 
-__all__ = ["FieldError", "FieldSettings", "Field", "detect_field", "log_view", "LOG_VIEWS"]
+__all__ = ["FieldError", "FieldSettings", "Field", "detect_field", "log_view", "LOG_VIEWS", "TOOL_OPTIONS"]
+
+#: What registration does about metal tools in the field (``prepare_xray(tools=...)``, ``--tools``):
+#: ``"detect"``: the shipped segmenter's (:class:`learn.tool_mask.ToolMask`) are left out
+#: (:meth:`Field.without_tools`); ``"off"``: not looked for.
+TOOL_OPTIONS = ("detect", "off")
 
 #: Width (px) of the border ring whose mode gives the outside level.
 _RING_PX = 2
@@ -358,12 +363,15 @@ class Field:
             the margin); polygon ``vertices [[x, y], ...]`` (a vertex may lie beyond the image
             where the field runs off it); kind ``"none"``: ``reason``.
         excluded: disjoint pixel counts inside ``field_mask``: ``overlay`` (text, rulers, markers),
-            ``saturated`` (plateaus at the maximum), ``empty`` (plateaus at the minimum).
+            ``saturated`` (plateaus at the maximum), ``empty`` (plateaus at the minimum); and
+            ``tools`` after :meth:`without_tools`.
         settings: the :class:`FieldSettings` used.
         overlay: ``(H, W)`` bool, the overlay pixels (drawn text, rulers, markers, dilated) inside
             ``field_mask``, or None; ``field_mask & ~overlay`` is the field with its clipped
             plateaus kept (what a network trained on clipped displays is shown:
             :attr:`register.xray.prepare.PreparedXRay.network_mask`).
+        view: ``"display"`` or the logarithmic view the field was found in (step 6).
+        tools: ``(H, W)`` bool, metal tools left out by :meth:`without_tools`, or None.
     """
 
     mask: np.ndarray
@@ -375,6 +383,19 @@ class Field:
     settings: FieldSettings = dataclasses.field(default_factory=FieldSettings)
     overlay: np.ndarray | None = None
     view: str = "display"
+    tools: np.ndarray | None = None
+
+    def without_tools(self, tools: np.ndarray) -> "Field":
+        """This field with the metal tools ``tools`` ``(H, W)`` bool also left out of ``mask`` (a tool
+        segmenter's pixels, :class:`learn.tool_mask.ToolMask`): ``excluded["tools"]`` counts those
+        that were still valid (the counts stay disjoint), :attr:`tools` keeps them (inside the field)."""
+        tools = np.asarray(tools)
+        if tools.shape != self.mask.shape or tools.dtype != bool:
+            raise FieldError(f"without_tools: a bool mask of the image's shape {self.mask.shape}, got {tools.dtype} "
+                             f"{tools.shape}")
+        tools = tools & self.field_mask
+        return dataclasses.replace(self, mask=self.mask & ~tools, tools=tools,
+                                   excluded={**self.excluded, "tools": int((tools & self.mask).sum())})
 
     @property
     def valid_fraction(self) -> float:

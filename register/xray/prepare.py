@@ -29,7 +29,7 @@ from register.engines.search import GlobalSearch, GlobalSearchSettings
 from register.xray.intensity import PolarityReference
 from register.xray.geometry import resolve_geometry
 from register.xray.io import XRayImage, load_xray
-from register.xray.field import FieldSettings, detect_field
+from register.xray.field import TOOL_OPTIONS, FieldSettings, detect_field
 from register.xray.preprocess import DEFAULT_STEPS, Field as FieldStep, Pipeline, PreprocessError, crop_box, cropped_geometry
 from sim.campaign.poses import ORIGINAL_PROTOCOL
 from sim.core.cliargs import IMAGE_SIDE_PX
@@ -163,6 +163,8 @@ class PreparedXRay:
             the network's training targets keep theirs (``mask`` also drops the plateaus, which
             intensity similarities cannot use). None when the pipeline's first step is not
             ``field`` (then ``mask``).
+        tools: ``(H, W)`` bool, the metal tools found in the field and left out of ``mask``
+            (``tools="detect"``; at full resolution), or None (not looked for).
     """
 
     xray: Any
@@ -177,6 +179,7 @@ class PreparedXRay:
     toned: np.ndarray | None = None
     network_image: np.ndarray | None = None
     network_mask: np.ndarray | None = None
+    tools: np.ndarray | None = None
 
     def step(self, name: str) -> dict | None:
         """The measured values of the first pipeline step called ``name`` (None if it did not run)."""
@@ -198,7 +201,7 @@ class PreparedXRay:
 def prepare_xray(xray, *, volume=None, center_lps=None, init_params=None, scene: str = "cios_fusion",
                  steps=None, scale: str = "auto", polarity: str = "auto", tone: str = "ct", size=(128, 128),
                  sdd_mm: float | None = None, sod_mm: float | None = None,
-                 pixel_spacing_mm: float | None = None) -> PreparedXRay:
+                 pixel_spacing_mm: float | None = None, tools: str = "off") -> PreparedXRay:
     """Prepare ``xray`` (a path or :class:`register.xray.io.XRayImage`) for registration.
 
     Args:
@@ -215,7 +218,13 @@ def prepare_xray(xray, *, volume=None, center_lps=None, init_params=None, scene:
         size: ``(H, W)`` px the optimiser's image fits inside (aspect kept, sides multiples of 4;
             :func:`fit_to_size`), each side in [8, 4096]; one number is a square box.
         sdd_mm, sod_mm, pixel_spacing_mm: explicit geometry (override tags and scene).
+        tools: ``"detect"`` (default): metal tools in the field, found by the shipped tool segmenter
+            (:class:`learn.tool_mask.ToolMask`), are left out of ``mask`` as the field's clipped
+            plateaus are (the network's mask keeps them, as its training targets do); ``"off"``:
+            not looked for. Only with ``"field"`` as the first step.
     """
+    if tools not in TOOL_OPTIONS:
+        raise PreprocessError(f"tools must be one of {', '.join(TOOL_OPTIONS)}, got {tools!r}")
     box = fit_box(size)
     if not isinstance(xray, XRayImage):
         xray = load_xray(xray)
@@ -237,6 +246,10 @@ def prepare_xray(xray, *, volume=None, center_lps=None, init_params=None, scene:
         # a raw detector signal (FOR PROCESSING, or declared linear) is searched by its edges
         raw = scale == "linear" or not xray.attenuation_bright
         found = detect_field(xray.pixels, FieldSettings(margin_px=FieldStep().margin_px), raw=raw)
+        if tools == "detect":
+            from learn.tool_mask import ToolMask  # loads torch: imported where first needed (start-up)
+
+            found = found.without_tools(ToolMask.shared().detect(xray.pixels, found.field_mask))
         options["field"] = {"found": found}
     image, mask, record = Pipeline.from_names(list(steps), options).apply(xray.pixels)
     H, W = xray.shape
@@ -263,7 +276,7 @@ def prepare_xray(xray, *, volume=None, center_lps=None, init_params=None, scene:
     return PreparedXRay(xray=xray, image=small, mask=small_mask, geometry=geometry, full_geometry=full_geometry,
                         full_image=full_image, full_mask=full_mask, record=record, sources=sources,
                         toned=toned_image(small, small_mask, recorded_tone_curve(record)), network_image=net_image,
-                        network_mask=net_mask)
+                        network_mask=net_mask, tools=None if found is None else found.tools)
 
 
 def toned_image(image: np.ndarray, mask: np.ndarray | None, curve) -> np.ndarray | None:
