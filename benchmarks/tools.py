@@ -42,9 +42,7 @@ sys.path.insert(0, str(ROOT))
 from network_on_frames import study_frame_files  # noqa: E402  (benchmarks/network_on_frames.py)
 from timing import add_frame_arguments, input_problem  # noqa: E402  (benchmarks/timing.py)
 
-#: A pixel is a tool's where the tools' line integral on its ray is at least this (mu x mm at 60 keV,
-#: summed over the tools' materials): about 0.15 mm of stainless steel, 0.4 mm of titanium.
-TOOL_LINE_INTEGRAL = 0.05
+from learn.tool_mask import TOOL_LINE_INTEGRAL  # noqa: E402  (the segmenter's label: one definition)
 #: An optimiser pixel is touched by tools where at least this share of its blur weight
 #: (:func:`register.xray.prepare.fit_to_size`) falls on tool pixels.
 TOUCH = 0.1
@@ -85,12 +83,57 @@ def tools_at_optimiser(tools: np.ndarray, prepared) -> np.ndarray:
     return small > TOUCH
 
 
+def detection_scores(detected: np.ndarray, tools: np.ndarray, kept: np.ndarray, reach_px: int) -> dict:
+    """A detector's pixels against the truth, one frame (all ``(H, W)`` bool at full resolution).
+
+    Args:
+        detected: the detector's tool pixels.
+        tools: the true tool pixels inside the true field.
+        kept: the pixels the field detection keeps (:attr:`register.xray.field.Field.mask`).
+        reach_px: a detected pixel within this distance (px) of a true one counts as right (the
+            detector grows its pixels by ``dilate_px``: the blur of a tool's edge).
+
+    Returns ``{"tool_px", "found_px", "detected_px", "right_px"}``: the true tool pixels the field
+    kept, those the detector found, the detector's pixels inside ``kept``, and those within
+    ``reach_px`` of a true tool pixel.
+    """
+    from scipy import ndimage
+
+    detected, tools, kept = (np.asarray(a, bool) for a in (detected, tools, kept))
+    if not detected.shape == tools.shape == kept.shape:
+        raise ValueError(f"detected {detected.shape}, tools {tools.shape} and kept {kept.shape} must have one shape")
+    near = ndimage.binary_dilation(tools, iterations=reach_px) if reach_px > 0 and tools.any() else tools
+    mine = detected & kept
+    return {"tool_px": int((tools & kept).sum()), "found_px": int((tools & kept & detected).sum()),
+            "detected_px": int(mine.sum()), "right_px": int((mine & near).sum())}
+
+
+def _at_truth(prepared, volume, center, T_true):
+    """The tone fit and local similarity at the true pose over ``prepared``'s mask, the image and mask
+    (polarity as the true pose confirms it), the toned image and the line DRR."""
+    from register.engines.metrics import gradient_ncc, local_gradient_ncc, ncc
+    from register.xray.prepare import recorded_tone_curve, toned_image
+    from sim.prepare import invert
+    from sim.projection.drr import DRRRenderer, RenderSettings
+
+    g = prepared.geometry
+    drr = DRRRenderer(volume, RenderSettings(size=(g.height, g.width)), center_lps=center, geometry=g).render(T_true)[0]
+    image, mask, toned = prepared.image, prepared.mask, prepared.toned
+    if gradient_ncc(image, drr, mask=mask)[0] < 0:  # the polarity as the true pose confirms it
+        image = invert(image, mask)[0]
+        toned = toned_image(image, mask, recorded_tone_curve(prepared.record))
+    tones = image if toned is None else toned
+    valid = np.ones(image.shape, bool) if mask is None else mask
+    return image, valid, tones, drr, ncc, local_gradient_ncc
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     add_frame_arguments(ap, cases=10)
-    ap.add_argument("--study", default=str(ROOT / "studies" / "metal.toml"),
-                    help="a study file whose xray targets with tools give the frames (default studies/metal.toml)")
-    ap.add_argument("--target", default="all", help="one xray target with tools, or 'all' (default)")
+    ap.add_argument("--study", nargs="+", default=[str(ROOT / "studies" / "metal.toml")],
+                    help="study files whose xray targets give the frames (default studies/metal.toml); targets "
+                         "without tools give the detector's false exclusions")
+    ap.add_argument("--target", default="all", help="one xray target, or 'all' (default)")
     ap.add_argument("--out", default=str(ROOT / "runs" / "bench_search"),
                     help="frame cache folder, shared with benchmarks/search.py (default runs/bench_search)")
     ap.add_argument("--frames", action="store_true", help="also print one row per frame")
@@ -99,90 +142,111 @@ def main() -> int:
     if problem:
         print(problem, file=sys.stderr)
         return 2
-    if not Path(a.study).exists():
-        print(f"tools: study file {a.study} not found", file=sys.stderr)
-        return 2
+    for study in a.study:
+        if not Path(study).exists():
+            print(f"tools: study file {study} not found", file=sys.stderr)
+            return 2
     from register.evaluation.study import StudyError, load_study
 
     try:
-        targets = [t.name for t in load_study(a.study).targets if t.kind == "xray" and t.tools]
+        targets = [(study, t.name, bool(t.tools)) for study in a.study for t in load_study(study).targets
+                   if t.kind == "xray"]
     except StudyError as exc:
         print(f"tools: {exc}", file=sys.stderr)
         return 2
-    chosen = [t for t in targets if a.target in ("all", t)]
+    chosen = [t for t in targets if a.target in ("all", t[1])]
     if not chosen:
-        print(f"tools: --target must be 'all' or one of {targets} (the xray targets with tools of {a.study}), "
-              f"got {a.target!r}", file=sys.stderr)
+        print(f"tools: --target must be 'all' or one of {[t[1] for t in targets]} (the xray targets of "
+              f"{' '.join(a.study)}), got {a.target!r}", file=sys.stderr)
         return 2
 
-    from register.engines.metrics import gradient_ncc, local_gradient_ncc, ncc
+    from learn.tool_mask import ToolMask
     from register.verdict import VerdictSettings
-    from register.xray.prepare import prepare_xray, recorded_tone_curve, toned_image
+    from register.xray.prepare import prepare_xray
     from register.xray.io import load_xray
     from sim.distractors import DistractorField, mu_line
-    from sim.prepare import invert
-    from sim.projection.drr import DRRRenderer, RenderSettings
 
+    segmenter = ToolMask.shared()
     floor = VerdictSettings().min_tone_fit
-    rows, frame_rows = [], []
+    rows, free_rows, frame_rows = [], [], []
     t0, done, total = time.perf_counter(), 0, len(chosen) * a.cases
-    for name in chosen:
-        volume, center, _, found, frames = study_frame_files(a.study, name, a.ct, a.cases, a.out)
-        shares, per = [], []
+    for study, name, has_tools in chosen:
+        volume, center, _, found, frames = study_frame_files(study, name, a.ct, a.cases, a.out)
+        shares, scores, per, free = [], [], [], []
         for i, T_true, path in found:
-            field_tools = DistractorField(frames.implants(frames.seeds[i]), frames.imager.geometry, center)
-            chords = field_tools.chords(T_true)[0]
-            line = sum(mu_line(m, rho) * chords[k] for k, (m, rho) in enumerate(field_tools.channels))
-            tools = np.asarray(line) >= TOOL_LINE_INTEGRAL
             xray = load_xray(path)
             h, w = xray.shape
             field = np.ones((h, w), bool) if frames.collimator is None else frames.collimator.mask(h, w)
-            prepared = prepare_xray(xray, volume=volume, center_lps=center)
-            g = prepared.geometry
-            drr = DRRRenderer(volume, RenderSettings(size=(g.height, g.width)), center_lps=center,
-                              geometry=g).render(T_true)[0]
-            image, mask = prepared.image, prepared.mask
-            toned = prepared.toned
-            if gradient_ncc(image, drr, mask=mask)[0] < 0:  # the polarity as the true pose confirms it
-                image = invert(image, mask)[0]
-                toned = toned_image(image, mask, recorded_tone_curve(prepared.record))
-            tones = image if toned is None else toned
-            small = tools_at_optimiser(tools, prepared)
-            valid = np.ones(image.shape, bool) if mask is None else mask
-            without = valid & ~small
-            s = tool_shares(tools, field, prepared.full_mask)
-            shares.append(s)
-            per.append((i, s["tool_px"] / max(s["field_px"], 1), float(small[valid].mean()),
-                        float(ncc(tones, drr, mask=valid)[0]), float(ncc(tones, drr, mask=without)[0]),
-                        float(local_gradient_ncc(image, drr, mask=valid)[0]),
-                        float(local_gradient_ncc(image, drr, mask=without)[0])))
+            off = prepare_xray(xray, volume=volume, center_lps=center)
+            on = prepare_xray(xray, volume=volume, center_lps=center, tools="detect")
+            detected = on.tools
+            if not has_tools:
+                free.append((i, float(detected.sum() / max(off.full_mask.sum(), 1))))
+            else:
+                field_tools = DistractorField(frames.implants(frames.seeds[i]), frames.imager.geometry, center)
+                chords = field_tools.chords(T_true)[0]
+                line = sum(mu_line(m, rho) * chords[k] for k, (m, rho) in enumerate(field_tools.channels))
+                tools = np.asarray(line) >= TOOL_LINE_INTEGRAL
+                s = tool_shares(tools, field, off.full_mask)
+                shares.append(s)
+                scores.append(detection_scores(detected, tools & field, off.full_mask, segmenter.dilate_px + 1))
+                values = []
+                for prepared in (off, on):
+                    image, valid, tones, drr, ncc, local = _at_truth(prepared, volume, center, T_true)
+                    small = tools_at_optimiser(tools, prepared)
+                    without = valid & ~small
+                    values += [float(small[valid].mean()), float(ncc(tones, drr, mask=valid)[0]),
+                               float(local(image, drr, mask=valid)[0]), float(ncc(tones, drr, mask=without)[0]),
+                               float(local(image, drr, mask=without)[0])]
+                # off: in mask, tone, local, tone truth-out, local truth-out; on: the same
+                per.append((i, s["tool_px"] / max(s["field_px"], 1), *values))
             done += 1
             rate = done / (time.perf_counter() - t0)
             print(f"tools: {done}/{total} frames, {rate * 60:.1f} per min, ETA {(total - done) / rate:.0f} s",
                   file=sys.stderr, flush=True)
+        if not has_tools:
+            f = np.array([v for _, v in free])
+            free_rows.append((name, len(free), int(np.sum(f > 0)), float(np.median(f)), float(f.max()),
+                              [i for i, v in free if v > 0]))
+            continue
         p = np.array([r[1:] for r in per])
         tool_px = sum(s["tool_px"] for s in shares)
         left = sum(s["left_out_px"] for s in shares) / max(tool_px, 1)
-        rows.append((name, len(per), np.median(p[:, 0]), left, np.median(p[:, 1]), np.median(p[:, 2]),
-                     np.median(p[:, 3]), np.median(p[:, 4]), np.median(p[:, 5]), int(np.sum(p[:, 2] < floor)),
-                     int(np.sum(p[:, 3] < floor))))
+        recall = sum(s["found_px"] for s in scores) / max(sum(s["tool_px"] for s in scores), 1)
+        precision = sum(s["right_px"] for s in scores) / max(sum(s["detected_px"] for s in scores), 1)
+        med = np.median(p, axis=0)
+        rows.append((name, len(per), med[0], left, recall, precision, med[1], med[6], med[2], med[7], med[4],
+                     med[3], med[8], int(np.sum(p[:, 2] < floor)), int(np.sum(p[:, 7] < floor)),
+                     int(np.sum(p[:, 4] < floor))))
         frame_rows += [(name, *r) for r in per]
+    stamp = time.strftime('%Y-%m-%d %H:%M')
     print(f"\nMetal tools against the registration's mask, {a.cases} frames per condition of {Path(a.ct).name}, "
-          f"at the true pose ({time.strftime('%Y-%m-%d %H:%M')})\n")
-    print("| condition | frames | tools in field | left out by the field | tools in the mask | tone fit: as "
-          "registered -> tools left out | local similarity: as registered -> tools left out | "
-          f"tone fit < {floor:.2f}: as registered -> tools left out |")
-    print("|---|---|---|---|---|---|---|---|")
-    for name, n, share, left, in_mask, tone, tone_w, loc, loc_w, low, low_w in rows:
-        print(f"| `{name}` | {n} | {100 * share:.1f} % | {100 * left:.0f} % | {100 * in_mask:.1f} % | "
-              f"{tone:.2f} -> {tone_w:.2f} | {loc:.2f} -> {loc_w:.2f} | {low} -> {low_w} |")
-    if a.frames:
-        print("\n| condition | frame | tools in field | tools in the mask | tone fit | tools left out | "
-              "local similarity | tools left out |")
-        print("|---|---|---|---|---|---|---|---|")
-        for name, i, share, in_mask, tone, tone_w, loc, loc_w in frame_rows:
-            print(f"| `{name}` | {i} | {100 * share:.1f} % | {100 * in_mask:.1f} % | {tone:.2f} | {tone_w:.2f} | "
-                  f"{loc:.2f} | {loc_w:.2f} |")
+          f"at the true pose ({stamp}); 'off' -> 'detect': prepare_xray(tools='off' / 'detect'), 'truth': the "
+          f"simulator's tool pixels also left out\n")
+    if rows:
+        print("| condition | frames | tools in field | left out by the field | detector: recall of the rest | "
+              "precision | tools in the mask: off -> detect | tone fit: off -> detect (truth) | local similarity: "
+              f"off -> detect (truth) | tone fit < {floor:.2f}: off -> detect (truth) |")
+        print("|---|---|---|---|---|---|---|---|---|---|")
+        for (name, n, share, left, recall, precision, in_off, in_on, tone, tone_on, tone_t, loc, loc_on, low,
+             low_on, low_t) in [(r[0], r[1], r[2], r[3], r[4], r[5], r[6], r[7], r[8], r[9], r[10], r[11], r[12],
+                                 r[13], r[14], r[15]) for r in rows]:
+            print(f"| `{name}` | {n} | {100 * share:.1f} % | {100 * left:.0f} % | {100 * recall:.0f} % | "
+                  f"{100 * precision:.0f} % | {100 * in_off:.1f} % -> {100 * in_on:.1f} % | {tone:.2f} -> "
+                  f"{tone_on:.2f} ({tone_t:.2f}) | {loc:.2f} -> {loc_on:.2f} | {low} -> {low_on} ({low_t}) |")
+    if free_rows:
+        print("\n| condition without tools | frames | frames with pixels left out as tools | share of the field: "
+              "median | largest | those frames |")
+        print("|---|---|---|---|---|---|")
+        for name, n, k, med, worst, which in free_rows:
+            print(f"| `{name}` | {n} | {k} | {100 * med:.2f} % | {100 * worst:.2f} % | {which} |")
+    if a.frames and frame_rows:
+        print("\n| condition | frame | tools in field | tools in the mask: off -> detect | tone fit: off -> detect | "
+              "local similarity: off -> detect |")
+        print("|---|---|---|---|---|---|")
+        for name, i, share, in_off, tone, loc, _, _, in_on, tone_on, loc_on, _, _ in frame_rows:
+            print(f"| `{name}` | {i} | {100 * share:.1f} % | {100 * in_off:.1f} % -> {100 * in_on:.1f} % | "
+                  f"{tone:.2f} -> {tone_on:.2f} | {loc:.2f} -> {loc_on:.2f} |")
     return 0
 
 

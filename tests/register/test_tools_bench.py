@@ -72,3 +72,21 @@ def test_the_script_names_a_missing_or_corrupt_study_and_a_target_without_tools(
     corrupt.write_text("[study\nct = 1\n")
     out = subprocess.run([sys.executable, script, "--study", str(corrupt)], capture_output=True, text=True, cwd=REPO)
     assert out.returncode == 2 and "not valid TOML" in out.stderr and "Traceback" not in out.stderr
+
+
+def test_a_detectors_pixels_are_scored_against_the_truth_the_field_kept():
+    """Recall counts the true tool pixels the field kept that the detector found; precision the
+    detector's kept pixels within ``reach_px`` of a true one (a detection grown by its dilation is
+    not wrong at the tool's edge), and a detection far from any tool is wrong."""
+    tools = np.zeros((30, 30), bool)
+    tools[10:12, 5:25] = True  # a wire, 40 px
+    kept = np.ones((30, 30), bool)
+    kept[:, 20:] = False  # the field left out its last 5 columns (clipped): 30 px kept
+    detected = np.zeros((30, 30), bool)
+    detected[9:13, 5:15] = True  # 20 px of the wire found, grown 1 px (40 px)
+    detected[25:27, 0:5] = True  # 10 px far from it
+    s = bench.detection_scores(detected, tools, kept, 1)
+    assert s == {"tool_px": 30, "found_px": 20, "detected_px": 50, "right_px": 40}
+    assert bench.detection_scores(detected, tools, kept, 0)["right_px"] == 20
+    with pytest.raises(ValueError, match="one shape"):
+        bench.detection_scores(detected, tools[:5], kept, 1)
