@@ -40,11 +40,13 @@ from torch import nn
 
 from learn.batched import BatchedPairs, tool_arrangements, tool_looks
 from learn.online import MAX_BATCH
+from learn.torch_file import read_plain_torch_file
 from sim.core.atomic import atomic_path, read_toml, sha256_file, write_toml
 from sim.core.errors import InputError
 from sim.distractors import mu_line
 from sim.physics.two_basis import TOOL_CHANNELS
-from sim.randomize import ToolBank, draw_tensors
+from sim.campaign.config import load_campaign
+from sim.randomize import DomainRandomization, ToolBank, draw_tensors
 
 __all__ = ["ToolMaskError", "ToolFrames", "ToolSegmenter", "tool_segmenter", "segmenter_input", "ToolMask",
            "TOOL_LINE_INTEGRAL", "METAL_CHANNELS", "SEGMENTER_SIDE", "DEFAULT_TOOL_MODEL", "metal_weights",
@@ -268,8 +270,6 @@ class ToolMask:
     _shared: dict[str, "ToolMask"] = {}
 
     def __init__(self, folder: str | Path = DEFAULT_TOOL_MODEL):
-        from learn.torch_file import read_plain_torch_file
-
         folder = Path(folder)
         card_path = folder / TOOL_CARD
         if not card_path.is_file():
@@ -440,9 +440,6 @@ def tool_frame_sources(settings: ToolTrainSettings, device, tables: Path, campai
     import dataclasses
     import tomllib
 
-    from sim.campaign.config import load_campaign
-    from sim.randomize import DomainRandomization
-
     with open(RANDOMIZATION_FROM / "model.toml", "rb") as f:
         table = dict(tomllib.load(f)["model"]["physics"]["randomize"])
     table.update(tools=float(settings.tools_probability), ideal=0.0,
@@ -537,8 +534,6 @@ def train_tool_mask(out: str | Path, settings: ToolTrainSettings = ToolTrainSett
     import csv
     import signal
     import time
-
-    from learn.torch_file import read_plain_torch_file
 
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
@@ -643,8 +638,6 @@ def export_tool_mask(checkpoint: str | Path, folder: str | Path, *, threshold: f
     detection's ``threshold`` and ``low`` (probabilities), ``min_px`` (px at :data:`SEGMENTER_SIDE`) and
     ``dilate_px`` (px of the image); ``[training]``: the settings, frames, minutes and the learning
     curve; ``[accuracy]``: ``accuracy`` where given). Returns ``folder``."""
-    from learn.torch_file import read_plain_torch_file
-
     state = read_plain_torch_file(checkpoint, "tool-mask checkpoint", error=ToolMaskError)
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
