@@ -1,8 +1,9 @@
-"""Metal tools in the registration's mask, and what they cost the verdict's evidence at the true pose.
+"""Metal tools in the registration's mask, what they cost the verdict's evidence at the true pose, and
+what the tool segmenter (``--tools detect``, :class:`learn.tool_mask.ToolMask`) finds and takes.
 
-    .venv/bin/python benchmarks/tools.py [--ct CT] [--cases 10] [--study studies/metal.toml] [--target all]
+    .venv/bin/python benchmarks/tools.py [--ct CT] [--cases 10] [--study studies/metal.toml ...] [--target all]
 
-Frames: the first ``--cases`` poses of every ``xray`` target with ``tools`` of ``--study`` (default
+Frames: the first ``--cases`` poses of every ``xray`` target of the ``--study`` files (default
 ``studies/metal.toml``: 2 to 5 screws, K-wires, plates and retractors fixed to the patient per
 frame), simulated where the cache (``--out``, shared with benchmarks/search.py) lacks them. The
 truth: the simulator's own chords through the frame's tools (:class:`sim.distractors.DistractorField`
@@ -10,8 +11,9 @@ with the frame's :meth:`register.evaluation.frames.FrameSimulator.implants`, the
 the true pose); a pixel is a tool's where the tools' line integral (``mu(60 keV) x chord``, summed
 over materials) is at least :data:`TOOL_LINE_INTEGRAL` (about 0.15 mm of steel or 0.4 mm of
 titanium on the ray). Each frame is prepared as ``ctxreg register`` prepares it
-(:func:`register.xray.prepare.prepare_xray` with the CT: field, intensity, tone), its polarity taken
-as the true pose confirms it. Per condition:
+(:func:`register.xray.prepare.prepare_xray` with the CT: field, intensity, tone), with ``tools="off"``
+(the default) and ``"detect"``, its polarity taken as the true pose confirms it. Per condition with
+tools:
 
 * ``tools in field``: the share of the collimator's true field that is tool (median over frames);
 * ``left out by the field``: the share of the tool pixels inside the true field that the field
@@ -23,9 +25,12 @@ as the true pose confirms it. Per condition:
   of the toned X-ray with the line DRR) and the local similarity (window-by-window gradient NCC),
   over the mask as registered and over the mask less the tools' pixels (the truth's, a ceiling for
   any tool detector), medians; and the frames whose tone fit at the truth is under the verdict's
-  ``min_tone_fit`` either way: right poses that tools alone would make doubtful.
+  ``min_tone_fit`` either way: right poses that tools alone would make doubtful; each ``off ->
+  detect`` and, in brackets, the truth's ceiling;
+* the detector's recall and precision (:func:`detection_scores`) of the tool pixels the field kept.
 
-Prints one row per condition and, with ``--frames``, one per frame.
+Per condition without tools: the frames where the detector leaves pixels out, and their share of
+the field (median, largest). Prints one row per condition and, with ``--frames``, one per frame.
 """
 
 from __future__ import annotations
