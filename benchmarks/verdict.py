@@ -18,7 +18,8 @@ cores, 10-12 s more for a row the rescue searches again::
 The rows of docs/results.md's tables are committed, compacted (``--compact OUT``: only what the
 tables read), in ``benchmarks/verdict_rows/`` (``calib.jsonl``, ``heldout.jsonl``, ``unmatched.jsonl``,
 ``heldout_chains.jsonl``: six more display chains; ``heldout5.jsonl``: three more, new poses, a
-512 px detector; docs/results.md)::
+512 px detector; ``heldout6.jsonl``: metal tools behind two more chains and two chains without,
+384 px; docs/results.md)::
 
     .venv/bin/python benchmarks/verdict.py benchmarks/verdict_rows/calib.jsonl --calibrate
     .venv/bin/python benchmarks/verdict.py benchmarks/verdict_rows/heldout.jsonl benchmarks/verdict_rows/unmatched.jsonl
@@ -58,21 +59,26 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from register.engines.search import GlobalSearchSettings  # noqa: E402
 from register.verdict import VerdictSettings, checks, failure, judge, runner_up  # noqa: E402
 
 #: A registration within this mTRE (mm) is good: the issue's bar, and the study's success.
 WITHIN_MM = 10.0
 
 #: The thresholds ``--calibrate`` tries (every combination; the others stay at their defaults).
+#: Two the pipeline acts on too, ``sure_similarity`` (``GlobalSearchSettings.refined_above``: the
+#: grid runs after all below it) and ``min_local_similarity`` (``local_below``: the search again
+#: below it), hold the pipeline's value alone (:class:`register.verdict.VerdictSettings` takes it):
+#: the rows were registered with it, and another would judge poses the pipeline treats otherwise.
 GRID = {"min_similarity": (0.15, 0.2, 0.25, 0.3, 0.35, 0.4, 0.5, 0.6),
         "min_tone_fit": (0.0, 0.2, 0.3, 0.4, 0.5, 0.6),
         "min_margin": (0.0, 0.02, 0.03, 0.05, 0.07, 0.1, 0.15),
         "min_joint_margin": (None, -0.05, -0.02, 0.0, 0.02, 0.05),
-        "sure_similarity": (0.85, 0.88, 0.9, 0.92, 0.95, 1.0),
+        "sure_similarity": (GlobalSearchSettings.refined_above,),
         "min_depth_drop": (0.0, 0.03, 0.05, 0.07),
         "min_profile_drop": (None, 0.02, 0.04, 0.06, 0.08),
         "max_rival_gain": (None, 0.2, 0.1, 0.07, 0.05, 0.03),
-        "min_local_similarity": (None, 0.1, 0.2, 0.3, 0.35, 0.4, 0.5)}
+        "min_local_similarity": (GlobalSearchSettings.local_below,)}
 
 #: A registration this far off (mTRE, mm; 1.5 times :data:`WITHIN_MM`) is clearly wrong: the
 #: thresholds must reject it with a margin (:data:`MARGIN`), not only just.

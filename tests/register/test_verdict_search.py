@@ -14,7 +14,8 @@ import pytest
 from register.engines.cmaes import CMAESRegistration, along_view_ray
 from register.engines.pipeline import REFINE_SETTINGS
 from register.engines.result import RegistrationError
-from register.verdict import DEPTH_PROBE_MM, PROFILE_PIN_MM, VerdictSettings, depth_profile, judge, pose_gap, rival
+from register.verdict import (DEPTH_PROBE_MM, DISTINCT_DEPTH_MM, PROFILE_PIN_MM, RIVAL_DISTINCT_DEPTH_MM, VerdictSettings,
+                              depth_profile, judge, pose_gap, rival)
 from sim.projection.drr import DRRRenderer, RenderSettings
 from sim.projection.geometry import pose_from_params
 from tests.conftest import REPO
@@ -136,6 +137,17 @@ def test_the_calibration_keeps_a_margin_from_a_clearly_wrong_pose_only():
         assert (chosen.min_similarity, r["false_accepts"], r["accepted"]) == (floor, 0, accepted), mtre
     assert bench.CLEARLY_OFF_MM == 1.5 * bench.WITHIN_MM and bench._looser("max_rival_gain", 0.03) == pytest.approx(0.033)
     assert bench._looser("min_joint_margin", -0.05) == pytest.approx(-0.055) and bench._looser("min_local_similarity", None) is None
+
+
+@pytest.mark.parametrize("depth_mm, gain, label", [(13.0, 0.034, "doubtful"),   # past the bar in depth, clearly better
+                                                    (9.0, 0.034, "registered"),  # within the bar: the same answer
+                                                    (13.0, 0.02, "registered"),  # not clearly better
+                                                    (25.0, 0.05, "doubtful")])   # distinct as a runner-up would be
+def test_a_rival_counts_ten_mm_away_in_depth_alone(depth_mm, gain, label):
+    assert RIVAL_DISTINCT_DEPTH_MM == 10.0 < DISTINCT_DEPTH_MM
+    rival_pose = {"similarity": 0.55, "tone_fit": 0.9, "gain": gain, "deg": 0.7, "mm": 0.3, "depth_mm": depth_mm}
+    v = judge(_ev(rival=rival_pose), VerdictSettings(max_rival_gain=0.03))
+    assert v.label == label
 
 
 def test_a_pose_that_shows_no_ct_is_profiled_without_a_fit_and_has_no_rival(scene):
