@@ -86,6 +86,9 @@ def main() -> int:
     ap.add_argument("--refine-polish", choices=("pattern", "powell"), default=None,
                     help="the refinement's polish (register.engines.pipeline.REFINE_SETTINGS.polish_method; default "
                          "the pipeline's own): to measure one against the other on the same frames")
+    ap.add_argument("--tools", choices=("off", "detect"), default="off",
+                    help="every row's --tools (register_xray's tools: detect leaves the metal tools the shipped "
+                         "segmenter finds out of the mask; default off, the pipeline's default)")
     ap.add_argument("--rows", default=None,
                     help="append every registration as a JSON line to this file: the condition, CT, model, method, "
                          "case, its errors (mTRE, rotation, translation) and register's whole result (result.json's "
@@ -218,6 +221,8 @@ def _measure(a, study, target, volume, center):
         methods = {(name.replace("default network", Path(a.model).parent.name if a.model.endswith(".pt") else a.model)
                     if key in NETWORK_METHODS else name): (key, {**kw, "model": a.model} if key in NETWORK_METHODS else kw)
                    for name, (key, kw) in methods.items()}
+    if a.tools != "off":  # named in the row and the table
+        methods = {f"{name}, tools {a.tools}": v for name, v in methods.items()}
     rows = {name: [] for name in methods}
     split = []
     refused = 0  # frames whose content registration refuses (counted as failures)
@@ -233,7 +238,7 @@ def _measure(a, study, target, volume, center):
         for name, (key, kw) in methods.items():
             t0 = time.perf_counter()
             try:
-                res = register_xray(volume, path, center=center, **kw)
+                res = register_xray(volume, path, center=center, tools=a.tools, **kw)
             except frame_refusals() as exc:  # the frame's content refused: a failed case, as in the study
                 rows[name].append({"hit": False, "ok": False, "rot": np.nan, "trans": np.nan,
                                    "s": time.perf_counter() - t0, "grid_s": np.nan, "skipped": None,
