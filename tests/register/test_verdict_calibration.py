@@ -105,3 +105,31 @@ def test_the_search_again_by_local_similarity_is_summarised_as_documented():
         _, volume, center = bench._ct(row, cache, "test")
         got = bench._errors(row, np.array(row["result"]["pose_4x4"]), volume, center, cache)
         assert got["mtre_mm"] == pytest.approx(row["mtre_mm"], rel=1e-6)
+
+
+def test_the_tool_segmenters_registrations_are_the_documented_ones():
+    """docs/xray_input.md, "Metal tools": the default pipeline with ``--tools detect`` on 13
+    conditions of the training pelvis (``tools_detect.jsonl``) against the same frames with
+    ``--tools off`` (the verdict tables' rows): within 10 mm / called registered / false accepts."""
+    def counts(rows):
+        out = {}
+        for r in rows:
+            name = r["condition"].split(",")[0]
+            c = out.setdefault(name, [0, 0, 0])
+            label = bench.judge(r["evidence"], VerdictSettings()).label
+            good = bench._good(r)
+            c[0] += good
+            c[1] += good and label == "registered"
+            c[2] += (not good) and label == "registered"
+        return out
+
+    detect = counts(bench.load_rows([ROWS / "tools_detect.jsonl"]))
+    off = counts([r for r in bench.load_rows([ROWS / f"{n}.jsonl" for n in ("calib", "heldout", "heldout6")])
+                  if r["condition"].endswith("default") and "chiconasa" not in r["condition"]])
+    tools = ("metal-log-75kV", "metal-linear-90kV", "tools-bright-85kV", "tools-linear-110kV")
+    assert [detect[n][:2] for n in tools] == [[10, 10], [7, 5], [10, 10], [5, 4]]
+    assert [off[n][:2] for n in tools] == [[9, 9], [6, 4], [8, 7], [6, 5]]
+    assert detect["linear-70kV"] == [6, 4, 1] and off["linear-70kV"] == [8, 6, 0]
+    assert len(detect) == 13 and sum(c[0] for c in detect.values()) == 118 and sum(c[1] for c in detect.values()) == 112
+    assert sum(off[n][0] for n in detect) == 117 and sum(off[n][1] for n in detect) == 110
+    assert sum(c[2] for n, c in detect.items() if n != "linear-70kV") == 0
