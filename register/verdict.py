@@ -100,8 +100,8 @@ DISTINCT_DEPTH_MM = 20.0
 #: the search that score alike, which right registrations' do 10-20 mm apart in depth; a rival scores
 #: more.) A frame of instrumented surgery 12.2 mm off, mostly in depth, had a rival 13 mm deeper
 #: scoring 0.034 more, and was called registered with 20 mm (``studies/heldout6.toml``,
-#: docs/results.md); of the 409 registrations of known truth or none (``benchmarks/verdict_rows/``)
-#: it changes no other verdict.
+#: docs/results.md); of the 409 registrations of the verdict's tables (``benchmarks/verdict_rows/``)
+#: it changes no other verdict, nor any of the 128 with ``--tools detect`` there.
 RIVAL_DISTINCT_DEPTH_MM = 10.0
 
 #: How far (mm) along the ray through the anatomy centre the depth probe moves the final pose, each

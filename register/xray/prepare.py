@@ -29,7 +29,7 @@ from register.engines.search import GlobalSearch, GlobalSearchSettings
 from register.xray.intensity import PolarityReference
 from register.xray.geometry import resolve_geometry
 from register.xray.io import XRayImage, load_xray
-from register.xray.field import TOOL_OPTIONS, FieldSettings, detect_field
+from register.xray.field import TOOL_OPTIONS, FieldSettings, attenuating_pieces, detect_field
 from register.xray.preprocess import DEFAULT_STEPS, Field as FieldStep, Pipeline, PreprocessError, crop_box, cropped_geometry
 from sim.campaign.poses import ORIGINAL_PROTOCOL
 from sim.core.cliargs import IMAGE_SIDE_PX
@@ -221,7 +221,9 @@ def prepare_xray(xray, *, volume=None, center_lps=None, init_params=None, scene:
         tools: ``"off"`` (default): metal tools are not looked for; ``"detect"``: those the shipped
             tool segmenter (:class:`learn.tool_mask.ToolMask`) finds in the field are left out of
             ``mask`` as the field's clipped plateaus are (the network's mask keeps them, as its
-            training targets do). Only with ``"field"`` as the first step.
+            training targets do), but for pieces that attenuate less than most of the field
+            (:func:`register.xray.field.attenuating_pieces`: not metal; the steps run again
+            without them). Only with ``"field"`` as the first step.
     """
     if tools not in TOOL_OPTIONS:
         raise PreprocessError(f"tools must be one of {', '.join(TOOL_OPTIONS)}, got {tools!r}")
@@ -246,14 +248,27 @@ def prepare_xray(xray, *, volume=None, center_lps=None, init_params=None, scene:
         # a raw detector signal (FOR PROCESSING, or declared linear) is searched by its edges
         raw = scale == "linear" or not xray.attenuation_bright
         found = detect_field(xray.pixels, FieldSettings(margin_px=FieldStep().margin_px), raw=raw)
+        field = found
         if tools == "detect":
             from learn.tool_mask import ToolMask  # loads torch: imported where first needed (start-up)
 
-            found = found.without_tools(ToolMask.shared().detect(xray.pixels, found.field_mask))
+            found = field.without_tools(ToolMask.shared().detect(xray.pixels, field.field_mask))
         options["field"] = {"found": found}
     image, mask, record = Pipeline.from_names(list(steps), options).apply(xray.pixels)
     H, W = xray.shape
     r0, r1, c0, c1 = crop_box(record, (H, W))
+    if found is not None and found.tools is not None and found.tools.any() and mask is not None:
+        # metal attenuates more than most of the field: pieces that do not (air edges, gas) are given
+        # back, and the steps run again on the field without them (the intensity step decided the
+        # polarity that ranks them; the image it leaves is attenuation bright)
+        pieces = found.tools[r0:r1, c0:c1]
+        kept = np.zeros((H, W), bool)
+        kept[r0:r1, c0:c1] = attenuating_pieces(pieces, image, mask & ~pieces)
+        if (kept != found.tools).any():
+            found = field.without_tools(kept)
+            options["field"] = {"found": found}
+            image, mask, record = Pipeline.from_names(list(steps), options).apply(xray.pixels)
+            r0, r1, c0, c1 = crop_box(record, (H, W))
     full_mask = np.zeros((H, W), bool)
     full_mask[r0:r1, c0:c1] = True if mask is None else mask
     fill = float(np.median(image[mask])) if mask is not None else float(np.median(image))

@@ -860,3 +860,27 @@ def test_tools_left_out_of_a_field_keep_its_counts_disjoint():
     assert out.to_dict()["excluded"]["tools"] == out.excluded["tools"]
     with pytest.raises(FieldError, match="bool mask"):
         found.without_tools(tools[:10])
+
+
+def test_attenuating_pieces_keeps_what_attenuates_more_than_most_of_the_field():
+    """attenuating_pieces: of two detected pieces on an attenuation-bright image whose values rise
+    left to right, the one at the right (rank 0.94 of the valid pixels) is kept and the one at the
+    left (rank 0.06: an air edge, say) is given back; the rank bound itself (0.5) splits a piece at
+    the field's median; empty tools, a wrong shape and a rank outside [0, 1) are handled."""
+    from register.xray.field import TOOL_MIN_ATTENUATION_RANK, attenuating_pieces
+
+    img = np.tile(np.linspace(0.0, 1.0, 50), (40, 1))
+    tools = np.zeros((40, 50), bool)
+    tools[10:14, 2:4] = True   # median column 2.5: rank 0.06
+    tools[20:24, 46:48] = True  # rank 0.94
+    kept = attenuating_pieces(tools, img, ~tools)
+    assert kept[20:24, 46:48].all() and not kept[10:14, 2:4].any() and kept.sum() == 8
+    assert TOOL_MIN_ATTENUATION_RANK == 0.5
+    mid = np.zeros((40, 50), bool)
+    mid[30:32, 26:28] = True  # just above the median column
+    assert attenuating_pieces(mid, img, ~mid).any() and not attenuating_pieces(mid, img, ~mid, min_rank=0.6).any()
+    assert not attenuating_pieces(np.zeros((40, 50), bool), img, np.ones((40, 50), bool)).any()
+    with pytest.raises(FieldError, match="one shape"):
+        attenuating_pieces(tools[:10], img, ~tools)
+    with pytest.raises(FieldError, match="min_rank"):
+        attenuating_pieces(tools, img, ~tools, min_rank=1.0)

@@ -129,7 +129,10 @@ def test_the_tool_segmenters_registrations_are_the_documented_ones():
     tools = ("metal-log-75kV", "metal-linear-90kV", "tools-bright-85kV", "tools-linear-110kV")
     assert [detect[n][:2] for n in tools] == [[10, 10], [7, 5], [10, 10], [5, 4]]
     assert [off[n][:2] for n in tools] == [[9, 9], [6, 4], [8, 7], [6, 5]]
-    assert detect["linear-70kV"] == [6, 4, 1] and off["linear-70kV"] == [8, 6, 0]
-    assert len(detect) == 13 and sum(c[0] for c in detect.values()) == 118 and sum(c[1] for c in detect.values()) == 112
+    # without tools: the same but one verdict (the attenuation check gave back the air edges that
+    # cost linear-70kV two frames and a false accept before it)
+    free = [n for n in detect if n not in tools]
+    assert [detect[n] for n in free if detect[n] != off[n]] == [[10, 8, 0]] and off["bright-130kV"] == [10, 9, 0]
+    assert len(detect) == 13 and sum(c[0] for c in detect.values()) == 120 and sum(c[1] for c in detect.values()) == 113
     assert sum(off[n][0] for n in detect) == 117 and sum(off[n][1] for n in detect) == 110
-    assert sum(c[2] for n, c in detect.items() if n != "linear-70kV") == 0
+    assert sum(c[2] for c in detect.values()) == 0
