@@ -552,8 +552,8 @@ def register_xray(ct, xray, *, log: Callable[[str], None] | None = None, note: C
             shipped segmenter finds in the field out of the similarities' mask
             (:class:`learn.tool_mask.ToolMask`; where ``"field"`` is the first preprocessing step:
             tools are looked for inside the detected field, and result.json's
-            ``field.excluded.tools`` counts them). Off by default: the segmenter also leaves pixels
-            out of frames without tools (docs/xray_input.md, "Metal tools").
+            ``field.excluded.tools`` counts them). Off by default: the verdict's thresholds were
+            calibrated without it (docs/xray_input.md, "Metal tools").
         orient: how the stored X-ray is turned into the CT's view first (a name of
             :data:`register.xray.io.ORIENTATIONS`: ``"none"``, ``"flip-left-right"``, ...); the
             figures show the X-ray so turned.

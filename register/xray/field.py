@@ -1336,7 +1336,6 @@ def _exclusions(img: np.ndarray, within: np.ndarray, field: np.ndarray, lo: floa
 # --------------------------------------------------------------------------------------------
 
 
-
 def attenuating_pieces(tools: np.ndarray, image: np.ndarray, valid: np.ndarray,
                        min_rank: float = TOOL_MIN_ATTENUATION_RANK) -> np.ndarray:
     """The pieces of ``tools`` ``(H, W)`` bool (8-connected) whose median pixel of ``image`` ``(H, W)``
