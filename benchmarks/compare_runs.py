@@ -11,7 +11,9 @@ predictions) of each group (``all``; ``far``, ``near``, ``log``, ``linear``, ``f
 pairs; ``ap``: the same targets from registration's AP start), then each run's training seconds
 and pairs per second (``elapsed_s``; validations included). ``--plot`` draws rotation and
 translation error against pairs for the first two groups; ``--baseline GROUP=ROT/TRANS`` draws a
-group's error of predicting no motion (deg / mm) as a dashed line, the level a run must leave.
+group's error of predicting no motion (deg / mm) as a dashed line, the level a run must leave;
+``--no-motion CONFIG`` computes that level for every group on the validation pairs of a run's
+config (:func:`learn.train.validate_no_motion`: the pairs rendered once, on the CPU) and prints it.
 """
 from __future__ import annotations
 
@@ -19,6 +21,9 @@ import argparse
 import csv
 import sys
 from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))  # the repository first: benchmarks/learn.py and register.py are not the packages
 
 
 def _read(spec: str) -> tuple[str, list[dict]]:
@@ -49,6 +54,8 @@ def main(argv=None) -> int:
     ap.add_argument("--plot", type=Path, help="write the curves of the first two groups to this PNG")
     ap.add_argument("--baseline", nargs="+", default=[], metavar="GROUP=ROT/TRANS",
                     help="a group's error of predicting no motion (deg / mm), drawn dashed on the plot")
+    ap.add_argument("--no-motion", metavar="CONFIG",
+                    help="compute the no-motion level of every group on this run config's validation pairs")
     a = ap.parse_args(argv)
     if a.batch_size < 1:
         print("compare_runs: --batch-size must be >= 1", file=sys.stderr)
@@ -64,6 +71,17 @@ def main(argv=None) -> int:
             print(f"compare_runs: --baseline {spec}: give GROUP=ROT/TRANS, e.g. all=44.8/110.2", file=sys.stderr)
             return 2
     runs = [_read(spec) for spec in a.runs]
+    if a.no_motion:
+        from learn.train import TrainConfigError, load_train_config, validate_no_motion  # only here: the tables need no torch
+
+        try:
+            row = validate_no_motion(load_train_config(a.no_motion))
+        except (TrainConfigError, OSError) as e:
+            raise SystemExit(f"compare_runs: --no-motion {a.no_motion}: {e}") from None
+        levels = {g: (row[_columns(g)[0]], row[_columns(g)[1]]) for g in a.groups if _columns(g)[0] in row}
+        print("predicting no motion: " + ", ".join(f"{g} {r:.1f} / {t:.1f}" for g, (r, t) in levels.items()))
+        print()
+        baseline = {**levels, **baseline}
     shared = sorted(set.intersection(*({int(r["iteration"]) for r in rows} for _, rows in runs)))
     by_iter = [{int(r["iteration"]): r for r in rows} for _, rows in runs]
     head = "| pairs | " + " | ".join(f"{name} {g}" for g in a.groups for name, _ in runs) + " |"
@@ -107,8 +125,10 @@ def main(argv=None) -> int:
                 ax.set_ylabel(unit)
                 ax.set_title(f"validation, {g} pairs" if g != "ap" else "validation, from AP")
                 ax.grid(alpha=0.3)
-                ax.legend()
-        save_figure(fig, a.plot, dpi=110)
+        # one legend below the panels: inside, it hid the falling curves
+        handles, labels = axes[0][0].get_legend_handles_labels()
+        fig.legend(handles, labels, loc="lower center", ncol=min(len(labels), 3), frameon=False)
+        save_figure(fig, a.plot, dpi=110, rect=(0, 0.06 if len(labels) <= 3 else 0.1, 1, 1))
         print(f"\nwrote {a.plot}")
     return 0
 

