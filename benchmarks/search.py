@@ -51,6 +51,8 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 from timing import add_frame_arguments, input_problem  # noqa: E402  (benchmarks/timing.py)
 
+from register.xray.field import TOOL_OPTIONS, TOOLS_DEFAULT  # noqa: E402
+
 
 def null_network(fixed, drr):
     """A predictor with no opinion: gradient 0, so the contextual iteration stops at its start."""
@@ -86,9 +88,9 @@ def main() -> int:
     ap.add_argument("--refine-polish", choices=("pattern", "powell"), default=None,
                     help="the refinement's polish (register.engines.pipeline.REFINE_SETTINGS.polish_method; default "
                          "the pipeline's own): to measure one against the other on the same frames")
-    ap.add_argument("--tools", choices=("off", "detect"), default="off",
+    ap.add_argument("--tools", choices=TOOL_OPTIONS, default=TOOLS_DEFAULT,
                     help="every row's --tools (register_xray's tools: detect leaves the metal tools the shipped "
-                         "segmenter finds out of the mask; default off, the pipeline's default)")
+                         f"segmenter finds out of the mask; default {TOOLS_DEFAULT}, the pipeline's default)")
     ap.add_argument("--rows", default=None,
                     help="append every registration as a JSON line to this file: the condition, CT, model, method, "
                          "case, its errors (mTRE, rotation, translation) and register's whole result (result.json's "
@@ -257,7 +259,8 @@ def _measure(a, study, target, volume, center):
                                "refused": False})
             if a.rows is not None:
                 _append_row(a.rows, {"target": target.name, "study": study.source, "ct": a.ct, "model": a.model,
-                                     "method": name, "case": i, "true_params": params, "mtre_mm": e["mtre_mm"],
+                                     "method": name, "tools": a.tools, "case": i, "true_params": params,
+                                     "mtre_mm": e["mtre_mm"],
                                      "rot_err_deg": e["rot_err_deg"], "trans_err_mm": e["trans_err_mm"],
                                      "seconds": seconds, "result": res.to_dict()})
             record = res.result.search

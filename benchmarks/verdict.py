@@ -61,6 +61,7 @@ sys.path.insert(0, str(ROOT))
 
 from register.engines.search import GlobalSearchSettings  # noqa: E402
 from register.verdict import VerdictSettings, checks, failure, judge, runner_up  # noqa: E402
+from register.xray.field import TOOL_OPTIONS, TOOLS_DEFAULT  # noqa: E402
 
 #: A registration within this mTRE (mm) is good: the issue's bar, and the study's success.
 WITHIN_MM = 10.0
@@ -134,6 +135,8 @@ def load_rows(paths) -> list[dict]:
             ct = Path(str(r.get("ct"))).name.split(".")[0]
             model = "adapted" if r.get("model") and "adapt" in str(r["model"]) else "shipped"
             method = "grid always" if "always" in str(r.get("method", "")) else "default"
+            if row_tools(r) != "off":
+                method += f", tools {row_tools(r)}"
             rows.append({"condition": f"{r['target']}, {ct}, {model}, {method}", "mtre_mm": r.get("mtre_mm"),
                          "evidence": ev})
     if skipped:
@@ -270,6 +273,15 @@ def unmatched(a) -> int:
     return 0
 
 
+def row_tools(row) -> str:
+    """The ``tools`` a row was registered with: its ``tools`` key, else its method's name (``",
+    tools detect"``, benchmarks/search.py), else ``"off"`` (rows made before either was recorded,
+    or before tools could be detected), whatever the default is now."""
+    if row.get("tools") is not None:
+        return row["tools"]
+    return "detect" if "tools detect" in str(row.get("method") or "") else "off"
+
+
 def _ct_path(row) -> Path:
     """The CT of ``row``: its recorded path, or where that is not here (rows made on another
     machine), the file of that name under ``../shared/data/ct`` beside the repository."""
@@ -369,7 +381,7 @@ def rejudge(src: Path, dst: Path, frames_dir: Path) -> int:
         if res is not None and res.get("verdict_evidence") is not None:
             path, volume, center = _frame(row, frames_dir, cache)
             request = RegistrationRequest(search="always" if "always" in str(row.get("method", "")) else "auto",
-                                          center=center)
+                                          center=center, tools=row_tools(row))
             params = [res["params"][k] for k in PARAM_KEYS]
             result, verdict = request.finish(volume, path, params, similarity=res["similarity"], search=res.get("search"))
             old = res["verdict_evidence"]
@@ -481,8 +493,8 @@ def main() -> int:
     ap.add_argument("--ct", default=None, help="with --unmatched: the CT")
     ap.add_argument("--model", default=None, help="with --unmatched: the network (default: the shipped default)")
     ap.add_argument("--label", default="unmatched X-ray", help="with --unmatched: the condition's name")
-    ap.add_argument("--tools", choices=("off", "detect"), default="off",
-                    help="with --unmatched: register_xray's tools (default off)")
+    ap.add_argument("--tools", choices=TOOL_OPTIONS, default=TOOLS_DEFAULT,
+                    help=f"with --unmatched: register_xray's tools (default {TOOLS_DEFAULT}, the pipeline's)")
     ap.add_argument("--rejudge", default=None, metavar="OUT",
                     help="finish the one ROWS file's registrations again from their recorded poses with the current "
                          "steps after the pipeline's winner (the rescue by local similarity, the verdict; each X-ray "

@@ -44,7 +44,7 @@ from register.plots import checkerboard_png, convergence_plot, overlay_png, traj
 from register.xray.geometry import resolve_geometry
 from register.xray.io import XRayImage, check_orientation, load_xray
 from register.xray.network_view import network_view
-from register.xray.field import TOOL_OPTIONS
+from register.xray.field import TOOL_OPTIONS, TOOLS_DEFAULT
 from register.xray.prepare import (_fit_plan, confirm_polarity, confirm_polarity_by_pose, fit_box,
                                    polarity_needs_check, prepare_xray)
 from register.xray.preprocess import DEFAULT_STEPS, Pipeline, PreprocessError
@@ -366,7 +366,7 @@ class RegistrationRequest:
     intensity: str = "auto"
     polarity: str = "auto"
     tone: str = "ct"
-    tools: str = "off"
+    tools: str = TOOLS_DEFAULT
     orient: str = "none"
     restarts: int | None = None
     search: str = "auto"

@@ -27,7 +27,7 @@ from register.evaluation.evaluate import (LOCAL_ROT_DEG, LOCAL_TRANS_MM, START_M
                                           EvaluationSettings, MethodSpec, evaluate)
 from register.xray.intensity import POLARITIES, SCALES, TONES
 from register.serve import FolderWatch, ServeError, serve_frames, stdin_frames
-from register.xray.field import TOOL_OPTIONS
+from register.xray.field import TOOL_OPTIONS, TOOLS_DEFAULT
 from register.xray.io import ORIENTATIONS
 from sim.cli import CT_HELP
 from sim.core.cliargs import IMAGE_SIDE_PX, Range, opt, refuse_unused, refuse_unused_label_map
@@ -305,7 +305,7 @@ class RegisterCommand:
         "field's pixels mapped by rank onto the line integrals of DRRs of the CT around the start, which the global "
         "search's grid ranks beside the image (and a network trained on toned targets sees); off makes none; raw "
         "and log images get none", group="image", choices=TONES))
-    tools: str = field(default="off", metadata=opt(
+    tools: str = field(default=TOOLS_DEFAULT, metadata=opt(
         "metal tools in the field (screws, K-wires, plates, retractors, cables): detect finds them with the "
         "shipped segmenter (models/tool_mask) and leaves them out of the similarities' pixels as clipped plateaus "
         "are (result.json: field.excluded.tools), but for pieces that attenuate less than half the field; off (the "

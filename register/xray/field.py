@@ -141,12 +141,15 @@ from register.xray.io import XRayInputError
 from sim.core.atomic import jsonable
 
 __all__ = ["FieldError", "FieldSettings", "Field", "detect_field", "log_view", "LOG_VIEWS", "TOOL_OPTIONS",
-           "TOOL_MIN_ATTENUATION_RANK", "attenuating_pieces"]
+           "TOOLS_DEFAULT", "TOOL_MIN_ATTENUATION_RANK", "attenuating_pieces"]
 
 #: What registration does about metal tools in the field (``prepare_xray(tools=...)``, ``--tools``):
 #: ``"detect"``: the shipped segmenter's (:class:`learn.tool_mask.ToolMask`) are left out
 #: (:meth:`Field.without_tools`); ``"off"``: not looked for.
 TOOL_OPTIONS = ("detect", "off")
+#: The one default of ``tools`` (``prepare_xray``, ``register_xray``, ``ctxreg register --tools``,
+#: the benchmarks): ``"off"`` while the verdict's thresholds are those calibrated without detection.
+TOOLS_DEFAULT = "off"
 
 #: A detected tool piece is kept only where its median pixel attenuates more than this share of the
 #: field's valid pixels (:func:`attenuating_pieces`): metal adds attenuation to whatever it lies

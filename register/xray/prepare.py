@@ -29,7 +29,7 @@ from register.engines.search import GlobalSearch, GlobalSearchSettings
 from register.xray.intensity import PolarityReference
 from register.xray.geometry import resolve_geometry
 from register.xray.io import XRayImage, load_xray
-from register.xray.field import TOOL_OPTIONS, FieldSettings, attenuating_pieces, detect_field
+from register.xray.field import TOOL_OPTIONS, TOOLS_DEFAULT, FieldSettings, attenuating_pieces, detect_field
 from register.xray.preprocess import DEFAULT_STEPS, Field as FieldStep, Pipeline, PreprocessError, crop_box, cropped_geometry
 from sim.campaign.poses import ORIGINAL_PROTOCOL
 from sim.core.cliargs import IMAGE_SIDE_PX
@@ -201,7 +201,7 @@ class PreparedXRay:
 def prepare_xray(xray, *, volume=None, center_lps=None, init_params=None, scene: str = "cios_fusion",
                  steps=None, scale: str = "auto", polarity: str = "auto", tone: str = "ct", size=(128, 128),
                  sdd_mm: float | None = None, sod_mm: float | None = None,
-                 pixel_spacing_mm: float | None = None, tools: str = "off") -> PreparedXRay:
+                 pixel_spacing_mm: float | None = None, tools: str = TOOLS_DEFAULT) -> PreparedXRay:
     """Prepare ``xray`` (a path or :class:`register.xray.io.XRayImage`) for registration.
 
     Args:

@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import json
 import sys
 
 import pytest
@@ -136,3 +137,17 @@ def test_the_tool_segmenters_registrations_are_the_documented_ones():
     assert len(detect) == 13 and sum(c[0] for c in detect.values()) == 120 and sum(c[1] for c in detect.values()) == 113
     assert sum(off[n][0] for n in detect) == 117 and sum(off[n][1] for n in detect) == 110
     assert sum(c[2] for c in detect.values()) == 0
+
+
+def test_a_rows_tools_are_read_from_the_row_whatever_the_default():
+    """--rejudge finishes a row with the tools it was registered with: its key, its method's name,
+    and "off" for the committed rows made before either (none of calib.jsonl names detect)."""
+    assert bench.row_tools({"tools": "detect", "method": "contextual+cmaes"}) == "detect"
+    assert bench.row_tools({"method": "contextual+cmaes (default network), tools detect"}) == "detect"
+    assert bench.row_tools({"method": "contextual+cmaes (default network)"}) == "off"
+    assert bench.row_tools({"target": "unmatched X-ray"}) == "off"
+    raw = [json.loads(line) for line in (ROWS / "calib.jsonl").read_text().splitlines()]
+    assert {bench.row_tools(r) for r in raw} == {"off"}
+    raw = [json.loads(line) for line in (ROWS / "tools_detect.jsonl").read_text().splitlines()]
+    assert {bench.row_tools(r) for r in raw} == {"detect"}
+    assert all(r["condition"].endswith("default, tools detect") for r in bench.load_rows([ROWS / "tools_detect.jsonl"]))
