@@ -12,7 +12,7 @@ the true pose); a pixel is a tool's where the tools' line integral (``mu(60 keV)
 over materials) is at least :data:`TOOL_LINE_INTEGRAL` (about 0.15 mm of steel or 0.4 mm of
 titanium on the ray). Each frame is prepared as ``ctxreg register`` prepares it
 (:func:`register.xray.prepare.prepare_xray` with the CT: field, intensity, tone), with ``tools="off"``
-(the default) and ``"detect"``, its polarity taken as the true pose confirms it. Per condition with
+and ``"detect"`` (the default), its polarity taken as the true pose confirms it. Per condition with
 tools:
 
 * ``tools in field``: the share of the collimator's true field that is tool (median over frames);
@@ -30,7 +30,10 @@ tools:
 * the detector's recall and precision (:func:`detection_scores`) of the tool pixels the field kept.
 
 Per condition without tools: the frames where the detector leaves pixels out, and their share of
-the field (median, largest). Prints one row per condition and, with ``--frames``, one per frame.
+the field (median, largest). Prints one row per condition and, with ``--frames``, one per frame;
+then what detection costs: the seconds of ``prepare_xray`` with ``tools="off"`` and ``"detect"``
+on each frame, one after the other in the same process (the segmenter loaded before the first),
+medians per condition and their ratio.
 """
 
 from __future__ import annotations
@@ -173,7 +176,7 @@ def main() -> int:
 
     segmenter = ToolMask.shared()
     floor = VerdictSettings().min_tone_fit
-    rows, free_rows, frame_rows = [], [], []
+    rows, free_rows, frame_rows, seconds = [], [], [], []
     t0, done, total = time.perf_counter(), 0, len(chosen) * a.cases
     for study, name, has_tools in chosen:
         volume, center, _, found, frames = study_frame_files(study, name, a.ct, a.cases, a.out)
@@ -182,8 +185,11 @@ def main() -> int:
             xray = load_xray(path)
             h, w = xray.shape
             field = np.ones((h, w), bool) if frames.collimator is None else frames.collimator.mask(h, w)
-            off = prepare_xray(xray, volume=volume, center_lps=center)
+            t_off = time.perf_counter()
+            off = prepare_xray(xray, volume=volume, center_lps=center, tools="off")
+            t_on = time.perf_counter()
             on = prepare_xray(xray, volume=volume, center_lps=center, tools="detect")
+            seconds.append((name, t_on - t_off, time.perf_counter() - t_on))
             detected = on.tools
             if not has_tools:
                 free.append((i, float(detected.sum() / max(off.full_mask.sum(), 1))))
@@ -245,6 +251,15 @@ def main() -> int:
         print("|---|---|---|---|---|---|")
         for name, n, k, med, worst, which in free_rows:
             print(f"| `{name}` | {n} | {k} | {100 * med:.2f} % | {100 * worst:.2f} % | {which} |")
+    if seconds:  # the segmenter loaded before the first frame: both columns warm
+        print("\n| condition | frames | prepare_xray s, off: median | detect: median | detect / off |")
+        print("|---|---|---|---|---|")
+        for name in dict.fromkeys(n for n, _, _ in seconds):
+            s_off = np.median([u for n, u, _ in seconds if n == name])
+            s_on = np.median([v for n, _, v in seconds if n == name])
+            print(f"| `{name}` | {sum(n == name for n, _, _ in seconds)} | {s_off:.2f} | {s_on:.2f} | {s_on / s_off:.2f} |")
+        s_off, s_on = np.median([u for _, u, _ in seconds]), np.median([v for _, _, v in seconds])
+        print(f"| all | {len(seconds)} | {s_off:.2f} | {s_on:.2f} | {s_on / s_off:.2f} |")
     if a.frames and frame_rows:
         print("\n| condition | frame | tools in field | tools in the mask: off -> detect | tone fit: off -> detect | "
               "local similarity: off -> detect |")

@@ -548,12 +548,12 @@ def register_xray(ct, xray, *, log: Callable[[str], None] | None = None, note: C
             override of the intensity step (only with ``"intensity"`` among the steps); tone:
             ``"ct"`` maps a display image's values onto the CT's line integrals in its field,
             ``"off"`` keeps them (:class:`register.xray.preprocess.Intensity`).
-        tools: ``"off"`` (default) does not look for metal tools; ``"detect"`` leaves those the
-            shipped segmenter finds in the field out of the similarities' mask
+        tools: ``"detect"`` (default, :data:`register.xray.field.TOOLS_DEFAULT`) leaves the metal
+            tools the shipped segmenter finds in the field out of the similarities' mask
             (:class:`learn.tool_mask.ToolMask`; where ``"field"`` is the first preprocessing step:
             tools are looked for inside the detected field, and result.json's
-            ``field.excluded.tools`` counts them). Off by default: the verdict's thresholds were
-            calibrated without it (docs/xray_input.md, "Metal tools").
+            ``field.excluded.tools`` counts them); ``"off"`` does not look for them
+            (docs/xray_input.md, "Metal tools").
         orient: how the stored X-ray is turned into the CT's view first (a name of
             :data:`register.xray.io.ORIENTATIONS`: ``"none"``, ``"flip-left-right"``, ...); the
             figures show the X-ray so turned.

@@ -148,8 +148,9 @@ __all__ = ["FieldError", "FieldSettings", "Field", "detect_field", "log_view", "
 #: (:meth:`Field.without_tools`); ``"off"``: not looked for.
 TOOL_OPTIONS = ("detect", "off")
 #: The one default of ``tools`` (``prepare_xray``, ``register_xray``, ``ctxreg register --tools``,
-#: the benchmarks): ``"off"`` while the verdict's thresholds are those calibrated without detection.
-TOOLS_DEFAULT = "off"
+#: the benchmarks): ``"detect"``. The verdict's thresholds are calibrated on registrations made
+#: both ways (benchmarks/verdict_rows/calib.jsonl and calib_detect.jsonl; docs/results.md).
+TOOLS_DEFAULT = "detect"
 
 #: A detected tool piece is kept only where its median pixel attenuates more than this share of the
 #: field's valid pixels (:func:`attenuating_pieces`): metal adds attenuation to whatever it lies

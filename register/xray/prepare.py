@@ -218,12 +218,12 @@ def prepare_xray(xray, *, volume=None, center_lps=None, init_params=None, scene:
         size: ``(H, W)`` px the optimiser's image fits inside (aspect kept, sides multiples of 4;
             :func:`fit_to_size`), each side in [8, 4096]; one number is a square box.
         sdd_mm, sod_mm, pixel_spacing_mm: explicit geometry (override tags and scene).
-        tools: ``"off"`` (default): metal tools are not looked for; ``"detect"``: those the shipped
+        tools: ``"detect"`` (default, :data:`register.xray.field.TOOLS_DEFAULT`): those the shipped
             tool segmenter (:class:`learn.tool_mask.ToolMask`) finds in the field are left out of
             ``mask`` as the field's clipped plateaus are (the network's mask keeps them, as its
             training targets do), but for pieces that attenuate less than most of the field
             (:func:`register.xray.field.attenuating_pieces`: not metal; the steps run again
-            without them). Only with ``"field"`` as the first step.
+            without them). Only with ``"field"`` as the first step. ``"off"``: not looked for.
     """
     if tools not in TOOL_OPTIONS:
         raise PreprocessError(f"tools must be one of {', '.join(TOOL_OPTIONS)}, got {tools!r}")
