@@ -32,6 +32,17 @@ def pytest_collection_modifyitems(config, items):
     items[:] = [item for name in order for item in rng.sample(modules[name], len(modules[name]))]
 
 
+def load_benchmark(name: str):
+    """The script ``benchmarks/<name>.py`` as a module (benchmarks/ is no package, and putting it on
+    sys.path would let its learn.py and register.py shadow the packages)."""
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location(name, REPO / "benchmarks" / f"{name}.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
 def shared_file(relative: str) -> Path:
     """A file under ../shared/data, or skip the test saying what is missing."""
     path = SHARED_DATA / relative
