@@ -308,8 +308,8 @@ class RegisterCommand:
     tools: str = field(default=TOOLS_DEFAULT, metadata=opt(
         "metal tools in the field (screws, K-wires, plates, retractors, cables): detect finds them with the "
         "shipped segmenter (models/tool_mask) and leaves them out of the similarities' pixels as clipped plateaus "
-        "are (result.json: field.excluded.tools), but for pieces that attenuate less than half the field (the "
-        "default); off does not look for them (docs/xray_input.md)", group="image", choices=TOOL_OPTIONS))
+        "are (result.json: field.excluded.tools), but for pieces that attenuate less than half the field; off does "
+        "not look for them (docs/xray_input.md)", group="image", choices=TOOL_OPTIONS))
     orient: str = field(default="none", metadata=opt(
         "how the stored X-ray is turned into the CT's view before anything else: mirrored (flip-left-right, "
         "flip-top-bottom), rotated counter-clockwise (rotate-90/180/270) or both (transpose, transverse); for "
