@@ -143,8 +143,10 @@ def small_outputs() -> dict[str, "np.ndarray"]:
                                        torch.from_numpy(np.repeat(current[None], 8, 0).astype(np.float32)),
                                        log_display=logs, bone_dark=draw_tensors(draws)["polarity"] == 0)
     out["prepared_batch"] = torch.stack([bt, bc]).numpy()
+    # tools off: the set pins the registration's arithmetic, not a default (the segmenter would see
+    # this 48 px DRR enlarged to 256 px and take pieces of it)
     reg = register_xray(ct, XRayImage(pixels=out["render_line"], attenuation_bright=True), method="cmaes",
-                        size=(32, 32), restarts=0, init=[0.0, 0.0, 0.0, 0.0, 0.0, 0.0])
+                        size=(32, 32), restarts=0, init=[0.0, 0.0, 0.0, 0.0, 0.0, 0.0], tools="off")
     out["registration_pose"] = np.asarray(reg.result.pose, np.float64)
     torch.manual_seed(0)
     net = pose_update_net(backbone="tiny")
