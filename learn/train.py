@@ -1083,9 +1083,10 @@ def validate_no_motion(cfg: TrainConfig, *, device: str = "cpu") -> dict:
 
     if not cfg.online:
         raise TrainConfigError("validate_no_motion: the config must draw its pairs online (train.pairs)")
-    source = _OnlineSource(cfg, resolve_device(device))
+    dev = resolve_device(device)
+    source = _OnlineSource(cfg, dev)
     try:
-        return _validate(_NoMotion(), source, cfg, resolve_device(device))
+        return _validate(_NoMotion(), source, cfg, dev)
     finally:
         source.close()
 
