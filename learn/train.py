@@ -47,7 +47,7 @@ from learn.data import PairDataset
 from learn.features import CACHE_FILE, FeatureCache, FeatureCacheError, feature_bytes_per_image
 from learn.image_term import ImageTerm
 from learn.labels import LabelNormalizer, geodesic_label
-from learn.model import PoseUpdateNet, PoseUpdateOutput, Weights, pose_update_net
+from learn.model import PoseInputError, PoseUpdateNet, PoseUpdateOutput, Weights, pose_update_net
 from learn.online import FRAMINGS, NearPairs, OnlinePairs, OnlinePairsError, check_trainable, current_field_problem
 from learn.preprocess import build
 from sim.campaign import open_dataset
@@ -99,6 +99,16 @@ class TrainConfig:
             "efficientnet-lite0", whose ImageNet weights the set-up installs).
         weights_path: local torchvision DenseNet checkpoint (no download is possible).
         freeze_backbone: train the heads only.
+        train_backbone_from: with ``freeze_backbone``, the backbone's stage (a child of
+            ``backbone.features``, e.g. ``"block11"`` of ``efficientnet-lite0``: the stride-32
+            stages) from which on its weights train too, the stages before it staying frozen.
+            The trained stages' batch norm keeps its running statistics (eval mode, as the rest
+            of a frozen backbone): a fine-tuning of the pretrained filters, not of their
+            normalisation, so batches of a few dozen pairs do not add noise there. Default
+            None: the heads only.
+        backbone_lr_scale: the trained backbone stages' learning rate as a share of ``lr``
+            (default 0.1: pretrained filters move more slowly than the new heads), on every
+            schedule.
         physics: campaign physics name of the images (default: the campaign's first); with
             ``current_physics``, of the target images only.
         current_physics: campaign physics name of the *current* images of each pair (online
@@ -200,6 +210,8 @@ class TrainConfig:
     weights: str = "none"
     weights_path: str | None = None
     freeze_backbone: bool = False
+    train_backbone_from: str | None = None
+    backbone_lr_scale: float = 0.1
     physics: str | None = None
     current_physics: str | None = None
     subjects_per_batch: int | None = None
@@ -307,6 +319,19 @@ class TrainConfig:
             raise TrainConfigError(f"train.relative_eps must be positive, got {self.relative_eps}")
         if int(self.head_channels) < 1:
             raise TrainConfigError(f"train.head_channels must be >= 1, got {self.head_channels}")
+        if self.train_backbone_from is not None:
+            if not isinstance(self.train_backbone_from, str) or not self.train_backbone_from:
+                raise TrainConfigError(f"train.train_backbone_from must be a stage name such as 'block11', "
+                                       f"got {self.train_backbone_from!r}")
+            if not self.freeze_backbone:
+                raise TrainConfigError("train.train_backbone_from needs train.freeze_backbone = true (it trains the "
+                                       "stages from there on of a backbone otherwise frozen)")
+            if self.cache_features:
+                raise TrainConfigError("train.cache_features cannot be used with train.train_backbone_from (the "
+                                       "trained stages' maps change every step)")
+        if not (isinstance(self.backbone_lr_scale, (int, float)) and math.isfinite(self.backbone_lr_scale)
+                and 0 < self.backbone_lr_scale <= 1):
+            raise TrainConfigError(f"train.backbone_lr_scale must be in (0, 1], got {self.backbone_lr_scale!r}")
         if self.cache_features:
             if not self.freeze_backbone:
                 raise TrainConfigError("train.cache_features needs train.freeze_backbone = true (the features of a "
@@ -666,8 +691,12 @@ def train(cfg: TrainConfig, *, resume: bool = False, log=print, device: str = "a
             log(f"training on {device} ({torch.cuda.get_device_name(device) if device.type == 'cuda' else device})")
         if source is None:  # the cache needs the (frozen) backbone; neither draws random numbers
             source = _CachedSource(cfg, model, rebuild=resumed is None, log=log)
-        params = [p for p in model.parameters() if p.requires_grad]
-        optimizer = torch.optim.Adam(params, lr=cfg.lr)
+        if cfg.train_backbone_from is not None:
+            try:
+                model.train_backbone_from(cfg.train_backbone_from)
+            except PoseInputError as e:
+                raise TrainConfigError(f"train.train_backbone_from: {e}") from None
+        optimizer = torch.optim.Adam(_param_groups(model, cfg), lr=cfg.lr)
         scheduler = torch.optim.lr_scheduler.StepLR(optimizer, step_size=cfg.lr_step, gamma=cfg.lr_decay)
         iteration = 0
         if resumed is not None:
@@ -723,16 +752,30 @@ def _silent(*_args, **_kwargs) -> None:
     """The log of a rank other than 0 under torchrun."""
 
 
+def _param_groups(model, cfg: TrainConfig) -> list[dict]:
+    """Adam's parameter groups: the trained parameters outside the backbone at ``lr``, the
+    backbone's trained ones (``train_backbone_from``) at ``lr * backbone_lr_scale``; each group
+    records its ``lr_scale``, which every schedule multiplies its rate by."""
+    backbone = {id(p) for p in model.backbone.parameters()}
+    rest = [p for p in model.parameters() if p.requires_grad and id(p) not in backbone]
+    groups = [{"params": rest, "lr": cfg.lr, "lr_scale": 1.0}]
+    trained = [p for p in model.backbone.parameters() if p.requires_grad]
+    if trained:
+        groups.append({"params": trained, "lr": cfg.lr * cfg.backbone_lr_scale, "lr_scale": cfg.backbone_lr_scale})
+    return groups
+
+
 def _follow_schedule(optimizer, scheduler, cfg: TrainConfig, iteration: int) -> None:
     """After a resume: the step schedule of ``cfg`` (``lr``, ``lr_step``, ``lr_decay``) in place of
     the checkpoint's, its rate at ``iteration`` set on every parameter group (only where the
     schedule changed: the restored state is otherwise bit for bit the checkpoint's)."""
     scheduler.step_size, scheduler.gamma = cfg.lr_step, cfg.lr_decay
-    scheduler.base_lrs = [cfg.lr] * len(optimizer.param_groups)
+    scales = [group.get("lr_scale", 1.0) for group in optimizer.param_groups]
+    scheduler.base_lrs = [cfg.lr * k for k in scales]
     rate = cfg.lr * cfg.lr_decay ** (iteration // cfg.lr_step)
-    for group in optimizer.param_groups:
-        group["initial_lr"], group["lr"] = cfg.lr, rate
-    scheduler._last_lr = [rate] * len(optimizer.param_groups)
+    for group, k in zip(optimizer.param_groups, scales):
+        group["initial_lr"], group["lr"] = cfg.lr * k, rate * k
+    scheduler._last_lr = [rate * k for k in scales]
 
 
 def scheduled_rate(cfg: TrainConfig, progress: float) -> float:
@@ -789,7 +832,7 @@ def _loop(cfg, source, model, optimizer, scheduler, device, iteration, rows, log
             done = ((elapsed_before + time.perf_counter() - started) / (elapsed_before + stop_after_s)
                     if stop_after_s is not None and cfg.cosine_over == "auto" else iteration / cfg.iterations)
             for group in optimizer.param_groups:
-                group["lr"] = scheduled_rate(cfg, done)
+                group["lr"] = scheduled_rate(cfg, done) * group.get("lr_scale", 1.0)
         step_rate = optimizer.param_groups[0]["lr"]
         if bf16 and not all(bool(torch.isfinite(p.grad).all()) for p in params if p.grad is not None):
             skipped += 1  # a bfloat16 product overflowed: no step, as a loss scaler does

@@ -123,4 +123,9 @@ def test_a_frozen_base_backbone_stays_frozen_in_the_adaptation(tmp_path):
         fake = SimpleNamespace(physics=randomized, config={"freeze_backbone": frozen}, backbone="efficientnet-lite0",
                                head_channels=64, preprocess=("normalize",))
         cfg = _train_config(tmp_path, tmp_path / "base.pt", fake, ADAPT)
-        assert cfg.freeze_backbone is frozen
+        assert cfg.freeze_backbone is frozen and cfg.train_backbone_from is None
+        # stages of a frozen backbone trained again where the settings say so; a trained one adapts whole
+        cfg = _train_config(tmp_path, tmp_path / "base.pt", fake, replace(ADAPT, train_backbone_from="block11",
+                                                                          backbone_lr_scale=0.2))
+        assert cfg.freeze_backbone is frozen and cfg.train_backbone_from == ("block11" if frozen else None)
+        assert cfg.backbone_lr_scale == 0.2

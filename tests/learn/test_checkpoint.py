@@ -262,15 +262,45 @@ def test_a_frozen_imagenet_backbone_is_left_out_and_read_back_bitwise(tmp_path):
         assert torch.equal(got.build_model().eval()(x, y).g, ckpt.build_model().eval()(x, y).g)
 
 
-def test_a_backbone_that_differs_from_its_imagenet_file_is_stored_whole(tmp_path):
+def test_a_backbone_partly_trained_stores_only_what_differs_from_its_imagenet_file(tmp_path):
+    # e.g. train.train_backbone_from: the stages from there on trained, the others still the file's
     ckpt, _ = _frozen_run(tmp_path)
     state = dict(ckpt.model_state)
-    key = next(k for k in state if k.startswith("backbone.") and state[k].is_floating_point())
-    state[key] = state[key] + 1e-3  # e.g. a run that froze it only after some steps
+    keys = [k for k in state if k.startswith("backbone.") and state[k].is_floating_point()]
+    changed = keys[-2:]
+    for key in changed:
+        state[key] = state[key] + 1e-3
     save_checkpoint(tmp_path / "c.pt", Checkpoint(**{**ckpt.__dict__, "model_state": state}))
     raw = torch.load(tmp_path / "c.pt", weights_only=True)
-    assert raw["format_version"] == 1 and "frozen_backbone" not in raw and key in raw["model"]
-    assert torch.equal(load_checkpoint(tmp_path / "c.pt").model_state[key], state[key])
+    stored = [k for k in raw["model"] if k.startswith("backbone.")]
+    assert raw["format_version"] == 2 and stored == changed
+    assert raw["frozen_backbone"]["tensors"] == sum(k.startswith("backbone.") for k in state) - len(changed)
+    got = load_checkpoint(tmp_path / "c.pt")
+    assert list(got.model_state) == list(state)  # the state dict's order, as the network has it
+    for key, value in state.items():
+        assert torch.equal(got.model_state[key], value), key
+
+
+def test_a_backbone_that_differs_from_its_imagenet_file_everywhere_is_stored_whole(tmp_path):
+    ckpt, _ = _frozen_run(tmp_path)
+    state = {k: v + 1e-3 if k.startswith("backbone.") and v.is_floating_point() else v
+             for k, v in ckpt.model_state.items()}
+    state = {k: v + 1 if k.startswith("backbone.") and not v.is_floating_point() else v for k, v in state.items()}
+    save_checkpoint(tmp_path / "c.pt", Checkpoint(**{**ckpt.__dict__, "model_state": state}))
+    raw = torch.load(tmp_path / "c.pt", weights_only=True)
+    assert raw["format_version"] == 1 and "frozen_backbone" not in raw
+    got = load_checkpoint(tmp_path / "c.pt")
+    assert all(torch.equal(got.model_state[k], v) for k, v in state.items())
+
+
+def test_a_version_2_file_holding_a_tensor_its_backbone_lacks_is_refused(tmp_path):
+    ckpt, _ = _frozen_run(tmp_path)
+    save_checkpoint(tmp_path / "c.pt", ckpt)
+    raw = torch.load(tmp_path / "c.pt", weights_only=True)
+    raw["model"]["backbone.features.nonesuch.weight"] = torch.zeros(3)
+    torch.save(raw, tmp_path / "c.pt")
+    msg = _refusal(tmp_path / "c.pt")
+    assert "corrupt" in msg and "backbone.features.nonesuch.weight" in msg
 
 
 def test_a_left_out_backbone_whose_file_changed_or_went_is_refused_in_one_line(tmp_path):

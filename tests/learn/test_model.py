@@ -264,6 +264,39 @@ def test_frozen_backbone_step_changes_heads_only():
     assert all(changed), f"{changed.count(False)} head tensors did not change"
 
 
+def test_a_frozen_backbone_trained_from_a_stage_changes_that_stage_on_and_keeps_its_statistics():
+    """train_backbone_from: the stages from the one named train again, those before stay as they
+    were, and every batch norm keeps its running statistics (eval mode) through a training step."""
+    model = _tiny(freeze_backbone=True)
+    names = [n for n, _ in model.backbone.features.named_children()]
+    trained = model.train_backbone_from("denseblock4")
+    assert trained == names[names.index("denseblock4"):] == ["denseblock4", "norm5"]
+    model.train()
+    assert not model.backbone.training and not model.backbone.features.denseblock4.training
+    before = {k: v.clone() for k, v in model.backbone.features.state_dict().items()}
+    opt = torch.optim.Adam([p for p in model.parameters() if p.requires_grad], lr=1e-3)
+    a, b = _images(4, 48, 48)
+    loss = model.loss(model(a, b), torch.randn(4, 6))
+    opt.zero_grad()
+    loss.backward()
+    opt.step()
+    after = model.backbone.features.state_dict()
+    for k, v in after.items():
+        stage = k.split(".")[0]
+        if stage in trained and k.endswith(("weight", "bias")):
+            assert not torch.equal(v, before[k]), f"{k} did not train"
+        else:  # the stages before, and the running statistics everywhere
+            assert torch.equal(v, before[k]), k
+
+
+def test_train_backbone_from_names_the_stages_and_needs_a_frozen_backbone():
+    model = _tiny(freeze_backbone=True)
+    with pytest.raises(PoseInputError, match="no stage 'block11'.*conv0, norm0, relu0"):
+        model.train_backbone_from("block11")
+    with pytest.raises(PoseInputError, match="needs a frozen backbone"):
+        _tiny().train_backbone_from("denseblock4")
+
+
 # --------------------------------------------------------------------------------------------
 # Learning, asymmetry, loss
 # --------------------------------------------------------------------------------------------

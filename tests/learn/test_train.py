@@ -101,6 +101,51 @@ def test_cosine_over_iterations_keeps_one_schedule_under_a_time_limit(campaign, 
         config(campaign, tmp_path, cosine_over="seconds")
 
 
+def test_trained_backbone_stages_take_their_share_of_every_schedule(campaign, tmp_path):
+    """train_backbone_from: Adam's second group holds exactly the trained stages' weights, at
+    backbone_lr_scale times the heads' rate on the cosine (step by step) and on a step schedule
+    resumed with another rate; the stages before it end as they began."""
+    import learn.train as tr
+    from learn.checkpoint import load_checkpoint
+    from learn.model import pose_update_net
+
+    cfg = config(campaign, tmp_path / "c", iterations=6, val_every=3, checkpoint_every=3, lr=1e-3,
+                 lr_schedule="cosine", lr_warmup=0.2, freeze_backbone=True, train_backbone_from="denseblock4",
+                 backbone_lr_scale=0.25)
+    tr.train(replace(cfg, iterations=3), log=lambda *_: None)
+    ckpt = load_checkpoint(tmp_path / "c" / "checkpoint.pt")
+    heads, stages = ckpt.optimizer["param_groups"]
+    assert stages["lr_scale"] == 0.25 and stages["lr"] == pytest.approx(0.25 * heads["lr"]) and heads["lr"] > 0
+    model = pose_update_net(backbone="tiny", head_channels=cfg.head_channels, freeze_backbone=True)
+    model.train_backbone_from("denseblock4")
+    assert len(stages["params"]) == sum(p.requires_grad for p in model.backbone.parameters())
+    # a step schedule from here on, at another rate: both groups follow it, each at its share
+    tr.train(replace(cfg, lr_schedule="step", lr=2e-4, lr_step=1000, lr_decay=0.5), resume=True, log=lambda *_: None)
+    heads, stages = load_checkpoint(tmp_path / "c" / "checkpoint.pt").optimizer["param_groups"]
+    assert heads["lr"] == pytest.approx(2e-4) and stages["lr"] == pytest.approx(5e-5)
+    # the stages before denseblock4 never moved: a heads-only run from the same seed has them too
+    tr.train(replace(cfg, out=str(tmp_path / "h"), train_backbone_from=None), log=lambda *_: None)
+    a = load_checkpoint(tmp_path / "c" / "checkpoint.pt").model_state
+    b = load_checkpoint(tmp_path / "h" / "checkpoint.pt").model_state
+    before = [k for k in a if k.startswith("backbone.") and ".denseblock4." not in k and ".norm5." not in k]
+    assert before and all(torch.equal(a[k], b[k]) for k in before)
+    assert not torch.equal(a["backbone.features.norm5.weight"], b["backbone.features.norm5.weight"])
+
+
+def test_train_backbone_from_is_refused_where_it_cannot_apply(campaign, tmp_path):
+    from learn.train import TrainConfigError, train
+
+    with pytest.raises(TrainConfigError, match="train_backbone_from needs train.freeze_backbone = true"):
+        config(campaign, tmp_path, train_backbone_from="denseblock4")
+    with pytest.raises(TrainConfigError, match="backbone_lr_scale must be in"):
+        config(campaign, tmp_path, backbone_lr_scale=0.0)
+    with pytest.raises(TrainConfigError, match="cannot be used with train.train_backbone_from"):
+        config(campaign, tmp_path, freeze_backbone=True, train_backbone_from="denseblock4", cache_features=True)
+    with pytest.raises(TrainConfigError, match="train.train_backbone_from: the tiny backbone has no stage 'block11'"):
+        train(config(campaign, tmp_path / "x", freeze_backbone=True, train_backbone_from="block11"),
+              log=lambda *_: None)
+
+
 def test_refusals_name_the_key(campaign, tmp_path):
     from learn.train import TrainConfigError, load_train_config, train
 
