@@ -244,6 +244,16 @@ def test_channels_last_layout_computes_what_the_plain_layout_does():
     torch.testing.assert_close(got.weights, ref.weights, rtol=1e-4, atol=1e-5)
 
 
+def _one_adam_step(model) -> None:
+    """One Adam step (rate 1e-3) of ``model``'s trainable weights on 4 random 48 x 48 pairs."""
+    opt = torch.optim.Adam([p for p in model.parameters() if p.requires_grad], lr=1e-3)
+    a, b = _images(4, 48, 48)
+    loss = model.loss(model(a, b), torch.randn(4, 6))
+    opt.zero_grad()
+    loss.backward()
+    opt.step()
+
+
 def test_frozen_backbone_step_changes_heads_only():
     model = _tiny(freeze_backbone=True)
     assert all(not p.requires_grad for p in model.backbone.parameters())
@@ -252,12 +262,7 @@ def test_frozen_backbone_step_changes_heads_only():
     assert not model.backbone.training and model.heads[0].training  # BN stats stay fixed
     before_bb = {k: v.clone() for k, v in model.backbone.state_dict().items()}  # includes BN buffers
     before_heads = [p.detach().clone() for p in model.heads.parameters()]
-    opt = torch.optim.Adam([p for p in model.parameters() if p.requires_grad], lr=1e-3)
-    a, b = _images(4, 48, 48)
-    loss = model.loss(model(a, b), torch.randn(4, 6))
-    opt.zero_grad()
-    loss.backward()
-    opt.step()
+    _one_adam_step(model)
     for k, v in model.backbone.state_dict().items():
         assert torch.equal(v, before_bb[k]), k
     changed = [not torch.equal(p, q) for p, q in zip(model.heads.parameters(), before_heads)]
@@ -274,12 +279,7 @@ def test_a_frozen_backbone_trained_from_a_stage_changes_that_stage_on_and_keeps_
     model.train()
     assert not model.backbone.training and not model.backbone.features.denseblock4.training
     before = {k: v.clone() for k, v in model.backbone.features.state_dict().items()}
-    opt = torch.optim.Adam([p for p in model.parameters() if p.requires_grad], lr=1e-3)
-    a, b = _images(4, 48, 48)
-    loss = model.loss(model(a, b), torch.randn(4, 6))
-    opt.zero_grad()
-    loss.backward()
-    opt.step()
+    _one_adam_step(model)
     after = model.backbone.features.state_dict()
     for k, v in after.items():
         stage = k.split(".")[0]
