@@ -753,16 +753,17 @@ def _silent(*_args, **_kwargs) -> None:
 
 
 def _param_groups(model, cfg: TrainConfig) -> list[dict]:
-    """Adam's parameter groups: the trained parameters outside the backbone at ``lr``, the
-    backbone's trained ones (``train_backbone_from``) at ``lr * backbone_lr_scale``; each group
-    records its ``lr_scale``, which every schedule multiplies its rate by."""
+    """Adam's parameter groups: every trained parameter at ``lr``, except the stages of a frozen
+    backbone trained again (``train_backbone_from``), at ``lr * backbone_lr_scale``; each group
+    records its ``lr_scale``, which every schedule multiplies its rate by. A backbone trained
+    whole (not frozen) trains at ``lr`` with the heads: one group."""
+    if cfg.train_backbone_from is None:
+        return [{"params": [p for p in model.parameters() if p.requires_grad], "lr": cfg.lr, "lr_scale": 1.0}]
     backbone = {id(p) for p in model.backbone.parameters()}
     rest = [p for p in model.parameters() if p.requires_grad and id(p) not in backbone]
-    groups = [{"params": rest, "lr": cfg.lr, "lr_scale": 1.0}]
-    trained = [p for p in model.backbone.parameters() if p.requires_grad]
-    if trained:
-        groups.append({"params": trained, "lr": cfg.lr * cfg.backbone_lr_scale, "lr_scale": cfg.backbone_lr_scale})
-    return groups
+    stages = [p for p in model.backbone.parameters() if p.requires_grad]
+    return [{"params": rest, "lr": cfg.lr, "lr_scale": 1.0},
+            {"params": stages, "lr": cfg.lr * cfg.backbone_lr_scale, "lr_scale": cfg.backbone_lr_scale}]
 
 
 def _follow_schedule(optimizer, scheduler, cfg: TrainConfig, iteration: int) -> None:

@@ -132,6 +132,24 @@ def test_trained_backbone_stages_take_their_share_of_every_schedule(campaign, tm
     assert not torch.equal(a["backbone.features.norm5.weight"], b["backbone.features.norm5.weight"])
 
 
+def test_a_backbone_trained_whole_takes_the_full_rate_with_the_heads(campaign, tmp_path):
+    """Without train_backbone_from every trained weight, backbone and heads, is in one Adam group
+    at lr (backbone_lr_scale is for a frozen backbone's stages only): a fine-tuning such as ctxreg
+    adapt's moves its whole network at the rate it was given."""
+    from learn.checkpoint import load_checkpoint
+    from learn.model import pose_update_net
+    from learn.train import train
+
+    for frozen in (False, True):
+        out = tmp_path / f"frozen_{frozen}"
+        train(config(campaign, out, iterations=2, val_every=2, checkpoint_every=2, lr=1e-3, freeze_backbone=frozen),
+              log=lambda *_: None)
+        (group,) = load_checkpoint(out / "checkpoint.pt").optimizer["param_groups"]
+        model = pose_update_net(backbone="tiny", head_channels=64, freeze_backbone=frozen)
+        assert group["lr"] == pytest.approx(1e-3) and group["lr_scale"] == 1.0
+        assert len(group["params"]) == sum(p.requires_grad for p in model.parameters())
+
+
 def test_train_backbone_from_is_refused_where_it_cannot_apply(campaign, tmp_path):
     from learn.train import TrainConfigError, train
 
