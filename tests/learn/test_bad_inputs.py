@@ -19,6 +19,8 @@ TYPE_CASES = [
     ("weights_path", "3.0", "a string, got the number 3.0"),
     ("freeze_backbone", "1", "true or false, got the integer 1"),
     ("freeze_backbone", '"yes"', "true or false, got the string 'yes'"),
+    ("train_backbone_from", "11", "a string, got the integer 11"),
+    ("backbone_lr_scale", '"0.1"', "a finite number, got the string '0.1'"),
     ("physics", "2", "a string, got the integer 2"),
     ("current_physics", "[]", "a string, got the list []"),
     ("subjects_per_batch", "2.0", "an integer, got the number 2.0"),
