@@ -18,7 +18,8 @@ study's own frames, cached in ``--out``), registered from AP through ``register_
   grid.
 
 Prints one table: success (mTRE < 10 mm, the issue's bar; and with rotation < 1 deg too), mean
-rotation and translation errors (over the frames registered, refused ones left out), median and
+rotation and translation errors and the translation's part along the beam (depth, what one view
+reads from the magnification alone; over the frames registered, refused ones left out), median and
 slowest seconds per registration (the whole ``register_xray``: reading, field, polarity,
 registration) and the ratio to the peer, median seconds of the grid, the share of frames whose grid
 was skipped (methods with the search in ``auto``); and a second with the grid's split (rendering
@@ -138,13 +139,13 @@ def main() -> int:
         print(f"\nevery target: {a.cases} frames each from AP through register_xray (refused frames count as "
               f"failures; {time.strftime('%Y-%m-%d %H:%M')}, 2-core CPU)\n")
         print("| target | refused | method | mTRE < 10 mm | and rotation < 1 deg | mean rotation error deg | "
-              "mean translation error mm | median s / registration | grid skipped |")
-        print("|---|---|---|---|---|---|---|---|---|")
+              "mean translation error mm | of it in depth mm | median s / registration | grid skipped |")
+        print("|---|---|---|---|---|---|---|---|---|---|")
         for name, (rows, refused) in summary:
             for method, r in rows.items():
                 c = _columns(r)
                 print(f"| {name} | {refused} | {method} | {c['hit']} | {c['ok']} | {c['rot']} | {c['trans']} | "
-                      f"{c['median_s']} | {c['skipped']} |")
+                      f"{c['depth']} | {c['median_s']} | {c['skipped']} |")
     return 0
 
 
@@ -185,6 +186,7 @@ def _columns(frames: list[dict]) -> dict[str, str]:
     done = [f for f in frames if not f["refused"]]
     rot = np.array([f["rot"] for f in done], float)
     trans = np.array([f["trans"] for f in done], float)
+    depth = np.array([f["depth"] for f in done], float)
     grid = np.array([f["grid_s"] for f in done], float)
     searched = [f["skipped"] for f in done if f["skipped"] is not None]
     modes = {f["search_mode"] for f in done}
@@ -192,6 +194,7 @@ def _columns(frames: list[dict]) -> dict[str, str]:
     return {"hit": _pct([f["hit"] for f in frames]), "ok": _pct([f["ok"] for f in frames]),
             "rot": "-" if not len(rot) else f"{rot.mean():.2f}",
             "trans": "-" if not len(trans) else f"{trans.mean():.1f}",
+            "depth": "-" if not len(depth) else f"{depth.mean():.1f}",
             "median_s": f"{np.median(seconds):.1f}", "slowest_s": f"{np.max(seconds):.1f}",
             "median_grid_s": f"{np.nanmedian(grid):.2f}" if np.isfinite(grid).any() else "-",
             "skipped": _pct(searched) if searched else ("off" if modes == {"off"} else "-")}
@@ -200,7 +203,7 @@ def _columns(frames: list[dict]) -> dict[str, str]:
 def _measure(a, study, target, volume, center):
     """One target's frames through every method: prints its table (and the grid's split) and returns
     ``(rows, refused)``: per method one dict per frame: ``hit`` (mTRE < 10 mm), ``ok`` (and rotation
-    < 1 deg), ``rot`` / ``trans`` (deg, mm; NaN when refused), ``s`` (seconds), ``grid_s`` (the grid's
+    < 1 deg), ``rot`` / ``trans`` / ``depth`` (deg, mm, mm; NaN when refused), ``s`` (seconds), ``grid_s`` (the grid's
     seconds, NaN where it did not run), ``skipped`` (whether the grid was skipped; None for a method
     without the search in auto or always), ``search_mode``, ``refused``."""
     from register.api import SEARCH_METHODS, register_xray
@@ -242,7 +245,7 @@ def _measure(a, study, target, volume, center):
             try:
                 res = register_xray(volume, path, center=center, tools=a.tools, **kw)
             except frame_refusals() as exc:  # the frame's content refused: a failed case, as in the study
-                rows[name].append({"hit": False, "ok": False, "rot": np.nan, "trans": np.nan,
+                rows[name].append({"hit": False, "ok": False, "rot": np.nan, "trans": np.nan, "depth": np.nan,
                                    "s": time.perf_counter() - t0, "grid_s": np.nan, "skipped": None,
                                    "search_mode": kw.get("search", "auto") if kw["method"] in SEARCH_METHODS else None,
                                    "refused": True})
@@ -253,7 +256,8 @@ def _measure(a, study, target, volume, center):
             e = pose_errors(res.pose, T_true, points, center, np.eye(3, 4), np.eye(3, 4), 1.0)
             searched = res.search_mode in ("auto", "always")
             rows[name].append({"hit": e["mtre_mm"] < 10, "ok": e["mtre_mm"] < 10 and e["rot_err_deg"] < 1,
-                               "rot": e["rot_err_deg"], "trans": e["trans_err_mm"], "s": seconds,
+                               "rot": e["rot_err_deg"], "trans": e["trans_err_mm"], "depth": e["depth_err_mm"],
+                               "s": seconds,
                                "grid_s": res.result.stage_seconds.get("search_grid", np.nan),
                                "skipped": (not res.search_ran) if searched else None, "search_mode": res.search_mode,
                                "refused": False})
@@ -262,6 +266,7 @@ def _measure(a, study, target, volume, center):
                                      "method": name, "tools": a.tools, "case": i, "true_params": params,
                                      "mtre_mm": e["mtre_mm"],
                                      "rot_err_deg": e["rot_err_deg"], "trans_err_mm": e["trans_err_mm"],
+                                     "depth_err_mm": e["depth_err_mm"],
                                      "seconds": seconds, "result": res.to_dict()})
             record = res.result.search
             if key == "null" and record["grid_poses"]:  # the grid's two parts on this frame
@@ -280,13 +285,14 @@ def _measure(a, study, target, volume, center):
     print(f"\n{target.name}: {a.cases} frames from AP through register_xray ({refused} refused by their content, "
           f"counted as failures, left out of the mean errors; {time.strftime('%Y-%m-%d %H:%M')}, 2-core CPU)\n")
     print("| method | mTRE < 10 mm | and rotation < 1 deg | mean rotation error deg | mean translation error mm "
-          "| median s / registration | slowest s | ratio to the peer | median s of the grid | grid skipped |")
-    print("|---|---|---|---|---|---|---|---|---|---|")
+          "| of it in depth mm | median s / registration | slowest s | ratio to the peer | median s of the grid "
+          "| grid skipped |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|")
     for name, r in rows.items():
         c = _columns(r)
         ratio = "-" if not np.isfinite(peer) else f"{np.median([f['s'] for f in r]) / peer:.2f}x"
-        print(f"| {name} | {c['hit']} | {c['ok']} | {c['rot']} | {c['trans']} | {c['median_s']} | {c['slowest_s']} | "
-              f"{ratio} | {c['median_grid_s']} | {c['skipped']} |")
+        print(f"| {name} | {c['hit']} | {c['ok']} | {c['rot']} | {c['trans']} | {c['depth']} | {c['median_s']} | "
+              f"{c['slowest_s']} | {ratio} | {c['median_grid_s']} | {c['skipped']} |")
     if not split:
         return rows, refused
     s = np.array([(x[1], x[2]) for x in split])

@@ -21,6 +21,9 @@ def pose_errors(T_est: np.ndarray, T_true: np.ndarray, points_lps: np.ndarray, c
 
     * ``rot_err_deg``: the geodesic angle of ``R_est^T R_true`` (deg);
     * ``trans_err_mm``: ``|t_est - t_true|``, the anatomy centre's displacement (mm);
+    * ``depth_err_mm``: its component along the camera's axis (source to detector),
+      ``|t_est[2] - t_true[2]|`` (mm): what a single view reads from the magnification alone
+      (the rest, ``sqrt(trans^2 - depth^2)``, lies across the beam);
     * ``mtre_mm``: the mean 3-D distance between ``points_lps`` (``(N, 3)`` LPS mm, e.g.
       :func:`bone_points`) placed by the two poses (mm);
     * ``mpd_mm``: the mean distance between their projections on the detector, both through
@@ -50,6 +53,7 @@ def pose_errors(T_est: np.ndarray, T_true: np.ndarray, points_lps: np.ndarray, c
     return {
         "rot_err_deg": float(rotation_error_deg(T_est, T_true)),
         "trans_err_mm": float(translation_error_mm(T_est, T_true)),
+        "depth_err_mm": float(abs(np.asarray(T_est, float)[2, 3] - np.asarray(T_true, float)[2, 3])),
         "mtre_mm": float(np.linalg.norm(cam_est - cam_true, axis=1).mean()),
         "mpd_mm": float(distances.mean() * spacing) if distances.size else float("nan"),
     }

@@ -255,6 +255,7 @@ def test_pose_errors_against_hand_computed_values():
                       g.pixel_spacing_mm)
     assert err["rot_err_deg"] == pytest.approx(0.0, abs=1e-9)
     assert err["trans_err_mm"] == pytest.approx(5.0)
+    assert err["depth_err_mm"] == pytest.approx(0.0, abs=1e-12)  # across the beam only
     assert err["mtre_mm"] == pytest.approx(5.0)
     # a lateral shift of 5 mm at depth z projects to 5 * SDD / z mm on the detector
     z = (pts - c) @ T_true[2, :3] + T_true[2, 3]
@@ -268,6 +269,12 @@ def test_pose_errors_against_hand_computed_values():
                       g.pixel_spacing_mm)
     assert err["rot_err_deg"] == pytest.approx(2.0, rel=1e-9)
     assert err["trans_err_mm"] == pytest.approx(0.0, abs=1e-9)
+    # the centre moved along the camera's axis by 7 mm and 1 mm across it: depth 7 of sqrt(50)
+    T_deep = T_true.copy()
+    T_deep[:3, 3] += np.array([0.0, 1.0, -7.0])
+    err = pose_errors(T_deep, T_true, pts, c, projection_matrix(g, T_deep, c), projection_matrix(g, T_true, c),
+                      g.pixel_spacing_mm)
+    assert err["depth_err_mm"] == pytest.approx(7.0) and err["trans_err_mm"] == pytest.approx(np.sqrt(50.0))
 
 
 def test_cases_are_seeded_and_local_starts_stay_within_their_limits():
