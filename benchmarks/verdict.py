@@ -19,7 +19,8 @@ The rows of docs/results.md's tables are committed, compacted (``--compact OUT``
 tables read), in ``benchmarks/verdict_rows/`` (``calib.jsonl``, ``heldout.jsonl``, ``unmatched.jsonl``,
 ``heldout_chains.jsonl``: six more display chains; ``heldout5.jsonl``: three more, new poses, a
 512 px detector; ``heldout6.jsonl``: metal tools behind two more chains and two chains without,
-384 px; docs/results.md)::
+384 px; each registered again with the tool segmenter as ``*_detect.jsonl``; ``heldout20_detect.jsonl``:
+twenty frames of the four held-out conditions the verdict accepted least on ten; docs/results.md)::
 
     .venv/bin/python benchmarks/verdict.py benchmarks/verdict_rows/calib.jsonl --calibrate
     .venv/bin/python benchmarks/verdict.py benchmarks/verdict_rows/heldout.jsonl benchmarks/verdict_rows/unmatched.jsonl
