@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from learn.checkpoint import Checkpoint, load_checkpoint, save_checkpoint
-from learn.shipped import ModelCardError, export_model, load_card, shipped_models
+from learn.shipped import DEFAULT_MODEL, ModelCardError, export_model, load_card, shipped_models
 
 
 def _trained(tmp_path):
@@ -72,6 +72,39 @@ def test_every_shipped_model_loads_and_matches_its_card(name):
     # the network's own accuracy only: no pipeline (refinement, global search) numbers on a card
     assert not [k for k in card["accuracy"] if "cmaes" in k or k.startswith("register")]
     assert (folder / card["model"]["file"]).stat().st_size < 20 * 2**20  # weights only: a few MB
+
+
+def test_no_shipped_model_trained_on_the_validation_pelvis():
+    """pelvis_chiconasa_2mm validates work on a patient never seen: no shipped or base model's
+    training config names it among its campaign's CTs (comments may say it is left out)."""
+    from sim.core.atomic import read_toml
+
+    root = shipped_models()[DEFAULT_MODEL].parents[1]
+    for name, folder in shipped_models().items():
+        config = root / load_card(folder)["training"]["config"]
+        if not config.is_file():  # the oldest cards name a config by its run, not its file
+            continue
+        dataset = (config.parent / read_toml(config, ValueError, "config")["train"]["dataset"]).resolve()
+        if dataset.suffix != ".toml":
+            continue
+        paths = [ct["path"] for ct in read_toml(dataset, ValueError, "campaign").get("cts", [])]
+        assert paths and not [p for p in paths if "chiconasa" in p], f"{name}: {dataset.name} trains on {paths}"
+
+
+def test_the_base_network_is_one_ctxreg_adapt_starts_from(tmp_path):
+    """pelvis_base is a realistic randomized network: ctxreg adapt builds its run from it (its
+    weights the run's start, its randomization the pairs')."""
+    from learn.adapt import ADAPT, _train_config
+    from learn.shipped import resolve_model
+
+    path = resolve_model("pelvis_base")
+    base = load_checkpoint(path)
+    cfg = _train_config(tmp_path, path, base, ADAPT)
+    assert cfg.init_from == str(path) and cfg.backbone == "small" and not cfg.freeze_backbone
+    # the default model's randomization, and what was added since at its off value (field_missed 0)
+    shipped = load_checkpoint(resolve_model(DEFAULT_MODEL)).physics["randomize"]
+    assert {k: v for k, v in cfg.randomize.items() if k in shipped} == shipped
+    assert all(v == 0.0 for k, v in cfg.randomize.items() if k not in shipped)
 
 
 def test_a_model_is_named_or_a_path_and_the_default_is_shipped(tmp_path):

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import csv
 from dataclasses import replace
+from pathlib import Path
 
 import pytest
 import torch
@@ -363,3 +364,28 @@ def test_a_second_run_into_one_folder_is_refused_at_once(campaign, tmp_path):
         with pytest.raises(FolderBusyError, match=r"ctxreg train \(PID \d+ on .*\) is working in this folder"):
             train(cfg, log=lambda *_: None)
     assert not (tmp_path / "busy" / "checkpoint.pt").exists()
+
+
+CONFIGS = sorted((Path(__file__).resolve().parents[2] / "configs").rglob("*.toml"))
+
+
+@pytest.mark.parametrize("path", CONFIGS, ids=lambda p: str(p.relative_to(p.parents[1] if p.parent.name != "configs" else p.parent)))
+def test_every_committed_config_loads_and_names_a_campaign_or_a_run(path):
+    """A committed config is what its comment's command runs: every key known and of its type
+    (load_train_config refuses others), its dataset a committed campaign file or a run's output,
+    its starting weights a committed model, a resume state or a run's checkpoint."""
+    from learn.train import load_train_config
+
+    cfg = load_train_config(path)
+    root = path.parents[1] if path.parent.name == "configs" else path.parents[2]
+    dataset = Path(cfg.dataset)
+    if dataset.suffix == ".toml":
+        assert dataset.is_file(), f"{path.name}: train.dataset {dataset} is not a committed campaign file"
+        assert dataset.parent == root / "campaigns"
+    else:
+        assert dataset.is_relative_to(root / "runs"), f"{path.name}: train.dataset {dataset} is neither a campaign nor a run"
+    if cfg.init_from:
+        init = Path(cfg.init_from)
+        assert init.parts[len(root.parts)] in ("models", "resume", "runs"), f"{path.name}: init_from {init}"
+        if init.parts[len(root.parts)] == "models":
+            assert init.is_file(), f"{path.name}: init_from {init} is not a committed model"
