@@ -235,7 +235,7 @@ def adapt(ct: str | os.PathLike, out: str | os.PathLike, *, minutes: float = 10.
     else:
         if (run / "checkpoint.pt").exists() or record_path.exists():
             raise AdaptError(f"--out {out} already holds an adaptation: --resume continues it, or give another --out")
-        base_path = resolve_model(base).resolve()
+        base_path = resolve_model(base, flag="--from").resolve()
         record = {"ct": str(ct), "ct_hash": ct_hash(ct), "base": base or DEFAULT_MODEL,
                   "base_checkpoint": str(base_path), "sessions": [], "before": None}
     base_ckpt = load_checkpoint(base_path)

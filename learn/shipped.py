@@ -217,8 +217,8 @@ def shipped_models(root: str | Path = MODELS_DIR) -> dict[str, Path]:
     return {p.parent.name: p.parent for p in sorted(root.glob(f"*/{CARD}"))} if root.is_dir() else {}
 
 
-def resolve_model(value: str | Path | None = None, root: str | Path = MODELS_DIR) -> Path:
-    """The checkpoint file of ``--model VALUE``: an existing file as it is (a model folder's
+def resolve_model(value: str | Path | None = None, root: str | Path = MODELS_DIR, *, flag: str = "--model") -> Path:
+    """The checkpoint file of ``--model VALUE`` (``flag``: the option a refusal names): an existing file as it is (a model folder's
     weights file after its card is checked against it), a model folder (its weights, card checked;
     or a ``ctxreg train`` output folder's ``checkpoint.pt``), or the name of a shipped model (its
     ``model.pt``, after its card is checked against it, :func:`load_card`);
@@ -238,9 +238,9 @@ def resolve_model(value: str | Path | None = None, root: str | Path = MODELS_DIR
         return shipped[name] / card["model"]["file"]
     names = ", ".join(shipped) or "none"
     if value is None:
-        raise ModelCardError(f"no --model given and the default model {DEFAULT_MODEL!r} is not in {root} "
+        raise ModelCardError(f"no {flag} given and the default model {DEFAULT_MODEL!r} is not in {root} "
                              f"(shipped: {names})")
-    raise ModelCardError(f"--model {name}: neither a checkpoint file nor a shipped model (shipped: {names}; "
+    raise ModelCardError(f"{flag} {name}: neither a checkpoint file nor a shipped model (shipped: {names}; "
                          f"`ctxreg models` lists them)")
 
 

@@ -343,7 +343,7 @@ def test_train_run_options_are_refused_in_one_line_before_any_work(tmp_path, cap
     (["--minutes", "0"], "--minutes 0: must be in (0, 1440] min"),
     (["--minutes", "nan"], "--minutes"),
     (["--from", "{tmp}/missing.pt"], "missing.pt"),
-    (["--from", "no_such_model"], "neither a checkpoint file nor a shipped model"),
+    (["--from", "no_such_model"], "--from no_such_model: neither a checkpoint file nor a shipped model"),
     (["--from", "pelvis_line"], "not trained on randomized realistic pairs"),
     (["--resume"], "holds no adaptation to continue"),
     (["--device", "tpu"], "invalid choice: 'tpu'"),

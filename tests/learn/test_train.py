@@ -366,10 +366,11 @@ def test_a_second_run_into_one_folder_is_refused_at_once(campaign, tmp_path):
     assert not (tmp_path / "busy" / "checkpoint.pt").exists()
 
 
-CONFIGS = sorted((Path(__file__).resolve().parents[2] / "configs").rglob("*.toml"))
+ROOT = Path(__file__).resolve().parents[2]
+CONFIGS = sorted((ROOT / "configs").rglob("*.toml"))
 
 
-@pytest.mark.parametrize("path", CONFIGS, ids=lambda p: str(p.relative_to(p.parents[1] if p.parent.name != "configs" else p.parent)))
+@pytest.mark.parametrize("path", CONFIGS, ids=lambda p: str(p.relative_to(ROOT / "configs")))
 def test_every_committed_config_loads_and_names_a_campaign_or_a_run(path):
     """A committed config is what its comment's command runs: every key known and of its type
     (load_train_config refuses others), its dataset a committed campaign file or a run's output,
@@ -377,7 +378,7 @@ def test_every_committed_config_loads_and_names_a_campaign_or_a_run(path):
     from learn.train import load_train_config
 
     cfg = load_train_config(path)
-    root = path.parents[1] if path.parent.name == "configs" else path.parents[2]
+    root = ROOT
     dataset = Path(cfg.dataset)
     if dataset.suffix == ".toml":
         assert dataset.is_file(), f"{path.name}: train.dataset {dataset} is not a committed campaign file"
