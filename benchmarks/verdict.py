@@ -16,13 +16,14 @@ cores, 10-12 s more for a row the rescue searches again::
     .venv/bin/python benchmarks/verdict.py benchmarks/verdict_rows/calib.jsonl --rejudge runs/verdict/calib.jsonl
 
 The rows of docs/results.md's tables are committed, compacted (``--compact OUT``: only what the
-tables read), in ``benchmarks/verdict_rows/`` (``calib.jsonl``, ``heldout.jsonl``, ``unmatched.jsonl``,
+tables read), in ``benchmarks/verdict_rows/`` (``calib.jsonl``, ``calib_off.jsonl``: the calibration pelvis
+registered without the grid, ``heldout.jsonl``, ``unmatched.jsonl``,
 ``heldout_chains.jsonl``: six more display chains; ``heldout5.jsonl``: three more, new poses, a
 512 px detector; ``heldout6.jsonl``: metal tools behind two more chains and two chains without,
 384 px; each registered again with the tool segmenter as ``*_detect.jsonl``; ``heldout20_detect.jsonl``:
 twenty frames of the four held-out conditions the verdict accepted least on ten; docs/results.md)::
 
-    .venv/bin/python benchmarks/verdict.py benchmarks/verdict_rows/calib.jsonl --calibrate
+    .venv/bin/python benchmarks/verdict.py benchmarks/verdict_rows/calib.jsonl benchmarks/verdict_rows/calib_off.jsonl --calibrate
     .venv/bin/python benchmarks/verdict.py benchmarks/verdict_rows/heldout.jsonl benchmarks/verdict_rows/unmatched.jsonl
 
 They were made so (docs/results.md, "Whether to trust a registration")::
@@ -68,15 +69,17 @@ from register.xray.field import TOOL_OPTIONS, TOOLS_DEFAULT  # noqa: E402
 WITHIN_MM = 10.0
 
 #: The thresholds ``--calibrate`` tries (every combination; the others stay at their defaults).
-#: Two the pipeline acts on too, ``sure_similarity`` (``GlobalSearchSettings.refined_above``: the
-#: grid runs after all below it) and ``min_local_similarity`` (``local_below``: the search again
-#: below it), hold the pipeline's value alone (:class:`register.verdict.VerdictSettings` takes it):
-#: the rows were registered with it, and another would judge poses the pipeline treats otherwise.
+#: One the pipeline acts on too, ``min_local_similarity`` (``local_below``: the search again below
+#: it), holds the pipeline's value alone (:class:`register.verdict.VerdictSettings` takes it): the
+#: rows were registered with it, and another would judge poses the pipeline treats otherwise.
+#: ``sure_similarity`` (a floor where the grid did not run) decides no-grid rows only
+#: (``calib_off.jsonl``: ``benchmarks/search.py --methods off``); the pipeline's own
+#: ``refined_above`` (the grid after all below it) is tried as its strictest value.
 GRID = {"min_similarity": (0.15, 0.2, 0.25, 0.3, 0.35, 0.4, 0.5, 0.6),
         "min_tone_fit": (0.0, 0.2, 0.3, 0.4, 0.5, 0.6),
         "min_margin": (0.0, 0.02, 0.03, 0.05, 0.07, 0.1, 0.15),
         "min_joint_margin": (None, -0.05, -0.02, 0.0, 0.02, 0.05),
-        "sure_similarity": (GlobalSearchSettings.refined_above,),
+        "sure_similarity": (None, 0.5, 0.7, GlobalSearchSettings.refined_above),
         "min_depth_drop": (0.0, 0.03, 0.05, 0.07),
         "min_profile_drop": (None, 0.02, 0.04, 0.06, 0.08),
         "max_rival_gain": (None, 0.2, 0.1, 0.07, 0.05, 0.03),
@@ -135,7 +138,9 @@ def load_rows(paths) -> list[dict]:
                                                    res["geometry"]["sod_mm"], ev.get("refined_tones"))}
             ct = Path(str(r.get("ct"))).name.split(".")[0]
             model = "adapted" if r.get("model") and "adapt" in str(r["model"]) else "shipped"
-            method = "grid always" if "always" in str(r.get("method", "")) else "default"
+            method = str(r.get("method", ""))
+            method = ("grid always" if "always" in method else "no grid" if "no grid" in method
+                      else "network alone" if "alone" in method else "default")
             if row_tools(r) != "off":
                 method += f", tools {row_tools(r)}"
             rows.append({"condition": f"{r['target']}, {ct}, {model}, {method}", "mtre_mm": r.get("mtre_mm"),

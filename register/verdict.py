@@ -11,8 +11,9 @@ independent evidence, each gathered once after the registration (:func:`gather_e
   whatever the edges do (0th order where the similarity is 1st);
 * ``runner_up``: the best refined start of the global search that ended at a distinct pose
   (:data:`DISTINCT_DEG` / :data:`DISTINCT_MM` away): two poses that score alike mean the X-ray
-  does not decide between them. Where the search's grid did not run, no alternative was
-  examined, and only a clear match (``sure_similarity``) may be called registered;
+  does not decide between them. Where the search's grid did not run, no distinct alternative
+  was examined: the checks below (the local similarity, the depth profile, the rival) judge such
+  a pose (``sure_similarity``, an absolute floor for it, is not set by default);
 * ``local_similarity``: the gradient NCC window by window
   (:func:`register.engines.metrics.local_gradient_ncc`: patch gradient NCC, Grupp et al. 2020, in
   15 px windows at the optimiser's 128 px) of the X-ray with the line DRR at the final pose: whether
@@ -145,11 +146,14 @@ class VerdictSettings:
         min_margin: ``registered`` needs the final similarity to beat a distinct runner-up by at
             least this much.
         sure_similarity: where the search's grid did not run (skipped, off, or a method without
-            it: no alternative was examined), ``registered`` needs at least this similarity. The
-            default pipeline runs the grid after all where its refined pose ends below it
-            (:attr:`register.engines.search.GlobalSearchSettings.refined_above`, whose value it
-            takes: one number for both), so the check decides only ``--search off`` and the
-            methods without the search.
+            it: no distinct alternative was examined), ``registered`` needs at least this
+            similarity; None (the default): not judged. A right pose of a linear display scores
+            0.43-0.92, so one floor either doubts most right no-grid poses or lets wrong ones
+            through; the local similarity, the depth profile and the rival judged 40 no-grid
+            registrations of the calibration's pelvis without it (22 off, none accepted;
+            ``benchmarks/verdict_rows/calib_off.jsonl``). The default pipeline still runs the grid
+            after all where its refined pose ends below
+            :attr:`register.engines.search.GlobalSearchSettings.refined_above`.
         min_field_fraction: ``registered`` needs at least this share of the X-ray's pixels used.
         min_depth_drop: ``registered`` needs the similarity to fall by at least this much
             :data:`DEPTH_PROBE_MM` nearer or farther (the better of the two).
@@ -174,7 +178,7 @@ class VerdictSettings:
     min_similarity: float = 0.4
     min_tone_fit: float = 0.6
     min_margin: float = 0.02
-    sure_similarity: float = GlobalSearchSettings.refined_above
+    sure_similarity: float | None = None
     min_field_fraction: float = 0.1
     min_depth_drop: float = 0.05
     min_profile_drop: float | None = 0.02
@@ -184,7 +188,8 @@ class VerdictSettings:
 
     def __post_init__(self) -> None:
         for name, v in asdict(self).items():
-            if v is None and name in ("min_profile_drop", "max_rival_gain", "min_joint_margin", "min_local_similarity"):
+            if v is None and name in ("sure_similarity", "min_profile_drop", "max_rival_gain", "min_joint_margin",
+                                      "min_local_similarity"):
                 continue
             if isinstance(v, bool) or not isinstance(v, (int, float)) or not np.isfinite(v) or not -1 <= v <= 1:
                 raise RegistrationError(f"VerdictSettings.{name} must be a number in [-1, 1], got {v!r}")
@@ -448,11 +453,11 @@ def checks(evidence: dict, settings: VerdictSettings) -> list[tuple[str, bool, s
                         if ok else f"a distinct pose of the search ({runner['deg']:.0f} deg, {runner['mm']:.0f} mm across "
                         f"and {runner.get('depth_mm', 0):.0f} mm in depth away) scores as well on similarity and tone fit "
                         f"together: this pose {margin:+.2f} against it (< {s.min_joint_margin:+.2f})"))
-    elif sim_ < s.sure_similarity:
-        out.append(("sure_similarity", False, f"no alternative examined (search {evidence['search']}) and similarity "
-                    f"{sim_:.2f} < {s.sure_similarity:.2f}"))
-    else:
-        out.append(("sure_similarity", True, f"similarity {sim_:.2f} >= {s.sure_similarity:.2f} without a search"))
+    elif s.sure_similarity is not None:  # no distinct alternative examined: an absolute floor, where one is set
+        ok = sim_ >= s.sure_similarity
+        out.append(("sure_similarity", ok, f"similarity {sim_:.2f} >= {s.sure_similarity:.2f} without a search" if ok
+                    else f"no alternative examined (search {evidence['search']}) and similarity {sim_:.2f} < "
+                    f"{s.sure_similarity:.2f}"))
     drop = evidence.get("depth_drop")
     if drop is not None:
         out.append(("min_depth_drop", drop >= s.min_depth_drop,

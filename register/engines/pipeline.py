@@ -179,7 +179,7 @@ class ContextualPipeline:
         """Step 3b: the network's pose reached ``search.found_above`` (the grid skipped), but its
         refinement ended below ``search.refined_above`` by the refinement's own score (the
         tone-tolerant one of a display image: the plain score had been lifted by the display's
-        curve, or the refinement moved off; 0.88: what the verdict needs without alternatives):
+        curve, or the refinement moved off):
         the grid runs after all, the refined pose its given one, as where the network's pose had
         scored less. Returns that search (its record's ``after_refinement``: the refined
         similarity that sent it; the skipped search's and the first refinement's seconds and

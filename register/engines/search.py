@@ -103,10 +103,8 @@ class GlobalSearchSettings:
         refined_above: the refined similarity (the refinement's own score, tone-tolerant for a
             display image) the network's pose must reach after its refinement where the grid was
             skipped, or the grid runs after all (:class:`register.engines.pipeline.ContextualPipeline`;
-            default 0.88: the similarity the verdict needs where no alternative was examined,
-            :attr:`register.verdict.VerdictSettings.sure_similarity`, so that a skipped grid
-            never leaves the verdict without the alternatives it would ask for). At least
-            ``found_above``.
+            default 0.88: a pose the grid was skipped for that refines below it gets the grid's
+            alternatives before the verdict judges it). At least ``found_above``.
         always_grid: run the grid even when a given pose reaches ``found_above`` (``ctxreg register
             --search always``: the grid's finalists compete with the network's pose whatever it
             scored); default False.

@@ -3,6 +3,8 @@ its rates against the truth, and the exit status it sets."""
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
@@ -58,12 +60,20 @@ def test_a_distinct_pose_scoring_alike_makes_it_doubtful():
     assert v.label == "doubtful" and "11 deg, 80 mm across and 5 mm in depth away" in v.reasons[0]
 
 
-def test_without_a_search_only_a_clear_match_is_registered():
+def test_without_a_search_the_other_checks_judge_and_a_floor_applies_only_where_set():
     s = VerdictSettings()
-    assert judge(_evidence(search="skipped", similarity=s.sure_similarity + 0.01), s).label == "registered"
-    v = judge(_evidence(search="skipped", similarity=s.sure_similarity - 0.01), s)
+    assert s.sure_similarity is None  # calibrated: no-grid poses are judged by the other checks (calib_off.jsonl)
+    for search in ("skipped", "off", "none"):
+        v = judge(_evidence(search=search, similarity=0.6), s)
+        assert v.label == "registered" and not any("alternative" in r for r in v.reasons), v.reasons
+        assert judge(_evidence(search=search, similarity=0.6, local_similarity=s.min_local_similarity - 0.01),
+                     s).label == "doubtful"
+    floor = replace(s, sure_similarity=0.88)
+    assert judge(_evidence(search="skipped", similarity=0.89), floor).label == "registered"
+    v = judge(_evidence(search="skipped", similarity=0.87), floor)
     assert v.label == "doubtful" and "no alternative examined" in v.reasons[0]
-    assert judge(_evidence(search="none", similarity=s.sure_similarity - 0.01), s).label == "doubtful"
+    assert judge(_evidence(search="none", similarity=0.87), floor).label == "doubtful"
+    assert judge(_evidence(search="ran", similarity=0.87), floor).label == "registered"  # a search ran: no floor
 
 
 def test_low_similarity_low_tone_fit_and_a_small_field_each_give_a_doubt():
