@@ -62,7 +62,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from register.engines.search import GlobalSearchSettings  # noqa: E402
-from register.verdict import VerdictSettings, checks, failure, judge, runner_up  # noqa: E402
+from register.verdict import DECISION_MARGIN, VerdictSettings, checks, failure, judge, runner_up  # noqa: E402
 from register.xray.field import TOOL_OPTIONS, TOOLS_DEFAULT  # noqa: E402
 
 #: A registration within this mTRE (mm) is good: the issue's bar, and the study's success.
@@ -72,9 +72,8 @@ WITHIN_MM = 10.0
 #: One the pipeline acts on too, ``min_local_similarity`` (``local_below``: the search again below
 #: it), holds the pipeline's value alone (:class:`register.verdict.VerdictSettings` takes it): the
 #: rows were registered with it, and another would judge poses the pipeline treats otherwise.
-#: ``sure_similarity`` (a floor where the grid did not run) decides no-grid rows only
-#: (``calib_off.jsonl``: ``benchmarks/search.py --methods off``); the pipeline's own
-#: ``refined_above`` (the grid after all below it) is tried as its strictest value.
+#: ``sure_similarity`` (a floor for methods without the search) decides no calibration row: its
+#: strictest value, the pipeline's own ``refined_above``, is kept.
 GRID = {"min_similarity": (0.15, 0.2, 0.25, 0.3, 0.35, 0.4, 0.5, 0.6),
         "min_tone_fit": (0.0, 0.2, 0.3, 0.4, 0.5, 0.6),
         "min_margin": (0.0, 0.02, 0.03, 0.05, 0.07, 0.1, 0.15),
@@ -93,7 +92,7 @@ CLEARLY_OFF_MM = 15.0
 #: rejected with every threshold this much looser (lower bounds lowered by it, ``max_rival_gain``
 #: raised), so that no threshold rests on the exact value of a wrong pose's evidence (a calibration
 #: without it put the similarity's floor at 0.25 against a frame 24.6 mm off that scored 0.248).
-MARGIN = 0.1
+MARGIN = DECISION_MARGIN
 
 #: The check (:func:`register.verdict.checks`, by the setting it is named for) each threshold of
 #: :data:`GRID` sets.
@@ -133,6 +132,8 @@ def load_rows(paths) -> list[dict]:
                 skipped += 1
                 continue
             res = r["result"]
+            if ev["search"] == "none" and "no grid" in str(r.get("method", "")):  # --search off, before the evidence said so
+                ev = {**ev, "search": "off"}
             if ev["search"] == "ran":  # the runner-up again, by the current rule of distinct poses
                 ev = {**ev, "runner_up": runner_up(res.get("search"), np.array(res["pose_4x4"]),
                                                    res["geometry"]["sod_mm"], ev.get("refined_tones"))}

@@ -39,7 +39,7 @@ from register.engines.metrics import downsample, gradient_ncc
 from register.engines.pipeline import REFINE_SETTINGS, rescue as rescue_pose, scored_as_refined
 from register.engines.result import RegistrationError, RegistrationResult
 from register.engines.search import GlobalSearch, GlobalSearchSettings, describe_search
-from register.verdict import Verdict, judge_result
+from register.verdict import Verdict, clearly_registered, judge_result
 from register.plots import checkerboard_png, convergence_plot, overlay_png, trajectory_figure, trajectory_gif
 from register.xray.geometry import resolve_geometry
 from register.xray.io import XRayImage, check_orientation, load_xray
@@ -180,8 +180,9 @@ class XRayRegistration:
 
     @property
     def search_status(self) -> str:
-        """What the global search did: ``"ran"``, ``"skipped (network pose scored S >= T)"``, ``"off"``
-        (``search="off"``) or ``"none (method M has no global search)"``."""
+        """What the global search did: ``"ran"``, ``"skipped (the network's pose, refined, judged
+        registered)"`` (the verdict kept it before the search), ``"skipped (network pose scored S >=
+        T)"``, ``"off"`` (``search="off"``) or ``"none (method M has no global search)"``."""
         record = self.result.search
         if self.search_mode is None:
             return f"none (method {self.method} has no global search)"
@@ -189,6 +190,8 @@ class XRayRegistration:
             return "off"
         if self.search_ran:
             return "ran" + (" (--search always)" if record.get("always_grid") else "")
+        if record.get("trusted"):
+            return "skipped (the network's pose, refined, judged registered)"
         score = record.get("given_score", record.get("given_similarity"))
         return f"skipped (network pose scored {score:.2f} >= {record['found_above']:g})"
 
@@ -444,13 +447,14 @@ class RegistrationRequest:
         with clock("prepare"):
             prepared = _prepare(self, xr, volume, c, pixel_spacing_mm)
         engine, grid = _build_engine(self, prepared, volume, c, predictor, clock, remark, log)
-        result, prepared = _PolarityCheckedRun(self, volume, c, predictor, engine, grid, clock).register(prepared)
+        run = _PolarityCheckedRun(self, volume, c, predictor, engine, grid, clock)
+        result, prepared = run.register(prepared)
         line = _polarity_line(prepared)
         if line is not None:
             log(line)
         ran = result.search is not None and bool(result.search.get("grid_poses"))
         with clock("verdict"):
-            verdict = _verdict(self, volume, c, prepared, result)
+            verdict = run.judged(result, prepared) or _verdict(self, volume, c, prepared, result)
         return XRayRegistration(method=self.method, result=result, prepared=prepared, volume=volume, center_lps=c,
                                 init_params=self.start, physics=self.moving, label_materials=self.label_materials,
                                 notes=notes, search_mode=self.search if self.method in SEARCH_METHODS else None,
@@ -683,19 +687,44 @@ class _PolarityCheckedRun:
       (no grid at all), or a grid of its own around the start decides, and where it inverts the
       image the registration runs again on the inverse.
 
+    With the global search in ``auto``, the pipeline asks the verdict whether the network's pose,
+    refined, can be kept without the grid (:meth:`_trust`,
+    :meth:`register.engines.pipeline.ContextualPipeline.trusted`); :meth:`judged` hands that verdict
+    on where that pose is the result, so it is not gathered twice.
+
     :meth:`register` returns the result and the X-ray as finally prepared."""
 
     def __init__(self, request: RegistrationRequest, volume, center_lps, predictor, engine, grid, clock) -> None:
         self.request, self.volume, self.center_lps = request, volume, center_lps
         self.predictor, self.engine, self.grid, self.clock = predictor, engine, grid, clock
         self.prepared = None
+        self._judged: tuple | None = None  # (result, image, verdict) of the last pose _trust judged
 
     def _once(self, **hook):
         """One registration of the X-ray as prepared now (``before_grid``: the search's hook)."""
         prepared = self.prepared
         view = network_view(self.predictor, prepared) if self.predictor is not None else None  # the network's input
+        if self.grid is not None and self.request.search == "auto":
+            hook["trust"] = self._trust
         return self.engine.register(prepared.image, self.request.start, mask=prepared.mask, toned=prepared.toned,
                                     network_view=view, **hook)
+
+    def _trust(self, result) -> bool:
+        """The pipeline's ``trust``: whether the verdict (:func:`_verdict`) on the network's pose,
+        refined, of the X-ray as prepared now is clearly ``registered``
+        (:func:`register.verdict.clearly_registered`: with every threshold 10 % stricter, as no
+        alternative was examined)."""
+        verdict = _verdict(self.request, self.volume, self.center_lps, self.prepared, result)
+        self._judged = (result, self.prepared.image, verdict)
+        return clearly_registered(verdict)
+
+    def judged(self, result, prepared) -> Verdict | None:
+        """The verdict :meth:`_trust` gathered where ``result`` is the pose it judged, of the same
+        image (the polarity check left it as it was); None otherwise."""
+        if self._judged is None:
+            return None
+        pose, image, verdict = self._judged
+        return verdict if pose is result and image is prepared.image else None
 
     def _check(self):
         """The check against the CT on a grid of poses around the start (the search's, where built)."""
@@ -746,7 +775,8 @@ def _verdict(request: RegistrationRequest, volume, center_lps, prepared, result)
     fld = prepared.step("field")
     fraction = fld["valid_fraction"] if fld is not None and "valid_fraction" in fld else None
     return judge_result(result, prepared.image, render=renderer.render, sod_mm=g.sod_mm, mask=prepared.mask,
-                        toned=prepared.toned, field_fraction=fraction, refine=refine, rival_search=line)
+                        toned=prepared.toned, field_fraction=fraction, refine=refine, rival_search=line,
+                        search_off=request.method in SEARCH_METHODS and request.search == "off")
 
 
 def grid_bytes(box, shape, geometry) -> float:

@@ -74,18 +74,20 @@ class _Method:
         self.engine = engine
 
     def register(self, fixed, init_params, *, mask=None, toned=None, network_view=None,
-                 before_grid=None) -> RegistrationResult | None:
+                 before_grid=None, trust=None) -> RegistrationResult | None:
         """``toned``: the X-ray's toned version (:attr:`register.xray.prepare.PreparedXRay.toned`), used by
         the contextual methods (their search's grid, a network trained on toned targets); CMA-ES
         alone registers ``fixed``. ``network_view``: what a detector-framed network sees
         (:func:`register.xray.network_view.network_view`), contextual methods only. ``before_grid``:
         :meth:`register.engines.pipeline.ContextualPipeline.register`'s (None where it stopped), for
-        contextual+cmaes with a global search only."""
-        if before_grid is not None and not isinstance(self.engine, ContextualPipeline):
-            raise RegistrationError(f"before_grid: method {self.name} has no global search's grid")
+        contextual+cmaes with a global search only; ``trust`` likewise (whether the network's pose,
+        refined, is kept without the search)."""
+        for name, hook in (("before_grid", before_grid), ("trust", trust)):
+            if hook is not None and not isinstance(self.engine, ContextualPipeline):
+                raise RegistrationError(f"{name}: method {self.name} has no global search's grid")
         if isinstance(self.engine, ContextualPipeline):
             return self.engine.register(fixed, init_params, mask=mask, toned=toned, network_view=network_view,
-                                        before_grid=before_grid)
+                                        before_grid=before_grid, trust=trust)
         if not isinstance(self.engine, CMAESRegistration):
             return self.engine.register(fixed, init_params, mask=mask, toned=toned, network_view=network_view)
         return self.engine.register(fixed, init_params, mask=mask)

@@ -5,6 +5,10 @@ start, the winner polished.
 
 1. :meth:`~ContextualPipeline.iterate`: the contextual iteration
    (:class:`register.engines.contextual.ContextualRegistration`) from the start pose;
+1b. :meth:`~ContextualPipeline.trusted`: where the caller gives a ``trust`` (``register_xray``: the
+   verdict, :mod:`register.verdict`), the network's pose is refined first as without a search
+   (+-:data:`NETWORK_DEPTH_RANGE_MM` in depth) and judged: a pose ``trust`` accepts is the result,
+   the grid skipped (the search record's ``trusted``); otherwise the steps below run as without it;
 2. :meth:`~ContextualPipeline.starts`: the global search (:class:`register.engines.search.GlobalSearch`)
    searches the network's pose locally and keeps it when its similarity reaches
    ``search.found_above``; otherwise a grid over the prior box supplies further starts, and the
@@ -115,11 +119,14 @@ class ContextualPipeline:
         elif search is not None:
             self.search = GlobalSearch(volume, search, size=size, scene=scene, geometry=geometry,
                                        center_lps=self.center_lps, physics=physics, label_materials=label_materials)
-        if self.search is None and refine.range_depth_mm is None:  # the network's pose as it is: its depth least sure
-            refine = replace(refine, range_depth_mm=NETWORK_DEPTH_RANGE_MM)
-        self.refinement = CMAESRegistration(volume, refine, scene=scene, geometry=geometry,
-                                            center_lps=self.center_lps, physics=physics,
+        alone = refine if refine.range_depth_mm is not None else replace(refine, range_depth_mm=NETWORK_DEPTH_RANGE_MM)
+        self.refinement = CMAESRegistration(volume, refine if self.search is not None else alone, scene=scene,
+                                            geometry=geometry, center_lps=self.center_lps, physics=physics,
                                             label_materials=label_materials)
+        #: the refinement of the network's pose as it is (its depth least sure): without a search, and
+        #: where a ``trust`` judges it before the search (:meth:`trusted`)
+        self.network_refinement = self.refinement if self.search is None else self.refinement.adjusted(
+            range_depth_mm=alone.range_depth_mm)
 
     @property
     def renderer(self):
@@ -128,15 +135,23 @@ class ContextualPipeline:
 
     def register(self, fixed: np.ndarray, init_params=np.zeros(6), *, mask: np.ndarray | None = None,
                  toned: np.ndarray | None = None, network_view=None,
-                 before_grid: Callable[[], bool] | None = None) -> RegistrationResult | None:
+                 before_grid: Callable[[], bool] | None = None,
+                 trust: Callable[[RegistrationResult], bool] | None = None) -> RegistrationResult | None:
         """Register ``fixed`` ``(H, W)`` from ``init_params`` (deg, mm): the steps of the module doc.
         ``mask``, ``toned`` and ``network_view`` as
         :meth:`register.engines.contextual.ContextualRegistration.register`; CMA-ES and the final
         similarity use the valid pixels only, and the global search ranks its grid on ``toned`` too.
         ``before_grid``: :meth:`register.engines.search.GlobalSearch.register`'s; where it stops the
-        search, the registration stops too and returns None."""
+        search, the registration stops too and returns None. ``trust``: whether to keep the
+        network's pose, refined, without the search (:meth:`trusted`; None: the search decides;
+        not asked where the search always runs its grid)."""
         fixed, mask = checked_inputs(fixed, mask, toned)
         it = self.iterate(fixed, init_params, mask=mask, toned=toned, network_view=network_view)
+        tried = None
+        if trust is not None and self.search is not None and not self.search.settings.always_grid:
+            tried = self.trusted(fixed, it, trust, mask=mask, toned=toned)
+            if tried.search["trusted"]:
+                return tried
         found = self.starts(fixed, init_params, it, mask=mask, toned=toned, before_grid=before_grid)
         if found is _STOPPED:
             return None
@@ -151,7 +166,34 @@ class ContextualPipeline:
             refined = self.refine(refine, fixed, starts, mask=mask)
         won = self.winner(refined)
         polished = self.polish(refine, fixed, refined[won], starts[won], mask=mask) if len(starts) > 1 else None
-        return self.rescue(fixed, init_params, self.result(it, found, refined, won, polished), mask=mask, toned=toned)
+        res = self.result(it, found, refined, won, polished)
+        if tried is not None:  # the trial's seconds and renders count; the record says it was not trusted
+            res.stage_seconds = {**{f"trust_{k}": v for k, v in tried.stage_seconds.items() if k.startswith("cmaes_")},
+                                 **res.stage_seconds}
+            res.renders += tried.renders
+            res.search = {**res.search, "trusted": False, "trust_similarity": tried.similarity}
+        return self.rescue(fixed, init_params, res, mask=mask, toned=toned)
+
+    def trusted(self, fixed, it: Iteration, trust: Callable[[RegistrationResult], bool], *, mask=None,
+                toned=None) -> RegistrationResult:
+        """Step 1b: the network's pose ``it.params`` refined as without a search
+        (:attr:`network_refinement`, scored as the refinement scores this X-ray) and judged by
+        ``trust``. The result's search record says what happened: ``trusted`` (whether ``trust``
+        accepted it: then the grid is skipped and this is the registration), ``grid_poses`` 0,
+        ``start`` ``"given"``, the refined pose as its one finalist, ``found_above`` the search's.
+        A pose the search's local step would have accepted is still judged, so that a right pose
+        whose display lifts or lowers its similarity is kept by the evidence, not by one number."""
+        refined = self.refine(scored_as_refined(self.network_refinement, toned), fixed, [it.params], mask=mask)
+        res = self.result(it, None, refined, 0, None)
+        params = np.asarray(res.params, float).tolist()
+        res.search = {"given_similarity": None, "given_score": None, "given_clipped": False,
+                      "found_above": self.search.settings.found_above, "always_grid": False, "local": False,
+                      "grid_poses": 0, "candidates": 0, "start": "given", "similarity": float(res.similarity),
+                      "grid_render_s": 0.0, "grid_ncc_s": 0.0,
+                      "finalists": [{"params": params, "similarity": float(res.similarity), "start": "given"}],
+                      "refined": [float(res.similarity)], "chosen": 0, "refined_params": [params]}
+        res.search["trusted"] = bool(trust(res))
+        return res
 
     def rescue(self, fixed, init_params, res: RegistrationResult, *, mask=None, toned=None) -> RegistrationResult:
         """Step 6 (:func:`rescue`) with this pipeline's search and refinement; ``res`` as it is

@@ -634,7 +634,8 @@ class GlobalSearch:
 def describe_search(record: dict) -> str:
     """One line for a user from a search record (:meth:`GlobalSearch.register`, with the network's
     pose as the given one; with ``"refined"`` and ``"chosen"`` when the refinement ran from its
-    finalists, and ``"rescue"`` where the pose was searched again by local similarity,
+    finalists, ``"rescue"`` where the pose was searched again by local similarity, and
+    ``"trusted"`` where the verdict judged the network's pose, refined, before the search,
     :class:`register.engines.pipeline.ContextualPipeline`)."""
     rescue = record.get("rescue")
     if rescue is not None:
@@ -647,14 +648,19 @@ def describe_search(record: dict) -> str:
         found = "nothing" if after is None else f"nothing better ({after:.2f})"
         return describe_search({k: v for k, v in record.items() if k != "rescue"}) + (
             f"; {why}: searched again by local similarity, {found}, the first pose kept")
+    if record.get("trusted"):
+        return (f"global search: skipped, the network's pose, refined (similarity {record['similarity']:.2f}), "
+                "judged registered by the verdict")
     net = record["given_similarity"]
     after = record.get("after_refinement")
     head = "global search: " + ("no network pose" if net is None else
                                 f"the network's pose scored >= {record['found_above']:g}, its refinement "
                                 f"{after:.2f}" if after is not None else f"the network's pose scored {net:.2f}")
     below = record.get("refined_above", record["found_above"]) if after is not None else record["found_above"]
+    doubted = ("" if record.get("trusted") is not False else  # the verdict doubted the network's pose, refined, first
+               f"; the network's pose refined first ({record['trust_similarity']:.2f}) was not judged registered")
     if not record["grid_poses"]:
-        return head + f" (>= {record['found_above']:g}): grid skipped, refined from it"
+        return head + f" (>= {record['found_above']:g}): grid skipped, refined from it" + doubted
     finalists = record.get("finalists") or [{"start": record["start"], "similarity": record["similarity"]}]
     chosen = record.get("chosen", 0)
     kept = finalists[chosen]
@@ -665,5 +671,5 @@ def describe_search(record: dict) -> str:
     if "refined" in record and len(record["refined"]) > 1:
         rank = ("best", "second best", "third best")[chosen] if chosen < 3 else f"number {chosen + 1}"
         return line + (f"the best {len(record['refined'])} refined, kept the {rank} ({origin}, similarity "
-                       f"{kept['similarity']:.2f}, {record['refined'][chosen]:.2f} after refinement)")
-    return line + f"refined from {origin} (similarity {kept['similarity']:.2f})"
+                       f"{kept['similarity']:.2f}, {record['refined'][chosen]:.2f} after refinement)") + doubted
+    return line + f"refined from {origin} (similarity {kept['similarity']:.2f})" + doubted

@@ -137,27 +137,62 @@ def test_search_auto_runs_the_grid_where_the_networks_pose_is_lost(phantom, tmp_
     assert saved["search"]["grid_poses"] == res.result.search["grid_poses"] and saved["search"]["finalists"]
 
 
-def test_search_auto_skips_the_grid_for_a_good_pose_and_always_runs_it(phantom):
-    skipped = register_drr(phantom, NEAR, search="auto")
-    record = skipped.result.search
-    assert skipped.search_ran is False and record["grid_poses"] == 0 and record["given_score"] >= 0.85
-    assert skipped.search_status == f"skipped (network pose scored {record['given_score']:.2f} >= 0.85)"
-    assert skipped.to_dict()["search_status"] == skipped.search_status
-    said = skipped.summary()
-    assert said.count("skipped") == 1 and said.splitlines()[0] == f"search: {skipped.search_status}"  # said once
+def test_search_auto_skips_the_grid_where_the_verdict_keeps_the_networks_pose_and_always_runs_it(phantom):
+    """A right network pose, refined as without a search, is judged clearly registered by the
+    verdict (at 64 px): the grid is skipped, the record says so, and that verdict is the
+    registration's (not gathered twice). At 32 px the same pose's depth is barely determined (the
+    depth probe's drop within 10 % of its floor): not clearly registered, so the search decides (its
+    local search of the network's pose scores >= 0.85: the grid skipped all the same)."""
+    import register.api
+    from register.api import register_xray
+
+    vol, c = phantom
+    calls = []
+    real = register.api._verdict
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(register.api, "_verdict", lambda *a: calls.append(a[-1]) or real(*a))
+        kept = register_xray(vol, xray_at(phantom, NEAR), model=null_network, center=c, size=(64, 64))
+    record = kept.result.search
+    assert kept.search_ran is False and record["grid_poses"] == 0 and record["trusted"] is True
+    assert kept.search_status == "skipped (the network's pose, refined, judged registered)"
+    assert kept.verdict.label == "registered" and len(calls) == 1 and calls[0] is kept.result
+    assert record["finalists"][0]["params"] == pytest.approx(np.asarray(kept.result.params).tolist())
+    assert kept.to_dict()["search_status"] == kept.search_status
+    said = kept.summary()
+    assert said.count("skipped") == 1 and said.splitlines()[0] == f"search: {kept.search_status}"  # said once
+    small = register_drr(phantom, NEAR, search="auto")
+    assert small.result.search["trusted"] is False and small.verdict.label == "registered"
+    assert small.search_status.startswith("skipped (network pose scored")
     always = register_drr(phantom, NEAR, search="always")
     assert always.search_ran is True and always.result.search["grid_poses"] > 0
     assert always.result.search["always_grid"] is True and always.search_status.startswith("ran")
+    assert "trusted" not in always.result.search  # --search always: the verdict is not asked first
     assert "--search always" in always.summary()
 
 
+def test_a_doubted_network_pose_goes_on_to_the_search_which_may_still_skip_the_grid(phantom, monkeypatch):
+    """Where the verdict doubts the network's pose, refined, the search runs as without the
+    verdict: a pose whose local search scores found_above still skips the grid; the trial's
+    refinement counts in the seconds and the record."""
+    import register.api
+
+    monkeypatch.setattr(register.api._PolarityCheckedRun, "_trust", lambda self, result: False)
+    skipped = register_drr(phantom, NEAR, search="auto")
+    record = skipped.result.search
+    assert skipped.search_ran is False and record["grid_poses"] == 0 and record["given_score"] >= 0.85
+    assert record["trusted"] is False and record["trust_similarity"] > 0.85
+    assert any(k.startswith("trust_cmaes_") for k in skipped.result.stage_seconds)
+    assert skipped.search_status == f"skipped (network pose scored {record['given_score']:.2f} >= 0.85)"
+
+
 def test_a_network_pose_that_ends_below_refined_above_after_refinement_runs_the_grid(phantom, monkeypatch):
-    """The network's pose scores found_above (grid skipped), but its refinement ends below
-    refined_above, the similarity the verdict needs without alternatives (here
-    forced: the refinement's first result reports 0.5): the grid runs after all, from the refined
-    pose, its finalists refined; the record says why, and the first refinement's seconds count."""
+    """The verdict doubts the network's pose (here forced), its local search scores found_above (grid
+    skipped), but its refinement ends below refined_above (here forced: that refinement reports
+    0.5): the grid runs after all, from the refined pose, its finalists refined; the record says
+    why, and the first refinements' seconds count."""
     from dataclasses import replace
 
+    import register.api
     from register.engines.pipeline import ContextualPipeline
     from register.engines.search import describe_search
 
@@ -167,18 +202,21 @@ def test_a_network_pose_that_ends_below_refined_above_after_refinement_runs_the_
     def refine(refine_engine, fixed, starts, *, mask=None):
         out = real(refine_engine, fixed, starts, mask=mask)
         calls.append(len(starts))
-        if len(calls) == 1:
+        if len(calls) == 2:
             out[0] = replace(out[0], similarity=0.5)
         return out
 
     monkeypatch.setattr(ContextualPipeline, "refine", staticmethod(refine))
+    monkeypatch.setattr(register.api._PolarityCheckedRun, "_trust", lambda self, result: False)
     res = register_drr(phantom, NEAR, search="auto")
     record = res.result.search
-    assert len(calls) == 2 and calls[0] == 1  # the network's pose alone, then the grid's finalists
+    assert len(calls) == 3 and calls[:2] == [1, 1]  # the trial, the network's pose, then the grid's finalists
     assert res.search_ran is True and record["grid_poses"] > 0 and record["after_refinement"] == 0.5
-    assert record["always_grid"] is False and res.search_status == "ran"
+    assert record["always_grid"] is False and res.search_status == "ran" and record["trusted"] is False
     assert "cmaes_before_grid" in res.result.stage_seconds and "search_grid" in res.result.stage_seconds
-    assert record["refined_above"] == 0.88 and "its refinement 0.50 (< 0.88)" in describe_search(record)
+    said = describe_search(record)
+    assert record["refined_above"] == 0.88 and "its refinement 0.50 (< 0.88)" in said
+    assert "not judged registered" in said
     assert res.similarity >= 0.85  # a line DRR of the truth: the grid's start refines to it
 
 

@@ -10,8 +10,8 @@ import pytest
 
 from register.engines.result import RegistrationError, RegistrationResult
 from register.evaluation.evaluate import verdict_rates
-from register.verdict import (DISTINCT_DEG, DISTINCT_DEPTH_MM, DISTINCT_MM, EXIT_STATUS, depth_probe_poses, Verdict, VerdictSettings, gather_evidence, judge,
-                              judge_result, pose_gap)
+from register.verdict import (DECISION_MARGIN, DISTINCT_DEG, DISTINCT_DEPTH_MM, DISTINCT_MM, EXIT_STATUS, depth_probe_poses, Verdict, VerdictSettings, gather_evidence, judge,
+                              clearly_registered, judge_result, pose_gap)
 from sim.projection.geometry import params_from_pose, pose_from_params
 
 SOD = 700.0
@@ -60,20 +60,37 @@ def test_a_distinct_pose_scoring_alike_makes_it_doubtful():
     assert v.label == "doubtful" and "11 deg, 80 mm across and 5 mm in depth away" in v.reasons[0]
 
 
-def test_without_a_search_the_other_checks_judge_and_a_floor_applies_only_where_set():
+def test_a_method_without_the_search_needs_a_clear_match_and_the_pipeline_without_its_grid_does_not():
     s = VerdictSettings()
-    assert s.sure_similarity is None  # calibrated: no-grid poses are judged by the other checks (calib_off.jsonl)
-    for search in ("skipped", "off", "none"):
+    assert s.sure_similarity == 0.88
+    for search in ("skipped", "off"):  # contextual+cmaes, its pose refined: the other checks judge it
         v = judge(_evidence(search=search, similarity=0.6), s)
         assert v.label == "registered" and not any("alternative" in r for r in v.reasons), v.reasons
         assert judge(_evidence(search=search, similarity=0.6, local_similarity=s.min_local_similarity - 0.01),
                      s).label == "doubtful"
-    floor = replace(s, sure_similarity=0.88)
-    assert judge(_evidence(search="skipped", similarity=0.89), floor).label == "registered"
-    v = judge(_evidence(search="skipped", similarity=0.87), floor)
-    assert v.label == "doubtful" and "no alternative examined" in v.reasons[0]
-    assert judge(_evidence(search="none", similarity=0.87), floor).label == "doubtful"
-    assert judge(_evidence(search="ran", similarity=0.87), floor).label == "registered"  # a search ran: no floor
+    assert judge(_evidence(search="none", similarity=0.89), s).label == "registered"
+    v = judge(_evidence(search="none", similarity=0.87), s)
+    assert v.label == "doubtful" and "no alternative examined (a method without the search)" in v.reasons[0]
+    assert judge(_evidence(search="none", similarity=0.6), replace(s, sure_similarity=None)).label == "registered"
+
+
+def test_a_pose_kept_without_the_grid_must_clear_every_calibrated_threshold_by_the_decision_margin():
+    """The held-out pose 14.5 mm off that the pipeline first kept without the grid passed the local
+    similarity by 0.004: registered by the verdict, not clearly (every threshold 10 % stricter)."""
+    s = VerdictSettings()
+    t = s.stricter(DECISION_MARGIN)
+    assert DECISION_MARGIN == 0.1 and t.min_local_similarity == pytest.approx(0.385)
+    assert t.max_rival_gain == pytest.approx(0.027) and t.min_similarity == pytest.approx(0.44)
+    assert t.sure_similarity == pytest.approx(0.968) and (t.fail_below, t.min_field_fraction) == (s.fail_below, s.min_field_fraction)
+    assert s.stricter(0.0) == s
+    marginal = judge(_evidence(search="skipped", similarity=0.76, local_similarity=0.354), s)
+    assert marginal.label == "registered" and not clearly_registered(marginal)
+    clear = judge(_evidence(search="skipped", similarity=0.76, local_similarity=0.6), s)
+    assert clearly_registered(clear)
+    assert not clearly_registered(judge(_evidence(search="skipped", similarity=0.3), s))
+    for bad in (1.0, -0.1, True, float("nan")):
+        with pytest.raises(RegistrationError, match="margin must be a share"):
+            s.stricter(bad)
 
 
 def test_low_similarity_low_tone_fit_and_a_small_field_each_give_a_doubt():

@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import json
 import sys
-from dataclasses import replace
 
 import pytest
 
@@ -21,26 +20,23 @@ ROWS = REPO / "benchmarks" / "verdict_rows"
 
 def test_the_shipped_thresholds_are_the_calibrations_choice():
     """On the 120 calibration registrations with --tools off and the 40 no-grid ones of the same
-    pelvis (calib_off.jsonl), and with the 120 of --tools detect too. Without the no-grid rows no row
-    decides ``sure_similarity`` (the default pipeline runs the grid after all below 0.88), and the
-    tie goes to its strictest value."""
+    pelvis (calib_off.jsonl: judged as --search off, without a floor of the similarity), and with the
+    120 of --tools detect too. No row is of a method without the search, so ``sure_similarity``
+    (its floor) decides none, and the tie goes to its strictest value."""
     rows = bench.load_rows([ROWS / "calib.jsonl", ROWS / "calib_off.jsonl"])
-    assert len(rows) == 160
+    assert len(rows) == 160 and sum(r["evidence"]["search"] == "off" for r in rows) == 40
     chosen, rates = bench.calibrate(rows)
-    assert chosen == VerdictSettings() and chosen.sure_similarity is None
+    assert chosen == VerdictSettings() and chosen.sure_similarity == GlobalSearchSettings.refined_above
     assert rates["false_accepts"] == 0 and rates["accepted"] == pytest.approx((98 + 17) / (106 + 19))
-    no_grid = bench.load_rows([ROWS / "calib_off.jsonl"])
-    r = bench.rates(no_grid, VerdictSettings())
+    r = bench.rates(bench.load_rows([ROWS / "calib_off.jsonl"]), VerdictSettings())
     assert (r["within"], r["off"], r["false_accepts"]) == (19, 21, 0) and r["accepted"] == pytest.approx(17 / 19)
-    floor = bench.rates(no_grid, replace(VerdictSettings(), sure_similarity=GlobalSearchSettings.refined_above))
-    assert floor["accepted"] == pytest.approx(6 / 19)  # the floor it replaces doubted most right no-grid poses
     both = bench.load_rows([ROWS / "calib.jsonl", ROWS / "calib_detect.jsonl", ROWS / "calib_off.jsonl"])
     assert len(both) == 280
     chosen, rates = bench.calibrate(both)
     assert chosen == VerdictSettings()
     assert rates["false_accepts"] == 0 and rates["accepted"] == pytest.approx((98 + 101 + 17) / (106 + 109 + 19))
     chosen, _ = bench.calibrate(bench.load_rows([ROWS / "calib.jsonl"]))
-    assert chosen == replace(VerdictSettings(), sure_similarity=GlobalSearchSettings.refined_above)
+    assert chosen == VerdictSettings()
 
 
 def test_the_default_pipelines_rates_are_the_documented_ones():
