@@ -202,14 +202,16 @@ def _within_last_bits(a, b) -> bool:
 
 
 def _same_pose(a, b) -> bool:
-    """Whether two ``(4, 4)`` poses agree within 0.5 deg and 3 mm: a CMA-ES registration follows
+    """Whether two ``(4, 4)`` poses agree within 1 deg and 3 mm: a CMA-ES registration follows
     another path where a render's last bits differ, and ends within its precision (32 px, 4 mm
-    voxels: 0.1 deg and 1.2 mm apart, mostly in depth, between two CPUs)."""
+    voxels, each end about 1 deg and 5 mm from the truth): 0.1 deg and 1.2 mm apart between two
+    CPUs, 0.57 deg and 0.8 mm between the AMD EPYC the set was made on and an Intel Xeon
+    (2026-11-30, the same at 9d8cff9, before that day's changes)."""
     import numpy as np
 
     from sim.projection.se3 import rotation_error_deg
 
-    return float(rotation_error_deg(a, b)) <= 0.5 and float(np.linalg.norm(a[:3, 3] - b[:3, 3])) <= 3.0
+    return float(rotation_error_deg(a, b)) <= 1.0 and float(np.linalg.norm(a[:3, 3] - b[:3, 3])) <= 3.0
 
 
 def small_differences(outputs: dict, reference: Path = SMALL, *, exact: bool | None = None) -> list[str]:
@@ -217,7 +219,7 @@ def small_differences(outputs: dict, reference: Path = SMALL, *, exact: bool | N
     bit where the set was made on this machine (:func:`machine`, recorded in it; ``exact``
     overrides), else within the last bits (:func:`_within_last_bits`: floating-point arrays within
     0.1 % of their largest value, at most 1 % of their values beyond 1e-5 of it; counts and masks
-    within one count on at most 1 % of their values; the registration's pose within 0.5 deg and 3
+    within one count on at most 1 % of their values; the registration's pose within 1 deg and 3
     mm, :func:`_same_pose`; the training step's hash not compared, its first values are). Another
     CPU rounds a few render values differently (seen: 2 of 2304, 4.8e-7, about 2 float32 ulps),
     which moves a display value by one count here and there downstream."""

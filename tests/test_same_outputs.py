@@ -17,7 +17,7 @@ to the next in their last bits); the set was made three times in separate proces
 training run, and was the same each time, and twice more at once on another machine. On another
 CPU, Dr.Jit's LLVM backend compiles the renders for other vector instructions, which round a few
 values differently (2 of 2304 render values, 4.8e-7; a display value one count off downstream; the
-32 px CMA-ES registration 0.1 deg / 1.2 mm apart): there the set is compared within those last bits
+32 px CMA-ES registration 0.1-0.57 deg / 0.8-1.2 mm apart): there the set is compared within those last bits
 (``small_differences``' rules), and a change of what the code computes still shows.
 """
 
