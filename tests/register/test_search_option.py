@@ -157,6 +157,12 @@ def test_search_auto_skips_the_grid_where_the_verdict_keeps_the_networks_pose_an
     assert kept.search_status == "skipped (the network's pose, refined, judged registered)"
     assert kept.verdict.label == "registered" and len(calls) == 1 and calls[0] is kept.result
     assert record["finalists"][0]["params"] == pytest.approx(np.asarray(kept.result.params).tolist())
+    from sim.projection.geometry import pose_from_params
+    from sim.projection.se3 import rotation_error_deg
+
+    truth = pose_from_params(np.asarray(NEAR, float), kept.geometry.sod_mm)
+    assert rotation_error_deg(kept.pose, truth) < 0.5  # the pose kept is the truth's (a line DRR at 64 px)
+    assert np.linalg.norm(kept.pose[:3, 3] - truth[:3, 3]) < 3.0
     assert kept.to_dict()["search_status"] == kept.search_status
     said = kept.summary()
     assert said.count("skipped") == 1 and said.splitlines()[0] == f"search: {kept.search_status}"  # said once
