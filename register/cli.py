@@ -12,6 +12,7 @@ from __future__ import annotations
 import argparse
 import os
 import sys
+import time
 
 from sim.core.cliargs import HelpFormatter, add_options, from_namespace
 from learn.commands import AccuracyCommand, AdaptCommand, ModelsCommand, TrainCommand, TrainToolsCommand
@@ -74,6 +75,11 @@ def _user_errors() -> tuple[type[BaseException], ...]:
     return (CtxregError, *USER_OS_ERRORS)
 
 
+#: Seconds a torchrun rank other than 0 waits, on an input error, for torchrun to stop it after rank 0
+#: said the same error (see :func:`main`).
+RANK_ERROR_WAIT_S = 10.0
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
@@ -95,8 +101,12 @@ def main(argv: list[str] | None = None) -> int:
     except _user_errors() as e:
         if os.environ.get("CTXREG_DEBUG"):
             raise
-        if os.environ.get("RANK", "0") == "0" or "WORLD_SIZE" not in os.environ:  # under torchrun: rank 0 says it
-            print(f"ctxreg {args.command}: error: {e}", file=sys.stderr)
+        if os.environ.get("RANK", "0") != "0" and "WORLD_SIZE" in os.environ:
+            # Under torchrun every rank meets the same error and rank 0 says it: a rank that ended
+            # first would have torchrun stop rank 0 before it printed, so the others wait for that
+            # stop. An error of this rank alone is said after the wait.
+            time.sleep(RANK_ERROR_WAIT_S)
+        print(f"ctxreg {args.command}: error: {e}", file=sys.stderr)
         return 2
     for path in result if isinstance(result, list) else [result]:
         print(f"wrote {path}")
