@@ -2,7 +2,7 @@
 
 Every user registers X-rays to their own CT. The shipped network learnt one pelvis; on another
 person's it is lost. :func:`adapt` continues a base network (``--from``, default the shipped
-default model) on realistic randomized pairs of the user's CT: the batched pairs
+base made to be adapted, ``pelvis_base``) on realistic randomized pairs of the user's CT: the batched pairs
 (:class:`learn.batched.BatchedPairs`) with the randomization the base model recorded (tube,
 filtration, dose, scatter, collimators, display chains, tools: all of it), rendered from the CT
 and from virtual patients of it (:mod:`sim.ct.patients`: shape and intensity variation around this
@@ -43,7 +43,7 @@ from pathlib import Path
 import numpy as np
 
 from sim.core.errors import InputError
-from learn.shipped import DEFAULT_MODEL, ModelCardError, export_model, resolve_model
+from learn.shipped import DEFAULT_ADAPT_BASE, ModelCardError, export_model, resolve_model
 from sim.core.atomic import atomic_path, folder_lock, read_toml, save_figure, write_json
 from sim.core.outputs import check_output_dir
 from sim.projection.scene import DEFAULT_SCENE
@@ -186,7 +186,7 @@ def adapt(ct: str | os.PathLike, out: str | os.PathLike, *, minutes: float = 10.
         minutes: training time (min, > 0); with ``resume``, more minutes on top of what the run
             has done.
         base: the network to start from: a shipped model's name, a model folder or a checkpoint
-            (default: the shipped default model).
+            (default: :data:`learn.shipped.DEFAULT_ADAPT_BASE`, the shipped base made to be adapted).
         device: ``auto`` (a CUDA GPU when torch sees one), ``cpu`` or ``cuda``.
         resume: continue the run in ``out/run`` (its checkpoint, optimiser and random state).
         settings: :class:`AdaptSettings`.
@@ -235,8 +235,9 @@ def adapt(ct: str | os.PathLike, out: str | os.PathLike, *, minutes: float = 10.
     else:
         if (run / "checkpoint.pt").exists() or record_path.exists():
             raise AdaptError(f"--out {out} already holds an adaptation: --resume continues it, or give another --out")
+        base = DEFAULT_ADAPT_BASE if base is None else base
         base_path = resolve_model(base, flag="--from").resolve()
-        record = {"ct": str(ct), "ct_hash": ct_hash(ct), "base": base or DEFAULT_MODEL,
+        record = {"ct": str(ct), "ct_hash": ct_hash(ct), "base": base,
                   "base_checkpoint": str(base_path), "sessions": [], "before": None}
     base_ckpt = load_checkpoint(base_path)
     if base_ckpt.image_size is None:

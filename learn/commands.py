@@ -6,7 +6,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from sim.core.cliargs import Range, opt
-from learn.shipped import DEFAULT_MODEL, describe_model, describe_models, shipped_models
+from learn.shipped import DEFAULT_ADAPT_BASE, describe_model, describe_models, shipped_models
 from sim.core.atomic import atomic_path, write_json
 from sim.core.outputs import check_output_dir
 from sim.core.seeds import KIND_ACCURACY_PAIRS, rng_for
@@ -82,8 +82,8 @@ class AdaptCommand:
         "training time; with --resume, minutes more", group="run", unit="min", metavar="M",
         bounds=Range(0.0, 24 * 60.0, lo_open=True)))
     from_model: str | None = field(default=None, metadata=opt(
-        "the base network: a shipped model's name (ctxreg models; pelvis_base was made to be adapted), a model "
-        f"folder or a checkpoint (default: {DEFAULT_MODEL})", group="input", flag="--from", metavar="MODEL"))
+        "the base network: a shipped model's name (ctxreg models), a model folder or a checkpoint (default: "
+        f"{DEFAULT_ADAPT_BASE}, the shipped base made to be adapted)", group="input", flag="--from", metavar="MODEL"))
     device: str = field(default="auto", metadata=opt(
         "where the network trains and its pairs are made: auto (a CUDA GPU when torch sees one), cpu or cuda",
         group="run", choices=("auto", "cpu", "cuda")))

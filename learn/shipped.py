@@ -36,7 +36,7 @@ from learn.errors import CheckpointError
 from sim.core.atomic import read_toml, sha256_file
 from sim.core.atomic import write_toml
 
-__all__ = ["MODELS_DIR", "DEFAULT_MODEL", "CARD_SCHEMA", "export_model", "load_card", "check_card",
+__all__ = ["MODELS_DIR", "DEFAULT_MODEL", "DEFAULT_ADAPT_BASE", "CARD_SCHEMA", "export_model", "load_card", "check_card",
            "shipped_models", "resolve_model", "describe_models", "describe_model", "ModelCardError"]
 
 #: The repository's folder of shipped models.
@@ -45,6 +45,10 @@ CARD = "model.toml"
 WEIGHTS = "model.pt"
 #: The shipped model the contextual methods use when no ``--model`` is given.
 DEFAULT_MODEL = "pelvis_xray"
+#: The shipped model ``ctxreg adapt`` starts from when no ``--from`` is given: the base made to be
+#: adapted (the default network continued on pelves of varied shape; docs/training.md, "A base
+#: network made to be adapted").
+DEFAULT_ADAPT_BASE = "pelvis_base"
 
 
 class ModelCardError(CheckpointError):

@@ -11,9 +11,10 @@ The main job of the README, for a newcomer to watch within minutes of installing
 3. **registration** from AP with ``contextual+cmaes`` and the shipped default model (or
    ``--model``), through :func:`register.api.register_xray`, exactly as ``ctxreg register
    --xray xray.dcm`` does; with ``--adapt M`` the clinical flow on a patient the network never
-   saw (the validation pelvis by default): the network adapted to the CT for M minutes
-   (:func:`learn.adapt.adapt`, ``ctxreg adapt``) and the frame registered again with it, both
-   networks' errors shown;
+   saw (the validation pelvis by default): the frame registered with the base network (``--model``,
+   default ``ctxreg adapt``'s base, :data:`learn.shipped.DEFAULT_ADAPT_BASE`), the network adapted
+   from it to the CT for M minutes (:func:`learn.adapt.adapt`, ``ctxreg adapt``) and the frame
+   registered again with it, both networks' errors shown;
 4. **outputs** in ``--out``: ``overlay.png`` and ``checkerboard.png`` at the X-ray's full
    resolution, ``trajectory.gif`` (each iteration's DRR beside the X-ray, captioned with its error
    against the truth), ``trajectory.png``, ``convergence.png``, ``result.json`` (the
@@ -40,7 +41,7 @@ from sim.core.atomic import write_json
 from sim.core.cliargs import IMAGE_SIDE_PX, OptionError, Range, opt
 from sim.projection.geometry import pose_from_params
 from sim.core.outputs import check_output_dir
-from learn.shipped import resolve_model
+from learn.shipped import DEFAULT_ADAPT_BASE, resolve_model
 from sim.ct.anatomy import anatomy_center
 from sim.ct.io import load_ct_spec
 from sim.physics.display import Collimator, DisplayChain
@@ -102,8 +103,8 @@ class DemoCommand:
         "else the built-in phantom", group="input", metavar="PATH|phantom"))
     model: str | None = field(default=None, metadata=opt(
         "the network: a shipped model's name (ctxreg models), a model folder or a ctxreg train checkpoint "
-        "(default: the shipped "
-        "default model)", group="input", metavar="NAME|CKPT"))
+        f"(default: the shipped default model; with --adapt, the base adapted from, {DEFAULT_ADAPT_BASE})",
+        group="input", metavar="NAME|CKPT"))
     pose: tuple[float, float, float, float, float, float] = field(default=DEMO_POSE, metadata=opt(
         "the X-ray's true pose PHI THETA PSI TX TY TZ: the anatomy centre between the source and the detector "
         "and on the detector", group="protocol", unit="deg deg deg mm mm mm", nargs=6,
@@ -200,7 +201,9 @@ def run_demo(cmd: DemoCommand) -> list[Path]:
 
     out = check_output_dir(cmd.out, OUTPUT_FILES + DEMO_FILES)
     check_demo_options(cmd)  # --size and --pose, before the CT is loaded or anything simulated
-    model = resolve_model(cmd.model)  # a bad --model is refused before any work
+    # a bad --model is refused before any work; with --adapt the network adapted from and first registered with
+    base = cmd.model if cmd.model is not None or cmd.adapt is None else DEFAULT_ADAPT_BASE
+    model = resolve_model(base)
     stages = _Stages(4 if cmd.adapt is None else 6)
     ct = _adapt_ct(cmd, out) if cmd.adapt is not None else cmd.ct or default_ct()
     stages.start("load CT", f"loading the CT {ct}")
@@ -234,7 +237,7 @@ def run_demo(cmd: DemoCommand) -> list[Path]:
         again = (folder / "adapt.json").is_file()
         stages.start("adapt", f"adapting the network to {Path(ct).name} for {cmd.adapt:g} min (ctxreg adapt --ct {ct} "
                               f"--out {folder}{' --resume' if again else ''})")
-        adapt(ct, folder, minutes=cmd.adapt, base=cmd.model, resume=again,
+        adapt(ct, folder, minutes=cmd.adapt, base=base, resume=again,
               log=lambda line: print(f"    {line}", file=sys.stderr))
         stages.done(f"{folder}")
         stages.start("register adapted", "registering it again from AP with the adapted network (--model "

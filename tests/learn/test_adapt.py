@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from learn.adapt import ADAPT, AdaptError, adapt, adapted_ct_warning
-from learn.shipped import load_card
+from learn.shipped import DEFAULT_ADAPT_BASE, load_card
 from sim.ct.cache import ct_hash
 from sim.ct.phantom import write_phantom_nifti
 
@@ -44,7 +44,7 @@ def test_the_model_folder_and_its_card(adapted, cts):
     out, lines = adapted
     card = load_card(out)  # checked against its schema and its weights
     a = card["adaptation"]
-    assert a["ct_hash"] == ct_hash(cts[0]) and a["base"] == "pelvis_xray"
+    assert a["ct_hash"] == ct_hash(cts[0]) and a["base"] == DEFAULT_ADAPT_BASE == "pelvis_base"
     assert a["pairs_seen"] == card["training"]["iterations"] * TINY.batch_size > 0
     assert a["curve_columns"] == ["minutes", "pairs", "rotation_deg", "translation_mm"]
     curve = a["curve"]

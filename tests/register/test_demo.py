@@ -116,7 +116,7 @@ def test_the_demo_shows_the_clinical_flow_with_adapt(tmp_path, capsys):
         assert row in text, text
     assert "the adapted network: mTRE" in text and "(the base network before adaptation:" in text
     card = load_card(out / "adapted")
-    assert card["adaptation"]["base"] == "pelvis_xray" and card["adaptation"]["pairs_seen"] > 0
+    assert card["adaptation"]["base"] == "pelvis_base" and card["adaptation"]["pairs_seen"] > 0
     demo = json.loads((out / "demo.json").read_text())
     assert demo["model"] == str(out / "adapted")
     first = card["adaptation"]["pairs_seen"]
