@@ -248,7 +248,8 @@ class RegisterCommand:
         group="pose", metavar="N", bounds=Range(0, 10)))
     search: str = field(default="auto", metadata=opt(
         "the global search of --method contextual+cmaes (a rotation / depth grid over the prior box around "
-        "--init): auto first refines the network's pose as off does and keeps it where the verdict calls it "
+        "--init): auto first refines the network's pose as off does and keeps it where it scores at least "
+        f"{GlobalSearchSettings.refined_above:g} and the verdict calls it "
         "clearly registered (every threshold 10 %% stricter), else runs the grid where the network's pose scores below "
         f"{GlobalSearchSettings.found_above:g} (gradient NCC), else refines the network's pose directly and runs it after all "
         f"where that refinement ends below {GlobalSearchSettings.refined_above:g}; off never builds it: the network's pose goes "

@@ -7,7 +7,8 @@ start, the winner polished.
    (:class:`register.engines.contextual.ContextualRegistration`) from the start pose;
 1b. :meth:`~ContextualPipeline.trusted`: where the caller gives a ``trust`` (``register_xray``: the
    verdict, :mod:`register.verdict`), the network's pose is refined first as without a search
-   (+-:data:`NETWORK_DEPTH_RANGE_MM` in depth) and judged: a pose ``trust`` accepts is the result,
+   (+-:data:`NETWORK_DEPTH_RANGE_MM` in depth) and, where it reaches ``search.refined_above``,
+   judged: a pose ``trust`` accepts is the result,
    the grid skipped (the search record's ``trusted``); otherwise the steps below run as without it;
 2. :meth:`~ContextualPipeline.starts`: the global search (:class:`register.engines.search.GlobalSearch`)
    searches the network's pose locally and keeps it when its similarity reaches
@@ -178,7 +179,9 @@ class ContextualPipeline:
                 toned=None) -> RegistrationResult:
         """Step 1b: the network's pose ``it.params`` refined as without a search
         (:attr:`network_refinement`, scored as the refinement scores this X-ray) and judged by
-        ``trust``. The result's search record says what happened: ``trusted`` (whether ``trust``
+        ``trust`` where it reaches ``search.refined_above`` by that score (below it ``trust`` is not
+        asked, as the search's own skip would run the grid after all, :meth:`grid_after`). The
+        result's search record says what happened: ``trusted`` (whether ``trust``
         accepted it: then the grid is skipped and this is the registration), ``grid_poses`` 0,
         ``start`` ``"given"``, the refined pose as its one finalist, ``found_above`` the search's.
         A pose the search's local step would have accepted is still judged, so that a right pose
@@ -192,7 +195,10 @@ class ContextualPipeline:
                       "grid_render_s": 0.0, "grid_ncc_s": 0.0,
                       "finalists": [{"params": params, "similarity": float(res.similarity), "start": "given"}],
                       "refined": [float(res.similarity)], "chosen": 0, "refined_params": [params]}
-        res.search["trusted"] = bool(trust(res))
+        # below refined_above the search's own skip runs the grid after all (grid_after): the verdict
+        # is not asked to keep such a pose alone (a linear display's pose 78 mm off in depth at 0.859
+        # passed every check, where the grid's pose 45 mm nearer scored the same and was doubted)
+        res.search["trusted"] = bool(res.similarity >= self.search.settings.refined_above and trust(res))
         return res
 
     def rescue(self, fixed, init_params, res: RegistrationResult, *, mask=None, toned=None) -> RegistrationResult:

@@ -191,6 +191,35 @@ def test_a_doubted_network_pose_goes_on_to_the_search_which_may_still_skip_the_g
     assert skipped.search_status == f"skipped (network pose scored {record['given_score']:.2f} >= 0.85)"
 
 
+def test_a_network_pose_refined_below_refined_above_is_not_judged_for_keeping(phantom, monkeypatch):
+    """The trial's refinement of the network's pose ends below refined_above (here forced: 0.8): the
+    verdict is not asked to keep it alone (the search's own skip would run the grid after it), so
+    the steps run as without the trial, and the record says it was not trusted."""
+    from dataclasses import replace
+
+    import register.api
+    from register.api import register_xray
+    from register.engines.pipeline import ContextualPipeline
+
+    real = ContextualPipeline.refine
+    calls, asked = [], []
+
+    def refine(refine_engine, fixed, starts, *, mask=None):
+        out = real(refine_engine, fixed, starts, mask=mask)
+        calls.append(len(starts))
+        if len(calls) == 1:
+            out[0] = replace(out[0], similarity=0.8)
+        return out
+
+    monkeypatch.setattr(ContextualPipeline, "refine", staticmethod(refine))
+    monkeypatch.setattr(register.api._PolarityCheckedRun, "_trust", lambda self, result: asked.append(1) or True)
+    res = register_xray(phantom[0], xray_at(phantom, NEAR), model=null_network, center=phantom[1], size=(64, 64))
+    record = res.result.search
+    assert not asked and record["trusted"] is False and record["trust_similarity"] == 0.8
+    assert res.search_status != "skipped (the network's pose, refined, judged registered)"
+    assert any(k.startswith("trust_cmaes_") for k in res.result.stage_seconds)
+
+
 def test_a_network_pose_that_ends_below_refined_above_after_refinement_runs_the_grid(phantom, monkeypatch):
     """The verdict doubts the network's pose (here forced), its local search scores found_above (grid
     skipped), but its refinement ends below refined_above (here forced: that refinement reports
