@@ -191,27 +191,36 @@ def test_a_doubted_network_pose_goes_on_to_the_search_which_may_still_skip_the_g
     assert skipped.search_status == f"skipped (network pose scored {record['given_score']:.2f} >= 0.85)"
 
 
-def test_a_network_pose_refined_below_refined_above_is_not_judged_for_keeping(phantom, monkeypatch):
-    """The trial's refinement of the network's pose ends below refined_above (here forced: 0.8): the
-    verdict is not asked to keep it alone (the search's own skip would run the grid after it), so
-    the steps run as without the trial, and the record says it was not trusted."""
+def _refinement_reports(monkeypatch, call: int, similarity: float) -> list[int]:
+    """Make the pipeline's ``call``-th refinement (1-based) report ``similarity``; returns the list
+    that gets each refinement's number of starts."""
     from dataclasses import replace
 
-    import register.api
-    from register.api import register_xray
     from register.engines.pipeline import ContextualPipeline
 
     real = ContextualPipeline.refine
-    calls, asked = [], []
+    calls: list[int] = []
 
     def refine(refine_engine, fixed, starts, *, mask=None):
         out = real(refine_engine, fixed, starts, mask=mask)
         calls.append(len(starts))
-        if len(calls) == 1:
-            out[0] = replace(out[0], similarity=0.8)
+        if len(calls) == call:
+            out[0] = replace(out[0], similarity=similarity)
         return out
 
     monkeypatch.setattr(ContextualPipeline, "refine", staticmethod(refine))
+    return calls
+
+
+def test_a_network_pose_refined_below_refined_above_is_not_judged_for_keeping(phantom, monkeypatch):
+    """The trial's refinement of the network's pose ends below refined_above (here forced: 0.8): the
+    verdict is not asked to keep it alone (the search's own skip would run the grid after it), so
+    the steps run as without the trial, and the record says it was not trusted."""
+    import register.api
+    from register.api import register_xray
+
+    asked = []
+    _refinement_reports(monkeypatch, 1, 0.8)
     monkeypatch.setattr(register.api._PolarityCheckedRun, "_trust", lambda self, result: asked.append(1) or True)
     res = register_xray(phantom[0], xray_at(phantom, NEAR), model=null_network, center=phantom[1], size=(64, 64))
     record = res.result.search
@@ -225,23 +234,10 @@ def test_a_network_pose_that_ends_below_refined_above_after_refinement_runs_the_
     skipped), but its refinement ends below refined_above (here forced: that refinement reports
     0.5): the grid runs after all, from the refined pose, its finalists refined; the record says
     why, and the first refinements' seconds count."""
-    from dataclasses import replace
-
     import register.api
-    from register.engines.pipeline import ContextualPipeline
     from register.engines.search import describe_search
 
-    real = ContextualPipeline.refine
-    calls = []
-
-    def refine(refine_engine, fixed, starts, *, mask=None):
-        out = real(refine_engine, fixed, starts, mask=mask)
-        calls.append(len(starts))
-        if len(calls) == 2:
-            out[0] = replace(out[0], similarity=0.5)
-        return out
-
-    monkeypatch.setattr(ContextualPipeline, "refine", staticmethod(refine))
+    calls = _refinement_reports(monkeypatch, 2, 0.5)
     monkeypatch.setattr(register.api._PolarityCheckedRun, "_trust", lambda self, result: False)
     res = register_drr(phantom, NEAR, search="auto")
     record = res.result.search
