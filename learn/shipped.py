@@ -289,7 +289,7 @@ def _headline(table: dict[str, Any]) -> str:
 
 def describe_models(root: str | Path = MODELS_DIR, width: int = 100) -> str:
     """The shipped models as ``ctxreg models`` prints them, a short block each, lines at most
-    ``width`` characters: name (and whether it is the default), image size, preprocessing and
+    ``width`` characters: name (and whether it is the default, or ``ctxreg adapt``'s), image size, preprocessing and
     backbone, what it was trained on in a phrase, and the network's own headline accuracy."""
     import textwrap
 
@@ -299,7 +299,8 @@ def describe_models(root: str | Path = MODELS_DIR, width: int = 100) -> str:
         m, t, acc = card["model"], card["training"], card["accuracy"]
         size = " x ".join(str(v) for v in m["image_size"])
         pre = ", ".join(p if isinstance(p, str) else str(p.get("name")) for p in m["preprocess"]) or "none"
-        lines = [f"{name}{'  (default)' if name == DEFAULT_MODEL else ''}: {m['summary']}",
+        role = {DEFAULT_MODEL: "  (default)", DEFAULT_ADAPT_BASE: "  (ctxreg adapt's default base)"}.get(name, "")
+        lines = [f"{name}{role}: {m['summary']}",
                  f"image {size} px, preprocessing {pre}, backbone {m['backbone']}",
                  f"trained on {t['trained_on']}"]
         lines += [f"alone: {_headline(acc[h])}" for h in acc["headline"]]

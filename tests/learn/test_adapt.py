@@ -129,3 +129,10 @@ def test_a_frozen_base_backbone_stays_frozen_in_the_adaptation(tmp_path):
                                                                           backbone_lr_scale=0.2))
         assert cfg.freeze_backbone is frozen and cfg.train_backbone_from == ("block11" if frozen else None)
         assert cfg.backbone_lr_scale == 0.2
+
+
+def test_ctxreg_models_names_the_base_adapt_starts_from():
+    from learn.shipped import DEFAULT_MODEL, describe_models
+
+    text = describe_models()
+    assert f"{DEFAULT_ADAPT_BASE}  (ctxreg adapt's default base):" in text and f"{DEFAULT_MODEL}  (default):" in text
