@@ -37,6 +37,8 @@ agree to the tolerance stated in ``tests/sim/test_raymarch.py``; on a CPU the Si
 
 from __future__ import annotations
 
+import dataclasses
+import zipfile
 from pathlib import Path
 
 import numpy as np
@@ -56,6 +58,8 @@ from sim.projection.raymarch import TorchVolumes, volumes_for
 from sim.projection.scene import load_scene
 from sim.randomize import TOOL_BANK_SIZE, ToolBank, draw_tensors
 from sim.core.atomic import atomic_path
+from sim.core.build_cache import cached
+from sim.physics import PhysicsError
 from sim.physics.scatter_kernel import detector_gap_mm
 
 __all__ = ["BatchedPairs", "NOISE_STREAM_QUANTUM", "NOISE_STREAM_ELECTRONIC", "NOISE_STREAM_SCATTER", "tool_arrangements", "tool_looks"]
@@ -64,6 +68,10 @@ __all__ = ["BatchedPairs", "NOISE_STREAM_QUANTUM", "NOISE_STREAM_ELECTRONIC", "N
 NOISE_STREAM_QUANTUM = 1
 NOISE_STREAM_ELECTRONIC = 2
 NOISE_STREAM_SCATTER = 3
+
+#: The code the spectral table and the tool bank are built by: part of their key in the build cache
+#: (:mod:`sim.core.build_cache`), so that no run reads what older code built.
+BUILT_BY = (str(Path(__file__).resolve().parents[1] / "sim"), str(Path(__file__).resolve().parent))
 
 
 def tool_arrangements(bank, names: tuple[str, ...]) -> np.ndarray:
@@ -81,6 +89,27 @@ def tool_arrangements(bank, names: tuple[str, ...]) -> np.ndarray:
             dens[names.index(material)] += chords[c] * float(rho) / 10.0  # mm x g/cm^3 -> g/cm^2
         out.append(dens)
     return np.stack(out)
+
+
+def _write_tool_bank(arrangements: np.ndarray, path: Path) -> None:
+    """Write :func:`tool_arrangements`'s array to ``path`` (compressed ``.npz``, atomically)."""
+    with atomic_path(path) as tmp:
+        with open(tmp, "wb") as f:
+            np.savez_compressed(f, density=arrangements)
+
+
+def _read_tool_bank(path: Path, shape: tuple[int, int, int]) -> np.ndarray:
+    """:func:`_write_tool_bank`'s array, refused in one line where damaged or of another ``shape``
+    ``(channels, H, W)``."""
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            arrangements = np.asarray(z["density"], np.float32)
+    except (OSError, KeyError, ValueError, EOFError, zipfile.BadZipFile) as e:
+        raise OnlinePairsError(f"tool bank {path} cannot be read ({e}): remove it to rebuild") from None
+    if arrangements.ndim != 4 or arrangements.shape[1:] != tuple(shape):
+        raise OnlinePairsError(f"tool bank {path} holds {arrangements.shape[1:]} (channels, rows, columns), this run "
+                               f"needs {tuple(shape)}: remove it to rebuild")
+    return arrangements
 
 
 def tool_looks(arrangements: np.ndarray) -> torch.Tensor:
@@ -169,14 +198,16 @@ class BatchedPairs(OnlinePairs):
         self._tools = self._tool_bank().to(self.device)
 
     def _table(self):
-        if self.tables is None:
-            return SpectralTable.for_randomization(self.randomization)
-        path = self.tables / "pair_tables.npz"
-        if path.exists():  # a draw outside it is refused by SpectralTable.index, naming the setting
+        path = None if self.tables is None else self.tables / "pair_tables.npz"
+        if path is not None and path.exists():  # a draw outside it is refused by SpectralTable.index, naming the setting
             return SpectralTable.load(path)
-        path.parent.mkdir(parents=True, exist_ok=True)
-        table = SpectralTable.for_randomization(self.randomization)
-        table.save(path)
+        table = cached("pair_tables", SpectralTable.grid_for(self.randomization),
+                       build=lambda: SpectralTable.for_randomization(self.randomization),
+                       save=lambda t, entry: t.save(entry), load=SpectralTable.load, errors=(PhysicsError,),
+                       code=BUILT_BY)
+        if path is not None:  # the run's own copy: what it trained with, for a machine without spekpy
+            path.parent.mkdir(parents=True, exist_ok=True)
+            table.save(path)
         return table
 
     def _tool_bank(self) -> torch.Tensor:
@@ -185,22 +216,16 @@ class BatchedPairs(OnlinePairs):
         if self.tables is not None:
             path = self.tables / f"tool_bank_seed{self.seed}_{h}x{w}.npz"
             if path.exists():
-                try:
-                    with np.load(path, allow_pickle=False) as z:
-                        arrangements = np.asarray(z["density"], np.float32)
-                except (OSError, KeyError, ValueError) as e:
-                    raise OnlinePairsError(f"tool bank {path} cannot be read ({e}): remove it to rebuild") from None
-                if arrangements.shape[1:] != (len(TOOL_CHANNELS), h, w):
-                    raise OnlinePairsError(f"tool bank {path} holds {arrangements.shape[1:]} (channels, rows, "
-                                           f"columns), this run needs {(len(TOOL_CHANNELS), h, w)}: remove it to "
-                                           f"rebuild")
-                return tool_looks(arrangements)
-        arrangements = tool_arrangements(ToolBank(self.seed, self.geometry, scene=self.cfg.scene.name), TOOL_CHANNELS)
+                return tool_looks(_read_tool_bank(path, (len(TOOL_CHANNELS), h, w)))
+        settings = {"seed": self.seed, "scene": self.cfg.scene.name, "channels": list(TOOL_CHANNELS),
+                    "geometry": dataclasses.asdict(self.geometry)}
+        arrangements = cached(
+            "tool_bank", settings, code=BUILT_BY, errors=(OnlinePairsError,),
+            build=lambda: tool_arrangements(ToolBank(self.seed, self.geometry, scene=self.cfg.scene.name), TOOL_CHANNELS),
+            save=_write_tool_bank, load=lambda entry: _read_tool_bank(entry, (len(TOOL_CHANNELS), h, w)))
         if path is not None:
             path.parent.mkdir(parents=True, exist_ok=True)
-            with atomic_path(path) as tmp:
-                with open(tmp, "wb") as f:
-                    np.savez_compressed(f, density=arrangements)
+            _write_tool_bank(arrangements, path)
         return tool_looks(arrangements)
 
     def cache_tables(self) -> None:

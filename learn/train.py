@@ -175,9 +175,10 @@ class TrainConfig:
             the 9-material render and numpy post-processing pair by pair) or ``"batched"``
             (:class:`learn.batched.BatchedPairs`: the two-basis model and every image stage batched
             in torch, on the training device: the way to train on a GPU). ``tone = "ct"`` is
-            per-pair only. The batched pairs' spectral table and tool bank are cached in
+            per-pair only. The batched pairs' spectral table and tool bank are kept in
             ``<out>/tables`` (built once with spekpy, xraylib and Mitsuba; a GPU machine without
-            them reads the cache).
+            them reads them there), and in the machine's build cache for the next run of the
+            same settings (:mod:`sim.core.build_cache`).
         framing: with ``pairs = "batched"``: ``"field"`` (default) or ``"detector"``
             (:data:`learn.online.FRAMINGS`): the pair cropped to the target's field, or the whole
             detector with the field masked; registration frames the X-ray the same way for the

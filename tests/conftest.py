@@ -65,6 +65,21 @@ def private_ct_cache(tmp_path_factory):
         os.environ["CTXREG_CT_CACHE"] = before
 
 
+@pytest.fixture(scope="session", autouse=True)
+def private_build_cache(tmp_path_factory):
+    """The build cache (sim.core.build_cache: spectral tables, tool banks) of the tests: one folder
+    for the session, never the user's; tests of the cache itself give their own folder."""
+    import os
+
+    before = os.environ.get("CTXREG_BUILD_CACHE")
+    os.environ["CTXREG_BUILD_CACHE"] = str(tmp_path_factory.mktemp("build_cache"))
+    yield Path(os.environ["CTXREG_BUILD_CACHE"])
+    if before is None:
+        os.environ.pop("CTXREG_BUILD_CACHE", None)
+    else:
+        os.environ["CTXREG_BUILD_CACHE"] = before
+
+
 @pytest.fixture(scope="session")
 def pelvis_ct_path() -> Path:
     return shared_file("ct/pelvis_abdomen_3mm.nii.gz")

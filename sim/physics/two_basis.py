@@ -175,11 +175,18 @@ class SpectralTable:
                    np.asarray(inter), (float(det.thickness_mm), str(det.mode)), angle, bins,
                    basis_matrix(TISSUE_DECOMPOSITION.names))
 
+    @staticmethod
+    def grid_for(randomization) -> dict[str, list[float]]:
+        """``{"kvp": [...], "al_mm": [...], "cu_mm": [...]}``: every kV, Al mm and Cu mm a
+        :class:`sim.randomize.DomainRandomization` can draw (all that its table depends on)."""
+        s = randomization.by_name
+        return {name: _discrete_values(s[name]) for name in ("kvp", "al_mm", "cu_mm")}
+
     @classmethod
     def for_randomization(cls, randomization, **kw) -> "SpectralTable":
         """The table of every (kV, Al, Cu) a :class:`sim.randomize.DomainRandomization` can draw."""
-        s = randomization.by_name
-        return cls.build(_discrete_values(s["kvp"]), _discrete_values(s["al_mm"]), _discrete_values(s["cu_mm"]), **kw)
+        grid = cls.grid_for(randomization)
+        return cls.build(grid["kvp"], grid["al_mm"], grid["cu_mm"], **kw)
 
     def index(self, kvp, al_mm, cu_mm) -> np.ndarray:
         """``(B,)`` row of each ``(kvp, al_mm, cu_mm)``; refused when one is not in the table."""
