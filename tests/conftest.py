@@ -51,33 +51,31 @@ def shared_file(relative: str) -> Path:
     return path
 
 
+def _private_folder(tmp_path_factory, variable: str, name: str):
+    """Set the environment ``variable`` to a new folder ``name`` of the session (subprocesses
+    inherit it) for the session, then put back what was there."""
+    import os
+
+    before = os.environ.get(variable)
+    os.environ[variable] = str(tmp_path_factory.mktemp(name))
+    yield Path(os.environ[variable])
+    if before is None:
+        os.environ.pop(variable, None)
+    else:
+        os.environ[variable] = before
+
+
 @pytest.fixture(scope="session", autouse=True)
 def private_ct_cache(tmp_path_factory):
     """The CT cache (sim.ct.cache) of the tests: a folder of their own, never the user's."""
-    import os
-
-    before = os.environ.get("CTXREG_CT_CACHE")
-    os.environ["CTXREG_CT_CACHE"] = str(tmp_path_factory.mktemp("ct_cache"))
-    yield Path(os.environ["CTXREG_CT_CACHE"])
-    if before is None:
-        os.environ.pop("CTXREG_CT_CACHE", None)
-    else:
-        os.environ["CTXREG_CT_CACHE"] = before
+    yield from _private_folder(tmp_path_factory, "CTXREG_CT_CACHE", "ct_cache")
 
 
 @pytest.fixture(scope="session", autouse=True)
 def private_build_cache(tmp_path_factory):
     """The build cache (sim.core.build_cache: spectral tables, tool banks) of the tests: one folder
     for the session, never the user's; tests of the cache itself give their own folder."""
-    import os
-
-    before = os.environ.get("CTXREG_BUILD_CACHE")
-    os.environ["CTXREG_BUILD_CACHE"] = str(tmp_path_factory.mktemp("build_cache"))
-    yield Path(os.environ["CTXREG_BUILD_CACHE"])
-    if before is None:
-        os.environ.pop("CTXREG_BUILD_CACHE", None)
-    else:
-        os.environ["CTXREG_BUILD_CACHE"] = before
+    yield from _private_folder(tmp_path_factory, "CTXREG_BUILD_CACHE", "build_cache")
 
 
 @pytest.fixture(scope="session")
