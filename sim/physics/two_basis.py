@@ -32,6 +32,7 @@ device (:class:`TorchImager`): the expected signal and its quantum-noise varianc
 from __future__ import annotations
 
 import math
+import zipfile
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -228,7 +229,7 @@ class SpectralTable:
                 arrays = {k: np.asarray(z[k]) for k in cls._ARRAYS}
                 extra = dict(detector=(float(z["detector_mm"]), str(z["detector_mode"])),
                              anode_angle_deg=float(z["anode_angle_deg"]), bins=int(z["bins"]))
-        except (OSError, KeyError, ValueError) as e:
+        except (OSError, KeyError, ValueError, EOFError, zipfile.BadZipFile) as e:  # truncated: BadZipFile
             raise PhysicsError(f"spectral table {path} cannot be read ({e}): remove it to rebuild") from None
         c, e = arrays["fluence"].shape
         if (arrays["mass_att"].shape != (c, len(cls.channels), e) or arrays["settings"].shape != (c, 3)

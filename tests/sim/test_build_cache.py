@@ -118,3 +118,17 @@ def test_only_the_least_recently_used_entries_of_a_kind_go(tmp_path, monkeypatch
     kept = {p.stem[6:] for p in tmp_path.glob("table-*.npz") if p != foreign}
     assert kept == {bc.entry_key("table", {"k": k}) for k in (1, 3)}
     assert foreign.exists() and len(list(tmp_path.glob("other-*.npz"))) == 1
+
+
+def test_a_truncated_spectral_table_is_refused_in_one_line(tmp_path):
+    """A table cut short (a zip without its end, as a full disk leaves one) is the loader's one-line
+    error, which the build cache takes as a damaged entry to build again."""
+    from sim.physics import PhysicsError
+    from sim.physics.two_basis import SpectralTable
+
+    table = SpectralTable.build([80.0], [2.5], [0.0])
+    path = table.save(tmp_path / "t.npz")
+    np.testing.assert_array_equal(SpectralTable.load(path).fluence, table.fluence)
+    path.write_bytes(path.read_bytes()[: path.stat().st_size // 2])
+    with pytest.raises(PhysicsError, match="cannot be read"):
+        SpectralTable.load(path)
