@@ -259,7 +259,7 @@ def adapt(ct: str | os.PathLike, out: str | os.PathLike, *, minutes: float = 10.
 
         if record.get("before") is None:  # the base network on this CT's held-out poses: the curve's start
             log(f"adapt: the base network {record['base']} on {settings.val_pairs} held-out poses of {ct.name} ...")
-            row = validate_checkpoint(cfg, base_path, device=str(dev))
+            row = validate_checkpoint(cfg, base_path, device=str(dev), log=lambda line: log(f"adapt: {line}"))
             record["before"] = {"rotation_deg": float(row["val_rot_err_deg"]), "translation_mm": float(row["val_trans_err_mm"])}
             log(f"adapt: before adaptation: rotation {row['val_rot_err_deg']:.2f} deg, translation "
                 f"{row['val_trans_err_mm']:.1f} mm (single predictions)")

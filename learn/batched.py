@@ -142,12 +142,15 @@ class BatchedPairs(OnlinePairs):
         device: torch device of the rendering and the returned tensors (default CPU).
         tables: a folder for the cached spectral table and tool bank (``pair_tables.npz``,
             ``tool_bank_seed<seed>_<H>x<W>.npz``): built once where spekpy, xraylib and Mitsuba are at hand, then
-            read on a machine without them (a GPU machine). None: built in memory.
+            read on a machine without them (a GPU machine). None: no copy of the run's own. Either way
+            a build goes through the machine's build cache (:mod:`sim.core.build_cache`).
         framing: ``"field"`` (default: both images cropped to the target's field and resampled, as
             registration shows them to the network today) or ``"detector"`` (the whole detector,
             the field masked; :data:`learn.online.FRAMINGS`).
         step_fraction: the trilinear ray march's step on a GPU, a fraction of the smallest voxel
             spacing (default 1: against Siddon it does as well as 0.5, ``tests/sim/test_raymarch.py``).
+        log: called with a line where the spectral table or the tool bank is built (seconds of
+            work once per machine) or the build cache refuses an entry (default: silence).
 
     ``batch(k, n)`` -> ``target (n, 1, H, W)``, ``current (n, 1, H, W)`` float32 on ``device``
     and the normalised label ``(n, 6)`` float32 on ``device``.
@@ -156,7 +159,7 @@ class BatchedPairs(OnlinePairs):
     def __init__(self, cfg, split: str, *, randomization, near: NearPairs | None = None, transform=None,
                  normalizer: LabelNormalizer | None = None, seed: int = 0, subjects_per_batch: int | None = None,
                  current_field: str = "masked", device="cpu", tables=None, step_fraction: float = 1.0,
-                 framing: str = "field"):
+                 framing: str = "field", log=None):
         super().__init__(cfg, split, near=near, transform=transform, normalizer=normalizer, seed=seed,
                          subjects_per_batch=subjects_per_batch, current_field=current_field)
         if randomization is None:
@@ -173,6 +176,7 @@ class BatchedPairs(OnlinePairs):
         self.device = torch.device(device)
         self.tables = None if tables is None else Path(tables)
         self.step_fraction = step_fraction
+        self.log = log or (lambda line: None)  # a line where the spectral table or tool bank is built
 
         h, w = cfg.scene.size
         self.geometry = load_scene(cfg.scene.name).geometry_at(h, w)
@@ -201,10 +205,15 @@ class BatchedPairs(OnlinePairs):
         path = None if self.tables is None else self.tables / "pair_tables.npz"
         if path is not None and path.exists():  # a draw outside it is refused by SpectralTable.index, naming the setting
             return SpectralTable.load(path)
-        table = cached("pair_tables", SpectralTable.grid_for(self.randomization),
-                       build=lambda: SpectralTable.for_randomization(self.randomization),
-                       save=lambda t, entry: t.save(entry), load=SpectralTable.load, errors=(PhysicsError,),
-                       code=BUILT_BY)
+        grid = SpectralTable.grid_for(self.randomization)
+
+        def build():
+            n = len(grid["kvp"]) * len(grid["al_mm"]) * len(grid["cu_mm"])
+            self.log(f"building the pairs' spectral table ({n} tube settings: spekpy, xraylib), once on this machine "
+                     f"(then from the build cache)")
+            return SpectralTable.for_randomization(self.randomization)
+        table = cached("pair_tables", grid, build=build, save=lambda t, entry: t.save(entry), load=SpectralTable.load,
+                       errors=(PhysicsError,), code=BUILT_BY, log=self.log)
         if path is not None:  # the run's own copy: what it trained with, for a machine without spekpy
             path.parent.mkdir(parents=True, exist_ok=True)
             table.save(path)
@@ -219,10 +228,14 @@ class BatchedPairs(OnlinePairs):
                 return tool_looks(_read_tool_bank(path, (len(TOOL_CHANNELS), h, w)))
         settings = {"seed": self.seed, "scene": self.cfg.scene.name, "channels": list(TOOL_CHANNELS),
                     "geometry": dataclasses.asdict(self.geometry)}
-        arrangements = cached(
-            "tool_bank", settings, code=BUILT_BY, errors=(OnlinePairsError,),
-            build=lambda: tool_arrangements(ToolBank(self.seed, self.geometry, scene=self.cfg.scene.name), TOOL_CHANNELS),
-            save=_write_tool_bank, load=lambda entry: _read_tool_bank(entry, (len(TOOL_CHANNELS), h, w)))
+
+        def build():
+            self.log(f"tracing the tool bank ({TOOL_BANK_SIZE} arrangements of metal tools at {h} x {w} px, seed "
+                     f"{self.seed}: Mitsuba), once on this machine (then from the build cache)")
+            return tool_arrangements(ToolBank(self.seed, self.geometry, scene=self.cfg.scene.name), TOOL_CHANNELS)
+        arrangements = cached("tool_bank", settings, build=build, save=_write_tool_bank,
+                              load=lambda entry: _read_tool_bank(entry, (len(TOOL_CHANNELS), h, w)),
+                              errors=(OnlinePairsError,), code=BUILT_BY, log=self.log)
         if path is not None:
             path.parent.mkdir(parents=True, exist_ok=True)
             _write_tool_bank(arrangements, path)

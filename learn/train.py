@@ -679,7 +679,7 @@ def train(cfg: TrainConfig, *, resume: bool = False, log=print, device: str = "a
         init = _init_checkpoint(cfg) if cfg.init_from and resumed is None else None
         torch.manual_seed(cfg.seed)
         np.random.seed(cfg.seed)
-        source = _OnlineSource(cfg, device) if cfg.online else None if cfg.cache_features else _CampaignSource(cfg)
+        source = _OnlineSource(cfg, device, log=log) if cfg.online else None if cfg.cache_features else _CampaignSource(cfg)
         model = pose_update_net(backbone=cfg.backbone,
                                 weights=Weights.IMAGENET_LOCAL if cfg.weights == "imagenet_local" else Weights.NONE,
                                 weights_path=cfg.weights_path, freeze_backbone=cfg.freeze_backbone,
@@ -997,7 +997,7 @@ class _CachedSource(_CampaignSource):
 class _OnlineSource:
     """Pairs rendered on the fly from a campaign file (:class:`learn.online.OnlinePairs`)."""
 
-    def __init__(self, cfg: TrainConfig, device=None):
+    def __init__(self, cfg: TrainConfig, device=None, log=None):
         self.cfg = cfg
         try:
             campaign = load_campaign(cfg.dataset)
@@ -1020,7 +1020,7 @@ class _OnlineSource:
                   "tone": cfg.tone}
             if cfg.pairs == "batched":
                 del kw["physics"], kw["current_physics"], kw["tone"]
-                kw.update(device=device or "cpu", tables=Path(cfg.out) / "tables", framing=cfg.framing)
+                kw.update(device=device or "cpu", tables=Path(cfg.out) / "tables", framing=cfg.framing, log=log)
                 self.train = BatchedPairs(campaign, "train", seed=cfg.seed, subjects_per_batch=cfg.subjects_per_batch,
                                           **kw)
                 self.val = BatchedPairs(campaign, val_split, seed=cfg.seed + 1, **kw)
@@ -1087,13 +1087,14 @@ def _loss(output, label, cfg: TrainConfig):
 
 
 @torch.no_grad()
-def validate_checkpoint(cfg: TrainConfig, checkpoint: str | os.PathLike, *, device: str = "cpu") -> dict:
+def validate_checkpoint(cfg: TrainConfig, checkpoint: str | os.PathLike, *, device: str = "cpu", log=None) -> dict:
     """A checkpoint's weights on ``cfg``'s validation pairs, as training logs them: the row of
     ``log.csv`` (``val_loss``, ``val_rot_err_deg``, ``val_trans_err_mm``, the groups' and the AP
     start's columns) without the training columns. ``cfg`` must draw its pairs online (its
     validation pairs are a function of its config: the same for any checkpoint); the checkpoint's
     backbone and head must be ``cfg``'s. Compares networks on one set of pairs (e.g. two
-    randomizations' runs on each other's validation pairs: ``benchmarks/validate_checkpoints.py``)."""
+    randomizations' runs on each other's validation pairs: ``benchmarks/validate_checkpoints.py``).
+    ``log``: called with a line where the pairs' tables are built (default: silence)."""
 
     if not cfg.online:
         raise TrainConfigError("validate_checkpoint: the config must draw its pairs online (train.pairs)")
@@ -1103,7 +1104,7 @@ def validate_checkpoint(cfg: TrainConfig, checkpoint: str | os.PathLike, *, devi
     model = pose_update_net(backbone=cfg.backbone, weights=Weights.NONE, head_channels=cfg.head_channels)
     load_weights(model, state.model_state, source=f"checkpoint {path}")
     model.to(dev)
-    source = _OnlineSource(cfg, dev)
+    source = _OnlineSource(cfg, dev, log=log)
     try:
         with torch.no_grad():
             return _validate(model, source, cfg, dev)

@@ -331,15 +331,18 @@ def test_a_new_run_folder_reads_the_build_cache_instead_of_building(campaign, tm
 
     monkeypatch.setenv("CTXREG_BUILD_CACHE", str(tmp_path / "cache"))
     r = DomainRandomization.from_table(TABLE)
-    first = lb.BatchedPairs(campaign, "train", seed=3, randomization=r, tables=tmp_path / "a")
+    lines = []
+    first = lb.BatchedPairs(campaign, "train", seed=3, randomization=r, tables=tmp_path / "a", log=lines.append)
     first.cache_tables()
+    assert [line.split(" (")[0] for line in lines] == ["building the pairs' spectral table", "tracing the tool bank"]
 
     def never(*a, **k):
         raise AssertionError("built again")
     monkeypatch.setattr(SpectralTable, "for_randomization", classmethod(never))
     monkeypatch.setattr(lb, "tool_arrangements", never)
-    again = lb.BatchedPairs(campaign, "train", seed=3, randomization=r, tables=tmp_path / "b")
+    again = lb.BatchedPairs(campaign, "train", seed=3, randomization=r, tables=tmp_path / "b", log=lines.append)
     again.cache_tables()
+    assert len(lines) == 2  # read, not built: nothing to say
     for name in ("pair_tables.npz", "tool_bank_seed3_64x64.npz"):  # the arrays, not the bytes (zip times)
         with np.load(tmp_path / "a" / name) as a, np.load(tmp_path / "b" / name) as b:
             assert sorted(a.files) == sorted(b.files)
